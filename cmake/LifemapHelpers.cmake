@@ -1,0 +1,50 @@
+# Small helpers so every lifemap target gets the same flags (Abseil-style).
+#
+#   lifemap_library(NAME core_common SRCS a.cc b.cc DEPS PUBLIC x PRIVATE y)
+#   lifemap_executable(NAME lifemapd SRCS main.cc DEPS ...)
+#   lifemap_test(NAME core_common_test SRCS a_test.cc DEPS core_common)
+
+set(LIFEMAP_WARNINGS -Wall -Wextra -Wpedantic -Wshadow -Wnon-virtual-dtor -Wold-style-cast
+                     -Wcast-align -Woverloaded-virtual -Wnull-dereference -Wformat=2)
+if(LIFEMAP_WERROR)
+  list(APPEND LIFEMAP_WARNINGS -Werror)
+endif()
+
+function(_lifemap_apply_common target)
+  target_compile_options(${target} PRIVATE ${LIFEMAP_WARNINGS})
+  target_include_directories(${target} PUBLIC ${PROJECT_SOURCE_DIR})
+endfunction()
+
+function(lifemap_library)
+  cmake_parse_arguments(L "" "NAME" "SRCS;PUBLIC_DEPS;PRIVATE_DEPS" ${ARGN})
+  add_library(${L_NAME} STATIC ${L_SRCS})
+  _lifemap_apply_common(${L_NAME})
+  target_link_libraries(${L_NAME} PUBLIC ${L_PUBLIC_DEPS} PRIVATE ${L_PRIVATE_DEPS})
+endfunction()
+
+function(lifemap_executable)
+  cmake_parse_arguments(L "" "NAME;OUTPUT_NAME" "SRCS;DEPS" ${ARGN})
+  add_executable(${L_NAME} ${L_SRCS})
+  _lifemap_apply_common(${L_NAME})
+  target_link_libraries(${L_NAME} PRIVATE ${L_DEPS})
+  if(L_OUTPUT_NAME)
+    set_target_properties(${L_NAME} PROPERTIES OUTPUT_NAME ${L_OUTPUT_NAME})
+  endif()
+  set_target_properties(${L_NAME} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/bin)
+endfunction()
+
+# A GoogleTest binary; its tests are registered with CTest one by one. LABELS lets CTest select
+# unit / integration / e2e suites (ctest -L unit).
+function(lifemap_test)
+  cmake_parse_arguments(L "" "NAME;LABEL" "SRCS;DEPS" ${ARGN})
+  add_executable(${L_NAME} ${L_SRCS})
+  _lifemap_apply_common(${L_NAME})
+  target_link_libraries(${L_NAME} PRIVATE ${L_DEPS} GTest::gtest GTest::gmock GTest::gtest_main)
+  target_compile_definitions(${L_NAME} PRIVATE
+    LIFEMAP_SOURCE_DIR="${PROJECT_SOURCE_DIR}"
+    LIFEMAP_BINARY_DIR="${PROJECT_BINARY_DIR}")
+  if(NOT L_LABEL)
+    set(L_LABEL unit)
+  endif()
+  gtest_discover_tests(${L_NAME} PROPERTIES LABELS ${L_LABEL} DISCOVERY_TIMEOUT 60)
+endfunction()

@@ -1,0 +1,74 @@
+#include "core/common/rgbd_frame.h"
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap {
+
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
+  if (!std::isfinite(in.timestamp_s) || in.timestamp_s <= 0.0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "timestamp_s must be a positive number of seconds since the Unix epoch, got ",
+        in.timestamp_s));
+  }
+  if (auto s = in.intrinsics.Validate(); !s.ok()) return s;
+
+  EncodedDepth depth = in.depth;
+  depth.width = in.intrinsics.width;
+  depth.height = in.intrinsics.height;
+  if (in.depth.width != 0 || in.depth.height != 0) {
+    if (in.depth.width != depth.width || in.depth.height != depth.height) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "depth is declared ", in.depth.width, "x", in.depth.height, " but the intrinsics say ",
+          depth.width, "x", depth.height, "; depth must be registered to the colour camera"));
+    }
+  }
+  EncodedColor color = in.color;
+  color.width = in.intrinsics.width;
+  color.height = in.intrinsics.height;
+  if (in.color.width != 0 || in.color.height != 0) {
+    if (in.color.width != color.width || in.color.height != color.height) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "colour is declared ", in.color.width, "x", in.color.height,
+          " but the intrinsics say ", color.width, "x", color.height));
+    }
+  }
+
+  RgbdFrame out;
+  out.sequence = in.sequence;
+  out.timestamp_s = in.timestamp_s;
+  out.intrinsics = in.intrinsics;
+  out.T_world_camera = in.T_world_camera;
+  auto d = DecodeDepthMetres(depth);
+  if (!d.ok()) return d.status();
+  out.depth_m = *std::move(d);
+  auto c = DecodeColorBgr(color);
+  if (!c.ok()) return c.status();
+  out.color_bgr = *std::move(c);
+  return out;
+}
+
+DepthStats ComputeDepthStats(const cv::Mat& depth_m) {
+  DepthStats stats;
+  if (depth_m.empty()) return stats;
+  std::vector<float> valid;
+  valid.reserve(depth_m.total());
+  for (int r = 0; r < depth_m.rows; ++r) {
+    const float* row = depth_m.ptr<float>(r);
+    for (int c = 0; c < depth_m.cols; ++c) {
+      if (row[c] > 0.0f) valid.push_back(row[c]);
+    }
+  }
+  stats.valid_fraction = static_cast<float>(valid.size()) / static_cast<float>(depth_m.total());
+  if (!valid.empty()) {
+    auto mid = valid.begin() + static_cast<std::ptrdiff_t>(valid.size() / 2);
+    std::nth_element(valid.begin(), mid, valid.end());
+    stats.median_m = *mid;
+  }
+  return stats;
+}
+
+}  // namespace lifemap

@@ -1,0 +1,47 @@
+// One RGB-D observation, as received (encoded) and as decoded for the algorithms.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+
+#include <opencv2/core.hpp>
+
+#include "absl/status/statusor.h"
+#include "core/common/image_codec.h"
+#include "core/common/types.h"
+
+namespace lifemap {
+
+// A frame as it arrives: encoded images that view the caller's buffers (not owned).
+struct EncodedRgbdFrame {
+  uint64_t sequence = 0;
+  double timestamp_s = 0.0;  // capture time, seconds since the Unix epoch; > 0
+  CameraIntrinsics intrinsics;
+  EncodedDepth depth;
+  EncodedColor color;
+  std::optional<Pose> T_world_camera;  // from the client, already validated
+};
+
+// A decoded frame. depth_m is CV_32FC1 metres (0 = no reading); color_bgr CV_8UC3; both of the
+// intrinsics' size.
+struct RgbdFrame {
+  uint64_t sequence = 0;
+  double timestamp_s = 0.0;
+  CameraIntrinsics intrinsics;
+  cv::Mat depth_m;
+  cv::Mat color_bgr;
+  std::optional<Pose> T_world_camera;
+};
+
+// Validates the timestamp and intrinsics, checks both images against the intrinsics' size and
+// decodes them. InvalidArgument names the field and what to send instead.
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in);
+
+struct DepthStats {
+  float valid_fraction = 0.0f;  // share of pixels with a reading, [0, 1]
+  float median_m = 0.0f;        // median over valid pixels; 0 when there are none
+};
+
+DepthStats ComputeDepthStats(const cv::Mat& depth_m);
+
+}  // namespace lifemap

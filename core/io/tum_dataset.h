@@ -1,0 +1,70 @@
+// Reader for TUM RGB-D benchmark folders (rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt),
+// the format of the real recordings and of lifemap's synthetic world.
+#pragma once
+
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/types.h"
+
+namespace lifemap::io {
+
+struct TimedPose {
+  double timestamp_s = 0.0;
+  Pose pose;  // T_world_camera
+};
+
+struct TumFrameEntry {
+  double timestamp_s = 0.0;  // the colour image's time
+  std::string rgb_path;      // absolute or relative to the working directory
+  double depth_timestamp_s = 0.0;
+  std::string depth_path;
+  std::optional<Pose> T_world_camera;  // ground truth interpolated at timestamp_s, if known
+};
+
+struct TumReadOptions {
+  // Colour and depth images are paired when their times differ by less than this (TUM's
+  // associate.py uses 0.02 s).
+  double max_association_dt_s = 0.02;
+  // Ground truth is interpolated only between samples at most this far apart (mocap: 0.01 s).
+  double max_groundtruth_gap_s = 0.1;
+  // A list file that names the pairs directly ("t_rgb rgb_path t_depth depth_path"); empty =
+  // pair rgb.txt and depth.txt by time.
+  std::string associations_file;
+};
+
+struct TumSequence {
+  std::string dir;
+  std::vector<TumFrameEntry> frames;  // time order, only pairs whose files exist
+  int listed_but_missing = 0;          // entries named in the lists whose files are absent
+  bool has_groundtruth = false;
+  int frames_with_pose = 0;
+  std::optional<CameraIntrinsics> intrinsics;  // from DIR/intrinsics.txt when present
+};
+
+// Reads a TUM-format folder. NotFound when the folder or its lists are missing;
+// InvalidArgument for malformed lines (with file and line number); FailedPrecondition when no
+// colour/depth pair remains.
+absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
+                                            const TumReadOptions& options = {});
+
+// Reads "timestamp tx ty tz qx qy qz qw" lines (comments with '#').
+absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path);
+
+// The pose at time t by interpolation between the two samples around t, or nullopt when t is
+// outside the trajectory or the samples around it are more than max_gap_s apart.
+std::optional<Pose> InterpolateTrajectory(const std::vector<TimedPose>& trajectory, double t,
+                                          double max_gap_s);
+
+// One TUM trajectory line, "timestamp tx ty tz qx qy qz qw", without a newline.
+std::string FormatTumPoseLine(double timestamp_s, const Pose& pose);
+
+// Intrinsics for a TUM folder: DIR/intrinsics.txt ("fx fy cx cy"), else the official
+// calibration of the freiburg1/2/3 camera named in the path, else TUM's ROS default
+// (525, 525, 319.5, 239.5). `source` says which was used.
+CameraIntrinsics TumIntrinsicsFor(const std::string& dir, int width, int height,
+                                  std::string* source);
+
+}  // namespace lifemap::io

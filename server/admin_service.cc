@@ -1,0 +1,147 @@
+#include <chrono>
+#include <filesystem>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/convert.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+
+double NowSeconds() {
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
+                        bool pose_from_client) {
+  auto add = [out](v1::FrameOutput o, bool computed, const char* reason) {
+    auto* s = out->Add();
+    s->set_output(o);
+    s->set_computed(computed);
+    if (!computed) s->set_reason(reason);
+  };
+  add(v1::FRAME_OUTPUT_POSE, pose_from_client,
+      "no odometry in this server yet: send the robot's pose in Frame.pose");
+  add(v1::FRAME_OUTPUT_KEYFRAME, true, "");
+  add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
+      "not implemented in this server yet (superjuts and neg-entropy masks, paper 000)");
+  add(v1::FRAME_OUTPUT_CLASS_LABELS, false,
+      "not implemented in this server yet (random-forest labels, paper 002)");
+  add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
+      "not implemented in this server yet (place recognition, papers 000 and 004)");
+  add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
+      "not implemented in this server yet (semantic octree, paper 002)");
+}
+
+grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*,
+                                             const v1::GetServerInfoRequest*,
+                                             v1::ServerInfo* resp) {
+  resp->set_version(LIFEMAP_VERSION);
+  resp->set_api_version("lifemap.v1");
+  // A server-level answer: poses count as computed only when the client sends them.
+  FillOutputStatuses(resp->mutable_outputs(), false);
+  resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
+  resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));
+  resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));
+  resp->set_db_path(std::filesystem::absolute(ctx_->config.db_path).string());
+  resp->set_schema_version(static_cast<uint32_t>(ctx_->store->schema_version()));
+  resp->set_started_time_s(ctx_->started_time_s);
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext*, const v1::GetStatsRequest*,
+                                        v1::Stats* resp) {
+  auto st = ctx_->store->Stats();
+  if (!st.ok()) return ToGrpcStatus(st.status());
+  resp->set_maps(static_cast<uint32_t>(st->maps));
+  resp->set_visits(static_cast<uint32_t>(st->visits));
+  resp->set_keyframes(static_cast<uint64_t>(st->keyframes));
+  resp->set_db_bytes(static_cast<uint64_t>(st->db_bytes));
+  resp->set_wal_bytes(static_cast<uint64_t>(st->wal_bytes));
+  resp->set_active_streams(static_cast<uint32_t>(ctx_->active_streams.load()));
+  resp->set_frames_processed(ctx_->frames_processed.load());
+  resp->set_frames_rejected(ctx_->frames_rejected.load());
+  resp->set_keyframes_committed(ctx_->committer->committed());
+  resp->set_uptime_s(NowSeconds() - ctx_->started_time_s);
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::Backup(grpc::ServerContext*, const v1::BackupRequest* req,
+                                      v1::BackupResponse* resp) {
+  if (auto s = ctx_->store->Backup(req->path()); !s.ok()) return ToGrpcStatus(s);
+  std::error_code ec;
+  resp->set_path(req->path());
+  resp->set_bytes(static_cast<uint64_t>(std::filesystem::file_size(req->path(), ec)));
+  spdlog::info("backup written to {}", req->path());
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext*,
+                                              const v1::CheckIntegrityRequest*,
+                                              v1::CheckIntegrityResponse* resp) {
+  auto problems = ctx_->store->CheckIntegrity();
+  if (!problems.ok()) return ToGrpcStatus(problems.status());
+  resp->set_ok(problems->empty());
+  for (auto& p : *problems) resp->add_problems(p);
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext*, const v1::VacuumRequest*,
+                                      v1::VacuumResponse* resp) {
+  auto before = ctx_->store->Stats();
+  if (!before.ok()) return ToGrpcStatus(before.status());
+  if (auto s = ctx_->store->Vacuum(); !s.ok()) return ToGrpcStatus(s);
+  if (auto s = ctx_->store->Checkpoint(); !s.ok()) return ToGrpcStatus(s);
+  auto after = ctx_->store->Stats();
+  if (!after.ok()) return ToGrpcStatus(after.status());
+  resp->set_bytes_before(static_cast<uint64_t>(before->db_bytes + before->wal_bytes));
+  resp->set_bytes_after(static_cast<uint64_t>(after->db_bytes + after->wal_bytes));
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext*,
+                                            const v1::CreateApiKeyRequest*,
+                                            v1::CreateApiKeyResponse*) {
+  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                      "API keys are not implemented yet: this server has no authentication; "
+                      "listen on loopback or a private network only");
+}
+
+namespace {
+grpc::Status NotBuilt(const char* what) {
+  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                      absl::StrCat(what, " is not implemented in this server yet"));
+}
+}  // namespace
+
+grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest*,
+                                          v1::QueryPlaceResponse*) {
+  return NotBuilt(
+      "QueryPlace (place recognition by appearance with entropy masks, paper 000, and by "
+      "architecture, paper 004)");
+}
+
+grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext*,
+                                           grpc::ServerReader<v1::UploadModelChunk>*,
+                                           v1::ModelInfo*) {
+  return NotBuilt("UploadModel (random-forest object-class models, paper 002)");
+}
+
+grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext*, const v1::ListModelsRequest*,
+                                          v1::ListModelsResponse*) {
+  return NotBuilt("ListModels (random-forest object-class models, paper 002)");
+}
+
+grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*,
+                                             const v1::ActivateModelRequest*, v1::ModelInfo*) {
+  return NotBuilt("ActivateModel (random-forest object-class models, paper 002)");
+}
+
+grpc::Status ModelServiceImpl::ListClasses(grpc::ServerContext*, const v1::ListClassesRequest*,
+                                           v1::ListClassesResponse*) {
+  return NotBuilt("ListClasses (random-forest object-class models, paper 002)");
+}
+
+}  // namespace lifemap::server

@@ -1,0 +1,115 @@
+#include "server/config.h"
+
+#include <cmath>
+#include <fstream>
+#include <set>
+
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::server {
+
+absl::Status ServerConfig::Validate() const {
+  if (listen.empty() || listen.rfind(':') == std::string::npos) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("listen address '", listen, "' must be HOST:PORT, e.g. 127.0.0.1:50051"));
+  }
+  if (db_path.empty()) return absl::InvalidArgumentError("db path must not be empty");
+  if (max_message_bytes < (1 << 20) || max_message_bytes > (256 << 20)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "max message size must be within [1, 256] MiB, got ", max_message_bytes >> 20, " MiB"));
+  }
+  if (max_streams < 1 || max_streams > 1024) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_streams must be within [1, 1024], got ", max_streams));
+  }
+  if (max_inflight_frames < 1 || max_inflight_frames > 64) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_inflight_frames must be within [1, 64], got ", max_inflight_frames));
+  }
+  if (keyframe_batch_max < 1 || keyframe_batch_max > 1024) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("keyframe_batch_max must be within [1, 1024], got ", keyframe_batch_max));
+  }
+  if (!std::isfinite(shutdown_grace_s) || shutdown_grace_s < 0 || shutdown_grace_s > 3600) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("shutdown_grace_s must be within [0, 3600], got ", shutdown_grace_s));
+  }
+  static const std::set<std::string> kLevels = {"trace", "debug", "info", "warn",
+                                                "error", "critical", "off"};
+  if (kLevels.count(log_level) == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "log level '", log_level, "' is not one of trace, debug, info, warn, error, off"));
+  }
+  return keyframe.Validate();
+}
+
+absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat("config file ", path, " cannot be opened"));
+  nlohmann::json j;
+  try {
+    in >> j;
+  } catch (const nlohmann::json::parse_error& e) {
+    return absl::InvalidArgumentError(absl::StrCat("config file ", path, ": ", e.what()));
+  }
+  if (!j.is_object()) {
+    return absl::InvalidArgumentError(absl::StrCat("config file ", path, " must hold an object"));
+  }
+  ServerConfig c = std::move(base);
+  try {
+    for (const auto& [key, value] : j.items()) {
+      if (key == "listen") {
+        c.listen = value.get<std::string>();
+      } else if (key == "db") {
+        c.db_path = value.get<std::string>();
+      } else if (key == "max_message_mb") {
+        const int mb = value.get<int>();
+        c.max_message_bytes = (mb > 0 && mb <= 1024) ? mb << 20 : 0;
+      } else if (key == "max_streams") {
+        c.max_streams = value.get<int>();
+      } else if (key == "max_inflight_frames") {
+        c.max_inflight_frames = value.get<int>();
+      } else if (key == "keyframe_batch_max") {
+        c.keyframe_batch_max = value.get<int>();
+      } else if (key == "shutdown_grace_s") {
+        c.shutdown_grace_s = value.get<double>();
+      } else if (key == "synchronous") {
+        const auto mode = value.get<std::string>();
+        if (mode != "full" && mode != "normal") {
+          return absl::InvalidArgumentError(absl::StrCat(
+              "config file ", path, ": synchronous must be \"full\" or \"normal\""));
+        }
+        c.synchronous_full = mode == "full";
+      } else if (key == "log_level") {
+        c.log_level = value.get<std::string>();
+      } else if (key == "keyframe") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "min_translation_m") {
+            c.keyframe.min_translation_m = v.get<double>();
+          } else if (k == "min_rotation_deg") {
+            c.keyframe.min_rotation_rad = v.get<double>() * M_PI / 180.0;
+          } else if (k == "max_interval_s") {
+            c.keyframe.max_interval_s = v.get<double>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key keyframe.", k));
+          }
+        }
+      } else {
+        return absl::InvalidArgumentError(
+            absl::StrCat("config file ", path, ": unknown key '", key, "'"));
+      }
+    }
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("config file ", path, ": a value has the wrong type: ", e.what()));
+  }
+  if (auto s = c.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("config file ", path, ": ", s.message()));
+  }
+  return c;
+}
+
+}  // namespace lifemap::server

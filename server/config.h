@@ -1,0 +1,34 @@
+// lifemapd's configuration: defaults, a JSON config file, command-line flags on top.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "core/tracking/keyframe_selector.h"
+
+namespace lifemap::server {
+
+struct ServerConfig {
+  std::string listen = "127.0.0.1:50051";  // HOST:PORT; port 0 picks a free port
+  std::string db_path = "lifemap.db";
+  int max_message_bytes = 16 << 20;  // largest request or response; bigger gets RESOURCE_EXHAUSTED
+  int max_streams = 16;              // concurrent StreamFrames calls
+  int max_inflight_frames = 4;       // per stream: frames read but not yet answered
+  int keyframe_batch_max = 32;       // keyframes committed in one transaction at most
+  double shutdown_grace_s = 10.0;    // on SIGTERM, time streams get to finish
+  bool synchronous_full = true;      // SQLite synchronous=FULL (power-loss safe) or NORMAL
+  std::string log_level = "info";    // trace, debug, info, warn, error, off
+  tracking::KeyframeOptions keyframe;
+
+  // InvalidArgument naming the bad setting and its allowed range.
+  absl::Status Validate() const;
+};
+
+// Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
+// Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
+// shutdown_grace_s, synchronous ("full" | "normal"), log_level,
+// keyframe {min_translation_m, min_rotation_deg, max_interval_s}.
+absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
+
+}  // namespace lifemap::server

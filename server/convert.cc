@@ -1,0 +1,152 @@
+#include "server/convert.h"
+
+#include <cmath>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::server {
+
+grpc::Status ToGrpcStatus(const absl::Status& status) {
+  if (status.ok()) return grpc::Status::OK;
+  // absl::StatusCode and grpc::StatusCode share the canonical numbering.
+  return grpc::Status(static_cast<grpc::StatusCode>(status.code()), std::string(status.message()));
+}
+
+absl::StatusOr<Pose> PoseFromProto(const v1::Pose& p) {
+  return Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
+}
+
+void PoseToProto(const Pose& pose, v1::Pose* out) {
+  out->set_tx(pose.translation.x());
+  out->set_ty(pose.translation.y());
+  out->set_tz(pose.translation.z());
+  out->set_qx(pose.rotation.x());
+  out->set_qy(pose.rotation.y());
+  out->set_qz(pose.rotation.z());
+  out->set_qw(pose.rotation.w());
+}
+
+CameraIntrinsics IntrinsicsFromProto(const v1::CameraIntrinsics& k) {
+  CameraIntrinsics out;
+  out.fx = k.fx();
+  out.fy = k.fy();
+  out.cx = k.cx();
+  out.cy = k.cy();
+  // Sizes beyond int range are clamped to an invalid value that Validate() rejects.
+  out.width = k.width() > 1u << 20 ? -1 : static_cast<int>(k.width());
+  out.height = k.height() > 1u << 20 ? -1 : static_cast<int>(k.height());
+  return out;
+}
+
+void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out) {
+  out->set_fx(k.fx);
+  out->set_fy(k.fy);
+  out->set_cx(k.cx);
+  out->set_cy(k.cy);
+  out->set_width(static_cast<uint32_t>(k.width));
+  out->set_height(static_cast<uint32_t>(k.height));
+}
+
+absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame) {
+  auto prefixed = [](const absl::Status& s, const char* field) {
+    return absl::Status(s.code(), absl::StrCat("frame.", field, ": ", s.message()));
+  };
+  EncodedRgbdFrame out;
+  out.sequence = frame.sequence();
+  out.timestamp_s = frame.timestamp_s();
+  if (!frame.has_intrinsics()) {
+    return absl::InvalidArgumentError(
+        "frame.intrinsics is missing; send fx, fy, cx, cy, width, height of the colour camera");
+  }
+  out.intrinsics = IntrinsicsFromProto(frame.intrinsics());
+  if (auto s = out.intrinsics.Validate(); !s.ok()) return prefixed(s, "intrinsics");
+
+  if (!frame.has_depth() || frame.depth().data().empty()) {
+    return absl::InvalidArgumentError("frame.depth is missing or empty");
+  }
+  const auto& d = frame.depth();
+  switch (d.encoding()) {
+    case v1::DEPTH_PNG16: out.depth.encoding = DepthEncoding::kPng16; break;
+    case v1::DEPTH_RAW_U16: out.depth.encoding = DepthEncoding::kRawU16; break;
+    case v1::DEPTH_RAW_F32: out.depth.encoding = DepthEncoding::kRawF32; break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat(
+          "frame.depth.encoding ", d.encoding(),
+          " is not supported; use DEPTH_PNG16, DEPTH_RAW_U16 or DEPTH_RAW_F32"));
+  }
+  out.depth.data = d.data();
+  out.depth.width = static_cast<int>(std::min<uint32_t>(d.width(), 1u << 20));
+  out.depth.height = static_cast<int>(std::min<uint32_t>(d.height(), 1u << 20));
+  out.depth.depth_scale = d.depth_scale();
+
+  if (!frame.has_color() || frame.color().data().empty()) {
+    return absl::InvalidArgumentError("frame.color is missing or empty");
+  }
+  const auto& c = frame.color();
+  switch (c.encoding()) {
+    case v1::COLOR_JPEG: out.color.encoding = ColorEncoding::kJpeg; break;
+    case v1::COLOR_PNG: out.color.encoding = ColorEncoding::kPng; break;
+    case v1::COLOR_RAW_RGB8: out.color.encoding = ColorEncoding::kRawRgb8; break;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat("frame.color.encoding ", c.encoding(),
+                       " is not supported; use COLOR_JPEG, COLOR_PNG or COLOR_RAW_RGB8"));
+  }
+  out.color.data = c.data();
+  out.color.width = static_cast<int>(std::min<uint32_t>(c.width(), 1u << 20));
+  out.color.height = static_cast<int>(std::min<uint32_t>(c.height(), 1u << 20));
+
+  if (frame.has_pose()) {
+    auto pose = PoseFromProto(frame.pose());
+    if (!pose.ok()) return prefixed(pose.status(), "pose");
+    out.T_world_camera = *pose;
+  }
+  return out;
+}
+
+absl::StatusOr<tracking::KeyframeOptions> KeyframeOptionsFromProto(
+    const v1::FrameOptions& o, const tracking::KeyframeOptions& defaults) {
+  tracking::KeyframeOptions k = defaults;
+  if (o.keyframe_min_translation_m() != 0.0) k.min_translation_m = o.keyframe_min_translation_m();
+  if (o.keyframe_min_rotation_rad() != 0.0) k.min_rotation_rad = o.keyframe_min_rotation_rad();
+  if (o.keyframe_max_interval_s() != 0.0) k.max_interval_s = o.keyframe_max_interval_s();
+  if (auto s = k.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("options: ", s.message()));
+  }
+  return k;
+}
+
+void MapToProto(const store::MapRecord& map, v1::Map* out) {
+  out->set_id(static_cast<uint64_t>(map.id));
+  out->set_name(map.name);
+  out->set_description(map.description);
+  out->set_created_time_s(map.created_time_s);
+  out->set_visit_count(static_cast<uint32_t>(map.visit_count));
+  out->set_keyframe_count(static_cast<uint64_t>(map.keyframe_count));
+  out->set_stored_bytes(static_cast<uint64_t>(map.stored_bytes));
+}
+
+void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
+  out->set_id(static_cast<uint64_t>(v.id));
+  out->set_map(v.map_name);
+  out->set_robot(v.robot);
+  out->set_label(v.label);
+  out->set_start_time_s(v.start_time_s);
+  out->set_end_time_s(v.end_time_s);
+  out->set_ended(v.ended);
+  out->set_keyframe_count(static_cast<uint64_t>(v.keyframe_count));
+  out->set_frame_count(static_cast<uint64_t>(v.frame_count));
+}
+
+void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out) {
+  out->set_id(static_cast<uint64_t>(k.id));
+  out->set_visit_id(static_cast<uint64_t>(k.visit_id));
+  out->set_sequence(k.sequence);
+  out->set_timestamp_s(k.timestamp_s);
+  if (k.T_world_camera) PoseToProto(*k.T_world_camera, out->mutable_pose());
+  IntrinsicsToProto(k.intrinsics, out->mutable_intrinsics());
+  out->set_color_bytes(static_cast<uint32_t>(k.color_bytes));
+  out->set_depth_bytes(static_cast<uint32_t>(k.depth_bytes));
+}
+
+}  // namespace lifemap::server

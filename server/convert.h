@@ -1,0 +1,38 @@
+// Translation between lifemap.v1 protobuf messages and core / store types, and between
+// absl::Status and grpc::Status (one-to-one codes). The only place that sees both worlds.
+#pragma once
+
+#include <grpcpp/support/status.h>
+
+#include "absl/status/statusor.h"
+#include "core/common/rgbd_frame.h"
+#include "core/tracking/keyframe_selector.h"
+#include "lifemap/v1/admin_service.pb.h"
+#include "lifemap/v1/common.pb.h"
+#include "lifemap/v1/frame_service.pb.h"
+#include "lifemap/v1/map_service.pb.h"
+#include "lifemap/v1/visit_service.pb.h"
+#include "server/store/store.h"
+
+namespace lifemap::server {
+
+grpc::Status ToGrpcStatus(const absl::Status& status);
+
+// Validates the message's fields and views its image bytes (the message must outlive the
+// result). InvalidArgument names the field: "frame.intrinsics.fx must be > 0", ...
+absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame);
+
+absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
+void PoseToProto(const Pose& pose, v1::Pose* out);
+CameraIntrinsics IntrinsicsFromProto(const v1::CameraIntrinsics& k);
+void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out);
+
+// Server defaults overridden by the non-zero fields of the request's options.
+absl::StatusOr<tracking::KeyframeOptions> KeyframeOptionsFromProto(
+    const v1::FrameOptions& options, const tracking::KeyframeOptions& defaults);
+
+void MapToProto(const store::MapRecord& map, v1::Map* out);
+void VisitToProto(const store::VisitRecord& visit, v1::Visit* out);
+void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out);
+
+}  // namespace lifemap::server

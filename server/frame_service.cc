@@ -1,0 +1,346 @@
+#include <chrono>
+#include <deque>
+#include <future>
+#include <optional>
+#include <thread>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/cleanup/cleanup.h"
+#include "absl/strings/str_cat.h"
+#include "core/common/image_codec.h"
+#include "server/convert.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// Depth of keyframes received as raw values is stored as PNG-16 at this scale (0.2 mm steps,
+// up to 13.1 m: covers indoor Kinect-class sensors).
+constexpr double kStoredDepthScale = 5000.0;
+constexpr int kStoredJpegQuality = 90;
+
+double MsBetween(Clock::time_point a, Clock::time_point b) {
+  return std::chrono::duration<double, std::milli>(b - a).count();
+}
+
+// A frame processed but not yet answered: its result, and the commit it waits for.
+struct PendingResult {
+  v1::FrameResult result;
+  std::optional<std::future<absl::StatusOr<int64_t>>> commit;
+  Clock::time_point received;
+};
+
+// Builds what the store keeps of a keyframe: the client's PNG-16 depth and JPEG/PNG colour
+// bytes as they came (no re-encoding), raw images compressed.
+absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
+                                                         const RgbdFrame& decoded,
+                                                         int64_t visit_id) {
+  store::KeyframeRecord k;
+  k.visit_id = visit_id;
+  k.sequence = decoded.sequence;
+  k.timestamp_s = decoded.timestamp_s;
+  k.T_world_camera = decoded.T_world_camera;
+  k.intrinsics = decoded.intrinsics;
+  if (frame.depth().encoding() == v1::DEPTH_PNG16) {
+    k.depth_png = frame.depth().data();
+    k.depth_scale = frame.depth().depth_scale();
+  } else {
+    auto png = EncodeDepthPng16(decoded.depth_m, kStoredDepthScale);
+    if (!png.ok()) return png.status();
+    k.depth_png = *std::move(png);
+    k.depth_scale = kStoredDepthScale;
+  }
+  switch (frame.color().encoding()) {
+    case v1::COLOR_JPEG:
+      k.color = frame.color().data();
+      k.color_encoding = store::StoredColorEncoding::kJpeg;
+      break;
+    case v1::COLOR_PNG:
+      k.color = frame.color().data();
+      k.color_encoding = store::StoredColorEncoding::kPng;
+      break;
+    default: {
+      auto jpeg = EncodeJpeg(decoded.color_bgr, kStoredJpegQuality);
+      if (!jpeg.ok()) return jpeg.status();
+      k.color = *std::move(jpeg);
+      k.color_encoding = store::StoredColorEncoding::kJpeg;
+    }
+  }
+  return k;
+}
+
+// Decodes and analyses one frame; with a visit, decides whether it is a keyframe and queues
+// its commit. Never blocks on the store.
+PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
+                          const tracking::KeyframeOptions& keyframe_options) {
+  PendingResult p;
+  p.received = Clock::now();
+  v1::FrameResult& r = p.result;
+  r.set_sequence(frame.sequence());
+  r.set_timestamp_s(frame.timestamp_s());
+  auto reject = [&](const absl::Status& s) {
+    ctx->frames_rejected.fetch_add(1);
+    r.mutable_error()->set_code(static_cast<int>(s.code()));
+    r.mutable_error()->set_message(std::string(s.message()));
+    spdlog::debug("frame {} rejected: {}", frame.sequence(), std::string(s.message()));
+    return std::move(p);
+  };
+  auto encoded = FrameFromProto(frame);
+  if (!encoded.ok()) return reject(encoded.status());
+  auto analysis = ctx->pipeline->Process(*encoded);
+  if (!analysis.ok()) return reject(analysis.status());
+  ctx->frames_processed.fetch_add(1);
+
+  const RgbdFrame& f = analysis->frame;
+  r.set_width(static_cast<uint32_t>(f.intrinsics.width));
+  r.set_height(static_cast<uint32_t>(f.intrinsics.height));
+  r.set_valid_depth_fraction(analysis->depth_stats.valid_fraction);
+  r.set_median_depth_m(analysis->depth_stats.median_m);
+  if (f.T_world_camera) {
+    r.set_pose_source(v1::POSE_SOURCE_CLIENT);
+    PoseToProto(*f.T_world_camera, r.mutable_pose());
+  } else {
+    r.set_pose_source(v1::POSE_SOURCE_NONE);
+  }
+  FillOutputStatuses(r.mutable_outputs(), f.T_world_camera.has_value());
+  r.mutable_timing()->set_decode_ms(analysis->decode_ms);
+  r.mutable_timing()->set_process_ms(analysis->process_ms);
+
+  if (visit == nullptr) {
+    for (auto& o : *r.mutable_outputs()) {
+      if (o.output() == v1::FRAME_OUTPUT_KEYFRAME) {
+        o.set_computed(false);
+        o.set_reason("no map given: the frame is processed but nothing is stored");
+      }
+    }
+    return p;
+  }
+  absl::MutexLock lock(&visit->mu);
+  ++visit->frame_count;
+  visit->selector.set_options(keyframe_options);
+  const auto decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
+  r.mutable_keyframe()->set_selected(decision.selected);
+  r.mutable_keyframe()->set_reason(decision.reason);
+  if (decision.selected) {
+    auto record = MakeKeyframeRecord(frame, f, visit->visit_id);
+    if (!record.ok()) {
+      r.mutable_keyframe()->set_reason(
+          absl::StrCat("not stored: ", record.status().message()));
+      return p;
+    }
+    visit->selector.Accept(f.timestamp_s, f.T_world_camera);
+    // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
+    p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
+  }
+  return p;
+}
+
+// Waits for the keyframe commit (if any) and completes the result: a keyframe is reported as
+// committed only once the store has it.
+void FinishResult(PendingResult* p) {
+  auto* timing = p->result.mutable_timing();
+  if (p->commit) {
+    const auto wait_start = Clock::now();
+    absl::StatusOr<int64_t> id = p->commit->get();
+    timing->set_commit_wait_ms(MsBetween(wait_start, Clock::now()));
+    auto* kf = p->result.mutable_keyframe();
+    if (id.ok()) {
+      kf->set_committed(true);
+      kf->set_keyframe_id(static_cast<uint64_t>(*id));
+    } else {
+      kf->set_committed(false);
+      kf->set_reason(absl::StrCat("not stored: ", id.status().message()));
+    }
+  }
+  timing->set_total_ms(MsBetween(p->received, Clock::now()));
+}
+
+// Resolves the visit a stream or call writes to. visit_id 0: a new visit (or, with
+// `reuse_open`, the map's latest open visit).
+absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::string& map,
+                                                uint64_t visit_id, const std::string& robot,
+                                                const std::string& label, bool reuse_open,
+                                                bool* created) {
+  *created = false;
+  if (auto s = store::ValidateMapName(map); !s.ok()) return s;
+  if (robot.size() > 256 || label.size() > 256) {
+    return absl::InvalidArgumentError("robot and visit label must be at most 256 bytes");
+  }
+  auto m = ctx->store->GetMap(map);
+  if (!m.ok()) return m.status();
+  if (visit_id == 0) {
+    if (reuse_open) {
+      auto open = ctx->store->LatestOpenVisit(map);
+      if (!open.ok()) return open.status();
+      if (*open) return **open;
+    }
+    *created = true;
+    return ctx->store->StartVisit(map, robot, label, NowSeconds());
+  }
+  auto v = ctx->store->GetVisit(static_cast<int64_t>(visit_id));
+  if (!v.ok()) return v.status();
+  if (v->map_id != m->id) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " belongs to map '", v->map_name, "', not '", map, "'"));
+  }
+  if (v->ended) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " has ended; start a new visit (visit_id 0)"));
+  }
+  return v;
+}
+
+// The frames of one stream between the reading and the writing thread, bounded so that a
+// fast sender is held back by gRPC flow control instead of filling the server's memory.
+class InflightQueue {
+ public:
+  explicit InflightQueue(int capacity) : capacity_(static_cast<size_t>(capacity)) {}
+
+  void Push(PendingResult p) {
+    absl::MutexLock lock(&mu_);
+    mu_.Await(absl::Condition(this, &InflightQueue::HasRoom));
+    items_.push_back(std::move(p));
+  }
+  void Close() {
+    absl::MutexLock lock(&mu_);
+    closed_ = true;
+  }
+  // nullopt once closed and empty.
+  std::optional<PendingResult> Pop() {
+    absl::MutexLock lock(&mu_);
+    mu_.Await(absl::Condition(this, &InflightQueue::ReadyToPop));
+    if (items_.empty()) return std::nullopt;
+    PendingResult p = std::move(items_.front());
+    items_.pop_front();
+    return p;
+  }
+
+ private:
+  bool HasRoom() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) { return items_.size() < capacity_; }
+  bool ReadyToPop() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) { return closed_ || !items_.empty(); }
+
+  const size_t capacity_;
+  absl::Mutex mu_;
+  std::deque<PendingResult> items_ ABSL_GUARDED_BY(mu_);
+  bool closed_ ABSL_GUARDED_BY(mu_) = false;
+};
+
+}  // namespace
+
+grpc::Status FrameServiceImpl::StreamFrames(
+    grpc::ServerContext* context,
+    grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream) {
+  if (ctx_->active_streams.fetch_add(1) >= ctx_->config.max_streams) {
+    ctx_->active_streams.fetch_sub(1);
+    return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                        absl::StrCat("this server already serves ", ctx_->config.max_streams,
+                                     " streams (max_streams); retry later"));
+  }
+  absl::Cleanup release = [this] { ctx_->active_streams.fetch_sub(1); };
+
+  v1::StreamFramesRequest request;
+  if (!stream->Read(&request)) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "stream closed before its StreamStart message");
+  }
+  if (!request.has_start()) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "the first message of a stream must be StreamStart (map, visit)");
+  }
+  const v1::StreamStart start = request.start();
+  auto keyframe_options = KeyframeOptionsFromProto(start.options(), ctx_->config.keyframe);
+  if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
+  bool created = false;
+  auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(),
+                            start.visit_label(), false, &created);
+  if (!visit.ok()) return ToGrpcStatus(visit.status());
+  auto state = ctx_->visits->Get(visit->id);
+  if (!state.ok()) return ToGrpcStatus(state.status());
+  spdlog::info("stream {} visit {} of map '{}' from {}", created ? "started" : "resumed",
+               visit->id, visit->map_name, context->peer());
+
+  v1::StreamFramesResponse started;
+  started.mutable_started()->set_map(visit->map_name);
+  started.mutable_started()->set_visit_id(static_cast<uint64_t>(visit->id));
+  started.mutable_started()->set_new_visit(created);
+  if (!stream->Write(started)) {
+    return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
+  }
+
+  // Reading and processing here; answering in order on a second thread, which waits for
+  // keyframe commits so that no acknowledgement precedes its commit.
+  InflightQueue queue(ctx_->config.max_inflight_frames);
+  std::atomic<bool> client_gone{false};
+  std::thread writer([&] {
+    while (auto p = queue.Pop()) {
+      FinishResult(&*p);
+      if (client_gone.load()) continue;  // still wait for commits: they complete regardless
+      v1::StreamFramesResponse response;
+      *response.mutable_result() = std::move(p->result);
+      if (!stream->Write(response)) client_gone.store(true);
+    }
+  });
+
+  grpc::Status status = grpc::Status::OK;
+  uint64_t frames = 0;
+  while (stream->Read(&request)) {
+    if (!request.has_frame()) {
+      status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            "only the first message of a stream may be StreamStart; send frames");
+      break;
+    }
+    queue.Push(HandleFrame(ctx_, request.frame(), state->get(), *keyframe_options));
+    ++frames;
+  }
+  queue.Close();
+  writer.join();
+
+  // Persist the visit's frame counter (it rides on keyframe commits otherwise).
+  int64_t frame_count = 0;
+  {
+    absl::MutexLock lock(&(*state)->mu);
+    frame_count = (*state)->frame_count;
+  }
+  auto flushed = ctx_->committer->Submit(std::nullopt, {visit->id, frame_count}).get();
+  if (!flushed.ok() && !absl::IsNotFound(flushed.status())) {
+    spdlog::warn("visit {}: frame counter not stored: {}", visit->id,
+                 flushed.status().ToString());
+  }
+  spdlog::info("stream for visit {} ended after {} frames{}", visit->id, frames,
+               context->IsCancelled() ? " (cancelled)" : "");
+  if (client_gone.load() && status.ok()) {
+    return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
+  }
+  return status;
+}
+
+grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
+                                            const v1::ProcessFrameRequest* req,
+                                            v1::FrameResult* resp) {
+  auto keyframe_options = KeyframeOptionsFromProto(req->options(), ctx_->config.keyframe);
+  if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
+  std::shared_ptr<VisitState> state;
+  if (!req->map().empty()) {
+    bool created = false;
+    auto visit = ResolveVisit(ctx_, req->map(), req->visit_id(), "", "", true, &created);
+    if (!visit.ok()) return ToGrpcStatus(visit.status());
+    auto s = ctx_->visits->Get(visit->id);
+    if (!s.ok()) return ToGrpcStatus(s.status());
+    state = *std::move(s);
+  } else if (req->visit_id() != 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
+  }
+  PendingResult p = HandleFrame(ctx_, req->frame(), state.get(), *keyframe_options);
+  if (p.result.has_error()) {
+    return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),
+                        p.result.error().message());
+  }
+  FinishResult(&p);
+  *resp = std::move(p.result);
+  return grpc::Status::OK;
+}
+
+}  // namespace lifemap::server

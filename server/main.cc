@@ -1,0 +1,85 @@
+// lifemapd: the lifemap server.
+//
+//   lifemapd --listen 127.0.0.1:50051 --db /var/lib/lifemap/lifemap.db [--config FILE]
+//
+// SIGTERM / SIGINT: stop accepting calls, let streams drain, commit pending keyframes, exit 0.
+#include <csignal>
+#include <iostream>
+#include <thread>
+
+#include <CLI/CLI.hpp>
+#include <spdlog/spdlog.h>
+
+#include "server/config.h"
+#include "server/server.h"
+
+int main(int argc, char** argv) {
+  using lifemap::server::ServerConfig;
+  CLI::App app{"lifemapd — lifelong indoor maps for robots (gRPC server)"};
+  app.set_version_flag("--version", std::string(LIFEMAP_VERSION));
+  std::string config_file, listen, db, log_level;
+  int max_message_mb = 0, max_streams = 0, max_inflight = 0;
+  double grace_s = -1;
+  app.add_option("--config", config_file, "JSON config file (see deploy/lifemapd.json)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--listen", listen, "HOST:PORT to listen on (default 127.0.0.1:50051)");
+  app.add_option("--db", db, "SQLite database file (created if missing)");
+  app.add_option("--max-message-mb", max_message_mb, "largest message, MiB (default 16)");
+  app.add_option("--max-streams", max_streams, "concurrent frame streams (default 16)");
+  app.add_option("--max-inflight-frames", max_inflight,
+                 "frames per stream in processing before the server stops reading (default 4)");
+  app.add_option("--shutdown-grace-s", grace_s, "time streams get to finish on SIGTERM");
+  app.add_option("--log-level", log_level, "trace, debug, info, warn, error, off");
+  CLI11_PARSE(app, argc, argv);
+
+  // Signals are taken by a dedicated thread (sigwait), never by an async handler.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  ServerConfig config;
+  if (!config_file.empty()) {
+    auto loaded = lifemap::server::LoadConfigFile(config_file, config);
+    if (!loaded.ok()) {
+      std::cerr << "lifemapd: " << loaded.status().message() << "\n";
+      return 2;
+    }
+    config = *loaded;
+  }
+  if (!listen.empty()) config.listen = listen;
+  if (!db.empty()) config.db_path = db;
+  if (max_message_mb != 0) {
+    config.max_message_bytes = (max_message_mb > 0 && max_message_mb <= 1024)
+                                   ? max_message_mb << 20
+                                   : 0;  // rejected by Validate with the range
+  }
+  if (max_streams != 0) config.max_streams = max_streams;
+  if (max_inflight != 0) config.max_inflight_frames = max_inflight;
+  if (grace_s >= 0) config.shutdown_grace_s = grace_s;
+  if (!log_level.empty()) config.log_level = log_level;
+  if (auto s = config.Validate(); !s.ok()) {
+    std::cerr << "lifemapd: " << s.message() << "\n";
+    return 2;
+  }
+  spdlog::set_level(spdlog::level::from_str(config.log_level));
+
+  auto server = lifemap::server::LifemapServer::Start(config);
+  if (!server.ok()) {
+    std::cerr << "lifemapd: " << server.status().message() << "\n";
+    return 1;
+  }
+  // Scripts read the bound port from this line (useful with --listen HOST:0).
+  std::cout << "lifemapd listening on port " << (*server)->port() << std::endl;
+
+  std::thread waiter([&] {
+    int sig = 0;
+    sigwait(&signals, &sig);
+    spdlog::info("received {}", sig == SIGTERM ? "SIGTERM" : "SIGINT");
+    (*server)->Shutdown();
+  });
+  (*server)->Wait();
+  waiter.join();
+  return 0;
+}

@@ -1,0 +1,238 @@
+#include <algorithm>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "core/common/rgbd_frame.h"
+#include "core/io/tum_dataset.h"
+#include "core/mapping/point_cloud.h"
+#include "server/convert.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+namespace {
+
+constexpr size_t kExportChunkBytes = 1 << 20;
+constexpr size_t kDescriptionMaxBytes = 4096;
+
+absl::StatusOr<store::MapRecord> FindMap(store::Store* store, const std::string& name) {
+  if (auto s = store::ValidateMapName(name); !s.ok()) return s;
+  return store->GetMap(name);
+}
+
+// Sends `body` in chunks of at most kExportChunkBytes; the last chunk carries the item count.
+grpc::Status SendChunks(const std::string& body, const std::string& content_type,
+                        uint64_t items, grpc::ServerWriter<v1::ExportChunk>* writer) {
+  size_t offset = 0;
+  do {
+    v1::ExportChunk chunk;
+    const size_t n = std::min(kExportChunkBytes, body.size() - offset);
+    chunk.set_data(body.substr(offset, n));
+    if (offset == 0) chunk.set_content_type(content_type);
+    offset += n;
+    if (offset == body.size()) {
+      chunk.set_last(true);
+      chunk.set_item_count(items);
+    }
+    if (!writer->Write(chunk)) {
+      return grpc::Status(grpc::StatusCode::CANCELLED, "client went away during export");
+    }
+  } while (offset < body.size());
+  return grpc::Status::OK;
+}
+
+}  // namespace
+
+grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext*, const v1::CreateMapRequest* req,
+                                       v1::Map* resp) {
+  if (auto s = store::ValidateMapName(req->name()); !s.ok()) return ToGrpcStatus(s);
+  if (req->description().size() > kDescriptionMaxBytes) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("description is ", req->description().size(),
+                                     " bytes; at most ", kDescriptionMaxBytes));
+  }
+  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  spdlog::info("created map '{}' (id {})", map->name, map->id);
+  MapToProto(*map, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext*, const v1::ListMapsRequest*,
+                                      v1::ListMapsResponse* resp) {
+  auto maps = ctx_->store->ListMaps();
+  if (!maps.ok()) return ToGrpcStatus(maps.status());
+  for (const auto& m : *maps) MapToProto(m, resp->add_maps());
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::GetMap(grpc::ServerContext*, const v1::GetMapRequest* req,
+                                    v1::Map* resp) {
+  auto map = FindMap(ctx_->store, req->name());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  MapToProto(*map, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMapRequest* req,
+                                       v1::DeleteMapResponse* resp) {
+  auto map = FindMap(ctx_->store, req->name());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  auto deleted = ctx_->store->DeleteMap(req->name());
+  if (!deleted.ok()) return ToGrpcStatus(deleted.status());
+  ctx_->visits->ForgetMap(map->id);
+  spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
+               deleted->second);
+  resp->set_deleted_visits(static_cast<uint32_t>(deleted->first));
+  resp->set_deleted_keyframes(static_cast<uint64_t>(deleted->second));
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMapRequest* req,
+                                       v1::Map* resp) {
+  if (auto s = store::ValidateMapName(req->name()); !s.ok()) return ToGrpcStatus(s);
+  if (auto s = store::ValidateMapName(req->new_name()); !s.ok()) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("new_name: ", s.message()));
+  }
+  auto map = ctx_->store->RenameMap(req->name(), req->new_name());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  MapToProto(*map, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext*,
+                                           const v1::ListKeyframesRequest* req,
+                                           v1::ListKeyframesResponse* resp) {
+  auto map = FindMap(ctx_->store, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  if (req->visit_id() != 0) {
+    auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
+    if (!visit.ok()) return ToGrpcStatus(visit.status());
+    if (visit->map_id != map->id) {
+      return grpc::Status(grpc::StatusCode::NOT_FOUND,
+                          absl::StrCat("visit ", req->visit_id(), " is not a visit of map '",
+                                       req->map(), "'"));
+    }
+  }
+  auto keyframes =
+      ctx_->store->ListKeyframes(map->id, static_cast<int64_t>(req->visit_id()));
+  if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
+  for (const auto& k : *keyframes) KeyframeSummaryToProto(k, resp->add_keyframes());
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyframeRequest* req,
+                                         v1::Keyframe* resp) {
+  auto map = FindMap(ctx_->store, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  auto k = ctx_->store->GetKeyframe(map->id, static_cast<int64_t>(req->keyframe_id()));
+  if (!k.ok()) return ToGrpcStatus(k.status());
+  KeyframeSummaryToProto(*k, resp->mutable_summary());
+  auto* depth = resp->mutable_depth();
+  depth->set_encoding(v1::DEPTH_PNG16);
+  depth->set_data(k->depth_png);
+  depth->set_width(static_cast<uint32_t>(k->intrinsics.width));
+  depth->set_height(static_cast<uint32_t>(k->intrinsics.height));
+  depth->set_depth_scale(k->depth_scale);
+  auto* color = resp->mutable_color();
+  color->set_encoding(k->color_encoding == store::StoredColorEncoding::kPng ? v1::COLOR_PNG
+                                                                             : v1::COLOR_JPEG);
+  color->set_data(k->color);
+  color->set_width(static_cast<uint32_t>(k->intrinsics.width));
+  color->set_height(static_cast<uint32_t>(k->intrinsics.height));
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
+                                       const v1::ExportMapRequest* req,
+                                       grpc::ServerWriter<v1::ExportChunk>* writer) {
+  auto map = FindMap(ctx_->store, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  const auto visit_id = static_cast<int64_t>(req->visit_id());
+  if (visit_id != 0) {
+    auto visit = ctx_->store->GetVisit(visit_id);
+    if (!visit.ok()) return ToGrpcStatus(visit.status());
+    if (visit->map_id != map->id) {
+      return grpc::Status(grpc::StatusCode::NOT_FOUND,
+                          absl::StrCat("visit ", visit_id, " is not a visit of map '",
+                                       req->map(), "'"));
+    }
+  }
+  switch (req->format()) {
+    case v1::EXPORT_POSES_TUM: {
+      auto keyframes = ctx_->store->ListKeyframes(map->id, visit_id);
+      if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
+      std::string body = "# lifemap keyframe poses (T_world_camera)\n"
+                         "# timestamp tx ty tz qx qy qz qw\n";
+      uint64_t n = 0;
+      for (const auto& k : *keyframes) {
+        if (!k.T_world_camera) continue;
+        body += io::FormatTumPoseLine(k.timestamp_s, *k.T_world_camera);
+        body += '\n';
+        ++n;
+      }
+      return SendChunks(body, "text/plain", n, writer);
+    }
+    case v1::EXPORT_CLOUD_PLY: {
+      const double voxel = req->voxel_size_m() == 0.0 ? 0.02 : req->voxel_size_m();
+      const uint32_t stride = req->pixel_stride() == 0 ? 4 : req->pixel_stride();
+      if (!(voxel >= 0.005 && voxel <= 1.0)) {
+        return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            absl::StrCat("voxel_size_m must be within [0.005, 1], got ", voxel));
+      }
+      if (stride < 1 || stride > 16) {
+        return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            absl::StrCat("pixel_stride must be within [1, 16], got ", stride));
+      }
+      std::vector<io::ColoredPoint> cloud;
+      int64_t used = 0;
+      const absl::Status st = ctx_->store->ForEachKeyframeWithImages(
+          map->id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
+            if (context->IsCancelled()) return absl::CancelledError("export cancelled");
+            if (!k.T_world_camera) return absl::OkStatus();
+            EncodedRgbdFrame encoded;
+            encoded.timestamp_s = k.timestamp_s;
+            encoded.intrinsics = k.intrinsics;
+            encoded.depth = {DepthEncoding::kPng16, k.depth_png, 0, 0, k.depth_scale};
+            encoded.color = {k.color_encoding == store::StoredColorEncoding::kPng
+                                 ? ColorEncoding::kPng
+                                 : ColorEncoding::kJpeg,
+                             k.color, 0, 0};
+            auto frame = DecodeRgbdFrame(encoded);
+            if (!frame.ok()) {
+              return absl::DataLossError(absl::StrCat("stored keyframe ", k.id,
+                                                      " cannot be decoded: ",
+                                                      frame.status().message()));
+            }
+            mapping::AppendBackProjected(*frame, *k.T_world_camera, static_cast<int>(stride),
+                                         &cloud);
+            ++used;
+            // Bound memory on large maps: fold into voxels as the cloud grows.
+            if (cloud.size() > 4'000'000) cloud = mapping::VoxelDownsample(cloud, voxel);
+            return absl::OkStatus();
+          });
+      if (!st.ok()) return ToGrpcStatus(st);
+      if (used == 0) {
+        return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                            absl::StrCat("no keyframe of map '", req->map(),
+                                         "' has a pose; stream with poses (lifemap stream "
+                                         "--use-groundtruth) to export a cloud"));
+      }
+      cloud = mapping::VoxelDownsample(cloud, voxel);
+      return SendChunks(io::EncodePlyBinary(cloud), "application/ply", cloud.size(), writer);
+    }
+    default:
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          "format must be EXPORT_POSES_TUM or EXPORT_CLOUD_PLY");
+  }
+}
+
+grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext*, grpc::ServerReader<v1::ImportChunk>*,
+                                       v1::Map*) {
+  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                      "ImportMap is not implemented yet: map import/export of whole maps is "
+                      "planned; use AdminService.Backup to copy a server's database");
+}
+
+}  // namespace lifemap::server

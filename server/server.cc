@@ -1,0 +1,110 @@
+#include "server/server.h"
+
+#include <chrono>
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/server.h>
+#include <grpcpp/server_builder.h>
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+
+struct LifemapServer::Impl {
+  ServiceContext ctx;
+  std::unique_ptr<store::Store> store;
+  std::unique_ptr<KeyframeCommitter> committer;
+  std::unique_ptr<VisitRegistry> visits;
+  pipeline::FramePipeline pipeline;
+  std::unique_ptr<MapServiceImpl> map_service;
+  std::unique_ptr<VisitServiceImpl> visit_service;
+  std::unique_ptr<FrameServiceImpl> frame_service;
+  std::unique_ptr<PlaceServiceImpl> place_service;
+  std::unique_ptr<ModelServiceImpl> model_service;
+  std::unique_ptr<AdminServiceImpl> admin_service;
+  std::unique_ptr<grpc::Server> grpc_server;
+  int port = 0;
+  absl::Mutex shutdown_mu;
+  bool shut_down ABSL_GUARDED_BY(shutdown_mu) = false;
+};
+
+LifemapServer::LifemapServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+
+LifemapServer::~LifemapServer() { Shutdown(); }
+
+absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const ServerConfig& config) {
+  if (auto s = config.Validate(); !s.ok()) return s;
+  auto impl = std::make_unique<Impl>();
+  store::StoreOptions store_options;
+  store_options.synchronous_full = config.synchronous_full;
+  auto store = store::Store::Open(config.db_path, store_options);
+  if (!store.ok()) return store.status();
+  impl->store = *std::move(store);
+  impl->committer = std::make_unique<KeyframeCommitter>(impl->store.get(),
+                                                        config.keyframe_batch_max);
+  impl->visits = std::make_unique<VisitRegistry>(impl->store.get());
+
+  ServiceContext& ctx = impl->ctx;
+  ctx.config = config;
+  ctx.store = impl->store.get();
+  ctx.committer = impl->committer.get();
+  ctx.visits = impl->visits.get();
+  ctx.pipeline = &impl->pipeline;
+  ctx.started_time_s = NowSeconds();
+
+  impl->map_service = std::make_unique<MapServiceImpl>(&ctx);
+  impl->visit_service = std::make_unique<VisitServiceImpl>(&ctx);
+  impl->frame_service = std::make_unique<FrameServiceImpl>(&ctx);
+  impl->place_service = std::make_unique<PlaceServiceImpl>();
+  impl->model_service = std::make_unique<ModelServiceImpl>();
+  impl->admin_service = std::make_unique<AdminServiceImpl>(&ctx);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(config.listen, grpc::InsecureServerCredentials(), &impl->port);
+  builder.SetMaxReceiveMessageSize(config.max_message_bytes);
+  builder.SetMaxSendMessageSize(config.max_message_bytes);
+  builder.RegisterService(impl->map_service.get());
+  builder.RegisterService(impl->visit_service.get());
+  builder.RegisterService(impl->frame_service.get());
+  builder.RegisterService(impl->place_service.get());
+  builder.RegisterService(impl->model_service.get());
+  builder.RegisterService(impl->admin_service.get());
+  impl->grpc_server = builder.BuildAndStart();
+  if (!impl->grpc_server || impl->port == 0) {
+    return absl::UnavailableError(absl::StrCat(
+        "cannot listen on ", config.listen, " (address in use, or not an address of this host)"));
+  }
+  spdlog::info("lifemapd {} listening on port {} with database {}", LIFEMAP_VERSION, impl->port,
+               config.db_path);
+  return std::unique_ptr<LifemapServer>(new LifemapServer(std::move(impl)));
+}
+
+int LifemapServer::port() const { return impl_->port; }
+
+void LifemapServer::Wait() { impl_->grpc_server->Wait(); }
+
+void LifemapServer::Shutdown() {
+  {
+    absl::MutexLock lock(&impl_->shutdown_mu);
+    if (impl_->shut_down) return;
+    impl_->shut_down = true;
+  }
+  spdlog::info("shutting down: letting streams finish for up to {} s",
+               impl_->ctx.config.shutdown_grace_s);
+  const auto deadline =
+      std::chrono::system_clock::now() +
+      std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
+  impl_->grpc_server->Shutdown(deadline);
+  // Every handler has returned; commit what is still queued, then close the store.
+  impl_->committer.reset();
+  impl_->store.reset();
+  spdlog::info("shutdown complete");
+}
+
+}  // namespace lifemap::server

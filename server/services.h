@@ -1,0 +1,129 @@
+// The gRPC service implementations. Each is thin: validate, call store / core, convert.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <memory>
+
+#include "core/pipeline/frame_pipeline.h"
+#include "lifemap/v1/admin_service.grpc.pb.h"
+#include "lifemap/v1/frame_service.grpc.pb.h"
+#include "lifemap/v1/map_service.grpc.pb.h"
+#include "lifemap/v1/model_service.grpc.pb.h"
+#include "lifemap/v1/place_service.grpc.pb.h"
+#include "lifemap/v1/visit_service.grpc.pb.h"
+#include "server/config.h"
+#include "server/keyframe_committer.h"
+#include "server/store/store.h"
+#include "server/visit_registry.h"
+
+namespace lifemap::server {
+
+// Everything the services share; owned by LifemapServer.
+struct ServiceContext {
+  ServerConfig config;
+  store::Store* store = nullptr;
+  KeyframeCommitter* committer = nullptr;
+  VisitRegistry* visits = nullptr;
+  const pipeline::FramePipeline* pipeline = nullptr;
+  double started_time_s = 0.0;
+  std::atomic<int> active_streams{0};
+  std::atomic<uint64_t> frames_processed{0};
+  std::atomic<uint64_t> frames_rejected{0};
+};
+
+// Seconds since the Unix epoch, wall clock.
+double NowSeconds();
+
+class MapServiceImpl final : public v1::MapService::Service {
+ public:
+  explicit MapServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
+  grpc::Status CreateMap(grpc::ServerContext*, const v1::CreateMapRequest*, v1::Map*) override;
+  grpc::Status ListMaps(grpc::ServerContext*, const v1::ListMapsRequest*,
+                        v1::ListMapsResponse*) override;
+  grpc::Status GetMap(grpc::ServerContext*, const v1::GetMapRequest*, v1::Map*) override;
+  grpc::Status DeleteMap(grpc::ServerContext*, const v1::DeleteMapRequest*,
+                         v1::DeleteMapResponse*) override;
+  grpc::Status RenameMap(grpc::ServerContext*, const v1::RenameMapRequest*, v1::Map*) override;
+  grpc::Status ListKeyframes(grpc::ServerContext*, const v1::ListKeyframesRequest*,
+                             v1::ListKeyframesResponse*) override;
+  grpc::Status GetKeyframe(grpc::ServerContext*, const v1::GetKeyframeRequest*,
+                           v1::Keyframe*) override;
+  grpc::Status ExportMap(grpc::ServerContext*, const v1::ExportMapRequest*,
+                         grpc::ServerWriter<v1::ExportChunk>*) override;
+  grpc::Status ImportMap(grpc::ServerContext*, grpc::ServerReader<v1::ImportChunk>*,
+                         v1::Map*) override;
+
+ private:
+  ServiceContext* ctx_;
+};
+
+class VisitServiceImpl final : public v1::VisitService::Service {
+ public:
+  explicit VisitServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
+  grpc::Status StartVisit(grpc::ServerContext*, const v1::StartVisitRequest*,
+                          v1::Visit*) override;
+  grpc::Status EndVisit(grpc::ServerContext*, const v1::EndVisitRequest*, v1::Visit*) override;
+  grpc::Status ListVisits(grpc::ServerContext*, const v1::ListVisitsRequest*,
+                          v1::ListVisitsResponse*) override;
+
+ private:
+  ServiceContext* ctx_;
+};
+
+class FrameServiceImpl final : public v1::FrameService::Service {
+ public:
+  explicit FrameServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
+  grpc::Status StreamFrames(
+      grpc::ServerContext* context,
+      grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream)
+      override;
+  grpc::Status ProcessFrame(grpc::ServerContext*, const v1::ProcessFrameRequest*,
+                            v1::FrameResult*) override;
+
+ private:
+  ServiceContext* ctx_;
+};
+
+class PlaceServiceImpl final : public v1::PlaceService::Service {
+ public:
+  grpc::Status QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest*,
+                          v1::QueryPlaceResponse*) override;
+};
+
+class ModelServiceImpl final : public v1::ModelService::Service {
+ public:
+  grpc::Status UploadModel(grpc::ServerContext*, grpc::ServerReader<v1::UploadModelChunk>*,
+                           v1::ModelInfo*) override;
+  grpc::Status ListModels(grpc::ServerContext*, const v1::ListModelsRequest*,
+                          v1::ListModelsResponse*) override;
+  grpc::Status ActivateModel(grpc::ServerContext*, const v1::ActivateModelRequest*,
+                             v1::ModelInfo*) override;
+  grpc::Status ListClasses(grpc::ServerContext*, const v1::ListClassesRequest*,
+                           v1::ListClassesResponse*) override;
+};
+
+class AdminServiceImpl final : public v1::AdminService::Service {
+ public:
+  explicit AdminServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
+  grpc::Status GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
+                             v1::ServerInfo*) override;
+  grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::Stats*) override;
+  grpc::Status Backup(grpc::ServerContext*, const v1::BackupRequest*,
+                      v1::BackupResponse*) override;
+  grpc::Status CheckIntegrity(grpc::ServerContext*, const v1::CheckIntegrityRequest*,
+                              v1::CheckIntegrityResponse*) override;
+  grpc::Status Vacuum(grpc::ServerContext*, const v1::VacuumRequest*,
+                      v1::VacuumResponse*) override;
+  grpc::Status CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
+                            v1::CreateApiKeyResponse*) override;
+
+ private:
+  ServiceContext* ctx_;
+};
+
+// Which per-frame outputs this build computes, and why the others are absent.
+void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
+                        bool pose_from_client);
+
+}  // namespace lifemap::server

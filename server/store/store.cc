@@ -1,0 +1,668 @@
+#include "server/store/store.h"
+
+#include <sqlite3.h>
+
+#include <filesystem>
+
+#include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "server/store/sqlite.h"
+
+namespace lifemap::store {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Forward migrations: kMigrations[i] takes the schema from version i to i + 1. Never edit a
+// migration that has shipped; append a new one and bump Store::kSchemaVersion.
+const char* const kMigrations[] = {
+    // 0 -> 1: maps, visits, keyframes. Images live in their own table so that listing
+    // keyframes never pages through image blobs.
+    R"sql(
+CREATE TABLE maps (
+  id INTEGER PRIMARY KEY,
+  name TEXT NOT NULL UNIQUE,
+  description TEXT NOT NULL DEFAULT '',
+  created_time_s REAL NOT NULL
+);
+CREATE TABLE visits (
+  id INTEGER PRIMARY KEY,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  robot TEXT NOT NULL DEFAULT '',
+  label TEXT NOT NULL DEFAULT '',
+  start_time_s REAL NOT NULL,
+  end_time_s REAL NOT NULL DEFAULT 0,
+  ended INTEGER NOT NULL DEFAULT 0,
+  frame_count INTEGER NOT NULL DEFAULT 0
+);
+CREATE INDEX visits_by_map ON visits(map_id, start_time_s);
+CREATE TABLE keyframes (
+  id INTEGER PRIMARY KEY,
+  visit_id INTEGER NOT NULL REFERENCES visits(id) ON DELETE CASCADE,
+  sequence INTEGER NOT NULL,
+  timestamp_s REAL NOT NULL,
+  has_pose INTEGER NOT NULL,
+  tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+  fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
+  width INTEGER NOT NULL, height INTEGER NOT NULL,
+  depth_scale REAL NOT NULL,
+  color_encoding INTEGER NOT NULL,
+  depth_bytes INTEGER NOT NULL,
+  color_bytes INTEGER NOT NULL
+);
+CREATE INDEX keyframes_by_visit ON keyframes(visit_id, timestamp_s);
+CREATE TABLE keyframe_images (
+  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+  depth_png BLOB NOT NULL,
+  color BLOB NOT NULL
+);
+)sql",
+};
+static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
+              "one migration per schema version");
+
+constexpr char kKeyframeColumns[] =
+    "k.id, k.visit_id, k.sequence, k.timestamp_s, k.has_pose, k.tx, k.ty, k.tz, k.qx, k.qy, "
+    "k.qz, k.qw, k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale, k.color_encoding, "
+    "k.depth_bytes, k.color_bytes";
+constexpr int kKeyframeColumnCount = 22;
+
+KeyframeRecord ReadKeyframe(const Statement& s) {
+  KeyframeRecord k;
+  k.id = s.ColumnInt(0);
+  k.visit_id = s.ColumnInt(1);
+  k.sequence = static_cast<uint64_t>(s.ColumnInt(2));
+  k.timestamp_s = s.ColumnDouble(3);
+  if (s.ColumnInt(4) != 0) {
+    Pose p;
+    p.translation = {s.ColumnDouble(5), s.ColumnDouble(6), s.ColumnDouble(7)};
+    p.rotation = Eigen::Quaterniond(s.ColumnDouble(11), s.ColumnDouble(8), s.ColumnDouble(9),
+                                    s.ColumnDouble(10));
+    k.T_world_camera = p;
+  }
+  k.intrinsics.fx = s.ColumnDouble(12);
+  k.intrinsics.fy = s.ColumnDouble(13);
+  k.intrinsics.cx = s.ColumnDouble(14);
+  k.intrinsics.cy = s.ColumnDouble(15);
+  k.intrinsics.width = static_cast<int>(s.ColumnInt(16));
+  k.intrinsics.height = static_cast<int>(s.ColumnInt(17));
+  k.depth_scale = s.ColumnDouble(18);
+  k.color_encoding = static_cast<StoredColorEncoding>(s.ColumnInt(19));
+  k.depth_bytes = s.ColumnInt(20);
+  k.color_bytes = s.ColumnInt(21);
+  return k;
+}
+
+VisitRecord ReadVisit(const Statement& s) {
+  VisitRecord v;
+  v.id = s.ColumnInt(0);
+  v.map_id = s.ColumnInt(1);
+  v.map_name = s.ColumnText(2);
+  v.robot = s.ColumnText(3);
+  v.label = s.ColumnText(4);
+  v.start_time_s = s.ColumnDouble(5);
+  v.end_time_s = s.ColumnDouble(6);
+  v.ended = s.ColumnInt(7) != 0;
+  v.frame_count = s.ColumnInt(8);
+  v.keyframe_count = s.ColumnInt(9);
+  return v;
+}
+
+constexpr char kVisitSelect[] =
+    "SELECT v.id, v.map_id, m.name, v.robot, v.label, v.start_time_s, v.end_time_s, v.ended, "
+    "v.frame_count, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id) "
+    "FROM visits v JOIN maps m ON m.id = v.map_id ";
+
+constexpr char kMapSelect[] =
+    "SELECT m.id, m.name, m.description, m.created_time_s, "
+    "(SELECT COUNT(*) FROM visits v WHERE v.map_id = m.id), "
+    "(SELECT COUNT(*) FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), "
+    "(SELECT COALESCE(SUM(k.depth_bytes + k.color_bytes), 0) FROM keyframes k "
+    " JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id) "
+    "FROM maps m ";
+
+MapRecord ReadMap(const Statement& s) {
+  MapRecord m;
+  m.id = s.ColumnInt(0);
+  m.name = s.ColumnText(1);
+  m.description = s.ColumnText(2);
+  m.created_time_s = s.ColumnDouble(3);
+  m.visit_count = s.ColumnInt(4);
+  m.keyframe_count = s.ColumnInt(5);
+  m.stored_bytes = s.ColumnInt(6);
+  return m;
+}
+
+// Commits on success, rolls back when destroyed uncommitted.
+class Transaction {
+ public:
+  explicit Transaction(Database* db) : db_(db) {}
+  absl::Status Begin() { return db_->Exec("BEGIN IMMEDIATE"); }
+  absl::Status Commit() {
+    auto s = db_->Exec("COMMIT");
+    if (s.ok()) done_ = true;
+    return s;
+  }
+  ~Transaction() {
+    if (!done_) db_->Exec("ROLLBACK").IgnoreError();
+  }
+
+ private:
+  Database* db_;
+  bool done_ = false;
+};
+
+}  // namespace
+
+absl::Status ValidateMapName(const std::string& name) {
+  if (name.empty() || name.size() > 64) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("map name must be 1 to 64 characters, got ", name.size()));
+  }
+  if (name[0] == '.') return absl::InvalidArgumentError("map name must not start with '.'");
+  for (char c : name) {
+    const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') ||
+                    c == '.' || c == '_' || c == '-';
+    if (!ok) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "map name '", name, "' may only use letters, digits, '.', '_' and '-'"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+struct Store::Impl {
+  absl::Mutex write_mu;
+  std::unique_ptr<Database> write_db ABSL_GUARDED_BY(write_mu);
+  absl::Mutex read_mu;
+  std::unique_ptr<Database> read_db ABSL_GUARDED_BY(read_mu);
+
+  absl::StatusOr<MapRecord> GetMapLocked(Database* db, const std::string& name) {
+    auto stmt = db->Prepare(absl::StrCat(kMapSelect, "WHERE m.name = ?1"));
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, name);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
+    return ReadMap(*s);
+  }
+
+  absl::StatusOr<VisitRecord> GetVisitLocked(Database* db, int64_t visit_id) {
+    auto stmt = db->Prepare(absl::StrCat(kVisitSelect, "WHERE v.id = ?1"));
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, visit_id);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+    return ReadVisit(*s);
+  }
+};
+
+Store::Store(std::unique_ptr<Impl> impl, std::string path)
+    : impl_(std::move(impl)), path_(std::move(path)) {}
+
+Store::~Store() {
+  // Fold the WAL back into the main file so a cleanly stopped server leaves one file.
+  absl::MutexLock lock(&impl_->write_mu);
+  if (impl_->write_db) impl_->write_db->Exec("PRAGMA wal_checkpoint(TRUNCATE)").IgnoreError();
+}
+
+absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
+                                                   const StoreOptions& options) {
+  if (path.empty()) return absl::InvalidArgumentError("database path is empty");
+  const fs::path parent = fs::absolute(path).parent_path();
+  if (!fs::is_directory(parent)) {
+    return absl::NotFoundError(
+        absl::StrCat("directory ", parent.string(), " for the database does not exist"));
+  }
+  auto impl = std::make_unique<Impl>();
+  auto write_db = Database::Open(path, options.create_if_missing, false, options.busy_timeout_ms);
+  if (!write_db.ok()) return write_db.status();
+  Database* db = write_db->get();
+  // WAL: readers never block the writer; FULL syncs the WAL on every commit.
+  auto mode = db->Prepare("PRAGMA journal_mode=WAL");
+  if (!mode.ok()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, " is not a usable SQLite database: ", mode.status().message()));
+  }
+  {
+    StatementScope s(*mode);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row || s->ColumnText(0) != "wal") {
+      return absl::FailedPreconditionError(
+          absl::StrCat(path, ": could not switch to WAL mode (is the file system local?)"));
+    }
+  }
+  if (auto s = db->Exec(absl::StrCat("PRAGMA synchronous=", options.synchronous_full ? "FULL"
+                                                                                      : "NORMAL",
+                                     "; PRAGMA foreign_keys=ON;"));
+      !s.ok()) {
+    return s;
+  }
+
+  auto version = db->QueryInt("PRAGMA user_version");
+  if (!version.ok()) return version.status();
+  if (*version > kSchemaVersion) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        path, " has schema version ", *version, ", newer than this lifemapd knows (",
+        kSchemaVersion, "); run a newer lifemapd or restore a backup"));
+  }
+  if (*version == 0) {
+    // A new file, or one that is not lifemap's: refuse files that already hold other tables.
+    auto tables = db->QueryInt("SELECT COUNT(*) FROM sqlite_master WHERE type = 'table'");
+    if (!tables.ok()) return tables.status();
+    if (*tables > 0) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(path, " holds tables but is not a lifemap database"));
+    }
+  }
+  for (int64_t v = *version; v < kSchemaVersion; ++v) {
+    Transaction tx(db);
+    if (auto s = tx.Begin(); !s.ok()) return s;
+    if (auto s = db->Exec(kMigrations[v]); !s.ok()) return s;
+    if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", v + 1)); !s.ok()) return s;
+    if (auto s = tx.Commit(); !s.ok()) return s;
+  }
+
+  auto read_db = Database::Open(path, false, true, options.busy_timeout_ms);
+  if (!read_db.ok()) return read_db.status();
+  {
+    absl::MutexLock w(&impl->write_mu);
+    impl->write_db = *std::move(write_db);
+  }
+  {
+    absl::MutexLock r(&impl->read_mu);
+    impl->read_db = *std::move(read_db);
+  }
+  return std::unique_ptr<Store>(new Store(std::move(impl), path));
+}
+
+absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name,
+                                           const std::string& description,
+                                           double created_time_s) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto stmt =
+      db->Prepare("INSERT INTO maps (name, description, created_time_s) VALUES (?1, ?2, ?3)");
+  if (!stmt.ok()) return stmt.status();
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, name).Bind(2, description).Bind(3, created_time_s);
+    if (auto st = s->Run(); !st.ok()) {
+      if (absl::IsFailedPrecondition(st)) {
+        return absl::AlreadyExistsError(absl::StrCat("map '", name, "' already exists"));
+      }
+      return st;
+    }
+  }
+  return impl_->GetMapLocked(db, name);
+}
+
+absl::StatusOr<std::vector<MapRecord>> Store::ListMaps() {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(kMapSelect, "ORDER BY m.name"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  std::vector<MapRecord> maps;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    maps.push_back(ReadMap(*s));
+  }
+  return maps;
+}
+
+absl::StatusOr<MapRecord> Store::GetMap(const std::string& name) {
+  absl::MutexLock lock(&impl_->read_mu);
+  return impl_->GetMapLocked(impl_->read_db.get(), name);
+}
+
+absl::StatusOr<std::pair<int64_t, int64_t>> Store::DeleteMap(const std::string& name) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto map = impl_->GetMapLocked(db, name);
+  if (!map.ok()) return map.status();
+  auto stmt = db->Prepare("DELETE FROM maps WHERE id = ?1");
+  if (!stmt.ok()) return stmt.status();
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, map->id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return std::make_pair(map->visit_count, map->keyframe_count);
+}
+
+absl::StatusOr<MapRecord> Store::RenameMap(const std::string& name, const std::string& new_name) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto stmt = db->Prepare("UPDATE maps SET name = ?2 WHERE name = ?1");
+  if (!stmt.ok()) return stmt.status();
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, name).Bind(2, new_name);
+    if (auto st = s->Run(); !st.ok()) {
+      if (absl::IsFailedPrecondition(st)) {
+        return absl::AlreadyExistsError(absl::StrCat("map '", new_name, "' already exists"));
+      }
+      return st;
+    }
+  }
+  if (db->Changes() == 0) return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
+  return impl_->GetMapLocked(db, new_name);
+}
+
+absl::StatusOr<VisitRecord> Store::StartVisit(const std::string& map_name,
+                                              const std::string& robot, const std::string& label,
+                                              double start_time_s) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto map = impl_->GetMapLocked(db, map_name);
+  if (!map.ok()) return map.status();
+  auto stmt = db->Prepare(
+      "INSERT INTO visits (map_id, robot, label, start_time_s) VALUES (?1, ?2, ?3, ?4)");
+  if (!stmt.ok()) return stmt.status();
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, map->id).Bind(2, robot).Bind(3, label).Bind(4, start_time_s);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  return impl_->GetVisitLocked(db, db->LastInsertRowId());
+}
+
+absl::StatusOr<VisitRecord> Store::GetVisit(int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  return impl_->GetVisitLocked(impl_->read_db.get(), visit_id);
+}
+
+absl::StatusOr<VisitRecord> Store::EndVisit(int64_t visit_id, double end_time_s,
+                                            int64_t frame_count) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto stmt = db->Prepare(
+      "UPDATE visits SET ended = 1, end_time_s = ?2, frame_count = MAX(frame_count, ?3) "
+      "WHERE id = ?1");
+  if (!stmt.ok()) return stmt.status();
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, visit_id).Bind(2, end_time_s).Bind(3, frame_count);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (db->Changes() == 0) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+  return impl_->GetVisitLocked(db, visit_id);
+}
+
+absl::StatusOr<std::vector<VisitRecord>> Store::ListVisits(const std::string& map_name) {
+  absl::MutexLock lock(&impl_->read_mu);
+  Database* db = impl_->read_db.get();
+  auto map = impl_->GetMapLocked(db, map_name);
+  if (!map.ok()) return map.status();
+  auto stmt = db->Prepare(absl::StrCat(kVisitSelect, "WHERE v.map_id = ?1 ORDER BY v.id"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map->id);
+  std::vector<VisitRecord> visits;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    visits.push_back(ReadVisit(*s));
+  }
+  return visits;
+}
+
+absl::StatusOr<std::optional<VisitRecord>> Store::LatestOpenVisit(const std::string& map_name) {
+  absl::MutexLock lock(&impl_->read_mu);
+  Database* db = impl_->read_db.get();
+  auto map = impl_->GetMapLocked(db, map_name);
+  if (!map.ok()) return map.status();
+  auto stmt = db->Prepare(
+      absl::StrCat(kVisitSelect, "WHERE v.map_id = ?1 AND v.ended = 0 ORDER BY v.id DESC LIMIT 1"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map->id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<VisitRecord>();
+  return std::optional<VisitRecord>(ReadVisit(*s));
+}
+
+absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
+                                    const std::vector<VisitFrameCount>& frame_counts) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto insert = db->Prepare(
+      "INSERT INTO keyframes (visit_id, sequence, timestamp_s, has_pose, tx, ty, tz, qx, qy, qz, "
+      "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, "
+      "?19, ?20, ?21)");
+  if (!insert.ok()) return insert.status();
+  auto insert_images = db->Prepare(
+      "INSERT INTO keyframe_images (keyframe_id, depth_png, color) VALUES (?1, ?2, ?3)");
+  if (!insert_images.ok()) return insert_images.status();
+  auto visit_exists = db->Prepare("SELECT ended FROM visits WHERE id = ?1");
+  if (!visit_exists.ok()) return visit_exists.status();
+
+  for (auto& k : *keyframes) {
+    {
+      StatementScope v(*visit_exists);
+      v->Bind(1, k.visit_id);
+      auto row = v->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) {
+        return absl::NotFoundError(absl::StrCat(
+            "visit ", k.visit_id, " no longer exists (its map was deleted); keyframe not stored"));
+      }
+    }
+    {
+      StatementScope s(*insert);
+      s->Bind(1, k.visit_id).Bind(2, static_cast<int64_t>(k.sequence)).Bind(3, k.timestamp_s);
+      s->Bind(4, int64_t{k.T_world_camera.has_value()});
+      if (k.T_world_camera) {
+        const auto& t = k.T_world_camera->translation;
+        const auto& q = k.T_world_camera->rotation;
+        s->Bind(5, t.x()).Bind(6, t.y()).Bind(7, t.z());
+        s->Bind(8, q.x()).Bind(9, q.y()).Bind(10, q.z()).Bind(11, q.w());
+      } else {
+        for (int i = 5; i <= 11; ++i) s->BindNull(i);
+      }
+      s->Bind(12, k.intrinsics.fx).Bind(13, k.intrinsics.fy);
+      s->Bind(14, k.intrinsics.cx).Bind(15, k.intrinsics.cy);
+      s->Bind(16, int64_t{k.intrinsics.width}).Bind(17, int64_t{k.intrinsics.height});
+      s->Bind(18, k.depth_scale).Bind(19, static_cast<int64_t>(k.color_encoding));
+      k.depth_bytes = static_cast<int64_t>(k.depth_png.size());
+      k.color_bytes = static_cast<int64_t>(k.color.size());
+      s->Bind(20, k.depth_bytes).Bind(21, k.color_bytes);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
+    k.id = db->LastInsertRowId();
+    {
+      StatementScope s(*insert_images);
+      s->Bind(1, k.id).BindBlob(2, k.depth_png).BindBlob(3, k.color);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
+  }
+  auto update_count = db->Prepare(
+      "UPDATE visits SET frame_count = MAX(frame_count, ?2) WHERE id = ?1");
+  if (!update_count.ok()) return update_count.status();
+  for (const auto& c : frame_counts) {
+    StatementScope s(*update_count);
+    s->Bind(1, c.visit_id).Bind(2, c.frame_count);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  auto committed = tx.Commit();
+  if (!committed.ok()) {
+    for (auto& k : *keyframes) k.id = 0;
+  }
+  return committed;
+}
+
+absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
+                                                                 int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(
+      "SELECT ", kKeyframeColumns,
+      " FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = ?1 "
+      "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id).Bind(2, visit_id);
+  std::vector<KeyframeRecord> out;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out.push_back(ReadKeyframe(*s));
+  }
+  return out;
+}
+
+absl::Status Store::ForEachKeyframeWithImages(
+    int64_t map_id, int64_t visit_id,
+    const std::function<absl::Status(const KeyframeRecord&)>& fn) {
+  // Ids first, then one keyframe at a time: the read lock is not held while `fn` runs.
+  auto list = ListKeyframes(map_id, visit_id);
+  if (!list.ok()) return list.status();
+  for (const auto& summary : *list) {
+    auto k = GetKeyframe(map_id, summary.id);
+    if (absl::IsNotFound(k.status())) continue;  // deleted meanwhile
+    if (!k.ok()) return k.status();
+    if (auto s = fn(*k); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<KeyframeRecord> Store::GetKeyframe(int64_t map_id, int64_t keyframe_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(
+      "SELECT ", kKeyframeColumns,
+      ", i.depth_png, i.color FROM keyframes k JOIN visits v ON v.id = k.visit_id "
+      "JOIN keyframe_images i ON i.keyframe_id = k.id WHERE v.map_id = ?1 AND k.id = ?2"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id).Bind(2, keyframe_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) {
+    return absl::NotFoundError(absl::StrCat("keyframe ", keyframe_id, " is not in this map"));
+  }
+  KeyframeRecord k = ReadKeyframe(*s);
+  k.depth_png = s->ColumnBlob(kKeyframeColumnCount);
+  k.color = s->ColumnBlob(kKeyframeColumnCount + 1);
+  return k;
+}
+
+absl::StatusOr<std::optional<KeyframeRecord>> Store::LastKeyframe(int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(
+      "SELECT ", kKeyframeColumns,
+      " FROM keyframes k WHERE k.visit_id = ?1 ORDER BY k.timestamp_s DESC, k.id DESC LIMIT 1"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, visit_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<KeyframeRecord>();
+  return std::optional<KeyframeRecord>(ReadKeyframe(*s));
+}
+
+absl::StatusOr<StoreStats> Store::Stats() {
+  StoreStats st;
+  {
+    absl::MutexLock lock(&impl_->read_mu);
+    Database* db = impl_->read_db.get();
+    auto maps = db->QueryInt("SELECT COUNT(*) FROM maps");
+    auto visits = db->QueryInt("SELECT COUNT(*) FROM visits");
+    auto keyframes = db->QueryInt("SELECT COUNT(*) FROM keyframes");
+    if (!maps.ok()) return maps.status();
+    if (!visits.ok()) return visits.status();
+    if (!keyframes.ok()) return keyframes.status();
+    st.maps = *maps;
+    st.visits = *visits;
+    st.keyframes = *keyframes;
+  }
+  std::error_code ec;
+  st.db_bytes = static_cast<int64_t>(fs::file_size(path_, ec));
+  if (ec) st.db_bytes = 0;
+  st.wal_bytes = static_cast<int64_t>(fs::file_size(path_ + "-wal", ec));
+  if (ec) st.wal_bytes = 0;
+  return st;
+}
+
+absl::Status Store::Backup(const std::string& path) {
+  if (path.empty() || path[0] != '/') {
+    return absl::InvalidArgumentError("backup path must be an absolute path on the server");
+  }
+  if (fs::exists(path)) {
+    return absl::AlreadyExistsError(absl::StrCat(path, " exists; choose a new file name"));
+  }
+  if (!fs::is_directory(fs::path(path).parent_path())) {
+    return absl::NotFoundError(
+        absl::StrCat("directory ", fs::path(path).parent_path().string(), " does not exist"));
+  }
+  auto dest = Database::Open(path, true, false, 5000);
+  if (!dest.ok()) return dest.status();
+  absl::MutexLock lock(&impl_->read_mu);
+  sqlite3_backup* backup =
+      sqlite3_backup_init((*dest)->raw(), "main", impl_->read_db->raw(), "main");
+  if (backup == nullptr) return SqliteError((*dest)->raw(), sqlite3_errcode((*dest)->raw()), "backup");
+  const int rc = sqlite3_backup_step(backup, -1);
+  sqlite3_backup_finish(backup);
+  if (rc != SQLITE_DONE) {
+    dest->reset();
+    fs::remove(path);
+    return SqliteError(nullptr, rc, "backup");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::string>> Store::CheckIntegrity() {
+  absl::MutexLock lock(&impl_->read_mu);
+  Database* db = impl_->read_db.get();
+  std::vector<std::string> problems;
+  {
+    auto stmt = db->Prepare("PRAGMA integrity_check");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    for (;;) {
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      const std::string line = s->ColumnText(0);
+      if (line != "ok") problems.push_back(line);
+    }
+  }
+  {
+    auto stmt = db->Prepare("PRAGMA foreign_key_check");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    for (;;) {
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      problems.push_back(absl::StrCat("foreign key violation in ", s->ColumnText(0), " row ",
+                                      s->ColumnInt(1), " -> ", s->ColumnText(2)));
+    }
+  }
+  return problems;
+}
+
+absl::Status Store::Vacuum() {
+  absl::MutexLock lock(&impl_->write_mu);
+  return impl_->write_db->Exec("VACUUM");
+}
+
+absl::Status Store::Checkpoint() {
+  absl::MutexLock lock(&impl_->write_mu);
+  return impl_->write_db->Exec("PRAGMA wal_checkpoint(TRUNCATE)");
+}
+
+}  // namespace lifemap::store

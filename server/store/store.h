@@ -1,0 +1,154 @@
+// lifemap's durable store: one SQLite file in WAL mode holding maps ⊃ visits ⊃ keyframes.
+//
+// Durability contract: every method that changes data returns only after its transaction has
+// committed (synchronous=FULL by default: the commit survives a process crash and a power
+// loss). Callers acknowledge a write to a client only after the method returned OK.
+//
+// Thread-safe. Writes go through one connection, reads through another, so reads (listing,
+// export) do not wait for a writer's fsync (WAL lets them see the last committed state).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/types.h"
+
+namespace lifemap::store {
+
+class Database;
+
+struct StoreOptions {
+  bool synchronous_full = true;  // false: synchronous=NORMAL (safe on a process crash only)
+  int busy_timeout_ms = 5000;
+  bool create_if_missing = true;
+};
+
+struct MapRecord {
+  int64_t id = 0;
+  std::string name;
+  std::string description;
+  double created_time_s = 0.0;
+  int64_t visit_count = 0;
+  int64_t keyframe_count = 0;
+  int64_t stored_bytes = 0;  // keyframe image bytes
+};
+
+struct VisitRecord {
+  int64_t id = 0;
+  int64_t map_id = 0;
+  std::string map_name;
+  std::string robot;
+  std::string label;
+  double start_time_s = 0.0;
+  double end_time_s = 0.0;
+  bool ended = false;
+  int64_t keyframe_count = 0;
+  int64_t frame_count = 0;
+};
+
+enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
+
+struct KeyframeRecord {
+  int64_t id = 0;  // assigned by InsertKeyframes
+  int64_t visit_id = 0;
+  uint64_t sequence = 0;
+  double timestamp_s = 0.0;
+  std::optional<Pose> T_world_camera;
+  CameraIntrinsics intrinsics;
+  double depth_scale = 0.0;  // units per metre of depth_png
+  std::string depth_png;     // 16-bit PNG (empty when listed without images)
+  StoredColorEncoding color_encoding = StoredColorEncoding::kJpeg;
+  std::string color;         // JPEG or PNG bytes (empty when listed without images)
+  int64_t depth_bytes = 0;
+  int64_t color_bytes = 0;
+};
+
+// A visit's frame counter, written in the same transaction as its keyframes.
+struct VisitFrameCount {
+  int64_t visit_id = 0;
+  int64_t frame_count = 0;
+};
+
+struct StoreStats {
+  int64_t maps = 0;
+  int64_t visits = 0;
+  int64_t keyframes = 0;
+  int64_t db_bytes = 0;
+  int64_t wal_bytes = 0;
+};
+
+class Store {
+ public:
+  // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
+  // file's schema is newer than this build knows, or the file is not a lifemap database.
+  static absl::StatusOr<std::unique_ptr<Store>> Open(const std::string& path,
+                                                     const StoreOptions& options = {});
+  ~Store();
+  Store(const Store&) = delete;
+  Store& operator=(const Store&) = delete;
+
+  static constexpr int kSchemaVersion = 1;
+  int schema_version() const { return kSchemaVersion; }
+  const std::string& path() const { return path_; }
+
+  // Maps. Names are validated by the caller (ValidateMapName). ALREADY_EXISTS / NOT_FOUND.
+  absl::StatusOr<MapRecord> CreateMap(const std::string& name, const std::string& description,
+                                      double created_time_s);
+  absl::StatusOr<std::vector<MapRecord>> ListMaps();
+  absl::StatusOr<MapRecord> GetMap(const std::string& name);
+  // Deletes the map with its visits and keyframes; returns the counts deleted.
+  absl::StatusOr<std::pair<int64_t, int64_t>> DeleteMap(const std::string& name);
+  absl::StatusOr<MapRecord> RenameMap(const std::string& name, const std::string& new_name);
+
+  // Visits. NOT_FOUND for an unknown map or visit.
+  absl::StatusOr<VisitRecord> StartVisit(const std::string& map_name, const std::string& robot,
+                                         const std::string& label, double start_time_s);
+  absl::StatusOr<VisitRecord> GetVisit(int64_t visit_id);
+  absl::StatusOr<VisitRecord> EndVisit(int64_t visit_id, double end_time_s, int64_t frame_count);
+  absl::StatusOr<std::vector<VisitRecord>> ListVisits(const std::string& map_name);
+  // The map's most recently started visit that is still open, if any.
+  absl::StatusOr<std::optional<VisitRecord>> LatestOpenVisit(const std::string& map_name);
+
+  // Inserts the keyframes and updates the visits' frame counters in one transaction; assigns
+  // ids. On error nothing is written. NOT_FOUND when a visit no longer exists (map deleted).
+  absl::Status InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
+                               const std::vector<VisitFrameCount>& frame_counts);
+
+  // Keyframes of a map (all visits, or one when visit_id != 0) in time order, without images.
+  absl::StatusOr<std::vector<KeyframeRecord>> ListKeyframes(int64_t map_id, int64_t visit_id);
+  // Calls `fn` for each keyframe with its images, one at a time (bounded memory); stops early
+  // when `fn` returns a non-OK status and returns it.
+  absl::Status ForEachKeyframeWithImages(
+      int64_t map_id, int64_t visit_id,
+      const std::function<absl::Status(const KeyframeRecord&)>& fn);
+  // One keyframe of the map with its images. NOT_FOUND if it is not in that map.
+  absl::StatusOr<KeyframeRecord> GetKeyframe(int64_t map_id, int64_t keyframe_id);
+  // The visit's latest keyframe (without images), to resume keyframe selection.
+  absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
+
+  // Administration.
+  absl::StatusOr<StoreStats> Stats();
+  // Online backup to a new file (sqlite3 backup API); FailedPrecondition if `path` exists.
+  absl::Status Backup(const std::string& path);
+  // PRAGMA integrity_check + foreign_key_check; returns the problems (empty = ok).
+  absl::StatusOr<std::vector<std::string>> CheckIntegrity();
+  absl::Status Vacuum();
+  // Moves the WAL into the main file (PRAGMA wal_checkpoint(TRUNCATE)).
+  absl::Status Checkpoint();
+
+ private:
+  struct Impl;
+  explicit Store(std::unique_ptr<Impl> impl, std::string path);
+  std::unique_ptr<Impl> impl_;
+  std::string path_;
+};
+
+// InvalidArgument unless the name is 1–64 characters of [A-Za-z0-9._-] not starting with '.'.
+absl::Status ValidateMapName(const std::string& name);
+
+}  // namespace lifemap::store

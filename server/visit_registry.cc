@@ -1,0 +1,47 @@
+#include "server/visit_registry.h"
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::server {
+
+absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id) {
+  {
+    absl::MutexLock lock(&mu_);
+    auto it = visits_.find(visit_id);
+    if (it != visits_.end()) return it->second;
+  }
+  auto visit = store_->GetVisit(visit_id);
+  if (!visit.ok()) return visit.status();
+  if (visit->ended) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "visit ", visit_id, " has ended; start a new visit to stream more frames"));
+  }
+  auto last = store_->LastKeyframe(visit_id);
+  if (!last.ok()) return last.status();
+  auto state = std::make_shared<VisitState>();
+  state->visit_id = visit_id;
+  state->map_id = visit->map_id;
+  state->map_name = visit->map_name;
+  {
+    absl::MutexLock lock(&state->mu);
+    state->frame_count = visit->frame_count;
+    if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
+  }
+  absl::MutexLock lock(&mu_);
+  auto [it, inserted] = visits_.emplace(visit_id, std::move(state));
+  return it->second;  // another thread may have loaded it first: use that one
+}
+
+void VisitRegistry::Forget(int64_t visit_id) {
+  absl::MutexLock lock(&mu_);
+  visits_.erase(visit_id);
+}
+
+void VisitRegistry::ForgetMap(int64_t map_id) {
+  absl::MutexLock lock(&mu_);
+  for (auto it = visits_.begin(); it != visits_.end();) {
+    it = it->second->map_id == map_id ? visits_.erase(it) : std::next(it);
+  }
+}
+
+}  // namespace lifemap::server

@@ -1,0 +1,45 @@
+// Per-visit state that outlives one stream: the keyframe selector and the frame counter, so a
+// robot that reconnects (or sends unary ProcessFrame calls) continues where it stopped.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <unordered_map>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "core/tracking/keyframe_selector.h"
+#include "server/store/store.h"
+
+namespace lifemap::server {
+
+struct VisitState {
+  int64_t visit_id = 0;
+  int64_t map_id = 0;
+  std::string map_name;
+  // Serialises frames of one visit (several streams to one visit are processed in turn).
+  absl::Mutex mu;
+  tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
+  int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
+};
+
+// Thread-safe.
+class VisitRegistry {
+ public:
+  explicit VisitRegistry(store::Store* store) : store_(store) {}
+
+  // The state of an open visit, loaded from the store on first use (the selector resumes from
+  // the visit's last keyframe). NOT_FOUND for an unknown visit; FAILED_PRECONDITION if ended.
+  absl::StatusOr<std::shared_ptr<VisitState>> Get(int64_t visit_id);
+  // Forgets a visit (ended, or its map deleted).
+  void Forget(int64_t visit_id);
+  void ForgetMap(int64_t map_id);
+
+ private:
+  store::Store* const store_;
+  absl::Mutex mu_;
+  std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
+};
+
+}  // namespace lifemap::server

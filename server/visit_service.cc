@@ -1,0 +1,64 @@
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/convert.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+namespace {
+
+constexpr size_t kLabelMaxBytes = 256;
+
+}  // namespace
+
+grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext*,
+                                          const v1::StartVisitRequest* req, v1::Visit* resp) {
+  if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+  if (req->robot().size() > kLabelMaxBytes || req->label().size() > kLabelMaxBytes) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("robot and label must be at most ", kLabelMaxBytes,
+                                     " bytes"));
+  }
+  const double t = req->start_time_s();
+  if (!std::isfinite(t) || t < 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "start_time_s must be >= 0 seconds since the Unix epoch (0 = now)");
+  }
+  auto visit =
+      ctx_->store->StartVisit(req->map(), req->robot(), req->label(), t > 0 ? t : NowSeconds());
+  if (!visit.ok()) return ToGrpcStatus(visit.status());
+  spdlog::info("started visit {} of map '{}' (robot '{}')", visit->id, visit->map_name,
+               visit->robot);
+  VisitToProto(*visit, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisitRequest* req,
+                                        v1::Visit* resp) {
+  const auto id = static_cast<int64_t>(req->visit_id());
+  if (id <= 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
+  int64_t frames = 0;
+  auto state = ctx_->visits->Get(id);
+  if (state.ok()) {
+    absl::MutexLock lock(&(*state)->mu);
+    frames = (*state)->frame_count;
+  } else if (!absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
+    return ToGrpcStatus(state.status());
+  }
+  auto visit = ctx_->store->EndVisit(id, NowSeconds(), frames);
+  if (!visit.ok()) return ToGrpcStatus(visit.status());
+  ctx_->visits->Forget(id);
+  VisitToProto(*visit, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status VisitServiceImpl::ListVisits(grpc::ServerContext*, const v1::ListVisitsRequest* req,
+                                          v1::ListVisitsResponse* resp) {
+  if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+  auto visits = ctx_->store->ListVisits(req->map());
+  if (!visits.ok()) return ToGrpcStatus(visits.status());
+  for (const auto& v : *visits) VisitToProto(v, resp->add_visits());
+  return grpc::Status::OK;
+}
+
+}  // namespace lifemap::server
