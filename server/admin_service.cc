@@ -10,8 +10,7 @@
 namespace lifemap::server {
 
 double NowSeconds() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
@@ -35,8 +34,7 @@ void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* ou
       "not implemented in this server yet (semantic octree, paper 002)");
 }
 
-grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*,
-                                             const v1::GetServerInfoRequest*,
+grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
                                              v1::ServerInfo* resp) {
   resp->set_version(LIFEMAP_VERSION);
   resp->set_api_version("lifemap.v1");
@@ -101,8 +99,7 @@ grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext*, const v1::VacuumRequ
   return grpc::Status::OK;
 }
 
-grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext*,
-                                            const v1::CreateApiKeyRequest*,
+grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
                                             v1::CreateApiKeyResponse*) {
   return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
                       "API keys are not implemented yet: this server has no authentication; "
@@ -134,8 +131,8 @@ grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext*, const v1::ListMo
   return NotBuilt("ListModels (random-forest object-class models, paper 002)");
 }
 
-grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*,
-                                             const v1::ActivateModelRequest*, v1::ModelInfo*) {
+grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*, const v1::ActivateModelRequest*,
+                                             v1::ModelInfo*) {
   return NotBuilt("ActivateModel (random-forest object-class models, paper 002)");
 }
 

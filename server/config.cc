@@ -36,7 +36,7 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("shutdown_grace_s must be within [0, 3600], got ", shutdown_grace_s));
   }
-  static const std::set<std::string> kLevels = {"trace", "debug", "info", "warn",
+  static const std::set<std::string> kLevels = {"trace", "debug",    "info", "warn",
                                                 "error", "critical", "off"};
   if (kLevels.count(log_level) == 0) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -78,8 +78,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
       } else if (key == "synchronous") {
         const auto mode = value.get<std::string>();
         if (mode != "full" && mode != "normal") {
-          return absl::InvalidArgumentError(absl::StrCat(
-              "config file ", path, ": synchronous must be \"full\" or \"normal\""));
+          return absl::InvalidArgumentError(
+              absl::StrCat("config file ", path, ": synchronous must be \"full\" or \"normal\""));
         }
         c.synchronous_full = mode == "full";
       } else if (key == "log_level") {

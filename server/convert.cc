@@ -66,13 +66,19 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame) {
   }
   const auto& d = frame.depth();
   switch (d.encoding()) {
-    case v1::DEPTH_PNG16: out.depth.encoding = DepthEncoding::kPng16; break;
-    case v1::DEPTH_RAW_U16: out.depth.encoding = DepthEncoding::kRawU16; break;
-    case v1::DEPTH_RAW_F32: out.depth.encoding = DepthEncoding::kRawF32; break;
+    case v1::DEPTH_PNG16:
+      out.depth.encoding = DepthEncoding::kPng16;
+      break;
+    case v1::DEPTH_RAW_U16:
+      out.depth.encoding = DepthEncoding::kRawU16;
+      break;
+    case v1::DEPTH_RAW_F32:
+      out.depth.encoding = DepthEncoding::kRawF32;
+      break;
     default:
-      return absl::InvalidArgumentError(absl::StrCat(
-          "frame.depth.encoding ", d.encoding(),
-          " is not supported; use DEPTH_PNG16, DEPTH_RAW_U16 or DEPTH_RAW_F32"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("frame.depth.encoding ", d.encoding(),
+                       " is not supported; use DEPTH_PNG16, DEPTH_RAW_U16 or DEPTH_RAW_F32"));
   }
   out.depth.data = d.data();
   out.depth.width = static_cast<int>(std::min<uint32_t>(d.width(), 1u << 20));
@@ -84,9 +90,15 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame) {
   }
   const auto& c = frame.color();
   switch (c.encoding()) {
-    case v1::COLOR_JPEG: out.color.encoding = ColorEncoding::kJpeg; break;
-    case v1::COLOR_PNG: out.color.encoding = ColorEncoding::kPng; break;
-    case v1::COLOR_RAW_RGB8: out.color.encoding = ColorEncoding::kRawRgb8; break;
+    case v1::COLOR_JPEG:
+      out.color.encoding = ColorEncoding::kJpeg;
+      break;
+    case v1::COLOR_PNG:
+      out.color.encoding = ColorEncoding::kPng;
+      break;
+    case v1::COLOR_RAW_RGB8:
+      out.color.encoding = ColorEncoding::kRawRgb8;
+      break;
     default:
       return absl::InvalidArgumentError(
           absl::StrCat("frame.color.encoding ", c.encoding(),

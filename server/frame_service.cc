@@ -127,8 +127,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   if (decision.selected) {
     auto record = MakeKeyframeRecord(frame, f, visit->visit_id);
     if (!record.ok()) {
-      r.mutable_keyframe()->set_reason(
-          absl::StrCat("not stored: ", record.status().message()));
+      r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
       return p;
     }
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
@@ -254,13 +253,13 @@ grpc::Status FrameServiceImpl::StreamFrames(
   auto keyframe_options = KeyframeOptionsFromProto(start.options(), ctx_->config.keyframe);
   if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
   bool created = false;
-  auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(),
-                            start.visit_label(), false, &created);
+  auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(), start.visit_label(),
+                            false, &created);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   auto state = ctx_->visits->Get(visit->id);
   if (!state.ok()) return ToGrpcStatus(state.status());
-  spdlog::info("stream {} visit {} of map '{}' from {}", created ? "started" : "resumed",
-               visit->id, visit->map_name, context->peer());
+  spdlog::info("stream {} visit {} of map '{}' from {}", created ? "started" : "resumed", visit->id,
+               visit->map_name, context->peer());
 
   v1::StreamFramesResponse started;
   started.mutable_started()->set_map(visit->map_name);
@@ -306,8 +305,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
   }
   auto flushed = ctx_->committer->Submit(std::nullopt, {visit->id, frame_count}).get();
   if (!flushed.ok() && !absl::IsNotFound(flushed.status())) {
-    spdlog::warn("visit {}: frame counter not stored: {}", visit->id,
-                 flushed.status().ToString());
+    spdlog::warn("visit {}: frame counter not stored: {}", visit->id, flushed.status().ToString());
   }
   spdlog::info("stream for visit {} ended after {} frames{}", visit->id, frames,
                context->IsCancelled() ? " (cancelled)" : "");

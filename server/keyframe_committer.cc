@@ -37,10 +37,7 @@ void KeyframeCommitter::Run() {
     {
       absl::MutexLock lock(&mu_);
       mu_.Await(absl::Condition(
-          +[](KeyframeCommitter* c) {
-            return c->stopping_ || !c->queue_.empty();
-          },
-          this));
+          +[](KeyframeCommitter* c) { return c->stopping_ || !c->queue_.empty(); }, this));
       if (queue_.empty()) return;  // stopping and drained
       while (!queue_.empty() && static_cast<int>(batch.size()) < batch_max_) {
         batch.push_back(std::move(queue_.front()));

@@ -21,8 +21,8 @@ absl::StatusOr<store::MapRecord> FindMap(store::Store* store, const std::string&
 }
 
 // Sends `body` in chunks of at most kExportChunkBytes; the last chunk carries the item count.
-grpc::Status SendChunks(const std::string& body, const std::string& content_type,
-                        uint64_t items, grpc::ServerWriter<v1::ExportChunk>* writer) {
+grpc::Status SendChunks(const std::string& body, const std::string& content_type, uint64_t items,
+                        grpc::ServerWriter<v1::ExportChunk>* writer) {
   size_t offset = 0;
   do {
     v1::ExportChunk chunk;
@@ -110,13 +110,12 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext*,
     auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (visit->map_id != map->id) {
-      return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                          absl::StrCat("visit ", req->visit_id(), " is not a visit of map '",
-                                       req->map(), "'"));
+      return grpc::Status(
+          grpc::StatusCode::NOT_FOUND,
+          absl::StrCat("visit ", req->visit_id(), " is not a visit of map '", req->map(), "'"));
     }
   }
-  auto keyframes =
-      ctx_->store->ListKeyframes(map->id, static_cast<int64_t>(req->visit_id()));
+  auto keyframes = ctx_->store->ListKeyframes(map->id, static_cast<int64_t>(req->visit_id()));
   if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
   for (const auto& k : *keyframes) KeyframeSummaryToProto(k, resp->add_keyframes());
   return grpc::Status::OK;
@@ -137,7 +136,7 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyf
   depth->set_depth_scale(k->depth_scale);
   auto* color = resp->mutable_color();
   color->set_encoding(k->color_encoding == store::StoredColorEncoding::kPng ? v1::COLOR_PNG
-                                                                             : v1::COLOR_JPEG);
+                                                                            : v1::COLOR_JPEG);
   color->set_data(k->color);
   color->set_width(static_cast<uint32_t>(k->intrinsics.width));
   color->set_height(static_cast<uint32_t>(k->intrinsics.height));
@@ -154,17 +153,18 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
     auto visit = ctx_->store->GetVisit(visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (visit->map_id != map->id) {
-      return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                          absl::StrCat("visit ", visit_id, " is not a visit of map '",
-                                       req->map(), "'"));
+      return grpc::Status(
+          grpc::StatusCode::NOT_FOUND,
+          absl::StrCat("visit ", visit_id, " is not a visit of map '", req->map(), "'"));
     }
   }
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
       auto keyframes = ctx_->store->ListKeyframes(map->id, visit_id);
       if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
-      std::string body = "# lifemap keyframe poses (T_world_camera)\n"
-                         "# timestamp tx ty tz qx qy qz qw\n";
+      std::string body =
+          "# lifemap keyframe poses (T_world_camera)\n"
+          "# timestamp tx ty tz qx qy qz qw\n";
       uint64_t n = 0;
       for (const auto& k : *keyframes) {
         if (!k.T_world_camera) continue;
@@ -201,9 +201,8 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
                              k.color, 0, 0};
             auto frame = DecodeRgbdFrame(encoded);
             if (!frame.ok()) {
-              return absl::DataLossError(absl::StrCat("stored keyframe ", k.id,
-                                                      " cannot be decoded: ",
-                                                      frame.status().message()));
+              return absl::DataLossError(absl::StrCat(
+                  "stored keyframe ", k.id, " cannot be decoded: ", frame.status().message()));
             }
             mapping::AppendBackProjected(*frame, *k.T_world_camera, static_cast<int>(stride),
                                          &cloud);

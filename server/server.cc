@@ -44,8 +44,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   auto store = store::Store::Open(config.db_path, store_options);
   if (!store.ok()) return store.status();
   impl->store = *std::move(store);
-  impl->committer = std::make_unique<KeyframeCommitter>(impl->store.get(),
-                                                        config.keyframe_batch_max);
+  impl->committer =
+      std::make_unique<KeyframeCommitter>(impl->store.get(), config.keyframe_batch_max);
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get());
 
   ServiceContext& ctx = impl->ctx;

@@ -61,8 +61,7 @@ class MapServiceImpl final : public v1::MapService::Service {
 class VisitServiceImpl final : public v1::VisitService::Service {
  public:
   explicit VisitServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
-  grpc::Status StartVisit(grpc::ServerContext*, const v1::StartVisitRequest*,
-                          v1::Visit*) override;
+  grpc::Status StartVisit(grpc::ServerContext*, const v1::StartVisitRequest*, v1::Visit*) override;
   grpc::Status EndVisit(grpc::ServerContext*, const v1::EndVisitRequest*, v1::Visit*) override;
   grpc::Status ListVisits(grpc::ServerContext*, const v1::ListVisitsRequest*,
                           v1::ListVisitsResponse*) override;
@@ -76,8 +75,7 @@ class FrameServiceImpl final : public v1::FrameService::Service {
   explicit FrameServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
   grpc::Status StreamFrames(
       grpc::ServerContext* context,
-      grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream)
-      override;
+      grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream) override;
   grpc::Status ProcessFrame(grpc::ServerContext*, const v1::ProcessFrameRequest*,
                             v1::FrameResult*) override;
 
@@ -109,12 +107,10 @@ class AdminServiceImpl final : public v1::AdminService::Service {
   grpc::Status GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
                              v1::ServerInfo*) override;
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::Stats*) override;
-  grpc::Status Backup(grpc::ServerContext*, const v1::BackupRequest*,
-                      v1::BackupResponse*) override;
+  grpc::Status Backup(grpc::ServerContext*, const v1::BackupRequest*, v1::BackupResponse*) override;
   grpc::Status CheckIntegrity(grpc::ServerContext*, const v1::CheckIntegrityRequest*,
                               v1::CheckIntegrityResponse*) override;
-  grpc::Status Vacuum(grpc::ServerContext*, const v1::VacuumRequest*,
-                      v1::VacuumResponse*) override;
+  grpc::Status Vacuum(grpc::ServerContext*, const v1::VacuumRequest*, v1::VacuumResponse*) override;
   grpc::Status CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
                             v1::CreateApiKeyResponse*) override;
 

@@ -13,8 +13,8 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto visit = store_->GetVisit(visit_id);
   if (!visit.ok()) return visit.status();
   if (visit->ended) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "visit ", visit_id, " has ended; start a new visit to stream more frames"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " has ended; start a new visit to stream more frames"));
   }
   auto last = store_->LastKeyframe(visit_id);
   if (!last.ok()) return last.status();

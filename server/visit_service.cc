@@ -11,13 +11,12 @@ constexpr size_t kLabelMaxBytes = 256;
 
 }  // namespace
 
-grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext*,
-                                          const v1::StartVisitRequest* req, v1::Visit* resp) {
+grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext*, const v1::StartVisitRequest* req,
+                                          v1::Visit* resp) {
   if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
   if (req->robot().size() > kLabelMaxBytes || req->label().size() > kLabelMaxBytes) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        absl::StrCat("robot and label must be at most ", kLabelMaxBytes,
-                                     " bytes"));
+                        absl::StrCat("robot and label must be at most ", kLabelMaxBytes, " bytes"));
   }
   const double t = req->start_time_s();
   if (!std::isfinite(t) || t < 0) {

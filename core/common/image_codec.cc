@@ -37,8 +37,8 @@ absl::StatusOr<ImageHeader> ProbePng(std::string_view data) {
     return absl::InvalidArgumentError("PNG is malformed: the first chunk is not IHDR");
   }
   // A complete PNG ends with the 12-byte IEND chunk: length 0, "IEND", CRC AE426082.
-  static constexpr unsigned char kIend[12] = {0, 0, 0, 0, 'I', 'E', 'N', 'D',
-                                              0xAE, 0x42, 0x60, 0x82};
+  static constexpr unsigned char kIend[12] = {0,   0,   0,    0,    'I',  'E',
+                                              'N', 'D', 0xAE, 0x42, 0x60, 0x82};
   if (std::memcmp(p + data.size() - 12, kIend, 12) != 0) {
     return absl::InvalidArgumentError(
         "PNG is truncated or corrupt: it does not end with an IEND chunk; send the whole file");
@@ -48,17 +48,28 @@ absl::StatusOr<ImageHeader> ProbePng(std::string_view data) {
   const uint32_t w = ReadBigEndian32(p + 16);
   const uint32_t hgt = ReadBigEndian32(p + 20);
   if (w == 0 || hgt == 0 || w > 1u << 16 || hgt > 1u << 16) {
-    return absl::InvalidArgumentError(absl::StrCat("PNG declares an impossible size ", w, "x", hgt));
+    return absl::InvalidArgumentError(
+        absl::StrCat("PNG declares an impossible size ", w, "x", hgt));
   }
   h.width = static_cast<int>(w);
   h.height = static_cast<int>(hgt);
   h.bit_depth = p[24];
   switch (p[25]) {  // colour type
-    case 0: h.channels = 1; break;
-    case 2: h.channels = 3; break;
-    case 3: h.channels = 3; break;  // palette, decoded to colour
-    case 4: h.channels = 2; break;
-    case 6: h.channels = 4; break;
+    case 0:
+      h.channels = 1;
+      break;
+    case 2:
+      h.channels = 3;
+      break;
+    case 3:
+      h.channels = 3;
+      break;  // palette, decoded to colour
+    case 4:
+      h.channels = 2;
+      break;
+    case 6:
+      h.channels = 4;
+      break;
     default:
       return absl::InvalidArgumentError(absl::StrCat("PNG has an unknown colour type ", p[25]));
   }
@@ -87,8 +98,8 @@ absl::StatusOr<ImageHeader> ProbeJpeg(std::string_view data) {
       continue;
     }
     const size_t len = (size_t{p[i + 2]} << 8) | p[i + 3];
-    const bool is_sof = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
-                        marker != 0xCC;
+    const bool is_sof =
+        marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 && marker != 0xCC;
     if (is_sof) {
       if (i + 10 > n || len < 8) break;
       ImageHeader h;
@@ -172,15 +183,13 @@ absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth) {
       if (!header.ok()) {
         return absl::InvalidArgumentError(absl::StrCat("depth: ", header.status().message()));
       }
-      if (header->format != ImageFormat::kPng || header->bit_depth != 16 ||
-          header->channels != 1) {
+      if (header->format != ImageFormat::kPng || header->bit_depth != 16 || header->channels != 1) {
         return absl::InvalidArgumentError(
             absl::StrCat("depth must be a 16-bit single-channel PNG, got a ",
                          header->format == ImageFormat::kPng ? "PNG" : "JPEG", " with ",
                          header->channels, " channel(s) of ", header->bit_depth, " bits"));
       }
-      if (auto s = CheckSize("depth PNG", header->width, header->height, depth.width,
-                             depth.height);
+      if (auto s = CheckSize("depth PNG", header->width, header->height, depth.width, depth.height);
           !s.ok()) {
         return s;
       }
@@ -194,9 +203,9 @@ absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth) {
     }
     case DepthEncoding::kRawU16: {
       if (depth.data.size() != pixels * 2) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("raw uint16 depth has ", depth.data.size(), " bytes; ", depth.width, "x",
-                         depth.height, " needs ", pixels * 2));
+        return absl::InvalidArgumentError(absl::StrCat("raw uint16 depth has ", depth.data.size(),
+                                                       " bytes; ", depth.width, "x", depth.height,
+                                                       " needs ", pixels * 2));
       }
       const cv::Mat raw(depth.height, depth.width, CV_16UC1,
                         const_cast<char*>(depth.data.data()));  // NOLINT: read-only use
@@ -205,9 +214,9 @@ absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth) {
     }
     case DepthEncoding::kRawF32: {
       if (depth.data.size() != pixels * 4) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("raw float32 depth has ", depth.data.size(), " bytes; ", depth.width,
-                         "x", depth.height, " needs ", pixels * 4));
+        return absl::InvalidArgumentError(absl::StrCat("raw float32 depth has ", depth.data.size(),
+                                                       " bytes; ", depth.width, "x", depth.height,
+                                                       " needs ", pixels * 4));
       }
       std::memcpy(out.data, depth.data.data(), pixels * 4);
       float* v = out.ptr<float>();
@@ -250,8 +259,7 @@ absl::StatusOr<cv::Mat> DecodeColorBgr(const EncodedColor& color) {
     return absl::InvalidArgumentError(
         absl::StrCat("colour must have 8 bits per channel, got ", header->bit_depth));
   }
-  if (auto s = CheckSize("colour image", header->width, header->height, color.width,
-                         color.height);
+  if (auto s = CheckSize("colour image", header->width, header->height, color.width, color.height);
       !s.ok()) {
     return s;
   }
@@ -305,7 +313,8 @@ absl::StatusOr<std::string> ReadFileBytes(const std::string& path) {
   if (!in) {
     const int err = errno;
     if (err == ENOENT) return absl::NotFoundError(absl::StrCat(path, ": no such file"));
-    if (err == EACCES) return absl::PermissionDeniedError(absl::StrCat(path, ": permission denied"));
+    if (err == EACCES)
+      return absl::PermissionDeniedError(absl::StrCat(path, ": permission denied"));
     return absl::UnavailableError(absl::StrCat(path, ": cannot open: ", std::strerror(err)));
   }
   std::ostringstream ss;

@@ -33,7 +33,7 @@ enum class DepthEncoding { kPng16, kRawU16, kRawF32 };
 struct EncodedDepth {
   DepthEncoding encoding = DepthEncoding::kPng16;
   std::string_view data;
-  int width = 0;   // expected size; raw encodings need it, PNG is checked against it
+  int width = 0;  // expected size; raw encodings need it, PNG is checked against it
   int height = 0;
   double depth_scale = 0.0;  // units per metre for kPng16 / kRawU16 (TUM 5000)
 };

@@ -10,9 +10,9 @@ namespace lifemap {
 
 absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
   if (!std::isfinite(in.timestamp_s) || in.timestamp_s <= 0.0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "timestamp_s must be a positive number of seconds since the Unix epoch, got ",
-        in.timestamp_s));
+    return absl::InvalidArgumentError(
+        absl::StrCat("timestamp_s must be a positive number of seconds since the Unix epoch, got ",
+                     in.timestamp_s));
   }
   if (auto s = in.intrinsics.Validate(); !s.ok()) return s;
 
@@ -31,9 +31,9 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
   color.height = in.intrinsics.height;
   if (in.color.width != 0 || in.color.height != 0) {
     if (in.color.width != color.width || in.color.height != color.height) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "colour is declared ", in.color.width, "x", in.color.height,
-          " but the intrinsics say ", color.width, "x", color.height));
+      return absl::InvalidArgumentError(absl::StrCat("colour is declared ", in.color.width, "x",
+                                                     in.color.height, " but the intrinsics say ",
+                                                     color.width, "x", color.height));
     }
   }
 

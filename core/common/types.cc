@@ -15,8 +15,8 @@ absl::Status CameraIntrinsics::Validate() const {
     }
   }
   if (fx <= 0.0 || fy <= 0.0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "intrinsics focal lengths must be > 0 pixels, got fx=", fx, " fy=", fy));
+    return absl::InvalidArgumentError(
+        absl::StrCat("intrinsics focal lengths must be > 0 pixels, got fx=", fx, " fy=", fy));
   }
   if (width < kMinSide || height < kMinSide || width > kMaxSide || height > kMaxSide) {
     return absl::InvalidArgumentError(absl::StrCat("intrinsics image size ", width, "x", height,
@@ -24,9 +24,8 @@ absl::Status CameraIntrinsics::Validate() const {
                                                    "] pixels per side"));
   }
   if (cx < 0.0 || cx >= width || cy < 0.0 || cy >= height) {
-    return absl::InvalidArgumentError(absl::StrCat("principal point (", cx, ", ", cy,
-                                                   ") lies outside the ", width, "x", height,
-                                                   " image"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        "principal point (", cx, ", ", cy, ") lies outside the ", width, "x", height, " image"));
   }
   return absl::OkStatus();
 }
@@ -54,9 +53,9 @@ absl::StatusOr<Pose> Pose::FromComponents(double tx, double ty, double tz, doubl
   }
   const double norm = std::sqrt(qx * qx + qy * qy + qz * qz + qw * qw);
   if (std::abs(norm - 1.0) > kUnitTolerance) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "pose quaternion must have unit norm (within ", kUnitTolerance, "), got |q|=", norm,
-        "; normalise (qx, qy, qz, qw) before sending"));
+    return absl::InvalidArgumentError(absl::StrCat("pose quaternion must have unit norm (within ",
+                                                   kUnitTolerance, "), got |q|=", norm,
+                                                   "; normalise (qx, qy, qz, qw) before sending"));
   }
   Pose p;
   p.translation = Eigen::Vector3d(tx, ty, tz);

@@ -36,8 +36,8 @@ struct Pose {
   // Builds a pose from raw components as received from a client or a file. InvalidArgument
   // for NaN/inf values or a quaternion whose norm is not within kUnitTolerance of 1; otherwise
   // the quaternion is normalised.
-  static absl::StatusOr<Pose> FromComponents(double tx, double ty, double tz, double qx,
-                                             double qy, double qz, double qw);
+  static absl::StatusOr<Pose> FromComponents(double tx, double ty, double tz, double qx, double qy,
+                                             double qz, double qw);
 
   static constexpr double kUnitTolerance = 1e-3;
 };

@@ -9,7 +9,7 @@
 namespace lifemap::io {
 
 struct ColoredPoint {
-  float x, y, z;         // metres
+  float x, y, z;  // metres
   uint8_t r, g, b;
 };
 

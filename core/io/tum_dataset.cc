@@ -51,8 +51,8 @@ absl::StatusOr<double> ParseDouble(const std::string& text, const std::string& p
       absl::StrCat(path, ":", line, ": '", text, "' is not a finite number"));
 }
 
-absl::StatusOr<std::vector<TimedFile>> ReadFileList(const std::string& dir,
-                                                    const std::string& name, int* missing) {
+absl::StatusOr<std::vector<TimedFile>> ReadFileList(const std::string& dir, const std::string& name,
+                                                    int* missing) {
   const std::string path = (fs::path(dir) / name).string();
   auto rows = ReadTable(path);
   if (!rows.ok()) return rows.status();
@@ -117,9 +117,9 @@ absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path
   poses.reserve(rows->size());
   for (const auto& [line, row] : *rows) {
     if (row.size() != 8) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          path, ":", line, ": expected 8 fields 'timestamp tx ty tz qx qy qz qw', got ",
-          row.size()));
+      return absl::InvalidArgumentError(
+          absl::StrCat(path, ":", line,
+                       ": expected 8 fields 'timestamp tx ty tz qx qy qz qw', got ", row.size()));
     }
     double v[8];
     for (int i = 0; i < 8; ++i) {
@@ -160,8 +160,7 @@ std::string FormatTumPoseLine(double timestamp_s, const Pose& pose) {
                          t.z(), q.x(), q.y(), q.z(), q.w());
 }
 
-absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
-                                            const TumReadOptions& options) {
+absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumReadOptions& options) {
   if (!fs::is_directory(dir)) {
     return absl::NotFoundError(absl::StrCat(dir, ": not a directory"));
   }
@@ -172,8 +171,8 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
     if (!rows.ok()) return rows.status();
     for (const auto& [line, row] : *rows) {
       if (row.size() < 4) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            options.associations_file, ":", line, ": expected 't_rgb rgb t_depth depth'"));
+        return absl::InvalidArgumentError(absl::StrCat(options.associations_file, ":", line,
+                                                       ": expected 't_rgb rgb t_depth depth'"));
       }
       auto tr = ParseDouble(row[0], options.associations_file, line);
       auto td = ParseDouble(row[2], options.associations_file, line);
@@ -192,8 +191,9 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
         fs::exists(fs::path(dir) / "rgb.txt") && fs::exists(fs::path(dir) / "depth.txt");
     if (!have_lists) {
       return absl::NotFoundError(absl::StrCat(
-          dir, ": no rgb.txt and depth.txt; a TUM folder lists its images there (or name an "
-               "associations file)"));
+          dir,
+          ": no rgb.txt and depth.txt; a TUM folder lists its images there (or name an "
+          "associations file)"));
     }
     int missing_rgb = 0, missing_depth = 0;
     auto rgb = ReadFileList(dir, "rgb.txt", &missing_rgb);
@@ -206,14 +206,13 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
                             (*depth)[d].path, std::nullopt});
     }
   }
-  std::sort(seq.frames.begin(), seq.frames.end(),
-            [](const TumFrameEntry& a, const TumFrameEntry& b) {
-              return a.timestamp_s < b.timestamp_s;
-            });
+  std::sort(
+      seq.frames.begin(), seq.frames.end(),
+      [](const TumFrameEntry& a, const TumFrameEntry& b) { return a.timestamp_s < b.timestamp_s; });
   if (seq.frames.empty()) {
-    return absl::FailedPreconditionError(
-        absl::StrCat(dir, ": no colour/depth pair found (", seq.listed_but_missing,
-                     " listed files are missing)"));
+    return absl::FailedPreconditionError(absl::StrCat(dir, ": no colour/depth pair found (",
+                                                      seq.listed_but_missing,
+                                                      " listed files are missing)"));
   }
 
   const std::string gt_path = (fs::path(dir) / "groundtruth.txt").string();

@@ -38,7 +38,7 @@ struct TumReadOptions {
 struct TumSequence {
   std::string dir;
   std::vector<TumFrameEntry> frames;  // time order, only pairs whose files exist
-  int listed_but_missing = 0;          // entries named in the lists whose files are absent
+  int listed_but_missing = 0;         // entries named in the lists whose files are absent
   bool has_groundtruth = false;
   int frames_with_pose = 0;
   std::optional<CameraIntrinsics> intrinsics;  // from DIR/intrinsics.txt when present

@@ -15,8 +15,8 @@ void AppendBackProjected(const RgbdFrame& frame, const Pose& T_world_camera, int
                          std::vector<io::ColoredPoint>* cloud);
 
 // Keeps one point per occupied voxel of edge `voxel_size_m` (the centroid, mean colour).
-// Hand-written (an ordered map of voxel keys, ~20 lines) instead of pcl::VoxelGrid so exports do not pull
-// PCL's compile time into the server; output order is deterministic (sorted by voxel key).
+// Hand-written (an ordered map of voxel keys, ~20 lines) instead of pcl::VoxelGrid so exports do
+// not pull PCL's compile time into the server; output order is deterministic (sorted by voxel key).
 std::vector<io::ColoredPoint> VoxelDownsample(const std::vector<io::ColoredPoint>& cloud,
                                               double voxel_size_m);
 

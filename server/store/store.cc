@@ -164,8 +164,8 @@ absl::Status ValidateMapName(const std::string& name) {
     const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') ||
                     c == '.' || c == '_' || c == '-';
     if (!ok) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "map name '", name, "' may only use letters, digits, '.', '_' and '-'"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("map name '", name, "' may only use letters, digits, '.', '_' and '-'"));
     }
   }
   return absl::OkStatus();
@@ -236,9 +236,9 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
           absl::StrCat(path, ": could not switch to WAL mode (is the file system local?)"));
     }
   }
-  if (auto s = db->Exec(absl::StrCat("PRAGMA synchronous=", options.synchronous_full ? "FULL"
-                                                                                      : "NORMAL",
-                                     "; PRAGMA foreign_keys=ON;"));
+  if (auto s =
+          db->Exec(absl::StrCat("PRAGMA synchronous=", options.synchronous_full ? "FULL" : "NORMAL",
+                                "; PRAGMA foreign_keys=ON;"));
       !s.ok()) {
     return s;
   }
@@ -246,9 +246,9 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
   auto version = db->QueryInt("PRAGMA user_version");
   if (!version.ok()) return version.status();
   if (*version > kSchemaVersion) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        path, " has schema version ", *version, ", newer than this lifemapd knows (",
-        kSchemaVersion, "); run a newer lifemapd or restore a backup"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, " has schema version ", *version, ", newer than this lifemapd knows (",
+                     kSchemaVersion, "); run a newer lifemapd or restore a backup"));
   }
   if (*version == 0) {
     // A new file, or one that is not lifemap's: refuse files that already hold other tables.
@@ -280,8 +280,7 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
   return std::unique_ptr<Store>(new Store(std::move(impl), path));
 }
 
-absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name,
-                                           const std::string& description,
+absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::string& description,
                                            double created_time_s) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
@@ -354,13 +353,13 @@ absl::StatusOr<MapRecord> Store::RenameMap(const std::string& name, const std::s
       return st;
     }
   }
-  if (db->Changes() == 0) return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
+  if (db->Changes() == 0)
+    return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
   return impl_->GetMapLocked(db, new_name);
 }
 
-absl::StatusOr<VisitRecord> Store::StartVisit(const std::string& map_name,
-                                              const std::string& robot, const std::string& label,
-                                              double start_time_s) {
+absl::StatusOr<VisitRecord> Store::StartVisit(const std::string& map_name, const std::string& robot,
+                                              const std::string& label, double start_time_s) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
   auto map = impl_->GetMapLocked(db, map_name);
@@ -394,7 +393,8 @@ absl::StatusOr<VisitRecord> Store::EndVisit(int64_t visit_id, double end_time_s,
     s->Bind(1, visit_id).Bind(2, end_time_s).Bind(3, frame_count);
     if (auto st = s->Run(); !st.ok()) return st;
   }
-  if (db->Changes() == 0) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+  if (db->Changes() == 0)
+    return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
   return impl_->GetVisitLocked(db, visit_id);
 }
 
@@ -490,8 +490,8 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       if (auto st = s->Run(); !st.ok()) return st;
     }
   }
-  auto update_count = db->Prepare(
-      "UPDATE visits SET frame_count = MAX(frame_count, ?2) WHERE id = ?1");
+  auto update_count =
+      db->Prepare("UPDATE visits SET frame_count = MAX(frame_count, ?2) WHERE id = ?1");
   if (!update_count.ok()) return update_count.status();
   for (const auto& c : frame_counts) {
     StatementScope s(*update_count);
@@ -505,13 +505,12 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   return committed;
 }
 
-absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
-                                                                 int64_t visit_id) {
+absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id, int64_t visit_id) {
   absl::MutexLock lock(&impl_->read_mu);
-  auto stmt = impl_->read_db->Prepare(absl::StrCat(
-      "SELECT ", kKeyframeColumns,
-      " FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = ?1 "
-      "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id"));
+  auto stmt = impl_->read_db->Prepare(
+      absl::StrCat("SELECT ", kKeyframeColumns,
+                   " FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = ?1 "
+                   "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id"));
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
   s->Bind(1, map_id).Bind(2, visit_id);
@@ -613,7 +612,8 @@ absl::Status Store::Backup(const std::string& path) {
   absl::MutexLock lock(&impl_->read_mu);
   sqlite3_backup* backup =
       sqlite3_backup_init((*dest)->raw(), "main", impl_->read_db->raw(), "main");
-  if (backup == nullptr) return SqliteError((*dest)->raw(), sqlite3_errcode((*dest)->raw()), "backup");
+  if (backup == nullptr)
+    return SqliteError((*dest)->raw(), sqlite3_errcode((*dest)->raw()), "backup");
   const int rc = sqlite3_backup_step(backup, -1);
   sqlite3_backup_finish(backup);
   if (rc != SQLITE_DONE) {

@@ -63,7 +63,7 @@ struct KeyframeRecord {
   double depth_scale = 0.0;  // units per metre of depth_png
   std::string depth_png;     // 16-bit PNG (empty when listed without images)
   StoredColorEncoding color_encoding = StoredColorEncoding::kJpeg;
-  std::string color;         // JPEG or PNG bytes (empty when listed without images)
+  std::string color;  // JPEG or PNG bytes (empty when listed without images)
   int64_t depth_bytes = 0;
   int64_t color_bytes = 0;
 };

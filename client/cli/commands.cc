@@ -1,0 +1,564 @@
+#include "client/cli/commands.h"
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
+#include "client/cli/output.h"
+#include "core/common/image_codec.h"
+
+namespace lifemap::cli {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Writes `write(out)` to a temporary file beside `path` and renames it into place, so a
+// failed or interrupted command never leaves a half-written file under the final name.
+absl::Status WriteFileAtomically(const std::string& path,
+                                 const std::function<absl::Status(std::ostream*)>& write) {
+  const std::string tmp = path + ".partial";
+  {
+    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+    if (!out) return absl::PermissionDeniedError(absl::StrCat("cannot write ", tmp));
+    if (auto s = write(&out); !s.ok()) {
+      out.close();
+      fs::remove(tmp);
+      return s;
+    }
+    out.flush();
+    if (!out) {
+      fs::remove(tmp);
+      return absl::DataLossError(absl::StrCat("writing ", tmp, " failed (disk full?)"));
+    }
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat("renaming to ", path, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+void PrintMap(const v1::Map& m) {
+  std::cout << absl::StrFormat(
+      "name:        %s\nid:          %d\ndescription: %s\ncreated:     %s\nvisits:      %d\n"
+      "keyframes:   %d\nstored:      %s\n",
+      m.name(), m.id(), m.description().empty() ? "-" : m.description(),
+      HumanTime(m.created_time_s()), m.visit_count(), m.keyframe_count(),
+      HumanBytes(m.stored_bytes()));
+}
+
+const char* OutputName(v1::FrameOutput o) {
+  switch (o) {
+    case v1::FRAME_OUTPUT_POSE:
+      return "pose";
+    case v1::FRAME_OUTPUT_KEYFRAME:
+      return "keyframes";
+    case v1::FRAME_OUTPUT_ENTROPY_MASK:
+      return "entropy masks";
+    case v1::FRAME_OUTPUT_CLASS_LABELS:
+      return "class labels";
+    case v1::FRAME_OUTPUT_PLACE_MATCHES:
+      return "place matches";
+    case v1::FRAME_OUTPUT_SEMANTIC_FUSION:
+      return "semantic fusion";
+    default:
+      return "?";
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,
+                                                         int height) {
+  std::vector<std::string> parts = absl::StrSplit(text, ',');
+  if (parts.size() != 4) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--intrinsics must be FX,FY,CX,CY (four numbers), got '", text, "'"));
+  }
+  double v[4];
+  for (size_t i = 0; i < 4; ++i) {
+    char* end = nullptr;
+    v[i] = std::strtod(parts[i].c_str(), &end);
+    if (end == parts[i].c_str() || *end != '\0') {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--intrinsics: '", parts[i], "' is not a number"));
+    }
+  }
+  v1::CameraIntrinsics k;
+  k.set_fx(v[0]);
+  k.set_fy(v[1]);
+  k.set_cx(v[2]);
+  k.set_cy(v[3]);
+  k.set_width(static_cast<uint32_t>(width));
+  k.set_height(static_cast<uint32_t>(height));
+  return k;
+}
+
+absl::StatusOr<std::unique_ptr<client::Client>> CliContext::Connect() const {
+  client::ClientOptions options;
+  options.target = server;
+  options.connect_timeout_s = timeout_s;
+  return client::Client::Connect(options);
+}
+
+void AddServerCommands(CLI::App* app, CliContext* ctx) {
+  auto* server = app->add_subcommand("server", "About the server");
+  server->require_subcommand(1);
+  server->add_subcommand("info", "Version, limits and the per-frame outputs it computes")
+      ->callback([ctx] {
+        ctx->run = [ctx]() -> int {
+          auto c = ctx->Connect();
+          if (!c.ok()) return Fail(c.status());
+          auto info = (*c)->GetServerInfo();
+          if (!info.ok()) return Fail(info.status());
+          if (ctx->json) {
+            std::cout << ToJson(*info) << "\n";
+            return 0;
+          }
+          std::cout << absl::StrFormat(
+              "lifemapd %s (%s) at %s\ndatabase:  %s (schema %d)\nstarted:   %s\n"
+              "limits:    %s per message, %d streams, %d frames in flight per stream\n"
+              "per-frame outputs:\n",
+              info->version(), info->api_version(), ctx->server, info->db_path(),
+              info->schema_version(), HumanTime(info->started_time_s()),
+              HumanBytes(info->max_message_bytes()), info->max_streams(),
+              info->max_inflight_frames());
+          for (const auto& o : info->outputs()) {
+            std::cout << absl::StrFormat("  %-16s %s\n", OutputName(o.output()),
+                                         o.computed() ? "yes" : "no: " + o.reason());
+          }
+          return 0;
+        };
+      });
+}
+
+void AddMapCommands(CLI::App* app, CliContext* ctx) {
+  auto* maps = app->add_subcommand("maps", "Create, list, inspect, rename and delete maps");
+  maps->require_subcommand(1);
+
+  auto* create = maps->add_subcommand("create", "Create an empty map");
+  auto name = std::make_shared<std::string>();
+  auto description = std::make_shared<std::string>();
+  create->add_option("NAME", *name, "map name: letters, digits, '.', '_', '-'")->required();
+  create->add_option("--description", *description, "free text");
+  create->callback([ctx, name, description] {
+    ctx->run = [ctx, name, description]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto m = (*c)->CreateMap(*name, *description);
+      if (!m.ok()) return Fail(m.status());
+      if (ctx->json) {
+        std::cout << ToJson(*m) << "\n";
+      } else {
+        std::cout << "created map '" << m->name() << "' (id " << m->id() << ")\n";
+      }
+      return 0;
+    };
+  });
+
+  maps->add_subcommand("list", "List every map")->callback([ctx] {
+    ctx->run = [ctx]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto list = (*c)->ListMaps();
+      if (!list.ok()) return Fail(list.status());
+      if (ctx->json) {
+        std::cout << ToJson(*list) << "\n";
+        return 0;
+      }
+      if (list->maps().empty()) {
+        std::cout << "no maps yet: create one with 'lifemap maps create NAME'\n";
+        return 0;
+      }
+      std::cout << absl::StrFormat("%-24s %6s %10s %10s  %s\n", "NAME", "VISITS", "KEYFRAMES",
+                                   "STORED", "CREATED");
+      for (const auto& m : list->maps()) {
+        std::cout << absl::StrFormat("%-24s %6d %10d %10s  %s\n", m.name(), m.visit_count(),
+                                     m.keyframe_count(), HumanBytes(m.stored_bytes()),
+                                     HumanTime(m.created_time_s()));
+      }
+      return 0;
+    };
+  });
+
+  auto* show = maps->add_subcommand("show", "Show one map");
+  auto show_name = std::make_shared<std::string>();
+  show->add_option("NAME", *show_name, "map name")->required();
+  show->callback([ctx, show_name] {
+    ctx->run = [ctx, show_name]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto m = (*c)->GetMap(*show_name);
+      if (!m.ok()) return Fail(m.status());
+      if (ctx->json) {
+        std::cout << ToJson(*m) << "\n";
+      } else {
+        PrintMap(*m);
+      }
+      return 0;
+    };
+  });
+
+  auto* rename = maps->add_subcommand("rename", "Rename a map");
+  auto old_name = std::make_shared<std::string>();
+  auto new_name = std::make_shared<std::string>();
+  rename->add_option("NAME", *old_name, "current name")->required();
+  rename->add_option("NEW_NAME", *new_name, "new name")->required();
+  rename->callback([ctx, old_name, new_name] {
+    ctx->run = [ctx, old_name, new_name]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto m = (*c)->RenameMap(*old_name, *new_name);
+      if (!m.ok()) return Fail(m.status());
+      if (ctx->json) {
+        std::cout << ToJson(*m) << "\n";
+      } else {
+        std::cout << "renamed map '" << *old_name << "' to '" << m->name() << "'\n";
+      }
+      return 0;
+    };
+  });
+
+  auto* del = maps->add_subcommand("delete", "Delete a map with all its visits and keyframes");
+  auto del_name = std::make_shared<std::string>();
+  auto yes = std::make_shared<bool>(false);
+  del->add_option("NAME", *del_name, "map name")->required();
+  del->add_flag("--yes", *yes, "confirm: the map's data cannot be recovered (except from backup)");
+  del->callback([ctx, del_name, yes] {
+    ctx->run = [ctx, del_name, yes]() -> int {
+      if (!*yes) {
+        std::cerr << "lifemap: refusing to delete map '" << *del_name
+                  << "' without --yes (its visits and keyframes are deleted for good)\n";
+        return 2;
+      }
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->DeleteMap(*del_name);
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+      } else {
+        std::cout << "deleted map '" << *del_name << "': " << r->deleted_visits() << " visits, "
+                  << r->deleted_keyframes() << " keyframes\n";
+      }
+      return 0;
+    };
+  });
+}
+
+void AddVisitCommands(CLI::App* app, CliContext* ctx) {
+  auto* visits = app->add_subcommand("visits", "List, start and end visits of a map");
+  visits->require_subcommand(1);
+  auto* list = visits->add_subcommand("list", "List a map's visits");
+  auto map = std::make_shared<std::string>();
+  list->add_option("MAP", *map, "map name")->required();
+  list->callback([ctx, map] {
+    ctx->run = [ctx, map]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->ListVisits(*map);
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+        return 0;
+      }
+      std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s  %-23s  %s\n", "ID", "ROBOT", "LABEL",
+                                   "FRAMES", "KEYFRAMES", "STARTED", "STATE");
+      for (const auto& v : r->visits()) {
+        std::cout << absl::StrFormat(
+            "%6d %-16s %-20s %8d %10d  %-23s  %s\n", v.id(), v.robot().empty() ? "-" : v.robot(),
+            v.label().empty() ? "-" : v.label(), v.frame_count(), v.keyframe_count(),
+            HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
+      }
+      return 0;
+    };
+  });
+
+  auto* end = visits->add_subcommand("end", "End an open visit");
+  auto visit_id = std::make_shared<uint64_t>(0);
+  end->add_option("VISIT_ID", *visit_id, "visit id")->required();
+  end->callback([ctx, visit_id] {
+    ctx->run = [ctx, visit_id]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto v = (*c)->EndVisit(*visit_id);
+      if (!v.ok()) return Fail(v.status());
+      if (ctx->json) {
+        std::cout << ToJson(*v) << "\n";
+      } else {
+        std::cout << "ended visit " << v->id() << " of map '" << v->map() << "'\n";
+      }
+      return 0;
+    };
+  });
+}
+
+void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
+  auto* keyframes = app->add_subcommand("keyframes", "Inspect stored keyframes");
+  keyframes->require_subcommand(1);
+  auto* list = keyframes->add_subcommand("list", "List a map's keyframes");
+  auto map = std::make_shared<std::string>();
+  auto visit = std::make_shared<uint64_t>(0);
+  list->add_option("--map", *map, "map name")->required();
+  list->add_option("--visit", *visit, "only this visit");
+  list->callback([ctx, map, visit] {
+    ctx->run = [ctx, map, visit]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->ListKeyframes(*map, *visit);
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+        return 0;
+      }
+      std::cout << absl::StrFormat("%8s %6s %8s %18s %28s %10s\n", "ID", "VISIT", "SEQ",
+                                   "TIMESTAMP", "POSITION (m)", "BYTES");
+      for (const auto& k : r->keyframes()) {
+        const std::string position =
+            k.has_pose()
+                ? absl::StrFormat("%8.3f %8.3f %8.3f", k.pose().tx(), k.pose().ty(), k.pose().tz())
+                : std::string("-");
+        std::cout << absl::StrFormat("%8d %6d %8d %18.6f %28s %10s\n", k.id(), k.visit_id(),
+                                     k.sequence(), k.timestamp_s(), position,
+                                     HumanBytes(k.color_bytes() + k.depth_bytes()));
+      }
+      std::cout << r->keyframes_size() << " keyframes\n";
+      return 0;
+    };
+  });
+}
+
+void AddExportCommand(CLI::App* app, CliContext* ctx) {
+  auto* exp = app->add_subcommand("export", "Export a map's poses (TUM format) or cloud (PLY)");
+  struct Args {
+    std::string map, what, out;
+    uint64_t visit = 0;
+    double voxel_m = 0.0;
+    uint32_t stride = 0;
+  };
+  auto a = std::make_shared<Args>();
+  exp->add_option("--map", a->map, "map name")->required();
+  exp->add_option("--what", a->what, "poses | cloud")
+      ->required()
+      ->check(CLI::IsMember({"poses", "cloud"}));
+  exp->add_option("--out", a->out, "output file")->required();
+  exp->add_option("--visit", a->visit, "only this visit");
+  exp->add_option("--voxel", a->voxel_m, "cloud voxel size in metres (default 0.02)");
+  exp->add_option("--stride", a->stride, "cloud: use every N-th pixel (default 4)");
+  exp->callback([ctx, a] {
+    ctx->run = [ctx, a]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      v1::ExportMapRequest req;
+      req.set_map(a->map);
+      req.set_format(a->what == "poses" ? v1::EXPORT_POSES_TUM : v1::EXPORT_CLOUD_PLY);
+      req.set_visit_id(a->visit);
+      req.set_voxel_size_m(a->voxel_m);
+      req.set_pixel_stride(a->stride);
+      uint64_t items = 0;
+      auto s = WriteFileAtomically(a->out, [&](std::ostream* out) -> absl::Status {
+        auto n = (*c)->ExportMap(req, out);
+        if (!n.ok()) return n.status();
+        items = *n;
+        return absl::OkStatus();
+      });
+      if (!s.ok()) return Fail(s);
+      if (ctx->json) {
+        std::cout << absl::StrFormat("{\"out\": \"%s\", \"what\": \"%s\", \"items\": %d}\n", a->out,
+                                     a->what, items);
+      } else {
+        std::cout << "wrote " << items << (a->what == "poses" ? " poses" : " points") << " to "
+                  << a->out << "\n";
+      }
+      return 0;
+    };
+  });
+}
+
+void AddProcessCommand(CLI::App* app, CliContext* ctx) {
+  auto* process = app->add_subcommand(
+      "process", "Send one frame through ProcessFrame and write what the server returned");
+  struct Args {
+    std::string rgb, depth, intrinsics, map, out;
+    double depth_scale = 5000.0;
+    double timestamp_s = 0.0;
+  };
+  auto a = std::make_shared<Args>();
+  process->add_option("--rgb", a->rgb, "colour image (PNG or JPEG)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  process->add_option("--depth", a->depth, "depth image (16-bit PNG)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  process->add_option("--depth-scale", a->depth_scale, "depth units per metre (TUM: 5000)");
+  process->add_option("--intrinsics", a->intrinsics,
+                      "FX,FY,CX,CY in pixels (default: TUM ROS default 525,525,319.5,239.5)");
+  process->add_option("--timestamp", a->timestamp_s, "capture time, s (default: now)");
+  process->add_option("--map", a->map, "store into this map's latest open visit");
+  process->add_option("--out", a->out, "output folder (created)")->required();
+  process->callback([ctx, a] {
+    ctx->run = [ctx, a]() -> int {
+      v1::CameraIntrinsics k;
+      auto header = ProbeImage(ReadFileBytes(a->rgb).value_or(""));
+      if (!header.ok()) {
+        return Fail(
+            absl::InvalidArgumentError(absl::StrCat(a->rgb, ": ", header.status().message())));
+      }
+      k.set_width(static_cast<uint32_t>(header->width));
+      k.set_height(static_cast<uint32_t>(header->height));
+      if (a->intrinsics.empty()) {
+        const double sx = header->width / 640.0, sy = header->height / 480.0;
+        k.set_fx(525.0 * sx);
+        k.set_fy(525.0 * sy);
+        k.set_cx(319.5 * sx);
+        k.set_cy(239.5 * sy);
+      } else {
+        auto parsed = ParseIntrinsicsFlag(a->intrinsics, header->width, header->height);
+        if (!parsed.ok()) {
+          std::cerr << "lifemap: " << parsed.status().message() << "\n";
+          return 2;
+        }
+        k = *parsed;
+      }
+      const double now = static_cast<double>(std::time(nullptr));
+      auto frame = client::FrameFromFiles(a->rgb, a->depth, a->depth_scale, k,
+                                          a->timestamp_s > 0 ? a->timestamp_s : now, 0);
+      if (!frame.ok()) return Fail(frame.status());
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      v1::ProcessFrameRequest req;
+      req.set_map(a->map);
+      *req.mutable_frame() = *std::move(frame);
+      auto result = (*c)->ProcessFrame(req);
+      if (!result.ok()) return Fail(result.status());
+
+      std::error_code ec;
+      fs::create_directories(a->out, ec);
+      if (ec) return Fail(absl::PermissionDeniedError(absl::StrCat("cannot create ", a->out)));
+      // Images go to their own PNG files; result.json keeps every other field.
+      struct Image {
+        const char* file;
+        std::string* bytes;
+      };
+      v1::FrameResult json_copy = *result;
+      const Image images[] = {
+          {"entropy_score.png", json_copy.mutable_entropy()->mutable_score_png()},
+          {"entropy_mask.png", json_copy.mutable_entropy()->mutable_mask_png()},
+          {"labels.png", json_copy.mutable_labels()->mutable_label_png()},
+      };
+      std::vector<std::string> written;
+      for (const auto& img : images) {
+        if (img.bytes->empty()) continue;
+        const std::string path = (fs::path(a->out) / img.file).string();
+        auto s = WriteFileAtomically(path, [&](std::ostream* out) {
+          out->write(img.bytes->data(), static_cast<std::streamsize>(img.bytes->size()));
+          return absl::OkStatus();
+        });
+        if (!s.ok()) return Fail(s);
+        img.bytes->clear();
+        written.push_back(path);
+      }
+      const std::string json_path = (fs::path(a->out) / "result.json").string();
+      auto s = WriteFileAtomically(json_path, [&](std::ostream* out) {
+        *out << ToJson(json_copy) << "\n";
+        return absl::OkStatus();
+      });
+      if (!s.ok()) return Fail(s);
+      written.push_back(json_path);
+      if (ctx->json) {
+        std::cout << ToJson(json_copy, false) << "\n";
+      } else {
+        std::cout << absl::StrFormat(
+            "frame %dx%d: %.1f%% valid depth, median %.3f m; server %.1f ms\n", result->width(),
+            result->height(), 100.0 * result->valid_depth_fraction(), result->median_depth_m(),
+            result->timing().total_ms());
+        if (result->keyframe().selected()) {
+          std::cout << "keyframe " << result->keyframe().keyframe_id() << " stored in map '"
+                    << a->map << "'\n";
+        }
+        for (const auto& o : result->outputs()) {
+          if (!o.computed()) std::cout << "not computed: " << o.reason() << "\n";
+        }
+        for (const auto& w : written) std::cout << "wrote " << w << "\n";
+      }
+      return 0;
+    };
+  });
+}
+
+void AddAdminCommands(CLI::App* app, CliContext* ctx) {
+  auto* admin = app->add_subcommand("admin", "Operate the server's database");
+  admin->require_subcommand(1);
+  admin->add_subcommand("stats", "Counts, database size, activity")->callback([ctx] {
+    ctx->run = [ctx]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto s = (*c)->GetStats();
+      if (!s.ok()) return Fail(s.status());
+      if (ctx->json) {
+        std::cout << ToJson(*s) << "\n";
+      } else {
+        std::cout << absl::StrFormat(
+            "maps %d, visits %d, keyframes %d\ndatabase %s + WAL %s\nactive streams %d; since "
+            "start: %d frames processed, %d rejected, %d keyframes committed; up %.0f s\n",
+            s->maps(), s->visits(), s->keyframes(), HumanBytes(s->db_bytes()),
+            HumanBytes(s->wal_bytes()), s->active_streams(), s->frames_processed(),
+            s->frames_rejected(), s->keyframes_committed(), s->uptime_s());
+      }
+      return 0;
+    };
+  });
+  auto* backup = admin->add_subcommand("backup", "Online copy of the database on the server");
+  auto path = std::make_shared<std::string>();
+  backup->add_option("PATH", *path, "absolute path on the server's machine (must not exist)")
+      ->required();
+  backup->callback([ctx, path] {
+    ctx->run = [ctx, path]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->Backup(*path);
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+      } else {
+        std::cout << "backup written to " << r->path() << " (" << HumanBytes(r->bytes()) << ")\n";
+      }
+      return 0;
+    };
+  });
+  admin->add_subcommand("check", "Integrity check of the database")->callback([ctx] {
+    ctx->run = [ctx]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->CheckIntegrity();
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+      } else {
+        std::cout << (r->ok() ? "integrity: ok\n" : "integrity: PROBLEMS\n");
+        for (const auto& p : r->problems()) std::cout << "  " << p << "\n";
+      }
+      return r->ok() ? 0 : 1;
+    };
+  });
+  admin->add_subcommand("vacuum", "Compact the database file")->callback([ctx] {
+    ctx->run = [ctx]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto r = (*c)->Vacuum();
+      if (!r.ok()) return Fail(r.status());
+      if (ctx->json) {
+        std::cout << ToJson(*r) << "\n";
+      } else {
+        std::cout << "database " << HumanBytes(r->bytes_before()) << " -> "
+                  << HumanBytes(r->bytes_after()) << "\n";
+      }
+      return 0;
+    };
+  });
+}
+
+}  // namespace lifemap::cli

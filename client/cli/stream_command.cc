@@ -1,0 +1,278 @@
+// `lifemap stream`: replays a TUM-format recording into a map as a robot would.
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <iostream>
+#include <map>
+#include <mutex>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/cli/commands.h"
+#include "client/cli/output.h"
+#include "core/common/image_codec.h"
+#include "core/io/tum_dataset.h"
+
+namespace lifemap::cli {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+struct StreamArgs {
+  std::string map;
+  std::string tum_dir;
+  double rate_hz = -1.0;  // < 0: the recording's own timing; 0: as fast as the server takes
+  bool use_groundtruth = false;
+  std::string visit_label;
+  std::string robot;
+  uint64_t visit_id = 0;
+  std::string intrinsics;
+  double depth_scale = 5000.0;
+  int max_frames = 0;
+  bool create_map = false;
+  std::string associations;
+};
+
+double Percentile(std::vector<double> v, double p) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  const size_t i = std::min(v.size() - 1, static_cast<size_t>(p / 100.0 * (v.size() - 1) + 0.5));
+  return v[i];
+}
+
+int RunStream(const CliContext& ctx, const StreamArgs& a) {
+  if (a.rate_hz > 1000.0) {
+    std::cerr << "lifemap: --rate must be at most 1000 Hz (0 = as fast as the server takes)\n";
+    return 2;
+  }
+  io::TumReadOptions read_options;
+  read_options.associations_file = a.associations;
+  auto seq = io::ReadTumSequence(a.tum_dir, read_options);
+  if (!seq.ok()) return Fail(seq.status());
+  if (a.use_groundtruth && seq->frames_with_pose == 0) {
+    return Fail(absl::FailedPreconditionError(
+        absl::StrCat(a.tum_dir, ": --use-groundtruth given but ",
+                     seq->has_groundtruth ? "no frame lies within groundtruth.txt"
+                                          : "there is no groundtruth.txt")));
+  }
+  size_t n = seq->frames.size();
+  if (a.max_frames > 0) n = std::min(n, static_cast<size_t>(a.max_frames));
+
+  // Intrinsics: the flag, else the folder's intrinsics.txt, else TUM's calibration by name.
+  auto first = ReadFileBytes(seq->frames[0].rgb_path);
+  if (!first.ok()) return Fail(first.status());
+  auto header = ProbeImage(*first);
+  if (!header.ok()) {
+    return Fail(absl::InvalidArgumentError(
+        absl::StrCat(seq->frames[0].rgb_path, ": ", header.status().message())));
+  }
+  v1::CameraIntrinsics k;
+  std::string intrinsics_source;
+  if (!a.intrinsics.empty()) {
+    auto parsed = ParseIntrinsicsFlag(a.intrinsics, header->width, header->height);
+    if (!parsed.ok()) {
+      std::cerr << "lifemap: " << parsed.status().message() << "\n";
+      return 2;
+    }
+    k = *parsed;
+    intrinsics_source = "--intrinsics";
+  } else if (seq->intrinsics) {
+    k.set_fx(seq->intrinsics->fx);
+    k.set_fy(seq->intrinsics->fy);
+    k.set_cx(seq->intrinsics->cx);
+    k.set_cy(seq->intrinsics->cy);
+    k.set_width(static_cast<uint32_t>(header->width));
+    k.set_height(static_cast<uint32_t>(header->height));
+    intrinsics_source = "intrinsics.txt";
+  } else {
+    const auto guess =
+        io::TumIntrinsicsFor(a.tum_dir, header->width, header->height, &intrinsics_source);
+    k.set_fx(guess.fx);
+    k.set_fy(guess.fy);
+    k.set_cx(guess.cx);
+    k.set_cy(guess.cy);
+    k.set_width(static_cast<uint32_t>(guess.width));
+    k.set_height(static_cast<uint32_t>(guess.height));
+  }
+
+  auto client = ctx.Connect();
+  if (!client.ok()) return Fail(client.status());
+  if (a.create_map) {
+    auto created = (*client)->CreateMap(a.map, "");
+    if (!created.ok() && !absl::IsAlreadyExists(created.status())) return Fail(created.status());
+  } else if (auto m = (*client)->GetMap(a.map); !m.ok()) {
+    if (absl::IsNotFound(m.status())) {
+      return Fail(absl::NotFoundError(
+          absl::StrCat("map '", a.map, "' does not exist: create it with 'lifemap maps create ",
+                       a.map, "' (or pass --create-map)")));
+    }
+    return Fail(m.status());
+  }
+
+  v1::StreamStart start;
+  start.set_map(a.map);
+  start.set_visit_id(a.visit_id);
+  start.set_visit_label(a.visit_label);
+  if (a.robot.empty()) {
+    char host[256] = {0};
+    gethostname(host, sizeof(host) - 1);
+    start.set_robot(absl::StrCat("lifemap-cli@", host));
+  } else {
+    start.set_robot(a.robot);
+  }
+  auto stream = (*client)->OpenStream(start);
+  if (!stream.ok()) return Fail(stream.status());
+  const uint64_t visit_id = (*stream)->started().visit_id();
+  const bool progress = !ctx.json && isatty(STDERR_FILENO);
+  if (!ctx.json) {
+    std::cerr << absl::StrFormat(
+        "streaming %d frames of %s into map '%s', %s visit %d (intrinsics: %s%s)\n", n, a.tum_dir,
+        a.map, (*stream)->started().new_visit() ? "new" : "resumed", visit_id, intrinsics_source,
+        a.use_groundtruth ? "; poses from groundtruth.txt" : "");
+  }
+
+  std::mutex sent_mu;
+  std::map<uint64_t, Clock::time_point> sent_at;
+  std::atomic<size_t> sent{0};
+  std::string send_error;
+  const auto t0 = Clock::now();
+  std::thread sender([&] {
+    const double first_ts = seq->frames[0].timestamp_s;
+    for (size_t i = 0; i < n; ++i) {
+      const auto& e = seq->frames[i];
+      if (a.rate_hz != 0.0) {
+        const double offset_s = a.rate_hz < 0 ? e.timestamp_s - first_ts : i / a.rate_hz;
+        std::this_thread::sleep_until(t0 + std::chrono::duration_cast<Clock::duration>(
+                                               std::chrono::duration<double>(offset_s)));
+      }
+      auto frame =
+          client::FrameFromFiles(e.rgb_path, e.depth_path, a.depth_scale, k, e.timestamp_s, i);
+      if (!frame.ok()) {
+        send_error = std::string(frame.status().message());
+        (*stream)->Cancel();
+        break;
+      }
+      if (a.use_groundtruth && e.T_world_camera) {
+        auto* p = frame->mutable_pose();
+        const auto& t = e.T_world_camera->translation;
+        const auto& q = e.T_world_camera->rotation;
+        p->set_tx(t.x());
+        p->set_ty(t.y());
+        p->set_tz(t.z());
+        p->set_qx(q.x());
+        p->set_qy(q.y());
+        p->set_qz(q.z());
+        p->set_qw(q.w());
+      }
+      {
+        std::lock_guard<std::mutex> lock(sent_mu);
+        sent_at[i] = Clock::now();
+      }
+      if (!(*stream)->Send(*frame)) break;
+      sent.fetch_add(1);
+    }
+    (*stream)->CloseSend();
+  });
+
+  std::vector<double> latencies_ms;
+  std::vector<uint64_t> keyframe_ids;
+  size_t results = 0, rejected = 0;
+  v1::FrameResult result;
+  while ((*stream)->Receive(&result)) {
+    const auto now = Clock::now();
+    double latency_ms = 0.0;
+    {
+      std::lock_guard<std::mutex> lock(sent_mu);
+      auto it = sent_at.find(result.sequence());
+      if (it != sent_at.end()) {
+        latency_ms = std::chrono::duration<double, std::milli>(now - it->second).count();
+        sent_at.erase(it);
+      }
+    }
+    ++results;
+    latencies_ms.push_back(latency_ms);
+    if (result.has_error()) {
+      ++rejected;
+      if (!ctx.json) {
+        std::cerr << (progress ? "\n" : "") << "frame " << result.sequence()
+                  << " rejected: " << result.error().message() << "\n";
+      }
+    }
+    if (result.keyframe().committed()) keyframe_ids.push_back(result.keyframe().keyframe_id());
+    if (ctx.json) {
+      nlohmann::json line = nlohmann::json::parse(ToJson(result, false));
+      line["client_latency_ms"] = latency_ms;
+      std::cout << line.dump() << std::endl;
+    } else if (progress) {
+      const double elapsed = std::chrono::duration<double>(now - t0).count();
+      std::cerr << absl::StrFormat("\r  frames %d/%d  keyframes %d  %.1f frames/s   ", results, n,
+                                   keyframe_ids.size(), results / std::max(elapsed, 1e-9));
+    }
+  }
+  sender.join();
+  const absl::Status final_status = (*stream)->Finish();
+  const double elapsed_s = std::chrono::duration<double>(Clock::now() - t0).count();
+  if (progress) std::cerr << "\n";
+  if (!send_error.empty()) return Fail(absl::InvalidArgumentError(send_error));
+  if (!final_status.ok()) return Fail(final_status);
+
+  const double fps = results / std::max(elapsed_s, 1e-9);
+  const double p50 = Percentile(latencies_ms, 50), p99 = Percentile(latencies_ms, 99);
+  if (ctx.json) {
+    nlohmann::json summary = {
+        {"map", a.map},
+        {"visit_id", visit_id},
+        {"frames_sent", sent.load()},
+        {"results", results},
+        {"frames_rejected", rejected},
+        {"keyframes_stored", keyframe_ids.size()},
+        {"keyframe_ids", keyframe_ids},
+        {"elapsed_s", elapsed_s},
+        {"frames_per_s", fps},
+        {"latency_ms", {{"p50", p50}, {"p99", p99}}},
+    };
+    std::cout << nlohmann::json{{"summary", summary}}.dump() << std::endl;
+  } else {
+    std::cout << absl::StrFormat(
+        "map '%s' visit %d: %d frames sent, %d results (%d rejected), %d keyframes stored\n"
+        "%.1f frames/s over %.2f s; latency p50 %.1f ms, p99 %.1f ms\n",
+        a.map, visit_id, sent.load(), results, rejected, keyframe_ids.size(), fps, elapsed_s, p50,
+        p99);
+  }
+  return rejected == 0 ? 0 : 1;
+}
+
+}  // namespace
+
+void AddStreamCommand(CLI::App* app, CliContext* ctx) {
+  auto* stream = app->add_subcommand(
+      "stream", "Replay a TUM-format RGB-D recording into a map, as a robot would");
+  auto a = std::make_shared<StreamArgs>();
+  stream->add_option("--map", a->map, "map to stream into")->required();
+  stream->add_option("--tum", a->tum_dir, "TUM-format folder (rgb.txt, depth.txt, ...)")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  stream->add_option("--rate", a->rate_hz,
+                     "frames per second; 0 = as fast as the server takes them "
+                     "(default: the recording's own timing)");
+  stream->add_flag("--use-groundtruth", a->use_groundtruth,
+                   "send poses from groundtruth.txt (interpolated to each frame)");
+  stream->add_option("--visit-label", a->visit_label, "label of the new visit");
+  stream->add_option("--visit", a->visit_id, "resume this open visit instead of starting one");
+  stream->add_option("--robot", a->robot, "robot name (default lifemap-cli@HOST)");
+  stream->add_option("--intrinsics", a->intrinsics,
+                     "FX,FY,CX,CY (default: DIR/intrinsics.txt or the TUM camera's)");
+  stream->add_option("--depth-scale", a->depth_scale, "depth units per metre (TUM: 5000)");
+  stream->add_option("--max-frames", a->max_frames, "stop after N frames");
+  stream->add_option("--associations", a->associations,
+                     "file of 't_rgb rgb t_depth depth' pairs (default: pair rgb.txt/depth.txt)");
+  stream->add_flag("--create-map", a->create_map, "create the map if it does not exist");
+  stream->callback([ctx, a] { ctx->run = [ctx, a] { return RunStream(*ctx, *a); }; });
+}
+
+}  // namespace lifemap::cli

@@ -1,0 +1,286 @@
+#include "client/lifemap_client.h"
+
+#include <chrono>
+
+#include <grpcpp/grpcpp.h>
+
+#include "absl/strings/str_cat.h"
+#include "core/common/image_codec.h"
+#include "lifemap/v1/admin_service.grpc.pb.h"
+#include "lifemap/v1/frame_service.grpc.pb.h"
+#include "lifemap/v1/map_service.grpc.pb.h"
+#include "lifemap/v1/visit_service.grpc.pb.h"
+
+namespace lifemap::client {
+namespace {
+
+absl::Status FromGrpc(const grpc::Status& s) {
+  if (s.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(s.error_code()), s.error_message());
+}
+
+class GrpcFrameStream final : public FrameStream {
+ public:
+  GrpcFrameStream(
+      std::unique_ptr<grpc::ClientContext> context,
+      std::unique_ptr<grpc::ClientReaderWriter<v1::StreamFramesRequest, v1::StreamFramesResponse>>
+          stream,
+      v1::StreamStarted started)
+      : context_(std::move(context)), stream_(std::move(stream)), started_(std::move(started)) {}
+
+  ~GrpcFrameStream() override {
+    if (!finished_) {
+      context_->TryCancel();
+      v1::StreamFramesResponse drain;
+      while (stream_->Read(&drain)) {
+      }
+      stream_->Finish().ok();
+    }
+  }
+
+  const v1::StreamStarted& started() const override { return started_; }
+
+  bool Send(const v1::Frame& frame) override {
+    v1::StreamFramesRequest request;
+    *request.mutable_frame() = frame;
+    return stream_->Write(request);
+  }
+
+  bool CloseSend() override { return stream_->WritesDone(); }
+
+  bool Receive(v1::FrameResult* result) override {
+    v1::StreamFramesResponse response;
+    while (stream_->Read(&response)) {
+      if (response.has_result()) {
+        *result = std::move(*response.mutable_result());
+        return true;
+      }
+    }
+    return false;
+  }
+
+  absl::Status Finish() override {
+    finished_ = true;
+    return FromGrpc(stream_->Finish());
+  }
+
+  void Cancel() override { context_->TryCancel(); }
+
+ private:
+  std::unique_ptr<grpc::ClientContext> context_;
+  std::unique_ptr<grpc::ClientReaderWriter<v1::StreamFramesRequest, v1::StreamFramesResponse>>
+      stream_;
+  v1::StreamStarted started_;
+  bool finished_ = false;
+};
+
+class GrpcClient final : public Client {
+ public:
+  GrpcClient(std::shared_ptr<grpc::Channel> channel, const ClientOptions& options)
+      : options_(options),
+        maps_(v1::MapService::NewStub(channel)),
+        visits_(v1::VisitService::NewStub(channel)),
+        frames_(v1::FrameService::NewStub(channel)),
+        admin_(v1::AdminService::NewStub(channel)) {}
+
+  absl::StatusOr<v1::ServerInfo> GetServerInfo() override {
+    return Unary(&v1::AdminService::Stub::GetServerInfo, admin_.get(), v1::GetServerInfoRequest());
+  }
+  absl::StatusOr<v1::Stats> GetStats() override {
+    return Unary(&v1::AdminService::Stub::GetStats, admin_.get(), v1::GetStatsRequest());
+  }
+  absl::StatusOr<v1::BackupResponse> Backup(const std::string& server_path) override {
+    v1::BackupRequest req;
+    req.set_path(server_path);
+    return Unary(&v1::AdminService::Stub::Backup, admin_.get(), req);
+  }
+  absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() override {
+    return Unary(&v1::AdminService::Stub::CheckIntegrity, admin_.get(),
+                 v1::CheckIntegrityRequest());
+  }
+  absl::StatusOr<v1::VacuumResponse> Vacuum() override {
+    return Unary(&v1::AdminService::Stub::Vacuum, admin_.get(), v1::VacuumRequest());
+  }
+
+  absl::StatusOr<v1::Map> CreateMap(const std::string& name,
+                                    const std::string& description) override {
+    v1::CreateMapRequest req;
+    req.set_name(name);
+    req.set_description(description);
+    return Unary(&v1::MapService::Stub::CreateMap, maps_.get(), req);
+  }
+  absl::StatusOr<v1::ListMapsResponse> ListMaps() override {
+    return Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest());
+  }
+  absl::StatusOr<v1::Map> GetMap(const std::string& name) override {
+    v1::GetMapRequest req;
+    req.set_name(name);
+    return Unary(&v1::MapService::Stub::GetMap, maps_.get(), req);
+  }
+  absl::StatusOr<v1::Map> RenameMap(const std::string& name, const std::string& new_name) override {
+    v1::RenameMapRequest req;
+    req.set_name(name);
+    req.set_new_name(new_name);
+    return Unary(&v1::MapService::Stub::RenameMap, maps_.get(), req);
+  }
+  absl::StatusOr<v1::DeleteMapResponse> DeleteMap(const std::string& name) override {
+    v1::DeleteMapRequest req;
+    req.set_name(name);
+    return Unary(&v1::MapService::Stub::DeleteMap, maps_.get(), req);
+  }
+  absl::StatusOr<v1::ListKeyframesResponse> ListKeyframes(const std::string& map,
+                                                          uint64_t visit_id) override {
+    v1::ListKeyframesRequest req;
+    req.set_map(map);
+    req.set_visit_id(visit_id);
+    return Unary(&v1::MapService::Stub::ListKeyframes, maps_.get(), req);
+  }
+  absl::StatusOr<v1::Keyframe> GetKeyframe(const std::string& map, uint64_t keyframe_id) override {
+    v1::GetKeyframeRequest req;
+    req.set_map(map);
+    req.set_keyframe_id(keyframe_id);
+    return Unary(&v1::MapService::Stub::GetKeyframe, maps_.get(), req);
+  }
+  absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
+                                     std::ostream* out) override {
+    grpc::ClientContext context;
+    auto reader = maps_->ExportMap(&context, request);
+    v1::ExportChunk chunk;
+    uint64_t items = 0;
+    bool last = false;
+    while (reader->Read(&chunk)) {
+      out->write(chunk.data().data(), static_cast<std::streamsize>(chunk.data().size()));
+      if (chunk.last()) {
+        items = chunk.item_count();
+        last = true;
+      }
+    }
+    if (auto s = FromGrpc(reader->Finish()); !s.ok()) return s;
+    if (!last) return absl::DataLossError("export ended without its last chunk");
+    if (!*out) return absl::DataLossError("writing the export failed");
+    return items;
+  }
+
+  absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) override {
+    return Unary(&v1::VisitService::Stub::StartVisit, visits_.get(), request);
+  }
+  absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) override {
+    v1::EndVisitRequest req;
+    req.set_visit_id(visit_id);
+    return Unary(&v1::VisitService::Stub::EndVisit, visits_.get(), req);
+  }
+  absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) override {
+    v1::ListVisitsRequest req;
+    req.set_map(map);
+    return Unary(&v1::VisitService::Stub::ListVisits, visits_.get(), req);
+  }
+
+  absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) override {
+    return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request);
+  }
+
+  absl::StatusOr<std::unique_ptr<FrameStream>> OpenStream(const v1::StreamStart& start) override {
+    auto context = std::make_unique<grpc::ClientContext>();
+    auto stream = frames_->StreamFrames(context.get());
+    v1::StreamFramesRequest request;
+    *request.mutable_start() = start;
+    v1::StreamFramesResponse response;
+    if (!stream->Write(request) || !stream->Read(&response) || !response.has_started()) {
+      stream->WritesDone();
+      grpc::Status s = stream->Finish();
+      if (s.ok()) return absl::InternalError("server did not acknowledge the stream start");
+      return FromGrpc(s);
+    }
+    return std::unique_ptr<FrameStream>(new GrpcFrameStream(
+        std::move(context), std::move(stream), std::move(*response.mutable_started())));
+  }
+
+ private:
+  template <typename Stub, typename Request, typename Response>
+  absl::StatusOr<Response> Unary(grpc::Status (Stub::*method)(grpc::ClientContext*, const Request&,
+                                                              Response*),
+                                 Stub* stub, const Request& request) {
+    grpc::ClientContext context;
+    context.set_deadline(
+        std::chrono::system_clock::now() +
+        std::chrono::milliseconds(static_cast<int64_t>(options_.call_timeout_s * 1000)));
+    Response response;
+    if (auto s = FromGrpc((stub->*method)(&context, request, &response)); !s.ok()) return s;
+    return response;
+  }
+
+  ClientOptions options_;
+  std::unique_ptr<v1::MapService::Stub> maps_;
+  std::unique_ptr<v1::VisitService::Stub> visits_;
+  std::unique_ptr<v1::FrameService::Stub> frames_;
+  std::unique_ptr<v1::AdminService::Stub> admin_;
+};
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& options) {
+  const auto colon = options.target.rfind(':');
+  if (options.target.empty() || colon == std::string::npos || colon + 1 == options.target.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("server address '", options.target, "' must be HOST:PORT"));
+  }
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(options.max_message_bytes);
+  args.SetMaxSendMessageSize(options.max_message_bytes);
+  auto channel =
+      grpc::CreateCustomChannel(options.target, grpc::InsecureChannelCredentials(), args);
+  const auto deadline =
+      std::chrono::system_clock::now() +
+      std::chrono::milliseconds(static_cast<int64_t>(options.connect_timeout_s * 1000));
+  if (!channel->WaitForConnected(deadline)) {
+    return absl::UnavailableError(absl::StrCat(
+        "cannot reach lifemapd at ", options.target, " within ", options.connect_timeout_s,
+        " s: is it running? (set --server or LIFEMAP_SERVER)"));
+  }
+  return std::unique_ptr<Client>(new GrpcClient(std::move(channel), options));
+}
+
+absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std::string& depth_path,
+                                         double depth_scale, const v1::CameraIntrinsics& intrinsics,
+                                         double timestamp_s, uint64_t sequence) {
+  auto rgb = ReadFileBytes(rgb_path);
+  if (!rgb.ok()) return rgb.status();
+  auto depth = ReadFileBytes(depth_path);
+  if (!depth.ok()) return depth.status();
+  auto rgb_header = ProbeImage(*rgb);
+  if (!rgb_header.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(rgb_path, ": ", rgb_header.status().message()));
+  }
+  auto depth_header = ProbeImage(*depth);
+  if (!depth_header.ok()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(depth_path, ": ", depth_header.status().message()));
+  }
+  if (depth_header->format != ImageFormat::kPng || depth_header->bit_depth != 16 ||
+      depth_header->channels != 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(depth_path, ": depth must be a 16-bit single-channel PNG"));
+  }
+  v1::Frame frame;
+  frame.set_sequence(sequence);
+  frame.set_timestamp_s(timestamp_s);
+  *frame.mutable_intrinsics() = intrinsics;
+  if (intrinsics.width() == 0 && intrinsics.height() == 0) {
+    frame.mutable_intrinsics()->set_width(static_cast<uint32_t>(rgb_header->width));
+    frame.mutable_intrinsics()->set_height(static_cast<uint32_t>(rgb_header->height));
+  }
+  auto* d = frame.mutable_depth();
+  d->set_encoding(v1::DEPTH_PNG16);
+  d->set_width(static_cast<uint32_t>(depth_header->width));
+  d->set_height(static_cast<uint32_t>(depth_header->height));
+  d->set_depth_scale(depth_scale);
+  d->set_data(*std::move(depth));
+  auto* c = frame.mutable_color();
+  c->set_encoding(rgb_header->format == ImageFormat::kPng ? v1::COLOR_PNG : v1::COLOR_JPEG);
+  c->set_width(static_cast<uint32_t>(rgb_header->width));
+  c->set_height(static_cast<uint32_t>(rgb_header->height));
+  c->set_data(*std::move(rgb));
+  return frame;
+}
+
+}  // namespace lifemap::client

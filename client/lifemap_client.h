@@ -1,0 +1,94 @@
+// The lifemap C++ client library: what a robot links to talk to lifemapd.
+//
+//   auto client = lifemap::client::Client::Connect({"127.0.0.1:50051"});
+//   auto stream = (*client)->OpenStream(start);           // one visit
+//   (*stream)->Send(frame); (*stream)->Receive(&result);   // from two threads if you like
+//
+// Every call returns an absl::Status whose code is the server's gRPC code and whose message is
+// the server's (or says the server cannot be reached). Messages are lifemap.v1 protobufs.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <ostream>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "lifemap/v1/admin_service.pb.h"
+#include "lifemap/v1/frame_service.pb.h"
+#include "lifemap/v1/map_service.pb.h"
+#include "lifemap/v1/visit_service.pb.h"
+
+namespace lifemap::client {
+
+struct ClientOptions {
+  std::string target = "127.0.0.1:50051";  // HOST:PORT of lifemapd
+  int max_message_bytes = 64 << 20;        // largest message this client accepts/sends
+  double connect_timeout_s = 5.0;          // Connect() waits this long for the server
+  double call_timeout_s = 60.0;            // deadline of unary calls (not of streams)
+};
+
+// One visit's frame stream. Send() and Receive() may run on two different threads; each of them
+// is thread-compatible on its own.
+class FrameStream {
+ public:
+  virtual ~FrameStream() = default;
+  // The server's answer to the StreamStart (map and visit id).
+  virtual const v1::StreamStarted& started() const = 0;
+  // Queues a frame; blocks while the server applies flow control. False once the stream is
+  // broken: call Finish() for the reason.
+  virtual bool Send(const v1::Frame& frame) = 0;
+  // Tells the server no more frames follow (results still arrive).
+  virtual bool CloseSend() = 0;
+  // The next result, in frame order; false when the server ended the stream.
+  virtual bool Receive(v1::FrameResult* result) = 0;
+  // After Receive() returned false: the stream's final status.
+  virtual absl::Status Finish() = 0;
+  // Aborts the stream (the server sees a cancellation).
+  virtual void Cancel() = 0;
+};
+
+class Client {
+ public:
+  // UNAVAILABLE with a hint when the server does not answer within connect_timeout_s;
+  // INVALID_ARGUMENT for a malformed target.
+  static absl::StatusOr<std::unique_ptr<Client>> Connect(const ClientOptions& options);
+  virtual ~Client() = default;
+
+  virtual absl::StatusOr<v1::ServerInfo> GetServerInfo() = 0;
+  virtual absl::StatusOr<v1::Stats> GetStats() = 0;
+  virtual absl::StatusOr<v1::BackupResponse> Backup(const std::string& server_path) = 0;
+  virtual absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() = 0;
+  virtual absl::StatusOr<v1::VacuumResponse> Vacuum() = 0;
+
+  virtual absl::StatusOr<v1::Map> CreateMap(const std::string& name,
+                                            const std::string& description) = 0;
+  virtual absl::StatusOr<v1::ListMapsResponse> ListMaps() = 0;
+  virtual absl::StatusOr<v1::Map> GetMap(const std::string& name) = 0;
+  virtual absl::StatusOr<v1::Map> RenameMap(const std::string& name,
+                                            const std::string& new_name) = 0;
+  virtual absl::StatusOr<v1::DeleteMapResponse> DeleteMap(const std::string& name) = 0;
+  virtual absl::StatusOr<v1::ListKeyframesResponse> ListKeyframes(const std::string& map,
+                                                                  uint64_t visit_id) = 0;
+  virtual absl::StatusOr<v1::Keyframe> GetKeyframe(const std::string& map,
+                                                   uint64_t keyframe_id) = 0;
+  // Streams the export into `out`; returns the number of items (poses or points) written.
+  virtual absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
+                                             std::ostream* out) = 0;
+
+  virtual absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) = 0;
+  virtual absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) = 0;
+  virtual absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) = 0;
+
+  virtual absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) = 0;
+  // Opens a stream and waits for the server's StreamStarted; the error if it refuses.
+  virtual absl::StatusOr<std::unique_ptr<FrameStream>> OpenStream(const v1::StreamStart& start) = 0;
+};
+
+// Builds a Frame from image files as they are on disk (no re-encoding): depth must be a 16-bit
+// PNG (`depth_scale` units per metre), colour a PNG or JPEG. Checks both headers and sizes.
+absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std::string& depth_path,
+                                         double depth_scale, const v1::CameraIntrinsics& intrinsics,
+                                         double timestamp_s, uint64_t sequence);
+
+}  // namespace lifemap::client
