@@ -1,0 +1,93 @@
+#include "core/io/tum_dataset.h"
+
+#include <fstream>
+
+#include <gtest/gtest.h>
+
+#include "tests/testing/test_util.h"
+
+namespace lifemap::io {
+namespace {
+
+TEST(TumSequence, ReadsFr1XyzWithGroundTruth) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  // 37 colour and 37 depth images; TUM's one-to-one association within 20 ms pairs 32.
+  EXPECT_EQ(seq->frames.size(), 32u);
+  EXPECT_TRUE(seq->has_groundtruth);
+  EXPECT_EQ(seq->frames_with_pose, 32);
+  for (size_t i = 1; i < seq->frames.size(); ++i) {
+    EXPECT_LT(seq->frames[i - 1].timestamp_s, seq->frames[i].timestamp_s);
+  }
+  for (const auto& f : seq->frames) {
+    EXPECT_LT(std::abs(f.timestamp_s - f.depth_timestamp_s), 0.02);
+  }
+  // The first image at t=1305031102.175304 lies between mocap samples near (1.34, 0.63, 1.66).
+  const auto& p = *seq->frames[0].T_world_camera;
+  EXPECT_NEAR(p.translation.x(), 1.3406, 0.002);
+  EXPECT_NEAR(p.translation.y(), 0.6266, 0.002);
+  EXPECT_NEAR(p.translation.z(), 1.6577, 0.002);
+}
+
+TEST(TumSequence, SkipsListedButMissingImages) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_desk_subset");
+  auto seq = ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  // rgb.txt lists 613 images of the full sequence; only 9 colour/depth pairs are present.
+  EXPECT_EQ(seq->frames.size(), 9u);
+  EXPECT_GT(seq->listed_but_missing, 500);
+}
+
+TEST(TumSequence, RejectsMissingFolderAndMalformedLines) {
+  EXPECT_TRUE(absl::IsNotFound(ReadTumSequence("/nonexistent/lifemap").status()));
+  testing::TempDir tmp;
+  EXPECT_TRUE(absl::IsNotFound(ReadTumSequence(tmp.path()).status()))
+      << "a folder without rgb.txt/depth.txt";
+  std::ofstream(tmp.File("rgb.txt")) << "# comment\nnot-a-number rgb/x.png\n";
+  std::ofstream(tmp.File("depth.txt")) << "";
+  auto s = ReadTumSequence(tmp.path()).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(s));
+  EXPECT_NE(s.message().find("rgb.txt:2"), std::string::npos) << s;
+}
+
+TEST(TumTrajectory, RejectsNonUnitQuaternionWithLineNumber) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("gt.txt")) << "1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 3\n";
+  auto s = ReadTumTrajectory(tmp.File("gt.txt")).status();
+  EXPECT_NE(s.message().find("gt.txt:2"), std::string::npos) << s;
+}
+
+TEST(TumTrajectory, InterpolatesOnlyInsideAndAcrossSmallGaps) {
+  std::vector<TimedPose> t(2);
+  t[0].timestamp_s = 1.0;
+  t[1].timestamp_s = 1.01;
+  t[1].pose.translation = {1, 0, 0};
+  auto mid = InterpolateTrajectory(t, 1.005, 0.1);
+  ASSERT_TRUE(mid.has_value());
+  EXPECT_NEAR(mid->translation.x(), 0.5, 1e-9);
+  EXPECT_FALSE(InterpolateTrajectory(t, 0.9, 0.1).has_value());
+  EXPECT_FALSE(InterpolateTrajectory(t, 1.2, 0.1).has_value());
+  EXPECT_FALSE(InterpolateTrajectory(t, 1.005, 0.001).has_value());
+}
+
+TEST(TumIntrinsics, PicksCalibrationByFolderName) {
+  std::string source;
+  auto k = TumIntrinsicsFor("/data/rgbd_dataset_freiburg1_xyz", 640, 480, &source);
+  EXPECT_DOUBLE_EQ(k.fx, 517.3);
+  EXPECT_NE(source.find("freiburg1"), std::string::npos);
+  k = TumIntrinsicsFor("/data/somewhere", 320, 240, &source);
+  EXPECT_DOUBLE_EQ(k.fx, 262.5);
+  EXPECT_TRUE(k.Validate().ok());
+}
+
+TEST(TumPoseLine, FormatsEightFields) {
+  Pose p;
+  p.translation = {1, 2, 3};
+  EXPECT_EQ(FormatTumPoseLine(5.5, p),
+            "5.500000 1.000000 2.000000 3.000000 0.000000000 0.000000000 0.000000000 "
+            "1.000000000");
+}
+
+}  // namespace
+}  // namespace lifemap::io

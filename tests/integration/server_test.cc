@@ -1,0 +1,443 @@
+// Integration tests: a real lifemapd (in-process) on loopback, driven through the client
+// library exactly as a robot would.
+#include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/codegen/client_unary_call.h>
+
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "client/lifemap_client.h"
+#include "core/common/image_codec.h"
+#include "core/io/tum_dataset.h"
+#include "lifemap/v1/place_service.grpc.pb.h"
+#include "server/server.h"
+#include "tests/testing/test_util.h"
+
+namespace lifemap {
+namespace {
+
+using client::Client;
+using testing::MakeFrame;
+
+class ServerTest : public ::testing::Test {
+ protected:
+  void StartServer(server::ServerConfig config = {}) {
+    config.listen = "127.0.0.1:0";
+    config.db_path = tmp_.File("lifemap.db");
+    config.shutdown_grace_s = 2;
+    auto s = server::LifemapServer::Start(config);
+    ASSERT_TRUE(s.ok()) << s.status();
+    server_ = *std::move(s);
+    target_ = "127.0.0.1:" + std::to_string(server_->port());
+    auto c = Client::Connect({target_});
+    ASSERT_TRUE(c.ok()) << c.status();
+    client_ = *std::move(c);
+  }
+  void SetUp() override { StartServer(); }
+
+  // ProcessFrame's status for a frame, against map "m" (created on demand).
+  absl::Status Process(const v1::Frame& frame, const std::string& map = "") {
+    v1::ProcessFrameRequest req;
+    req.set_map(map);
+    *req.mutable_frame() = frame;
+    return client_->ProcessFrame(req).status();
+  }
+
+  testing::TempDir tmp_;
+  std::unique_ptr<server::LifemapServer> server_;
+  std::string target_;
+  std::unique_ptr<Client> client_;
+};
+
+TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_TRUE(client_->CreateMap("office", "fr1_xyz").ok());
+  v1::StreamStart start;
+  start.set_map("office");
+  start.set_robot("test-robot");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  EXPECT_TRUE((*stream)->started().new_visit());
+
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  std::thread sender([&] {
+    for (size_t i = 0; i < seq->frames.size(); ++i) {
+      const auto& e = seq->frames[i];
+      auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, i);
+      ASSERT_TRUE(f.ok()) << f.status();
+      const Pose& p = *e.T_world_camera;
+      auto* pose = f->mutable_pose();
+      pose->set_tx(p.translation.x()), pose->set_ty(p.translation.y());
+      pose->set_tz(p.translation.z()), pose->set_qx(p.rotation.x());
+      pose->set_qy(p.rotation.y()), pose->set_qz(p.rotation.z()), pose->set_qw(p.rotation.w());
+      ASSERT_TRUE((*stream)->Send(*f));
+    }
+    (*stream)->CloseSend();
+  });
+  std::vector<v1::FrameResult> results;
+  v1::FrameResult r;
+  while ((*stream)->Receive(&r)) results.push_back(r);
+  sender.join();
+  ASSERT_TRUE((*stream)->Finish().ok());
+
+  ASSERT_EQ(results.size(), seq->frames.size());
+  std::map<uint64_t, uint64_t> keyframe_by_sequence;
+  for (size_t i = 0; i < results.size(); ++i) {
+    EXPECT_EQ(results[i].sequence(), i) << "one result per frame, in order";
+    EXPECT_FALSE(results[i].has_error()) << results[i].error().message();
+    EXPECT_EQ(results[i].pose_source(), v1::POSE_SOURCE_CLIENT);
+    EXPECT_GT(results[i].valid_depth_fraction(), 0.5f);
+    EXPECT_NEAR(results[i].median_depth_m(), 1.2, 0.5) << "a desk about a metre away";
+    if (results[i].keyframe().selected()) {
+      EXPECT_TRUE(results[i].keyframe().committed());
+      keyframe_by_sequence[i] = results[i].keyframe().keyframe_id();
+    }
+  }
+  // The camera moves ~0.25 m in 1.2 s: at 0.10 m per keyframe, 3 to 5 keyframes.
+  EXPECT_GE(keyframe_by_sequence.size(), 3u);
+  EXPECT_LE(keyframe_by_sequence.size(), 6u);
+  EXPECT_TRUE(results[0].keyframe().selected()) << "the first frame is a keyframe";
+
+  auto listed = client_->ListKeyframes("office", 0);
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(static_cast<size_t>(listed->keyframes_size()), keyframe_by_sequence.size());
+  for (const auto& summary : listed->keyframes()) {
+    const auto& e = seq->frames[summary.sequence()];
+    EXPECT_EQ(keyframe_by_sequence[summary.sequence()], summary.id());
+    ASSERT_TRUE(summary.has_pose());
+    EXPECT_NEAR(summary.pose().tx(), e.T_world_camera->translation.x(), 1e-9);
+    EXPECT_NEAR(summary.pose().qw(), e.T_world_camera->rotation.w(), 1e-9);
+    EXPECT_DOUBLE_EQ(summary.timestamp_s(), e.timestamp_s);
+    // The stored images are the recording's own files, byte for byte.
+    auto kf = client_->GetKeyframe("office", summary.id());
+    ASSERT_TRUE(kf.ok()) << kf.status();
+    EXPECT_EQ(kf->depth().data(), *ReadFileBytes(e.depth_path));
+    EXPECT_EQ(kf->color().data(), *ReadFileBytes(e.rgb_path));
+  }
+  auto visits = client_->ListVisits("office");
+  ASSERT_TRUE(visits.ok());
+  ASSERT_EQ(visits->visits_size(), 1);
+  EXPECT_EQ(visits->visits(0).frame_count(), seq->frames.size());
+  EXPECT_EQ(visits->visits(0).robot(), "test-robot");
+
+  std::ostringstream poses;
+  auto n = client_->ExportMap([] {
+    v1::ExportMapRequest req;
+    req.set_map("office");
+    req.set_format(v1::EXPORT_POSES_TUM);
+    return req;
+  }(), &poses);
+  ASSERT_TRUE(n.ok());
+  EXPECT_EQ(*n, keyframe_by_sequence.size());
+  std::ostringstream cloud;
+  v1::ExportMapRequest req;
+  req.set_map("office");
+  req.set_format(v1::EXPORT_CLOUD_PLY);
+  auto points = client_->ExportMap(req, &cloud);
+  ASSERT_TRUE(points.ok()) << points.status();
+  EXPECT_GT(*points, 5000u);
+  EXPECT_EQ(cloud.str().rfind("ply\n", 0), 0u);
+}
+
+TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
+  auto r = client_->ProcessFrame([] {
+    v1::ProcessFrameRequest req;
+    *req.mutable_frame() = MakeFrame();
+    return req;
+  }());
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FLOAT_EQ(r->valid_depth_fraction(), 1.0f);
+  EXPECT_NEAR(r->median_depth_m(), 1.5, 1e-3);
+  EXPECT_FALSE(r->keyframe().selected());
+  bool says_why = false;
+  for (const auto& o : r->outputs()) {
+    if (o.output() == v1::FRAME_OUTPUT_ENTROPY_MASK) says_why = !o.computed() && !o.reason().empty();
+  }
+  EXPECT_TRUE(says_why) << "outputs not built yet are reported, not silently absent";
+}
+
+TEST_F(ServerTest, ProcessFrameWithMapStoresAKeyframe) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  *req.mutable_frame() = MakeFrame();
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(r->keyframe().committed());
+  EXPECT_GT(r->keyframe().keyframe_id(), 0u);
+  auto kf = client_->GetKeyframe("m", r->keyframe().keyframe_id());
+  ASSERT_TRUE(kf.ok());
+}
+
+// Every malformed input gets INVALID_ARGUMENT with a message naming the problem, and the
+// server stays up.
+TEST_F(ServerTest, RejectsEveryKindOfBadFrame) {
+  struct Case {
+    const char* name;
+    std::function<void(v1::Frame*)> spoil;
+    const char* message_part;
+  };
+  const Case cases[] = {
+      {"wrong depth size",
+       [](v1::Frame* f) { *f->mutable_depth() = MakeFrame(320, 240).depth(); }, "320x240"},
+      {"depth/colour mismatch",
+       [](v1::Frame* f) { *f->mutable_color() = MakeFrame(320, 240).color(); }, "320x240"},
+      {"unspecified depth encoding",
+       [](v1::Frame* f) { f->mutable_depth()->set_encoding(v1::DEPTH_ENCODING_UNSPECIFIED); },
+       "depth.encoding"},
+      {"depth encoded as JPEG",
+       [](v1::Frame* f) { f->mutable_depth()->set_data(f->color().data()); }, "16-bit"},
+      {"truncated depth PNG",
+       [](v1::Frame* f) {
+         auto* d = f->mutable_depth()->mutable_data();
+         d->resize(d->size() / 2);
+       },
+       "truncated"},
+      {"truncated colour JPEG",
+       [](v1::Frame* f) {
+         auto* d = f->mutable_color()->mutable_data();
+         d->resize(d->size() - 100);
+       },
+       "truncated"},
+      {"garbage colour",
+       [](v1::Frame* f) { f->mutable_color()->set_data("not an image at all"); }, "colour"},
+      {"raw depth of wrong length",
+       [](v1::Frame* f) {
+         f->mutable_depth()->set_encoding(v1::DEPTH_RAW_U16);
+         f->mutable_depth()->set_data(std::string(1000, '\0'));
+       },
+       "needs"},
+      {"zero depth scale", [](v1::Frame* f) { f->mutable_depth()->set_depth_scale(0); },
+       "depth_scale"},
+      {"missing intrinsics", [](v1::Frame* f) { f->clear_intrinsics(); }, "intrinsics"},
+      {"zero fx", [](v1::Frame* f) { f->mutable_intrinsics()->set_fx(0); }, "fx"},
+      {"negative fy", [](v1::Frame* f) { f->mutable_intrinsics()->set_fy(-5); }, "fy"},
+      {"NaN cx", [](v1::Frame* f) { f->mutable_intrinsics()->set_cx(std::nan("")); }, "NaN"},
+      {"principal point outside", [](v1::Frame* f) { f->mutable_intrinsics()->set_cy(900); },
+       "principal point"},
+      {"NaN pose",
+       [](v1::Frame* f) {
+         f->mutable_pose()->set_qw(1);
+         f->mutable_pose()->set_tx(std::nan(""));
+       },
+       "pose"},
+      {"non-unit quaternion",
+       [](v1::Frame* f) {
+         f->mutable_pose()->set_qw(0.5);
+         f->mutable_pose()->set_qx(0.1);
+       },
+       "unit norm"},
+      {"zero timestamp", [](v1::Frame* f) { f->set_timestamp_s(0); }, "timestamp"},
+      {"missing colour", [](v1::Frame* f) { f->clear_color(); }, "color"},
+  };
+  for (const auto& c : cases) {
+    v1::Frame f = MakeFrame();
+    c.spoil(&f);
+    const absl::Status s = Process(f);
+    EXPECT_TRUE(absl::IsInvalidArgument(s)) << c.name << ": " << s;
+    EXPECT_NE(s.message().find(c.message_part), std::string::npos)
+        << c.name << ": message '" << s.message() << "' should mention '" << c.message_part
+        << "'";
+  }
+  EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
+}
+
+TEST_F(ServerTest, RejectsUnknownMapAndVisit) {
+  EXPECT_TRUE(absl::IsNotFound(Process(MakeFrame(), "no-such-map")));
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  req.set_visit_id(12345);
+  *req.mutable_frame() = MakeFrame();
+  EXPECT_TRUE(absl::IsNotFound(client_->ProcessFrame(req).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(Process(MakeFrame(), "bad name!")));
+  EXPECT_TRUE(absl::IsNotFound(client_->GetMap("nope").status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->CreateMap("", "").status()));
+}
+
+TEST_F(ServerTest, RejectsMessagesOverTheSizeLimit) {
+  server_.reset();
+  server::ServerConfig config;
+  config.max_message_bytes = 1 << 20;
+  StartServer(config);
+  v1::Frame f = MakeFrame(1024, 1024);
+  f.mutable_depth()->set_encoding(v1::DEPTH_RAW_F32);  // 4 MiB of raw depth
+  f.mutable_depth()->set_data(std::string(1024 * 1024 * 4, '\0'));
+  const absl::Status s = Process(f);
+  EXPECT_TRUE(absl::IsResourceExhausted(s)) << s;
+  EXPECT_TRUE(client_->GetServerInfo().ok());
+}
+
+TEST_F(ServerTest, StreamProtocolErrorsEndTheStreamWithAStatus) {
+  EXPECT_TRUE(absl::IsNotFound(client_->OpenStream([] {
+                                         v1::StreamStart s;
+                                         s.set_map("missing");
+                                         return s;
+                                       }())
+                                   .status()));
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StartVisitRequest sv;
+  sv.set_map("m");
+  auto visit = client_->StartVisit(sv);
+  ASSERT_TRUE(visit.ok());
+  ASSERT_TRUE(client_->EndVisit(visit->id()).ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  start.set_visit_id(visit->id());
+  EXPECT_TRUE(absl::IsFailedPrecondition(client_->OpenStream(start).status()));
+  start.set_visit_id(0);
+  start.mutable_options()->set_keyframe_max_interval_s(-1);
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->OpenStream(start).status()));
+}
+
+TEST_F(ServerTest, BadFrameInAStreamGetsAnErrorResultAndTheStreamGoesOn) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok());
+  v1::Frame bad = MakeFrame(640, 480, 1.5, 1000.0, 0);
+  bad.mutable_intrinsics()->set_fx(-1);
+  ASSERT_TRUE((*stream)->Send(bad));
+  ASSERT_TRUE((*stream)->Send(MakeFrame(640, 480, 1.5, 1000.1, 1)));
+  (*stream)->CloseSend();
+  v1::FrameResult r0, r1;
+  ASSERT_TRUE((*stream)->Receive(&r0));
+  ASSERT_TRUE((*stream)->Receive(&r1));
+  EXPECT_EQ(r0.error().code(), static_cast<int>(absl::StatusCode::kInvalidArgument));
+  EXPECT_NE(r0.error().message().find("fx"), std::string::npos);
+  EXPECT_FALSE(r1.has_error());
+  EXPECT_TRUE(r1.keyframe().committed()) << "first good frame of the visit";
+  EXPECT_FALSE((*stream)->Receive(&r1));
+  EXPECT_TRUE((*stream)->Finish().ok());
+}
+
+TEST_F(ServerTest, SeveralRobotsStreamAtOnceToTheSameAndDifferentMaps) {
+  ASSERT_TRUE(client_->CreateMap("a", "").ok());
+  ASSERT_TRUE(client_->CreateMap("b", "").ok());
+  constexpr int kRobots = 4, kFrames = 20;
+  std::vector<std::thread> robots;
+  std::vector<int> committed(kRobots, 0);
+  std::vector<bool> ordered(kRobots, true);
+  for (int robot = 0; robot < kRobots; ++robot) {
+    robots.emplace_back([&, robot] {
+      auto c = Client::Connect({target_});
+      ASSERT_TRUE(c.ok());
+      v1::StreamStart start;
+      start.set_map(robot % 2 ? "a" : "b");
+      start.mutable_options()->set_keyframe_max_interval_s(0.5);  // frames 0.25 s apart
+      auto stream = (*c)->OpenStream(start);
+      ASSERT_TRUE(stream.ok()) << stream.status();
+      std::thread sender([&] {
+        for (int i = 0; i < kFrames; ++i) {
+          (*stream)->Send(MakeFrame(160, 120, 1.0 + robot, 1000.0 + 0.25 * i, i));
+        }
+        (*stream)->CloseSend();
+      });
+      v1::FrameResult r;
+      uint64_t expected = 0;
+      while ((*stream)->Receive(&r)) {
+        ordered[robot] = ordered[robot] && r.sequence() == expected++;
+        committed[robot] += r.keyframe().committed();
+      }
+      sender.join();
+      EXPECT_TRUE((*stream)->Finish().ok());
+    });
+  }
+  for (auto& t : robots) t.join();
+  int total = 0;
+  for (int robot = 0; robot < kRobots; ++robot) {
+    EXPECT_TRUE(ordered[robot]) << "robot " << robot;
+    EXPECT_EQ(committed[robot], kFrames / 2) << "robot " << robot;  // every other frame
+    total += committed[robot];
+  }
+  auto a = client_->GetMap("a");
+  auto b = client_->GetMap("b");
+  EXPECT_EQ(a->keyframe_count() + b->keyframe_count(), static_cast<uint64_t>(total));
+  EXPECT_EQ(a->visit_count(), 2u);
+}
+
+TEST_F(ServerTest, RefusesStreamsBeyondTheLimit) {
+  server_.reset();
+  server::ServerConfig config;
+  config.max_streams = 1;
+  StartServer(config);
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto first = client_->OpenStream(start);
+  ASSERT_TRUE(first.ok());
+  EXPECT_TRUE(absl::IsResourceExhausted(client_->OpenStream(start).status()));
+  (*first)->CloseSend();
+  v1::FrameResult r;
+  while ((*first)->Receive(&r)) {
+  }
+  EXPECT_TRUE((*first)->Finish().ok());
+}
+
+TEST_F(ServerTest, ResumedVisitContinuesKeyframeSelection) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  uint64_t visit_id = 0;
+  for (int pass = 0; pass < 2; ++pass) {
+    start.set_visit_id(visit_id);
+    auto stream = client_->OpenStream(start);
+    ASSERT_TRUE(stream.ok()) << stream.status();
+    visit_id = (*stream)->started().visit_id();
+    // Two frames 0.1 s apart right after the previous pass: neither is a new keyframe on the
+    // second pass, because selection resumes from the stored keyframe.
+    (*stream)->Send(MakeFrame(160, 120, 1.0, 1000.0 + pass * 0.2, 0));
+    (*stream)->CloseSend();
+    v1::FrameResult r;
+    ASSERT_TRUE((*stream)->Receive(&r));
+    EXPECT_EQ(r.keyframe().selected(), pass == 0) << "pass " << pass;
+    while ((*stream)->Receive(&r)) {
+    }
+    EXPECT_TRUE((*stream)->Finish().ok());
+  }
+}
+
+TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  auto places = v1::PlaceService::NewStub(channel);
+  grpc::ClientContext ctx;
+  v1::QueryPlaceResponse resp;
+  const grpc::Status s = places->QueryPlace(&ctx, v1::QueryPlaceRequest(), &resp);
+  EXPECT_EQ(s.error_code(), grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_NE(s.error_message().find("QueryPlace"), std::string::npos);
+
+  // grpc.health.v1.Health/Check with an empty request; SERVING is field 1 = 1 (bytes 08 01).
+  grpc::ClientContext health_ctx;
+  grpc::ByteBuffer request, response;
+  grpc::Slice empty("");
+  request = grpc::ByteBuffer(&empty, 1);
+  const grpc::Status h = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
+      channel.get(),
+      grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
+                                grpc::internal::RpcMethod::NORMAL_RPC),
+      &health_ctx, request, &response);
+  ASSERT_TRUE(h.ok()) << h.error_message();
+  std::vector<grpc::Slice> slices;
+  ASSERT_TRUE(response.Dump(&slices).ok());
+  std::string bytes;
+  for (const auto& sl : slices) bytes += std::string(reinterpret_cast<const char*>(sl.begin()), sl.size());
+  EXPECT_EQ(bytes, std::string("\x08\x01", 2));
+}
+
+TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
+  auto info = client_->GetServerInfo();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->api_version(), "lifemap.v1");
+  EXPECT_EQ(info->outputs_size(), 6);
+  EXPECT_EQ(info->schema_version(), 1u);
+  EXPECT_GT(info->max_message_bytes(), 0u);
+}
+
+}  // namespace
+}  // namespace lifemap

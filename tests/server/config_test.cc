@@ -1,0 +1,58 @@
+#include "server/config.h"
+
+#include <fstream>
+
+#include <gtest/gtest.h>
+
+#include "tests/testing/test_util.h"
+
+namespace lifemap::server {
+namespace {
+
+TEST(ServerConfig, DefaultsAreValid) { EXPECT_TRUE(ServerConfig().Validate().ok()); }
+
+TEST(ServerConfig, RejectsOutOfRangeLimits) {
+  ServerConfig c;
+  c.max_streams = 0;
+  EXPECT_NE(c.Validate().message().find("max_streams"), std::string::npos);
+  c = ServerConfig();
+  c.max_inflight_frames = 1000;
+  EXPECT_FALSE(c.Validate().ok());
+  c = ServerConfig();
+  c.listen = "no-port";
+  EXPECT_FALSE(c.Validate().ok());
+  c = ServerConfig();
+  c.log_level = "loud";
+  EXPECT_FALSE(c.Validate().ok());
+}
+
+TEST(ConfigFile, ReadsKnownKeys) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("c.json")) << R"({"listen": "0.0.0.0:6000", "db": "/x.db",
+    "max_message_mb": 32, "synchronous": "normal", "keyframe": {"min_rotation_deg": 5}})";
+  auto c = LoadConfigFile(tmp.File("c.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->listen, "0.0.0.0:6000");
+  EXPECT_EQ(c->max_message_bytes, 32 << 20);
+  EXPECT_FALSE(c->synchronous_full);
+  EXPECT_NEAR(c->keyframe.min_rotation_rad, 5 * M_PI / 180, 1e-12);
+}
+
+TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("typo.json")) << R"({"max_stream": 3})";
+  std::ofstream(tmp.File("type.json")) << R"({"max_streams": "many"})";
+  std::ofstream(tmp.File("bad.json")) << R"({"listen": )";
+  std::ofstream(tmp.File("range.json")) << R"({"max_streams": 0})";
+  for (const char* f : {"typo.json", "type.json", "bad.json", "range.json"}) {
+    auto c = LoadConfigFile(tmp.File(f), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(c.status())) << f << ": " << c.status();
+  }
+  EXPECT_NE(LoadConfigFile(tmp.File("typo.json"), ServerConfig()).status().message().find(
+                "max_stream"),
+            std::string::npos);
+  EXPECT_TRUE(absl::IsNotFound(LoadConfigFile(tmp.File("none.json"), ServerConfig()).status()));
+}
+
+}  // namespace
+}  // namespace lifemap::server

@@ -1,0 +1,85 @@
+#include "tests/testing/test_util.h"
+
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <vector>
+
+#include <opencv2/imgcodecs.hpp>
+
+namespace lifemap::testing {
+
+namespace fs = std::filesystem;
+
+std::string SharedDataDir() {
+  if (const char* env = std::getenv("LIFEMAP_DATA"); env && *env) {
+    return fs::is_directory(env) ? std::string(env) : std::string();
+  }
+  const fs::path dir = fs::path(LIFEMAP_SOURCE_DIR) / ".." / "shared" / "data";
+  return fs::is_directory(dir) ? fs::canonical(dir).string() : std::string();
+}
+
+std::string SharedDataset(const std::string& name) {
+  const std::string root = SharedDataDir();
+  if (root.empty()) return "";
+  const fs::path dir = fs::path(root) / name;
+  return fs::is_directory(dir) ? dir.string() : std::string();
+}
+
+TempDir::TempDir() {
+  std::string pattern = (fs::temp_directory_path() / "lifemap-test-XXXXXX").string();
+  std::vector<char> buf(pattern.begin(), pattern.end());
+  buf.push_back('\0');
+  if (mkdtemp(buf.data()) == nullptr) std::abort();
+  path_ = buf.data();
+}
+
+TempDir::~TempDir() {
+  std::error_code ec;
+  fs::remove_all(path_, ec);
+}
+
+std::string PngBytes(const cv::Mat& image) {
+  std::vector<unsigned char> buf;
+  cv::imencode(".png", image, buf);
+  return std::string(buf.begin(), buf.end());
+}
+
+std::string JpegBytes(const cv::Mat& image) {
+  std::vector<unsigned char> buf;
+  cv::imencode(".jpg", image, buf, {cv::IMWRITE_JPEG_QUALITY, 90});
+  return std::string(buf.begin(), buf.end());
+}
+
+v1::Frame MakeFrame(int width, int height, double depth_m, double timestamp_s,
+                    uint64_t sequence) {
+  cv::Mat depth(height, width, CV_16UC1, cv::Scalar(static_cast<int>(depth_m * 5000)));
+  cv::Mat color(height, width, CV_8UC3);
+  for (int r = 0; r < height; ++r) {
+    for (int c = 0; c < width; ++c) {
+      const bool dark = ((r / 16) + (c / 16)) % 2 == 0;
+      color.at<cv::Vec3b>(r, c) = dark ? cv::Vec3b(40, 60, 80) : cv::Vec3b(200, 210, 220);
+    }
+  }
+  v1::Frame f;
+  f.set_sequence(sequence);
+  f.set_timestamp_s(timestamp_s);
+  auto* k = f.mutable_intrinsics();
+  k->set_fx(525.0 * width / 640.0);
+  k->set_fy(525.0 * height / 480.0);
+  k->set_cx((width - 1) / 2.0);
+  k->set_cy((height - 1) / 2.0);
+  k->set_width(static_cast<uint32_t>(width));
+  k->set_height(static_cast<uint32_t>(height));
+  auto* d = f.mutable_depth();
+  d->set_encoding(v1::DEPTH_PNG16);
+  d->set_data(PngBytes(depth));
+  d->set_depth_scale(5000.0);
+  auto* c = f.mutable_color();
+  c->set_encoding(v1::COLOR_JPEG);
+  c->set_data(JpegBytes(color));
+  return f;
+}
+
+}  // namespace lifemap::testing
