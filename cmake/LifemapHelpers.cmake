@@ -5,7 +5,7 @@
 #   lifemap_test(NAME core_common_test SRCS a_test.cc DEPS core_common)
 
 set(LIFEMAP_WARNINGS -Wall -Wextra -Wpedantic -Wshadow -Wnon-virtual-dtor -Wold-style-cast
-                     -Wcast-align -Woverloaded-virtual -Wnull-dereference -Wformat=2)
+                     -Wcast-align -Woverloaded-virtual -Wformat=2)
 if(LIFEMAP_WERROR)
   list(APPEND LIFEMAP_WARNINGS -Werror)
 endif()

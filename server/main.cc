@@ -19,7 +19,7 @@ int main(int argc, char** argv) {
   app.set_version_flag("--version", std::string(LIFEMAP_VERSION));
   std::string config_file, listen, db, log_level;
   int max_message_mb = 0, max_streams = 0, max_inflight = 0;
-  double grace_s = -1;
+  double grace_s = 0;
   app.add_option("--config", config_file, "JSON config file (see deploy/lifemapd.json)")
       ->check(CLI::ExistingFile);
   app.add_option("--listen", listen, "HOST:PORT to listen on (default 127.0.0.1:50051)");
@@ -48,22 +48,23 @@ int main(int argc, char** argv) {
     }
     config = *loaded;
   }
-  if (!listen.empty()) config.listen = listen;
-  if (!db.empty()) config.db_path = db;
-  if (max_message_mb != 0) {
+  // Flags given on the command line override the config file.
+  auto given = [&app](const char* flag) { return app.count(flag) > 0; };
+  if (given("--listen")) config.listen = listen;
+  if (given("--db")) config.db_path = db;
+  if (given("--max-message-mb")) {
     config.max_message_bytes = (max_message_mb > 0 && max_message_mb <= 1024)
                                    ? max_message_mb << 20
                                    : 0;  // rejected by Validate with the range
   }
-  if (max_streams != 0) config.max_streams = max_streams;
-  if (max_inflight != 0) config.max_inflight_frames = max_inflight;
-  if (grace_s >= 0) config.shutdown_grace_s = grace_s;
-  if (!log_level.empty()) config.log_level = log_level;
+  if (given("--max-streams")) config.max_streams = max_streams;
+  if (given("--max-inflight-frames")) config.max_inflight_frames = max_inflight;
+  if (given("--shutdown-grace-s")) config.shutdown_grace_s = grace_s;
+  if (given("--log-level")) config.log_level = log_level;
   if (auto s = config.Validate(); !s.ok()) {
     std::cerr << "lifemapd: " << s.message() << "\n";
     return 2;
   }
-  spdlog::set_level(spdlog::level::from_str(config.log_level));
 
   auto server = lifemap::server::LifemapServer::Start(config);
   if (!server.ok()) {

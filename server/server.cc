@@ -38,6 +38,7 @@ LifemapServer::~LifemapServer() { Shutdown(); }
 
 absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const ServerConfig& config) {
   if (auto s = config.Validate(); !s.ok()) return s;
+  spdlog::set_level(spdlog::level::from_str(config.log_level));
   auto impl = std::make_unique<Impl>();
   store::StoreOptions store_options;
   store_options.synchronous_full = config.synchronous_full;

@@ -132,8 +132,7 @@ TEST(DecodeColorBgr, RejectsCorruptPngBody) {
   std::string png = PngBytes(Color(32, 24));
   // Keep the header and the IEND trailer but garble the compressed data in between.
   for (size_t i = 40; i + 12 < png.size(); ++i) png[i] = static_cast<char>(0x5a);
-  EXPECT_TRUE(absl::IsInvalidArgument(
-      DecodeColorBgr({ColorEncoding::kPng, png, 32, 24}).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(DecodeColorBgr({ColorEncoding::kPng, png, 32, 24}).status()));
 }
 
 TEST(EncodeDepthPng16, RoundTripsAndDropsOutOfRange) {

@@ -34,9 +34,9 @@ TEST(BackProjection, PlacesPixelsOnThePlaneInWorldFrame) {
 }
 
 TEST(VoxelDownsample, KeepsOnePointPerVoxel) {
-  std::vector<io::ColoredPoint> cloud = {
-      {0.01f, 0.01f, 0.01f, 10, 10, 10}, {0.02f, 0.02f, 0.02f, 30, 30, 30},
-      {0.51f, 0.0f, 0.0f, 0, 0, 0}};
+  std::vector<io::ColoredPoint> cloud = {{0.01f, 0.01f, 0.01f, 10, 10, 10},
+                                         {0.02f, 0.02f, 0.02f, 30, 30, 30},
+                                         {0.51f, 0.0f, 0.0f, 0, 0, 0}};
   const auto out = VoxelDownsample(cloud, 0.1);
   ASSERT_EQ(out.size(), 2u);
   EXPECT_NEAR(out[0].x, 0.015f, 1e-6);

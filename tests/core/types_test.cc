@@ -52,8 +52,8 @@ TEST(Pose, RejectsNonUnitQuaternion) {
 }
 
 TEST(Pose, RejectsNaNTranslation) {
-  EXPECT_TRUE(absl::IsInvalidArgument(
-      Pose::FromComponents(std::nan(""), 0, 0, 0, 0, 0, 1).status()));
+  EXPECT_TRUE(
+      absl::IsInvalidArgument(Pose::FromComponents(std::nan(""), 0, 0, 0, 0, 0, 1).status()));
 }
 
 TEST(Pose, InterpolatesHalfway) {

@@ -1,1 +1,367 @@
+// End-to-end tests: the lifemapd and lifemap binaries run as processes, as an operator or a
+// robot would run them, including a server killed with SIGKILL in the middle of a stream.
+#include <fcntl.h>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
+#include <chrono>
+#include <fstream>
+#include <set>
+#include <sstream>
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "core/common/image_codec.h"
+#include "server/store/store.h"
+#include "tests/testing/test_util.h"
+
+extern char** environ;
+
+namespace lifemap {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+using nlohmann::json;
+
+const std::string kLifemapd = std::string(LIFEMAP_BINARY_DIR) + "/bin/lifemapd";
+const std::string kLifemap = std::string(LIFEMAP_BINARY_DIR) + "/bin/lifemap";
+
+std::string Slurp(const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+std::vector<std::string> Lines(const std::string& text) {
+  std::vector<std::string> out;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) {
+    if (!line.empty()) out.push_back(line);
+  }
+  return out;
+}
+
+// A child process whose stdout and stderr go to files.
+class Process {
+ public:
+  Process(const std::vector<std::string>& args, const std::string& out, const std::string& err)
+      : out_(out), err_(err) {
+    posix_spawn_file_actions_t actions;
+    posix_spawn_file_actions_init(&actions);
+    posix_spawn_file_actions_addopen(&actions, 0, "/dev/null", O_RDONLY, 0);
+    posix_spawn_file_actions_addopen(&actions, 1, out.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    posix_spawn_file_actions_addopen(&actions, 2, err.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    std::vector<char*> argv;
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    if (posix_spawn(&pid_, argv[0], &actions, nullptr, argv.data(), environ) != 0) pid_ = -1;
+    posix_spawn_file_actions_destroy(&actions);
+  }
+  ~Process() {
+    if (pid_ > 0 && !exited_) {
+      kill(pid_, SIGKILL);
+      Wait();
+    }
+  }
+  // Exit code, or 128 + signal number.
+  int Wait() {
+    if (exited_) return code_;
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    exited_ = true;
+    code_ = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+    return code_;
+  }
+  // Waits up to `timeout`; false if still running.
+  bool WaitFor(std::chrono::milliseconds timeout) {
+    const auto end = Clock::now() + timeout;
+    while (Clock::now() < end) {
+      int status = 0;
+      const pid_t r = waitpid(pid_, &status, WNOHANG);
+      if (r == pid_) {
+        exited_ = true;
+        code_ = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+        return true;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    return false;
+  }
+  void Signal(int sig) { kill(pid_, sig); }
+  std::string out() const { return Slurp(out_); }
+  std::string err() const { return Slurp(err_); }
+  bool started() const { return pid_ > 0; }
+
+ private:
+  pid_t pid_ = -1;
+  std::string out_, err_;
+  bool exited_ = false;
+  int code_ = -1;
+};
+
+struct RunResult {
+  int code;
+  std::string out, err;
+};
+
+class CliTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_EQ(access(kLifemapd.c_str(), X_OK), 0) << kLifemapd << " not built";
+    StartServer();
+  }
+
+  void StartServer() {
+    ++server_generation_;
+    server_ = std::make_unique<Process>(
+        std::vector<std::string>{kLifemapd, "--listen", "127.0.0.1:0", "--db", Db(),
+                                 "--shutdown-grace-s", "5", "--log-level", "warn"},
+        tmp_.File("server" + std::to_string(server_generation_) + ".out"),
+        tmp_.File("server" + std::to_string(server_generation_) + ".err"));
+    ASSERT_TRUE(server_->started());
+    const auto end = Clock::now() + std::chrono::seconds(20);
+    while (Clock::now() < end) {
+      const std::string out = server_->out();
+      const auto at = out.find("listening on port ");
+      if (at != std::string::npos && out.find('\n', at) != std::string::npos) {
+        address_ = "127.0.0.1:" + std::to_string(std::stoi(out.substr(at + 18)));
+        return;
+      }
+      ASSERT_FALSE(server_->WaitFor(std::chrono::milliseconds(20)))
+          << "lifemapd exited: " << server_->err();
+    }
+    FAIL() << "lifemapd did not start: " << server_->err();
+  }
+
+  std::string Db() const { return tmp_.File("lifemap.db"); }
+
+  std::vector<std::string> Cli(std::vector<std::string> args) const {
+    args.insert(args.begin(), {kLifemap, "--server", address_});
+    return args;
+  }
+
+  RunResult Run(const std::vector<std::string>& args) {
+    const std::string n = std::to_string(++runs_);
+    Process p(Cli(args), tmp_.File("cli" + n + ".out"), tmp_.File("cli" + n + ".err"));
+    const int code = p.Wait();
+    return {code, p.out(), p.err()};
+  }
+
+  testing::TempDir tmp_;
+  std::unique_ptr<Process> server_;
+  std::string address_;
+  int runs_ = 0;
+  int server_generation_ = 0;
+};
+
+TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 30, 0.021);  // a keyframe every 5th frame (0.105 m)
+
+  auto r = Run({"server", "info"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("entropy masks"), std::string::npos);
+
+  ASSERT_EQ(Run({"maps", "create", "lab", "--description", "test lab"}).code, 0);
+  r = Run({"maps", "create", "lab"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("already exists"), std::string::npos) << r.err;
+  EXPECT_EQ(Lines(r.err).size(), 1u) << "errors are one line: " << r.err;
+
+  r = Run({"--json", "stream", "--map", "lab", "--tum", tum, "--use-groundtruth", "--rate", "0",
+           "--visit-label", "morning"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto lines = Lines(r.out);
+  ASSERT_EQ(lines.size(), 31u) << "30 results and a summary";
+  std::set<uint64_t> acked;
+  for (size_t i = 0; i < 30; ++i) {
+    const json line = json::parse(lines[i]);
+    EXPECT_EQ(std::stoull(line["sequence"].get<std::string>()), i);
+    if (line["keyframe"]["committed"].get<bool>()) {
+      acked.insert(std::stoull(line["keyframe"]["keyframe_id"].get<std::string>()));
+    }
+  }
+  const json summary = json::parse(lines.back())["summary"];
+  EXPECT_EQ(summary["frames_sent"], 30);
+  EXPECT_EQ(summary["keyframes_stored"], acked.size());
+  EXPECT_EQ(acked.size(), 6u) << "0.021 m per frame, a keyframe every 0.10 m";
+
+  r = Run({"--json", "keyframes", "list", "--map", "lab"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::set<uint64_t> listed;
+  const json keyframes = json::parse(r.out);
+  for (const auto& k : keyframes["keyframes"]) {
+    listed.insert(std::stoull(k["id"].get<std::string>()));
+  }
+  EXPECT_EQ(listed, acked);
+
+  r = Run({"visits", "list", "lab"});
+  ASSERT_EQ(r.code, 0);
+  EXPECT_NE(r.out.find("morning"), std::string::npos);
+
+  ASSERT_EQ(Run({"export", "--map", "lab", "--what", "poses", "--out", tmp_.File("p.txt")}).code,
+            0);
+  int pose_lines = 0;
+  for (const auto& l : Lines(Slurp(tmp_.File("p.txt")))) pose_lines += l[0] != '#';
+  EXPECT_EQ(pose_lines, 6);
+  r = Run({"export", "--map", "lab", "--what", "cloud", "--out", tmp_.File("c.ply")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(Slurp(tmp_.File("c.ply")).rfind("ply\n", 0), 0u);
+
+  ASSERT_EQ(Run({"maps", "rename", "lab", "lab2"}).code, 0);
+  r = Run({"maps", "delete", "lab2"});
+  EXPECT_EQ(r.code, 2) << "delete needs --yes";
+  r = Run({"--json", "maps", "show", "lab2"});
+  ASSERT_EQ(r.code, 0);
+  EXPECT_EQ(json::parse(r.out)["keyframe_count"], "6");
+  ASSERT_EQ(Run({"maps", "delete", "lab2", "--yes"}).code, 0);
+  r = Run({"maps", "show", "lab2"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("does not exist"), std::string::npos);
+}
+
+TEST_F(CliTest, ProcessWritesResultJson) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 1);
+  std::string rgb, depth;
+  for (const auto& e : std::filesystem::directory_iterator(tum + "/rgb")) rgb = e.path();
+  for (const auto& e : std::filesystem::directory_iterator(tum + "/depth")) depth = e.path();
+  auto r = Run({"process", "--rgb", rgb, "--depth", depth, "--out", tmp_.File("out")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json result = json::parse(Slurp(tmp_.File("out/result.json")));
+  EXPECT_EQ(result["width"], 320);
+  EXPECT_NEAR(result["median_depth_m"].get<double>(), 1.0, 1e-3);
+  r = Run({"process", "--rgb", rgb, "--depth", depth, "--intrinsics", "1,2", "--out", "x"});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("FX,FY,CX,CY"), std::string::npos);
+  r = Run({"process", "--rgb", depth, "--depth", rgb, "--out", tmp_.File("out2")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("16-bit"), std::string::npos) << r.err;
+}
+
+TEST_F(CliTest, ClearErrorsForBadFlagsAndUnreachableServer) {
+  auto r = Run({"stream", "--map", "m", "--tum", "/nonexistent/dir"});
+  EXPECT_EQ(r.code, 2);
+  r = Run({"stream", "--map", "nomap", "--tum", tmp_.path()});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("rgb.txt"), std::string::npos) << r.err;
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 2);
+  r = Run({"stream", "--map", "nomap", "--tum", tum});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("lifemap maps create nomap"), std::string::npos) << r.err;
+  Process p({kLifemap, "--server", "127.0.0.1:1", "--connect-timeout", "1", "maps", "list"},
+            tmp_.File("u.out"), tmp_.File("u.err"));
+  EXPECT_EQ(p.Wait(), 1);
+  EXPECT_NE(p.err().find("cannot reach lifemapd"), std::string::npos) << p.err();
+  Process bad_config({kLifemapd, "--listen", "127.0.0.1:0", "--db", Db(), "--max-streams", "0"},
+                     tmp_.File("b.out"), tmp_.File("b.err"));
+  EXPECT_EQ(bad_config.Wait(), 2);
+  EXPECT_NE(bad_config.err().find("max_streams"), std::string::npos);
+}
+
+TEST_F(CliTest, StreamsTheRealTumRecording) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  ASSERT_EQ(Run({"maps", "create", "office"}).code, 0);
+  auto r = Run({"stream", "--map", "office", "--tum", dir, "--use-groundtruth", "--rate", "0"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("32 frames sent"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("latency p50"), std::string::npos);
+}
+
+// Reads the committed keyframe ids acknowledged in `stream --json` output.
+std::set<uint64_t> AcknowledgedKeyframes(const std::string& out) {
+  std::set<uint64_t> ids;
+  for (const auto& line : Lines(out)) {
+    json j;
+    try {
+      j = json::parse(line);
+    } catch (const json::exception&) {
+      continue;  // a line cut by the kill
+    }
+    if (j.contains("keyframe") && j["keyframe"].value("committed", false)) {
+      ids.insert(std::stoull(j["keyframe"]["keyframe_id"].get<std::string>()));
+    }
+  }
+  return ids;
+}
+
+// Every acknowledged keyframe is in the database, readable, and the file is intact.
+void ExpectDurable(const std::string& db, const std::set<uint64_t>& acked) {
+  auto store = store::Store::Open(db);
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto problems = (*store)->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+  auto map = (*store)->GetMap("m");
+  ASSERT_TRUE(map.ok());
+  for (uint64_t id : acked) {
+    auto k = (*store)->GetKeyframe(map->id, static_cast<int64_t>(id));
+    ASSERT_TRUE(k.ok()) << "acknowledged keyframe " << id << " lost: " << k.status();
+    auto depth = DecodeDepthMetres({DepthEncoding::kPng16, k->depth_png, k->intrinsics.width,
+                                    k->intrinsics.height, k->depth_scale});
+    EXPECT_TRUE(depth.ok()) << "keyframe " << id << ": " << depth.status();
+  }
+}
+
+TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 150, 0.02);  // 5 s at 30 Hz, a keyframe every 5 frames
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  Process stream(Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
+                 tmp_.File("stream.out"), tmp_.File("stream.err"));
+  const auto end = Clock::now() + std::chrono::seconds(30);
+  while (AcknowledgedKeyframes(stream.out()).size() < 4 && Clock::now() < end) {
+    ASSERT_FALSE(stream.WaitFor(std::chrono::milliseconds(10))) << stream.err();
+  }
+  server_->Signal(SIGKILL);
+  EXPECT_EQ(server_->Wait(), 128 + SIGKILL);
+  EXPECT_NE(stream.Wait(), 0) << "the stream fails when its server dies";
+  EXPECT_EQ(Lines(stream.out()).back().find("summary"), std::string::npos)
+      << "killed mid-stream, before the recording's end";
+  const std::set<uint64_t> acked = AcknowledgedKeyframes(stream.out());
+  ASSERT_GE(acked.size(), 4u);
+  ExpectDurable(Db(), acked);
+
+  // A restarted server serves them and the check passes.
+  StartServer();
+  auto r = Run({"--json", "keyframes", "list", "--map", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::set<uint64_t> listed;
+  const json keyframes = json::parse(r.out);
+  for (const auto& k : keyframes["keyframes"]) {
+    listed.insert(std::stoull(k["id"].get<std::string>()));
+  }
+  for (uint64_t id : acked) EXPECT_EQ(listed.count(id), 1u) << id;
+  EXPECT_EQ(Run({"admin", "check"}).code, 0);
+}
+
+TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 60, 0.021);
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  Process stream(Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
+                 tmp_.File("stream.out"), tmp_.File("stream.err"));
+  const auto end = Clock::now() + std::chrono::seconds(30);
+  while (AcknowledgedKeyframes(stream.out()).size() < 2 && Clock::now() < end) {
+    ASSERT_FALSE(stream.WaitFor(std::chrono::milliseconds(10))) << stream.err();
+  }
+  server_->Signal(SIGTERM);
+  // Within the 5 s grace the 2 s recording finishes: the stream ends normally.
+  EXPECT_EQ(server_->Wait(), 0) << server_->err();
+  EXPECT_EQ(stream.Wait(), 0) << stream.err();
+  const auto lines = Lines(stream.out());
+  ASSERT_FALSE(lines.empty());
+  EXPECT_NE(lines.back().find("summary"), std::string::npos);
+  const std::set<uint64_t> acked = AcknowledgedKeyframes(stream.out());
+  EXPECT_EQ(acked.size(), 12u);
+  ExpectDurable(Db(), acked);
+}
+
+}  // namespace
+}  // namespace lifemap

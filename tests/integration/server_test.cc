@@ -126,12 +126,14 @@ TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
   EXPECT_EQ(visits->visits(0).robot(), "test-robot");
 
   std::ostringstream poses;
-  auto n = client_->ExportMap([] {
-    v1::ExportMapRequest req;
-    req.set_map("office");
-    req.set_format(v1::EXPORT_POSES_TUM);
-    return req;
-  }(), &poses);
+  auto n = client_->ExportMap(
+      [] {
+        v1::ExportMapRequest req;
+        req.set_map("office");
+        req.set_format(v1::EXPORT_POSES_TUM);
+        return req;
+      }(),
+      &poses);
   ASSERT_TRUE(n.ok());
   EXPECT_EQ(*n, keyframe_by_sequence.size());
   std::ostringstream cloud;
@@ -156,7 +158,8 @@ TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
   EXPECT_FALSE(r->keyframe().selected());
   bool says_why = false;
   for (const auto& o : r->outputs()) {
-    if (o.output() == v1::FRAME_OUTPUT_ENTROPY_MASK) says_why = !o.computed() && !o.reason().empty();
+    if (o.output() == v1::FRAME_OUTPUT_ENTROPY_MASK)
+      says_why = !o.computed() && !o.reason().empty();
   }
   EXPECT_TRUE(says_why) << "outputs not built yet are reported, not silently absent";
 }
@@ -183,8 +186,8 @@ TEST_F(ServerTest, RejectsEveryKindOfBadFrame) {
     const char* message_part;
   };
   const Case cases[] = {
-      {"wrong depth size",
-       [](v1::Frame* f) { *f->mutable_depth() = MakeFrame(320, 240).depth(); }, "320x240"},
+      {"wrong depth size", [](v1::Frame* f) { *f->mutable_depth() = MakeFrame(320, 240).depth(); },
+       "320x240"},
       {"depth/colour mismatch",
        [](v1::Frame* f) { *f->mutable_color() = MakeFrame(320, 240).color(); }, "320x240"},
       {"unspecified depth encoding",
@@ -204,8 +207,8 @@ TEST_F(ServerTest, RejectsEveryKindOfBadFrame) {
          d->resize(d->size() - 100);
        },
        "truncated"},
-      {"garbage colour",
-       [](v1::Frame* f) { f->mutable_color()->set_data("not an image at all"); }, "colour"},
+      {"garbage colour", [](v1::Frame* f) { f->mutable_color()->set_data("not an image at all"); },
+       "colour"},
       {"raw depth of wrong length",
        [](v1::Frame* f) {
          f->mutable_depth()->set_encoding(v1::DEPTH_RAW_U16);
@@ -241,8 +244,7 @@ TEST_F(ServerTest, RejectsEveryKindOfBadFrame) {
     const absl::Status s = Process(f);
     EXPECT_TRUE(absl::IsInvalidArgument(s)) << c.name << ": " << s;
     EXPECT_NE(s.message().find(c.message_part), std::string::npos)
-        << c.name << ": message '" << s.message() << "' should mention '" << c.message_part
-        << "'";
+        << c.name << ": message '" << s.message() << "' should mention '" << c.message_part << "'";
   }
   EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
 }
@@ -274,11 +276,12 @@ TEST_F(ServerTest, RejectsMessagesOverTheSizeLimit) {
 }
 
 TEST_F(ServerTest, StreamProtocolErrorsEndTheStreamWithAStatus) {
-  EXPECT_TRUE(absl::IsNotFound(client_->OpenStream([] {
-                                         v1::StreamStart s;
-                                         s.set_map("missing");
-                                         return s;
-                                       }())
+  EXPECT_TRUE(absl::IsNotFound(client_
+                                   ->OpenStream([] {
+                                     v1::StreamStart s;
+                                     s.set_map("missing");
+                                     return s;
+                                   }())
                                    .status()));
   ASSERT_TRUE(client_->CreateMap("m", "").ok());
   v1::StartVisitRequest sv;
@@ -426,7 +429,8 @@ TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   std::vector<grpc::Slice> slices;
   ASSERT_TRUE(response.Dump(&slices).ok());
   std::string bytes;
-  for (const auto& sl : slices) bytes += std::string(reinterpret_cast<const char*>(sl.begin()), sl.size());
+  for (const auto& sl : slices)
+    bytes += std::string(reinterpret_cast<const char*>(sl.begin()), sl.size());
   EXPECT_EQ(bytes, std::string("\x08\x01", 2));
 }
 

@@ -48,9 +48,9 @@ TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
     auto c = LoadConfigFile(tmp.File(f), ServerConfig());
     EXPECT_TRUE(absl::IsInvalidArgument(c.status())) << f << ": " << c.status();
   }
-  EXPECT_NE(LoadConfigFile(tmp.File("typo.json"), ServerConfig()).status().message().find(
-                "max_stream"),
-            std::string::npos);
+  EXPECT_NE(
+      LoadConfigFile(tmp.File("typo.json"), ServerConfig()).status().message().find("max_stream"),
+      std::string::npos);
   EXPECT_TRUE(absl::IsNotFound(LoadConfigFile(tmp.File("none.json"), ServerConfig()).status()));
 }
 

@@ -3,7 +3,9 @@
 #include <unistd.h>
 
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <vector>
 
 #include <opencv2/imgcodecs.hpp>
@@ -52,8 +54,7 @@ std::string JpegBytes(const cv::Mat& image) {
   return std::string(buf.begin(), buf.end());
 }
 
-v1::Frame MakeFrame(int width, int height, double depth_m, double timestamp_s,
-                    uint64_t sequence) {
+v1::Frame MakeFrame(int width, int height, double depth_m, double timestamp_s, uint64_t sequence) {
   cv::Mat depth(height, width, CV_16UC1, cv::Scalar(static_cast<int>(depth_m * 5000)));
   cv::Mat color(height, width, CV_8UC3);
   for (int r = 0; r < height; ++r) {
@@ -80,6 +81,40 @@ v1::Frame MakeFrame(int width, int height, double depth_m, double timestamp_s,
   c->set_encoding(v1::COLOR_JPEG);
   c->set_data(JpegBytes(color));
   return f;
+}
+
+void WriteSyntheticTum(const std::string& dir, int frames, double step_m, int width, int height) {
+  fs::create_directories(fs::path(dir) / "rgb");
+  fs::create_directories(fs::path(dir) / "depth");
+  std::ofstream rgb_list(fs::path(dir) / "rgb.txt");
+  std::ofstream depth_list(fs::path(dir) / "depth.txt");
+  std::ofstream gt(fs::path(dir) / "groundtruth.txt");
+  std::ofstream(fs::path(dir) / "intrinsics.txt")
+      << 525.0 * width / 640.0 << " " << 525.0 * height / 480.0 << " " << (width - 1) / 2.0 << " "
+      << (height - 1) / 2.0 << "\n";
+  rgb_list << "# color images\n";
+  depth_list << "# depth maps\n";
+  gt << "# timestamp tx ty tz qx qy qz qw\n";
+  char name[64];
+  for (int i = 0; i < frames; ++i) {
+    const double t = 1700000000.0 + i / 30.0;
+    const v1::Frame f = MakeFrame(width, height, 1.0 + 0.01 * i, t, static_cast<uint64_t>(i));
+    std::snprintf(name, sizeof(name), "%.6f.png", t);
+    std::ofstream(fs::path(dir) / "rgb" / name, std::ios::binary) << PngBytes(
+        cv::imdecode(std::vector<unsigned char>(f.color().data().begin(), f.color().data().end()),
+                     cv::IMREAD_COLOR));
+    std::ofstream(fs::path(dir) / "depth" / name, std::ios::binary) << f.depth().data();
+    const std::string stamp(name, std::strlen(name) - 4);  // without ".png"
+    rgb_list << stamp << " rgb/" << name << "\n";
+    depth_list << stamp << " depth/" << name << "\n";
+  }
+  // Ground truth at 100 Hz over the whole span.
+  for (int j = 0; j <= frames * 100 / 30 + 1; ++j) {
+    const double t = 1700000000.0 + j / 100.0;
+    char line[128];
+    std::snprintf(line, sizeof(line), "%.4f %.6f 0 0 0 0 0 1\n", t, step_m * 30.0 * (j / 100.0));
+    gt << line;
+  }
 }
 
 }  // namespace lifemap::testing

@@ -34,6 +34,12 @@ class TempDir {
 v1::Frame MakeFrame(int width = 640, int height = 480, double depth_m = 1.5,
                     double timestamp_s = 1000.0, uint64_t sequence = 0);
 
+// Writes a small TUM-format folder (rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt) of
+// `frames` synthetic frames, 30 Hz, the camera moving `step_m` along x per frame. For tests that
+// must run without ../shared/data.
+void WriteSyntheticTum(const std::string& dir, int frames, double step_m = 0.02, int width = 320,
+                       int height = 240);
+
 // The PNG / JPEG bytes of an image.
 std::string PngBytes(const cv::Mat& image);
 std::string JpegBytes(const cv::Mat& image);

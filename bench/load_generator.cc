@@ -1,0 +1,269 @@
+// End-to-end load generator: N concurrent frame streams × M frames against a real lifemapd on
+// loopback, reporting frames/s and latency percentiles, with a baseline in the same run
+// (unary ProcessFrame without storage, one call at a time).
+//
+//   build/bin/load_generator --streams 4 --frames 300 --rate 30
+//   build/bin/load_generator --server 127.0.0.1:50051 ...   (an external lifemapd)
+//
+// Without --server it starts lifemapd in-process on a temporary database. Frames are the real
+// TUM recording (default ../shared/data/tum_fr1_xyz_subset), loaded into memory first and
+// replayed cyclically with fresh timestamps, so disk reads are not measured.
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <iostream>
+#include <mutex>
+#include <thread>
+
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_format.h"
+#include "client/lifemap_client.h"
+#include "core/io/tum_dataset.h"
+#include "server/server.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+namespace fs = std::filesystem;
+
+struct Latencies {
+  std::vector<double> ms;
+  double Percentile(double p) const {
+    if (ms.empty()) return 0.0;
+    std::vector<double> v = ms;
+    std::sort(v.begin(), v.end());
+    return v[std::min(v.size() - 1, static_cast<size_t>(p / 100.0 * (v.size() - 1) + 0.5))];
+  }
+};
+
+struct RunReport {
+  std::string name;
+  size_t frames = 0;
+  size_t errors = 0;
+  size_t keyframes = 0;
+  double seconds = 0;
+  Latencies latency;
+  double server_total_p50_ms = 0;
+
+  nlohmann::json ToJson() const {
+    return {{"name", name},
+            {"frames", frames},
+            {"errors", errors},
+            {"keyframes_committed", keyframes},
+            {"seconds", seconds},
+            {"frames_per_s", frames / std::max(seconds, 1e-9)},
+            {"latency_ms",
+             {{"p50", latency.Percentile(50)},
+              {"p90", latency.Percentile(90)},
+              {"p99", latency.Percentile(99)},
+              {"max", latency.Percentile(100)}}},
+            {"server_time_p50_ms", server_total_p50_ms}};
+  }
+  void Print() const {
+    std::cout << absl::StrFormat(
+        "%-34s %6d frames %4d errors %5d keyframes %8.1f frames/s  latency p50 %6.1f  p90 %6.1f  "
+        "p99 %6.1f ms (server %.1f ms)\n",
+        name, frames, errors, keyframes, frames / std::max(seconds, 1e-9), latency.Percentile(50),
+        latency.Percentile(90), latency.Percentile(99), server_total_p50_ms);
+  }
+};
+
+lifemap::v1::Frame WithTime(lifemap::v1::Frame f, double t, uint64_t seq) {
+  f.set_timestamp_s(t);
+  f.set_sequence(seq);
+  return f;
+}
+
+RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
+                      int count) {
+  RunReport report;
+  report.name = "baseline: ProcessFrame, no store";
+  auto client = lifemap::client::Client::Connect({target});
+  if (!client.ok()) {
+    std::cerr << client.status() << "\n";
+    std::exit(1);
+  }
+  Latencies server;
+  const auto start = Clock::now();
+  for (int i = 0; i < count; ++i) {
+    lifemap::v1::ProcessFrameRequest req;
+    *req.mutable_frame() = WithTime(frames[i % frames.size()], 1000.0 + i / 30.0, i);
+    const auto t0 = Clock::now();
+    auto r = (*client)->ProcessFrame(req);
+    report.latency.ms.push_back(
+        std::chrono::duration<double, std::milli>(Clock::now() - t0).count());
+    if (!r.ok()) {
+      ++report.errors;
+    } else {
+      server.ms.push_back(r->timing().total_ms());
+    }
+    ++report.frames;
+  }
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  report.server_total_p50_ms = server.Percentile(50);
+  return report;
+}
+
+RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
+                     int streams, int count, double rate_hz) {
+  RunReport report;
+  report.name = absl::StrFormat("%d stream(s) at %s, keyframes stored", streams,
+                                rate_hz > 0 ? absl::StrFormat("%.0f Hz", rate_hz) : "max rate");
+  std::mutex mu;
+  Latencies server;
+  std::vector<std::thread> threads;
+  const auto start = Clock::now();
+  for (int s = 0; s < streams; ++s) {
+    threads.emplace_back([&, s] {
+      auto client = lifemap::client::Client::Connect({target});
+      if (!client.ok()) return;
+      lifemap::v1::StreamStart st;
+      st.set_map("load");
+      st.set_robot(absl::StrFormat("load-%d", s));
+      auto stream = (*client)->OpenStream(st);
+      if (!stream.ok()) {
+        std::cerr << "stream " << s << ": " << stream.status() << "\n";
+        return;
+      }
+      std::vector<Clock::time_point> sent(static_cast<size_t>(count));
+      const auto t0 = Clock::now();
+      std::thread sender([&] {
+        for (int i = 0; i < count; ++i) {
+          if (rate_hz > 0) {
+            std::this_thread::sleep_until(t0 + std::chrono::duration_cast<Clock::duration>(
+                                                   std::chrono::duration<double>(i / rate_hz)));
+          }
+          sent[static_cast<size_t>(i)] = Clock::now();
+          if (!(*stream)->Send(WithTime(frames[i % frames.size()], 1000.0 + i / 30.0, i))) break;
+        }
+        (*stream)->CloseSend();
+      });
+      lifemap::v1::FrameResult r;
+      std::vector<double> local, local_server;
+      size_t errors = 0, keyframes = 0;
+      while ((*stream)->Receive(&r)) {
+        local.push_back(std::chrono::duration<double, std::milli>(
+                            Clock::now() - sent[static_cast<size_t>(r.sequence())])
+                            .count());
+        local_server.push_back(r.timing().total_ms());
+        errors += r.has_error();
+        keyframes += r.keyframe().committed();
+      }
+      sender.join();
+      const auto status = (*stream)->Finish();
+      std::lock_guard<std::mutex> lock(mu);
+      if (!status.ok()) std::cerr << "stream " << s << ": " << status << "\n";
+      report.frames += local.size();
+      report.errors += errors;
+      report.keyframes += keyframes;
+      report.latency.ms.insert(report.latency.ms.end(), local.begin(), local.end());
+      server.ms.insert(server.ms.end(), local_server.begin(), local_server.end());
+    });
+  }
+  for (auto& t : threads) t.join();
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  report.server_total_p50_ms = server.Percentile(50);
+  return report;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"lifemap load generator: N streams x M frames against lifemapd"};
+  std::string server_address;
+  std::string tum = std::string(LIFEMAP_SOURCE_DIR) + "/../shared/data/tum_fr1_xyz_subset";
+  int streams = 2, frames = 300;
+  double rate = 30.0;
+  bool json = false;
+  app.add_option("--server", server_address, "external lifemapd HOST:PORT (default: in-process)");
+  app.add_option("--tum", tum, "TUM folder whose frames are replayed")
+      ->check(CLI::ExistingDirectory);
+  app.add_option("--streams", streams, "concurrent streams")->check(CLI::Range(1, 256));
+  app.add_option("--frames", frames, "frames per stream")->check(CLI::Range(1, 1000000));
+  app.add_option("--rate", rate, "frames/s per stream; 0 = as fast as possible")
+      ->check(CLI::Range(0.0, 1000.0));
+  app.add_flag("--json", json, "print the report as JSON");
+  CLI11_PARSE(app, argc, argv);
+
+  auto seq = lifemap::io::ReadTumSequence(tum);
+  if (!seq.ok()) {
+    std::cerr << "load_generator: " << seq.status().message() << "\n";
+    return 1;
+  }
+  std::vector<lifemap::v1::Frame> loaded;
+  lifemap::v1::CameraIntrinsics k;
+  const auto guess = lifemap::io::TumIntrinsicsFor(tum, 640, 480, nullptr);
+  k.set_fx(guess.fx), k.set_fy(guess.fy), k.set_cx(guess.cx), k.set_cy(guess.cy);
+  for (const auto& e : seq->frames) {
+    auto f = lifemap::client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+    if (!f.ok()) {
+      std::cerr << "load_generator: " << f.status().message() << "\n";
+      return 1;
+    }
+    if (e.T_world_camera) {
+      auto* p = f->mutable_pose();
+      p->set_tx(e.T_world_camera->translation.x());
+      p->set_ty(e.T_world_camera->translation.y());
+      p->set_tz(e.T_world_camera->translation.z());
+      p->set_qx(e.T_world_camera->rotation.x());
+      p->set_qy(e.T_world_camera->rotation.y());
+      p->set_qz(e.T_world_camera->rotation.z());
+      p->set_qw(e.T_world_camera->rotation.w());
+    }
+    loaded.push_back(*std::move(f));
+  }
+
+  std::unique_ptr<lifemap::server::LifemapServer> server;
+  std::string target = server_address;
+  const fs::path dir = fs::temp_directory_path() / "lifemap-load";
+  if (target.empty()) {
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    lifemap::server::ServerConfig config;
+    config.listen = "127.0.0.1:0";
+    config.db_path = (dir / "load.db").string();
+    config.log_level = "warn";
+    config.max_streams = std::max(16, streams);
+    auto s = lifemap::server::LifemapServer::Start(config);
+    if (!s.ok()) {
+      std::cerr << "load_generator: " << s.status().message() << "\n";
+      return 1;
+    }
+    server = *std::move(s);
+    target = "127.0.0.1:" + std::to_string(server->port());
+  }
+  {
+    auto client = lifemap::client::Client::Connect({target});
+    if (!client.ok()) {
+      std::cerr << "load_generator: " << client.status().message() << "\n";
+      return 1;
+    }
+    auto m = (*client)->CreateMap("load", "load generator");
+    if (!m.ok() && !absl::IsAlreadyExists(m.status())) {
+      std::cerr << "load_generator: " << m.status().message() << "\n";
+      return 1;
+    }
+  }
+
+  const RunReport baseline = RunBaseline(target, loaded, std::min(frames, 200));
+  const RunReport one = RunStreams(target, loaded, 1, frames, rate);
+  const RunReport many = RunStreams(target, loaded, streams, frames, rate);
+  if (json) {
+    std::cout << nlohmann::json{{"target", target},
+                                {"frame", "640x480 PNG-16 depth + PNG colour (TUM)"},
+                                {"runs", {baseline.ToJson(), one.ToJson(), many.ToJson()}}}
+                     .dump(2)
+              << "\n";
+  } else {
+    std::cout << "target " << target << ", " << loaded.size()
+              << " distinct 640x480 TUM frames (PNG-16 depth + PNG colour)\n";
+    baseline.Print();
+    one.Print();
+    many.Print();
+  }
+  server.reset();
+  if (server_address.empty()) fs::remove_all(dir);
+  return 0;
+}
