@@ -69,6 +69,26 @@ const char* OutputName(v1::FrameOutput o) {
   }
 }
 
+// The shape of most commands: connect, make one call, print the response as JSON (--json) or
+// for a person with `print`. Returns the exit code; `exit_code` lets a command fail on an
+// answer (e.g. an integrity check that found problems).
+template <typename Response>
+int RunCall(const CliContext& ctx,
+            const std::function<absl::StatusOr<Response>(client::Client&)>& call,
+            const std::function<void(const Response&)>& print,
+            const std::function<int(const Response&)>& exit_code = nullptr) {
+  auto c = ctx.Connect();
+  if (!c.ok()) return Fail(c.status());
+  auto response = call(**c);
+  if (!response.ok()) return Fail(response.status());
+  if (ctx.json) {
+    std::cout << ToJson(*response) << "\n";
+  } else {
+    print(*response);
+  }
+  return exit_code ? exit_code(*response) : 0;
+}
+
 }  // namespace
 
 absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,
@@ -109,28 +129,23 @@ void AddServerCommands(CLI::App* app, CliContext* ctx) {
   server->require_subcommand(1);
   server->add_subcommand("info", "Version, limits and the per-frame outputs it computes")
       ->callback([ctx] {
-        ctx->run = [ctx]() -> int {
-          auto c = ctx->Connect();
-          if (!c.ok()) return Fail(c.status());
-          auto info = (*c)->GetServerInfo();
-          if (!info.ok()) return Fail(info.status());
-          if (ctx->json) {
-            std::cout << ToJson(*info) << "\n";
-            return 0;
-          }
-          std::cout << absl::StrFormat(
-              "lifemapd %s (%s) at %s\ndatabase:  %s (schema %d)\nstarted:   %s\n"
-              "limits:    %s per message, %d streams, %d frames in flight per stream\n"
-              "per-frame outputs:\n",
-              info->version(), info->api_version(), ctx->server, info->db_path(),
-              info->schema_version(), HumanTime(info->started_time_s()),
-              HumanBytes(info->max_message_bytes()), info->max_streams(),
-              info->max_inflight_frames());
-          for (const auto& o : info->outputs()) {
-            std::cout << absl::StrFormat("  %-16s %s\n", OutputName(o.output()),
-                                         o.computed() ? "yes" : "no: " + o.reason());
-          }
-          return 0;
+        ctx->run = [ctx] {
+          return RunCall<v1::ServerInfo>(
+              *ctx, [](client::Client& c) { return c.GetServerInfo(); },
+              [ctx](const v1::ServerInfo& info) {
+                std::cout << absl::StrFormat(
+                    "lifemapd %s (%s) at %s\ndatabase:  %s (schema %d)\nstarted:   %s\n"
+                    "limits:    %s per message, %d streams, %d frames in flight per stream\n"
+                    "per-frame outputs:\n",
+                    info.version(), info.api_version(), ctx->server, info.db_path(),
+                    info.schema_version(), HumanTime(info.started_time_s()),
+                    HumanBytes(info.max_message_bytes()), info.max_streams(),
+                    info.max_inflight_frames());
+                for (const auto& o : info.outputs()) {
+                  std::cout << absl::StrFormat("  %-16s %s\n", OutputName(o.output()),
+                                               o.computed() ? "yes" : "no: " + o.reason());
+                }
+              });
         };
       });
 }
@@ -145,42 +160,32 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   create->add_option("NAME", *name, "map name: letters, digits, '.', '_', '-'")->required();
   create->add_option("--description", *description, "free text");
   create->callback([ctx, name, description] {
-    ctx->run = [ctx, name, description]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto m = (*c)->CreateMap(*name, *description);
-      if (!m.ok()) return Fail(m.status());
-      if (ctx->json) {
-        std::cout << ToJson(*m) << "\n";
-      } else {
-        std::cout << "created map '" << m->name() << "' (id " << m->id() << ")\n";
-      }
-      return 0;
+    ctx->run = [ctx, name, description] {
+      return RunCall<v1::Map>(
+          *ctx, [&](client::Client& c) { return c.CreateMap(*name, *description); },
+          [](const v1::Map& m) {
+            std::cout << "created map '" << m.name() << "' (id " << m.id() << ")\n";
+          });
     };
   });
 
   maps->add_subcommand("list", "List every map")->callback([ctx] {
-    ctx->run = [ctx]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto list = (*c)->ListMaps();
-      if (!list.ok()) return Fail(list.status());
-      if (ctx->json) {
-        std::cout << ToJson(*list) << "\n";
-        return 0;
-      }
-      if (list->maps().empty()) {
-        std::cout << "no maps yet: create one with 'lifemap maps create NAME'\n";
-        return 0;
-      }
-      std::cout << absl::StrFormat("%-24s %6s %10s %10s  %s\n", "NAME", "VISITS", "KEYFRAMES",
-                                   "STORED", "CREATED");
-      for (const auto& m : list->maps()) {
-        std::cout << absl::StrFormat("%-24s %6d %10d %10s  %s\n", m.name(), m.visit_count(),
-                                     m.keyframe_count(), HumanBytes(m.stored_bytes()),
-                                     HumanTime(m.created_time_s()));
-      }
-      return 0;
+    ctx->run = [ctx] {
+      return RunCall<v1::ListMapsResponse>(
+          *ctx, [](client::Client& c) { return c.ListMaps(); },
+          [](const v1::ListMapsResponse& list) {
+            if (list.maps().empty()) {
+              std::cout << "no maps yet: create one with 'lifemap maps create NAME'\n";
+              return;
+            }
+            std::cout << absl::StrFormat("%-24s %6s %10s %10s  %s\n", "NAME", "VISITS", "KEYFRAMES",
+                                         "STORED", "CREATED");
+            for (const auto& m : list.maps()) {
+              std::cout << absl::StrFormat("%-24s %6d %10d %10s  %s\n", m.name(), m.visit_count(),
+                                           m.keyframe_count(), HumanBytes(m.stored_bytes()),
+                                           HumanTime(m.created_time_s()));
+            }
+          });
     };
   });
 
@@ -188,17 +193,9 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   auto show_name = std::make_shared<std::string>();
   show->add_option("NAME", *show_name, "map name")->required();
   show->callback([ctx, show_name] {
-    ctx->run = [ctx, show_name]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto m = (*c)->GetMap(*show_name);
-      if (!m.ok()) return Fail(m.status());
-      if (ctx->json) {
-        std::cout << ToJson(*m) << "\n";
-      } else {
-        PrintMap(*m);
-      }
-      return 0;
+    ctx->run = [ctx, show_name] {
+      return RunCall<v1::Map>(
+          *ctx, [&](client::Client& c) { return c.GetMap(*show_name); }, PrintMap);
     };
   });
 
@@ -208,17 +205,12 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   rename->add_option("NAME", *old_name, "current name")->required();
   rename->add_option("NEW_NAME", *new_name, "new name")->required();
   rename->callback([ctx, old_name, new_name] {
-    ctx->run = [ctx, old_name, new_name]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto m = (*c)->RenameMap(*old_name, *new_name);
-      if (!m.ok()) return Fail(m.status());
-      if (ctx->json) {
-        std::cout << ToJson(*m) << "\n";
-      } else {
-        std::cout << "renamed map '" << *old_name << "' to '" << m->name() << "'\n";
-      }
-      return 0;
+    ctx->run = [ctx, old_name, new_name] {
+      return RunCall<v1::Map>(
+          *ctx, [&](client::Client& c) { return c.RenameMap(*old_name, *new_name); },
+          [&](const v1::Map& m) {
+            std::cout << "renamed map '" << *old_name << "' to '" << m.name() << "'\n";
+          });
     };
   });
 
@@ -228,52 +220,43 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   del->add_option("NAME", *del_name, "map name")->required();
   del->add_flag("--yes", *yes, "confirm: the map's data cannot be recovered (except from backup)");
   del->callback([ctx, del_name, yes] {
-    ctx->run = [ctx, del_name, yes]() -> int {
+    ctx->run = [ctx, del_name, yes] {
       if (!*yes) {
         std::cerr << "lifemap: refusing to delete map '" << *del_name
                   << "' without --yes (its visits and keyframes are deleted for good)\n";
         return 2;
       }
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->DeleteMap(*del_name);
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-      } else {
-        std::cout << "deleted map '" << *del_name << "': " << r->deleted_visits() << " visits, "
-                  << r->deleted_keyframes() << " keyframes\n";
-      }
-      return 0;
+      return RunCall<v1::DeleteMapResponse>(
+          *ctx, [&](client::Client& c) { return c.DeleteMap(*del_name); },
+          [&](const v1::DeleteMapResponse& r) {
+            std::cout << "deleted map '" << *del_name << "': " << r.deleted_visits() << " visits, "
+                      << r.deleted_keyframes() << " keyframes\n";
+          });
     };
   });
 }
 
 void AddVisitCommands(CLI::App* app, CliContext* ctx) {
-  auto* visits = app->add_subcommand("visits", "List, start and end visits of a map");
+  auto* visits = app->add_subcommand("visits", "List and end visits of a map");
   visits->require_subcommand(1);
   auto* list = visits->add_subcommand("list", "List a map's visits");
   auto map = std::make_shared<std::string>();
   list->add_option("MAP", *map, "map name")->required();
   list->callback([ctx, map] {
-    ctx->run = [ctx, map]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->ListVisits(*map);
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-        return 0;
-      }
-      std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s  %-23s  %s\n", "ID", "ROBOT", "LABEL",
-                                   "FRAMES", "KEYFRAMES", "STARTED", "STATE");
-      for (const auto& v : r->visits()) {
-        std::cout << absl::StrFormat(
-            "%6d %-16s %-20s %8d %10d  %-23s  %s\n", v.id(), v.robot().empty() ? "-" : v.robot(),
-            v.label().empty() ? "-" : v.label(), v.frame_count(), v.keyframe_count(),
-            HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
-      }
-      return 0;
+    ctx->run = [ctx, map] {
+      return RunCall<v1::ListVisitsResponse>(
+          *ctx, [&](client::Client& c) { return c.ListVisits(*map); },
+          [](const v1::ListVisitsResponse& r) {
+            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s  %-23s  %s\n", "ID", "ROBOT",
+                                         "LABEL", "FRAMES", "KEYFRAMES", "STARTED", "STATE");
+            for (const auto& v : r.visits()) {
+              std::cout << absl::StrFormat("%6d %-16s %-20s %8d %10d  %-23s  %s\n", v.id(),
+                                           v.robot().empty() ? "-" : v.robot(),
+                                           v.label().empty() ? "-" : v.label(), v.frame_count(),
+                                           v.keyframe_count(), HumanTime(v.start_time_s()),
+                                           v.ended() ? "ended" : "open");
+            }
+          });
     };
   });
 
@@ -281,17 +264,12 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
   auto visit_id = std::make_shared<uint64_t>(0);
   end->add_option("VISIT_ID", *visit_id, "visit id")->required();
   end->callback([ctx, visit_id] {
-    ctx->run = [ctx, visit_id]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto v = (*c)->EndVisit(*visit_id);
-      if (!v.ok()) return Fail(v.status());
-      if (ctx->json) {
-        std::cout << ToJson(*v) << "\n";
-      } else {
-        std::cout << "ended visit " << v->id() << " of map '" << v->map() << "'\n";
-      }
-      return 0;
+    ctx->run = [ctx, visit_id] {
+      return RunCall<v1::Visit>(
+          *ctx, [&](client::Client& c) { return c.EndVisit(*visit_id); },
+          [](const v1::Visit& v) {
+            std::cout << "ended visit " << v.id() << " of map '" << v.map() << "'\n";
+          });
     };
   });
 }
@@ -305,28 +283,23 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
   list->add_option("--map", *map, "map name")->required();
   list->add_option("--visit", *visit, "only this visit");
   list->callback([ctx, map, visit] {
-    ctx->run = [ctx, map, visit]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->ListKeyframes(*map, *visit);
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-        return 0;
-      }
-      std::cout << absl::StrFormat("%8s %6s %8s %18s %28s %10s\n", "ID", "VISIT", "SEQ",
-                                   "TIMESTAMP", "POSITION (m)", "BYTES");
-      for (const auto& k : r->keyframes()) {
-        const std::string position =
-            k.has_pose()
-                ? absl::StrFormat("%8.3f %8.3f %8.3f", k.pose().tx(), k.pose().ty(), k.pose().tz())
-                : std::string("-");
-        std::cout << absl::StrFormat("%8d %6d %8d %18.6f %28s %10s\n", k.id(), k.visit_id(),
-                                     k.sequence(), k.timestamp_s(), position,
-                                     HumanBytes(k.color_bytes() + k.depth_bytes()));
-      }
-      std::cout << r->keyframes_size() << " keyframes\n";
-      return 0;
+    ctx->run = [ctx, map, visit] {
+      return RunCall<v1::ListKeyframesResponse>(
+          *ctx, [&](client::Client& c) { return c.ListKeyframes(*map, *visit); },
+          [](const v1::ListKeyframesResponse& r) {
+            std::cout << absl::StrFormat("%8s %6s %8s %18s %28s %10s\n", "ID", "VISIT", "SEQ",
+                                         "TIMESTAMP", "POSITION (m)", "BYTES");
+            for (const auto& k : r.keyframes()) {
+              const std::string position = k.has_pose()
+                                               ? absl::StrFormat("%8.3f %8.3f %8.3f", k.pose().tx(),
+                                                                 k.pose().ty(), k.pose().tz())
+                                               : std::string("-");
+              std::cout << absl::StrFormat("%8d %6d %8d %18.6f %28s %10s\n", k.id(), k.visit_id(),
+                                           k.sequence(), k.timestamp_s(), position,
+                                           HumanBytes(k.color_bytes() + k.depth_bytes()));
+            }
+            std::cout << r.keyframes_size() << " keyframes\n";
+          });
     };
   });
 }
@@ -493,22 +466,18 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
   auto* admin = app->add_subcommand("admin", "Operate the server's database");
   admin->require_subcommand(1);
   admin->add_subcommand("stats", "Counts, database size, activity")->callback([ctx] {
-    ctx->run = [ctx]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto s = (*c)->GetStats();
-      if (!s.ok()) return Fail(s.status());
-      if (ctx->json) {
-        std::cout << ToJson(*s) << "\n";
-      } else {
-        std::cout << absl::StrFormat(
-            "maps %d, visits %d, keyframes %d\ndatabase %s + WAL %s\nactive streams %d; since "
-            "start: %d frames processed, %d rejected, %d keyframes committed; up %.0f s\n",
-            s->maps(), s->visits(), s->keyframes(), HumanBytes(s->db_bytes()),
-            HumanBytes(s->wal_bytes()), s->active_streams(), s->frames_processed(),
-            s->frames_rejected(), s->keyframes_committed(), s->uptime_s());
-      }
-      return 0;
+    ctx->run = [ctx] {
+      return RunCall<v1::Stats>(
+          *ctx, [](client::Client& c) { return c.GetStats(); },
+          [](const v1::Stats& s) {
+            std::cout << absl::StrFormat(
+                "maps %d, visits %d, keyframes %d\ndatabase %s + WAL %s\nactive streams %d; "
+                "since start: %d frames processed, %d rejected, %d keyframes committed; "
+                "up %.0f s\n",
+                s.maps(), s.visits(), s.keyframes(), HumanBytes(s.db_bytes()),
+                HumanBytes(s.wal_bytes()), s.active_streams(), s.frames_processed(),
+                s.frames_rejected(), s.keyframes_committed(), s.uptime_s());
+          });
     };
   });
   auto* backup = admin->add_subcommand("backup", "Online copy of the database on the server");
@@ -516,47 +485,33 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
   backup->add_option("PATH", *path, "absolute path on the server's machine (must not exist)")
       ->required();
   backup->callback([ctx, path] {
-    ctx->run = [ctx, path]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->Backup(*path);
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-      } else {
-        std::cout << "backup written to " << r->path() << " (" << HumanBytes(r->bytes()) << ")\n";
-      }
-      return 0;
+    ctx->run = [ctx, path] {
+      return RunCall<v1::BackupResponse>(
+          *ctx, [&](client::Client& c) { return c.Backup(*path); },
+          [](const v1::BackupResponse& r) {
+            std::cout << "backup written to " << r.path() << " (" << HumanBytes(r.bytes()) << ")\n";
+          });
     };
   });
   admin->add_subcommand("check", "Integrity check of the database")->callback([ctx] {
-    ctx->run = [ctx]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->CheckIntegrity();
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-      } else {
-        std::cout << (r->ok() ? "integrity: ok\n" : "integrity: PROBLEMS\n");
-        for (const auto& p : r->problems()) std::cout << "  " << p << "\n";
-      }
-      return r->ok() ? 0 : 1;
+    ctx->run = [ctx] {
+      return RunCall<v1::CheckIntegrityResponse>(
+          *ctx, [](client::Client& c) { return c.CheckIntegrity(); },
+          [](const v1::CheckIntegrityResponse& r) {
+            std::cout << (r.ok() ? "integrity: ok\n" : "integrity: PROBLEMS\n");
+            for (const auto& p : r.problems()) std::cout << "  " << p << "\n";
+          },
+          [](const v1::CheckIntegrityResponse& r) { return r.ok() ? 0 : 1; });
     };
   });
   admin->add_subcommand("vacuum", "Compact the database file")->callback([ctx] {
-    ctx->run = [ctx]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
-      auto r = (*c)->Vacuum();
-      if (!r.ok()) return Fail(r.status());
-      if (ctx->json) {
-        std::cout << ToJson(*r) << "\n";
-      } else {
-        std::cout << "database " << HumanBytes(r->bytes_before()) << " -> "
-                  << HumanBytes(r->bytes_after()) << "\n";
-      }
-      return 0;
+    ctx->run = [ctx] {
+      return RunCall<v1::VacuumResponse>(
+          *ctx, [](client::Client& c) { return c.Vacuum(); },
+          [](const v1::VacuumResponse& r) {
+            std::cout << "database " << HumanBytes(r.bytes_before()) << " -> "
+                      << HumanBytes(r.bytes_after()) << "\n";
+          });
     };
   });
 }

@@ -140,6 +140,20 @@ class CliTest : public ::testing::Test {
 
   std::string Db() const { return tmp_.File("lifemap.db"); }
 
+  // The ids `lifemap --json keyframes list --map MAP` prints.
+  std::set<uint64_t> ListedKeyframes(const std::string& map) {
+    const RunResult r = Run({"--json", "keyframes", "list", "--map", map});
+    EXPECT_EQ(r.code, 0) << r.err;
+    std::set<uint64_t> ids;
+    const json listed = json::parse(r.out);
+    for (const auto& k : listed["keyframes"]) ids.insert(std::stoull(k["id"].get<std::string>()));
+    return ids;
+  }
+
+  // Starts `lifemap --json stream` of a synthetic recording into map "m" at the recording's
+  // 30 Hz and returns once `acks` keyframes are acknowledged.
+  std::unique_ptr<Process> StreamUntilAcknowledged(const std::string& tum, size_t acks);
+
   std::vector<std::string> Cli(std::vector<std::string> args) const {
     args.insert(args.begin(), {kLifemap, "--server", address_});
     return args;
@@ -191,14 +205,7 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
   EXPECT_EQ(summary["keyframes_stored"], acked.size());
   EXPECT_EQ(acked.size(), 6u) << "0.021 m per frame, a keyframe every 0.10 m";
 
-  r = Run({"--json", "keyframes", "list", "--map", "lab"});
-  ASSERT_EQ(r.code, 0) << r.err;
-  std::set<uint64_t> listed;
-  const json keyframes = json::parse(r.out);
-  for (const auto& k : keyframes["keyframes"]) {
-    listed.insert(std::stoull(k["id"].get<std::string>()));
-  }
-  EXPECT_EQ(listed, acked);
+  EXPECT_EQ(ListedKeyframes("lab"), acked);
 
   r = Run({"visits", "list", "lab"});
   ASSERT_EQ(r.code, 0);
@@ -309,16 +316,28 @@ void ExpectDurable(const std::string& db, const std::set<uint64_t>& acked) {
   }
 }
 
+std::unique_ptr<Process> CliTest::StreamUntilAcknowledged(const std::string& tum, size_t acks) {
+  if (Run({"maps", "create", "m"}).code != 0) return nullptr;
+  auto stream = std::make_unique<Process>(
+      Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
+      tmp_.File("stream.out"), tmp_.File("stream.err"));
+  const auto end = Clock::now() + std::chrono::seconds(30);
+  while (AcknowledgedKeyframes(stream->out()).size() < acks) {
+    if (Clock::now() > end || stream->WaitFor(std::chrono::milliseconds(10))) {
+      ADD_FAILURE() << "the stream ended or stalled before " << acks
+                    << " acknowledgements: " << stream->err();
+      return nullptr;
+    }
+  }
+  return stream;
+}
+
 TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 150, 0.02);  // 5 s at 30 Hz, a keyframe every 5 frames
-  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
-  Process stream(Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
-                 tmp_.File("stream.out"), tmp_.File("stream.err"));
-  const auto end = Clock::now() + std::chrono::seconds(30);
-  while (AcknowledgedKeyframes(stream.out()).size() < 4 && Clock::now() < end) {
-    ASSERT_FALSE(stream.WaitFor(std::chrono::milliseconds(10))) << stream.err();
-  }
+  auto stream_process = StreamUntilAcknowledged(tum, 4);
+  ASSERT_TRUE(stream_process);
+  Process& stream = *stream_process;
   server_->Signal(SIGKILL);
   EXPECT_EQ(server_->Wait(), 128 + SIGKILL);
   EXPECT_NE(stream.Wait(), 0) << "the stream fails when its server dies";
@@ -330,13 +349,7 @@ TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
 
   // A restarted server serves them and the check passes.
   StartServer();
-  auto r = Run({"--json", "keyframes", "list", "--map", "m"});
-  ASSERT_EQ(r.code, 0) << r.err;
-  std::set<uint64_t> listed;
-  const json keyframes = json::parse(r.out);
-  for (const auto& k : keyframes["keyframes"]) {
-    listed.insert(std::stoull(k["id"].get<std::string>()));
-  }
+  const std::set<uint64_t> listed = ListedKeyframes("m");
   for (uint64_t id : acked) EXPECT_EQ(listed.count(id), 1u) << id;
   EXPECT_EQ(Run({"admin", "check"}).code, 0);
 }
@@ -344,13 +357,9 @@ TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
 TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 60, 0.021);
-  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
-  Process stream(Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
-                 tmp_.File("stream.out"), tmp_.File("stream.err"));
-  const auto end = Clock::now() + std::chrono::seconds(30);
-  while (AcknowledgedKeyframes(stream.out()).size() < 2 && Clock::now() < end) {
-    ASSERT_FALSE(stream.WaitFor(std::chrono::milliseconds(10))) << stream.err();
-  }
+  auto stream_process = StreamUntilAcknowledged(tum, 2);
+  ASSERT_TRUE(stream_process);
+  Process& stream = *stream_process;
   server_->Signal(SIGTERM);
   // Within the 5 s grace the 2 s recording finishes: the stream ends normally.
   EXPECT_EQ(server_->Wait(), 0) << server_->err();
