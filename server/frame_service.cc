@@ -9,6 +9,7 @@
 #include "absl/cleanup/cleanup.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
+#include "server/bounded_queue.h"
 #include "server/convert.h"
 #include "server/services.h"
 
@@ -192,41 +193,6 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
   return v;
 }
 
-// The frames of one stream between the reading and the writing thread, bounded so that a
-// fast sender is held back by gRPC flow control instead of filling the server's memory.
-class InflightQueue {
- public:
-  explicit InflightQueue(int capacity) : capacity_(static_cast<size_t>(capacity)) {}
-
-  void Push(PendingResult p) {
-    absl::MutexLock lock(&mu_);
-    mu_.Await(absl::Condition(this, &InflightQueue::HasRoom));
-    items_.push_back(std::move(p));
-  }
-  void Close() {
-    absl::MutexLock lock(&mu_);
-    closed_ = true;
-  }
-  // nullopt once closed and empty.
-  std::optional<PendingResult> Pop() {
-    absl::MutexLock lock(&mu_);
-    mu_.Await(absl::Condition(this, &InflightQueue::ReadyToPop));
-    if (items_.empty()) return std::nullopt;
-    PendingResult p = std::move(items_.front());
-    items_.pop_front();
-    return p;
-  }
-
- private:
-  bool HasRoom() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) { return items_.size() < capacity_; }
-  bool ReadyToPop() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) { return closed_ || !items_.empty(); }
-
-  const size_t capacity_;
-  absl::Mutex mu_;
-  std::deque<PendingResult> items_ ABSL_GUARDED_BY(mu_);
-  bool closed_ ABSL_GUARDED_BY(mu_) = false;
-};
-
 }  // namespace
 
 grpc::Status FrameServiceImpl::StreamFrames(
@@ -271,7 +237,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
 
   // Reading and processing here; answering in order on a second thread, which waits for
   // keyframe commits so that no acknowledgement precedes its commit.
-  InflightQueue queue(ctx_->config.max_inflight_frames);
+  BoundedQueue<PendingResult> queue(ctx_->config.max_inflight_frames);
   std::atomic<bool> client_gone{false};
   std::thread writer([&] {
     while (auto p = queue.Pop()) {

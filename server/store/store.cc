@@ -461,6 +461,10 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
         return absl::NotFoundError(absl::StrCat(
             "visit ", k.visit_id, " no longer exists (its map was deleted); keyframe not stored"));
       }
+      if (v->ColumnInt(0) != 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "visit ", k.visit_id, " has ended; keyframe not stored (start a new visit)"));
+      }
     }
     {
       StatementScope s(*insert);

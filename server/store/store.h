@@ -115,7 +115,8 @@ class Store {
   absl::StatusOr<std::optional<VisitRecord>> LatestOpenVisit(const std::string& map_name);
 
   // Inserts the keyframes and updates the visits' frame counters in one transaction; assigns
-  // ids. On error nothing is written. NOT_FOUND when a visit no longer exists (map deleted).
+  // ids. On error nothing is written. NOT_FOUND when a visit no longer exists (map deleted);
+  // FAILED_PRECONDITION when it has ended.
   absl::Status InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
                                const std::vector<VisitFrameCount>& frame_counts);
 

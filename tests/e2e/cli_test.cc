@@ -15,6 +15,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
 #include "server/store/store.h"
 #include "tests/testing/test_util.h"
@@ -93,6 +94,14 @@ class Process {
     return false;
   }
   void Signal(int sig) { kill(pid_, sig); }
+  // Peak resident memory (VmHWM) in kB, from /proc.
+  int64_t PeakRssKb() const {
+    std::ifstream status("/proc/" + std::to_string(pid_) + "/status");
+    for (std::string line; std::getline(status, line);) {
+      if (line.rfind("VmHWM:", 0) == 0) return std::stoll(line.substr(6));
+    }
+    return -1;
+  }
   std::string out() const { return Slurp(out_); }
   std::string err() const { return Slurp(err_); }
   bool started() const { return pid_ > 0; }
@@ -370,6 +379,48 @@ TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
   const std::set<uint64_t> acked = AcknowledgedKeyframes(stream.out());
   EXPECT_EQ(acked.size(), 12u);
   ExpectDurable(Db(), acked);
+}
+
+// A robot that sends as fast as it can, 420 MB of raw frames, cannot make the server buffer
+// them: the server reads a stream's next frame only when fewer than max_inflight_frames are
+// waiting, and gRPC's flow control holds the sender meanwhile.
+TEST_F(CliTest, FastSenderCannotExhaustServerMemory) {
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  auto c = client::Client::Connect({address_});
+  ASSERT_TRUE(c.ok()) << c.status();
+  v1::StreamStart start;
+  start.set_map("m");
+  auto stream = (*c)->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  v1::Frame frame;
+  auto* k = frame.mutable_intrinsics();
+  k->set_fx(525), k->set_fy(525), k->set_cx(319.5), k->set_cy(239.5);
+  k->set_width(640), k->set_height(480);
+  frame.mutable_depth()->set_encoding(v1::DEPTH_RAW_F32);
+  frame.mutable_depth()->set_data(std::string(640 * 480 * 4, '\0'));
+  frame.mutable_color()->set_encoding(v1::COLOR_RAW_RGB8);
+  frame.mutable_color()->set_data(std::string(640 * 480 * 3, '\x40'));
+  constexpr int kFrames = 200;  // 2.1 MB each
+  std::thread sender([&] {
+    for (int i = 0; i < kFrames; ++i) {
+      frame.set_sequence(i);
+      frame.set_timestamp_s(1000.0 + i / 30.0);
+      if (!(*stream)->Send(frame)) break;
+    }
+    (*stream)->CloseSend();
+  });
+  v1::FrameResult r;
+  int results = 0;
+  while ((*stream)->Receive(&r)) results += !r.has_error();
+  sender.join();
+  ASSERT_TRUE((*stream)->Finish().ok());
+  EXPECT_EQ(results, kFrames);
+  const int64_t peak_kb = server_->PeakRssKb();
+  ASSERT_GT(peak_kb, 0);
+  std::cout << "lifemapd peak RSS " << peak_kb / 1024 << " MB after " << kFrames * 2.1
+            << " MB of frames\n";
+  EXPECT_LT(peak_kb, 160 * 1024) << "server peak memory " << peak_kb / 1024
+                                 << " MB after receiving " << kFrames * 2.1 << " MB";
 }
 
 }  // namespace

@@ -434,6 +434,52 @@ TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   EXPECT_EQ(bytes, std::string("\x08\x01", 2));
 }
 
+// Server reflection answers list_services with lifemap's services (what grpcurl relies on).
+TEST_F(ServerTest, ReflectionListsLifemapServices) {
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  grpc::GenericStub stub(channel);
+  grpc::CompletionQueue cq;
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  auto call =
+      stub.PrepareCall(&ctx, "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo", &cq);
+  auto step = [&cq](int tag) {
+    void* got = nullptr;
+    bool ok = false;
+    return cq.Next(&got, &ok) && ok && got == reinterpret_cast<void*>(static_cast<intptr_t>(tag));
+  };
+  call->StartCall(reinterpret_cast<void*>(1));
+  ASSERT_TRUE(step(1));
+  // ServerReflectionRequest{list_services: ""}: field 7, length-delimited, empty.
+  grpc::Slice request_slice(std::string("\x3a\x00", 2));
+  call->Write(grpc::ByteBuffer(&request_slice, 1), reinterpret_cast<void*>(2));
+  ASSERT_TRUE(step(2));
+  grpc::ByteBuffer response;
+  call->Read(&response, reinterpret_cast<void*>(3));
+  ASSERT_TRUE(step(3));
+  std::vector<grpc::Slice> slices;
+  ASSERT_TRUE(response.Dump(&slices).ok());
+  std::string bytes;
+  for (const auto& sl : slices) {
+    bytes += std::string(reinterpret_cast<const char*>(sl.begin()), sl.size());
+  }
+  for (const char* service : {"lifemap.v1.FrameService", "lifemap.v1.MapService",
+                              "lifemap.v1.AdminService", "grpc.health.v1.Health"}) {
+    EXPECT_NE(bytes.find(service), std::string::npos) << service;
+  }
+  call->WritesDone(reinterpret_cast<void*>(4));
+  ASSERT_TRUE(step(4));
+  grpc::Status status;
+  call->Finish(&status, reinterpret_cast<void*>(5));
+  void* got = nullptr;
+  bool ok = false;
+  while (cq.Next(&got, &ok) && got != reinterpret_cast<void*>(5)) {
+  }
+  cq.Shutdown();
+  while (cq.Next(&got, &ok)) {
+  }
+}
+
 TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
   auto info = client_->GetServerInfo();
   ASSERT_TRUE(info.ok());

@@ -103,6 +103,14 @@ TEST_F(StoreTest, KeyframeOfDeletedVisitIsNotFoundAndWritesNothing) {
   EXPECT_EQ(map->keyframe_count, 0) << "the transaction rolled back whole";
 }
 
+TEST_F(StoreTest, EndedVisitTakesNoMoreKeyframes) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  ASSERT_TRUE(store_->EndVisit(visit->id, 2.0, 0).ok());
+  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 3.0)};
+  EXPECT_TRUE(absl::IsFailedPrecondition(store_->InsertKeyframes(&batch, {})));
+}
+
 TEST_F(StoreTest, DeletingAMapCascadesToVisitsAndKeyframes) {
   ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
   auto visit = store_->StartVisit("m", "", "", 1.0);
