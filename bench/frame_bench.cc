@@ -10,11 +10,17 @@
 
 #include <benchmark/benchmark.h>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/ximgproc/segmentation.hpp>
 
 #include "core/common/image_codec.h"
 #include "core/common/rgbd_frame.h"
+#include "core/entropy/entropy_mask.h"
+#include "core/entropy/superjut_scores.h"
 #include "core/io/tum_dataset.h"
+#include "core/normals/normals.h"
 #include "core/pipeline/frame_pipeline.h"
+#include "core/segmentation/superjuts.h"
 #include "server/store/store.h"
 
 namespace lifemap {
@@ -120,6 +126,80 @@ void BM_CommitKeyframe(benchmark::State& state) {
   std::filesystem::remove_all(dir);
 }
 BENCHMARK(BM_CommitKeyframe)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
+
+// Entropy masks (paper 000) on the real frame, stage by stage and whole.
+const RgbdFrame& DecodedSample() {
+  static const RgbdFrame frame = *DecodeRgbdFrame(Encoded(GetSample(), true));
+  return frame;
+}
+
+void BM_Normals(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  for (auto _ : state) benchmark::DoNotOptimize(normals::ComputeNormals(f.depth_m, f.intrinsics));
+}
+BENCHMARK(BM_Normals)->Unit(benchmark::kMillisecond);
+
+void BM_Superjuts(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  const auto n = *normals::ComputeNormals(f.depth_m, f.intrinsics);
+  for (auto _ : state) benchmark::DoNotOptimize(segmentation::SegmentSuperjuts(n));
+}
+BENCHMARK(BM_Superjuts)->Unit(benchmark::kMillisecond);
+
+// Baseline in the same run: OpenCV ximgproc's Felzenszwalb-Huttenlocher on the normal map as a
+// 3-channel image (std::sort of the edges, Euclidean weights; no eq. 1, no depth cuts).
+void BM_XimgprocGraphSegmentation(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  const auto n = *normals::ComputeNormals(f.depth_m, f.intrinsics);
+  auto gs = cv::ximgproc::segmentation::createGraphSegmentation(0.0, 0.6f, 200);
+  cv::Mat labels;
+  for (auto _ : state) {
+    gs->processImage(n.normals, labels);
+    benchmark::DoNotOptimize(labels.data);
+  }
+}
+BENCHMARK(BM_XimgprocGraphSegmentation)->Unit(benchmark::kMillisecond);
+
+void BM_ScoreSuperjuts(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  const auto n = *normals::ComputeNormals(f.depth_m, f.intrinsics);
+  const auto s = *segmentation::SegmentSuperjuts(n);
+  cv::Mat gray;
+  if (state.range(0)) cv::cvtColor(f.color_bgr, gray, cv::COLOR_BGR2GRAY);
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(entropy::ScoreSuperjuts(s, n, gray, {0, -1, 0}));
+  }
+}
+BENCHMARK(BM_ScoreSuperjuts)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+
+// Everything from decoded depth + colour to the mask (what the server adds per frame).
+void BM_EntropyMaskTotal(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  for (auto _ : state) {
+    cv::Mat gray;
+    cv::cvtColor(f.color_bgr, gray, cv::COLOR_BGR2GRAY);
+    const auto n = *normals::ComputeNormals(f.depth_m, f.intrinsics);
+    const auto s = *segmentation::SegmentSuperjuts(n);
+    const auto scores = *entropy::ScoreSuperjuts(s, n, gray, {0, -1, 0});
+    benchmark::DoNotOptimize(entropy::EntropyMask(s, scores, 0.5f));
+    state.counters["superjuts"] = static_cast<double>(s.count());
+  }
+}
+BENCHMARK(BM_EntropyMaskTotal)->Unit(benchmark::kMillisecond);
+
+// The served path, ComputeEntropyMask, at full resolution (arg 1) and every 2nd pixel (arg 2,
+// the default).
+void BM_ComputeEntropyMask(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  entropy::EntropyMaskOptions options;
+  options.downsample = static_cast<int>(state.range(0));
+  for (auto _ : state) {
+    auto r = entropy::ComputeEntropyMask(f.depth_m, f.color_bgr, f.intrinsics, {0, -1, 0}, options);
+    if (!r.ok()) state.SkipWithError("entropy mask failed");
+    state.counters["superjuts"] = static_cast<double>(r->superjuts.size());
+  }
+}
+BENCHMARK(BM_ComputeEntropyMask)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace lifemap

@@ -14,18 +14,26 @@ double NowSeconds() {
 }
 
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
-                        bool pose_from_client) {
-  auto add = [out](v1::FrameOutput o, bool computed, const char* reason) {
+                        const pipeline::PipelineOptions& options,
+                        const pipeline::FrameAnalysis* analysis) {
+  auto add = [out](v1::FrameOutput o, bool computed, const std::string& reason) {
     auto* s = out->Add();
     s->set_output(o);
     s->set_computed(computed);
     if (!computed) s->set_reason(reason);
   };
+  const bool pose_from_client = analysis && analysis->frame.T_world_camera.has_value();
   add(v1::FRAME_OUTPUT_POSE, pose_from_client,
       "no odometry in this server yet: send the robot's pose in Frame.pose");
   add(v1::FRAME_OUTPUT_KEYFRAME, true, "");
-  add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
-      "not implemented in this server yet (superjuts and neg-entropy masks, paper 000)");
+  if (!options.entropy_masks) {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, "disabled in this server's config (entropy.enabled)");
+  } else if (analysis && !analysis->entropy) {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
+        absl::StrCat("not computed for this frame: ", analysis->entropy_status.message()));
+  } else {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, true, "");
+  }
   add(v1::FRAME_OUTPUT_CLASS_LABELS, false,
       "not implemented in this server yet (random-forest labels, paper 002)");
   add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
@@ -39,7 +47,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
   resp->set_version(LIFEMAP_VERSION);
   resp->set_api_version("lifemap.v1");
   // A server-level answer: poses count as computed only when the client sends them.
-  FillOutputStatuses(resp->mutable_outputs(), false);
+  FillOutputStatuses(resp->mutable_outputs(), ctx_->config.pipeline, nullptr);
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));
   resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));

@@ -42,6 +42,7 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "log level '", log_level, "' is not one of trace, debug, info, warn, error, off"));
   }
+  if (auto s = pipeline.Validate(); !s.ok()) return s;
   return keyframe.Validate();
 }
 
@@ -95,6 +96,23 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key keyframe.", k));
+          }
+        }
+      } else if (key == "entropy") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "enabled") {
+            c.pipeline.entropy_masks = v.get<bool>();
+          } else if (k == "threshold") {
+            c.pipeline.entropy.threshold = v.get<float>();
+          } else if (k == "downsample") {
+            c.pipeline.entropy.downsample = v.get<int>();
+          } else if (k == "k") {
+            c.pipeline.entropy.superjuts.k = v.get<float>();
+          } else if (k == "min_size_px") {
+            c.pipeline.entropy.superjuts.min_size_px = v.get<int>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key entropy.", k));
           }
         }
       } else {

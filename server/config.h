@@ -5,6 +5,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "core/pipeline/frame_pipeline.h"
 #include "core/tracking/keyframe_selector.h"
 
 namespace lifemap::server {
@@ -20,6 +21,7 @@ struct ServerConfig {
   bool synchronous_full = true;      // SQLite synchronous=FULL (power-loss safe) or NORMAL
   std::string log_level = "info";    // trace, debug, info, warn, error, off
   tracking::KeyframeOptions keyframe;
+  pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, ...)
 
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
@@ -28,7 +30,8 @@ struct ServerConfig {
 // Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
 // Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
-// keyframe {min_translation_m, min_rotation_deg, max_interval_s}.
+// keyframe {min_translation_m, min_rotation_deg, max_interval_s},
+// entropy {enabled, threshold, downsample, k, min_size_px}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

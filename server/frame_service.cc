@@ -75,8 +75,27 @@ absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
 
 // Decodes and analyses one frame; with a visit, decides whether it is a keyframe and queues
 // its commit. Never blocks on the store.
+// Fills the entropy output: score image and mask as PNG, the per-superjut table.
+void EntropyToProto(const entropy::EntropyMaskResult& e, v1::EntropyOutput* out) {
+  out->set_threshold(e.threshold);
+  if (auto png = EncodePng(e.score_image); png.ok()) out->set_score_png(*std::move(png));
+  if (auto png = EncodePng(e.mask); png.ok()) out->set_mask_png(*std::move(png));
+  for (const auto& s : e.superjuts) {
+    auto* j = out->add_superjuts();
+    j->set_id(static_cast<uint32_t>(s.id));
+    j->set_size_px(static_cast<uint32_t>(s.size_px));
+    j->set_entropy(s.entropy);
+    j->set_planarity(s.planarity);
+    j->set_horizontality(s.horizontality);
+    j->set_textureness(s.textureness);
+    j->set_neg_entropy(s.neg_entropy);
+    j->set_masked(s.neg_entropy < e.threshold);
+  }
+}
+
 PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
-                          const tracking::KeyframeOptions& keyframe_options) {
+                          const tracking::KeyframeOptions& keyframe_options,
+                          const pipeline::FrameRequest& frame_request) {
   PendingResult p;
   p.received = Clock::now();
   v1::FrameResult& r = p.result;
@@ -91,7 +110,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   };
   auto encoded = FrameFromProto(frame);
   if (!encoded.ok()) return reject(encoded.status());
-  auto analysis = ctx->pipeline->Process(*encoded);
+  auto analysis = ctx->pipeline->Process(*encoded, frame_request);
   if (!analysis.ok()) return reject(analysis.status());
   ctx->frames_processed.fetch_add(1);
 
@@ -106,7 +125,8 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   } else {
     r.set_pose_source(v1::POSE_SOURCE_NONE);
   }
-  FillOutputStatuses(r.mutable_outputs(), f.T_world_camera.has_value());
+  FillOutputStatuses(r.mutable_outputs(), ctx->pipeline->options(), &*analysis);
+  if (analysis->entropy) EntropyToProto(*analysis->entropy, r.mutable_entropy());
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
 
@@ -156,6 +176,20 @@ void FinishResult(PendingResult* p) {
     }
   }
   timing->set_total_ms(MsBetween(p->received, Clock::now()));
+}
+
+// The per-frame overrides a request's options carry. InvalidArgument for out-of-range values.
+absl::StatusOr<pipeline::FrameRequest> FrameRequestFromProto(const v1::FrameOptions& o) {
+  pipeline::FrameRequest request;
+  const double t = o.entropy_threshold();
+  if (t != 0.0) {
+    if (!(t >= 0.0 && t <= 1.0)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("options.entropy_threshold must be within [0, 1] (0 = default), got ", t));
+    }
+    request.entropy_threshold = static_cast<float>(t);
+  }
+  return request;
 }
 
 // Resolves the visit a stream or call writes to. visit_id 0: a new visit (or, with
@@ -218,6 +252,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
   const v1::StreamStart start = request.start();
   auto keyframe_options = KeyframeOptionsFromProto(start.options(), ctx_->config.keyframe);
   if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
+  auto frame_request = FrameRequestFromProto(start.options());
+  if (!frame_request.ok()) return ToGrpcStatus(frame_request.status());
   bool created = false;
   auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(), start.visit_label(),
                             false, &created);
@@ -257,7 +293,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
-    queue.Push(HandleFrame(ctx_, request.frame(), state->get(), *keyframe_options));
+    queue.Push(HandleFrame(ctx_, request.frame(), state->get(), *keyframe_options, *frame_request));
     ++frames;
   }
   queue.Close();
@@ -286,6 +322,8 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
                                             v1::FrameResult* resp) {
   auto keyframe_options = KeyframeOptionsFromProto(req->options(), ctx_->config.keyframe);
   if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
+  auto frame_request = FrameRequestFromProto(req->options());
+  if (!frame_request.ok()) return ToGrpcStatus(frame_request.status());
   std::shared_ptr<VisitState> state;
   if (!req->map().empty()) {
     bool created = false;
@@ -297,7 +335,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
   } else if (req->visit_id() != 0) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
-  PendingResult p = HandleFrame(ctx_, req->frame(), state.get(), *keyframe_options);
+  PendingResult p = HandleFrame(ctx_, req->frame(), state.get(), *keyframe_options, *frame_request);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),
                         p.result.error().message());

@@ -19,7 +19,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<store::Store> store;
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<VisitRegistry> visits;
-  pipeline::FramePipeline pipeline;
+  std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<MapServiceImpl> map_service;
   std::unique_ptr<VisitServiceImpl> visit_service;
   std::unique_ptr<FrameServiceImpl> frame_service;
@@ -54,7 +54,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.store = impl->store.get();
   ctx.committer = impl->committer.get();
   ctx.visits = impl->visits.get();
-  ctx.pipeline = &impl->pipeline;
+  impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
+  ctx.pipeline = impl->pipeline.get();
   ctx.started_time_s = NowSeconds();
 
   impl->map_service = std::make_unique<MapServiceImpl>(&ctx);

@@ -119,7 +119,9 @@ class AdminServiceImpl final : public v1::AdminService::Service {
 };
 
 // Which per-frame outputs this build computes, and why the others are absent.
+// `analysis` (may be null for the server-wide answer) refines it per frame.
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
-                        bool pose_from_client);
+                        const pipeline::PipelineOptions& options,
+                        const pipeline::FrameAnalysis* analysis);
 
 }  // namespace lifemap::server

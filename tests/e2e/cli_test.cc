@@ -252,6 +252,10 @@ TEST_F(CliTest, ProcessWritesResultJson) {
   const json result = json::parse(Slurp(tmp_.File("out/result.json")));
   EXPECT_EQ(result["width"], 320);
   EXPECT_NEAR(result["median_depth_m"].get<double>(), 1.0, 1e-3);
+  EXPECT_EQ(result["entropy"]["superjuts"].size(), 1u) << "one flat wall";
+  EXPECT_EQ(result["entropy"]["mask_png"], "") << "images are written as files, not in the JSON";
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("out/entropy_score.png")));
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("out/entropy_mask.png")));
   r = Run({"process", "--rgb", rgb, "--depth", depth, "--intrinsics", "1,2", "--out", "x"});
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("FX,FY,CX,CY"), std::string::npos);

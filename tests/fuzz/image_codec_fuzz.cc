@@ -4,7 +4,8 @@
 //   CC=clang CXX=clang++ cmake -S . -B build-fuzz -G Ninja -DLIFEMAP_BUILD_FUZZERS=ON \
 //       -DLIFEMAP_BUILD_TESTS=OFF -DLIFEMAP_BUILD_BENCHMARKS=OFF
 //   cmake --build build-fuzz --target image_codec_fuzz
-//   mkdir -p /tmp/corpus && build-fuzz/bin/image_codec_fuzz -max_total_time=60 /tmp/corpus tests/fuzz/corpus
+//   mkdir -p /tmp/corpus && build-fuzz/bin/image_codec_fuzz -max_total_time=60 /tmp/corpus
+//   tests/fuzz/corpus
 #include <cstddef>
 #include <cstdint>
 #include <string_view>

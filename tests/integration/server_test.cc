@@ -156,12 +156,65 @@ TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
   EXPECT_FLOAT_EQ(r->valid_depth_fraction(), 1.0f);
   EXPECT_NEAR(r->median_depth_m(), 1.5, 1e-3);
   EXPECT_FALSE(r->keyframe().selected());
-  bool says_why = false;
+  bool says_why = false, entropy_computed = false;
   for (const auto& o : r->outputs()) {
-    if (o.output() == v1::FRAME_OUTPUT_ENTROPY_MASK)
+    if (o.output() == v1::FRAME_OUTPUT_CLASS_LABELS) {
       says_why = !o.computed() && !o.reason().empty();
+    }
+    if (o.output() == v1::FRAME_OUTPUT_ENTROPY_MASK) entropy_computed = o.computed();
   }
   EXPECT_TRUE(says_why) << "outputs not built yet are reported, not silently absent";
+  EXPECT_TRUE(entropy_computed);
+  // The synthetic frame is one flat wall: one superjut, entropy ~0, kept.
+  ASSERT_EQ(r->entropy().superjuts_size(), 1);
+  EXPECT_GT(r->entropy().superjuts(0).neg_entropy(), 0.95f);
+  EXPECT_FALSE(r->entropy().superjuts(0).masked());
+}
+
+TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  auto frame = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+  ASSERT_TRUE(frame.ok());
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = *frame;
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto& entropy = r->entropy();
+  EXPECT_GT(entropy.superjuts_size(), 10) << "a cluttered desk has many superjuts";
+  EXPECT_FLOAT_EQ(entropy.threshold(), 0.5f) << "the server default";
+  int masked = 0, kept = 0;
+  for (const auto& j : entropy.superjuts()) {
+    EXPECT_GE(j.neg_entropy(), 0.0f);
+    EXPECT_LE(j.neg_entropy(), 1.0f);
+    EXPECT_EQ(j.masked(), j.neg_entropy() < 0.5f);
+    (j.masked() ? masked : kept)++;
+  }
+  EXPECT_GT(masked, 0);
+  EXPECT_GT(kept, 0);
+  for (const std::string* png : {&entropy.score_png(), &entropy.mask_png()}) {
+    auto h = ProbeImage(*png);
+    ASSERT_TRUE(h.ok()) << h.status();
+    EXPECT_EQ(h->width, 640);
+    EXPECT_EQ(h->height, 480);
+    EXPECT_EQ(h->channels, 1);
+  }
+
+  // A per-request threshold changes the mask; an impossible one is refused.
+  req.mutable_options()->set_entropy_threshold(0.99);
+  auto strict = client_->ProcessFrame(req);
+  ASSERT_TRUE(strict.ok());
+  int strict_masked = 0;
+  for (const auto& j : strict->entropy().superjuts()) strict_masked += j.masked();
+  EXPECT_GT(strict_masked, masked);
+  req.mutable_options()->set_entropy_threshold(1.5);
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->ProcessFrame(req).status()));
+  req.mutable_options()->set_entropy_threshold(std::nan(""));
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->ProcessFrame(req).status()));
 }
 
 TEST_F(ServerTest, ProcessFrameWithMapStoresAKeyframe) {

@@ -29,13 +29,17 @@ TEST(ServerConfig, RejectsOutOfRangeLimits) {
 TEST(ConfigFile, ReadsKnownKeys) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("c.json")) << R"({"listen": "0.0.0.0:6000", "db": "/x.db",
-    "max_message_mb": 32, "synchronous": "normal", "keyframe": {"min_rotation_deg": 5}})";
+    "max_message_mb": 32, "synchronous": "normal", "keyframe": {"min_rotation_deg": 5},
+    "entropy": {"threshold": 0.3, "downsample": 1, "k": 0.8}})";
   auto c = LoadConfigFile(tmp.File("c.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->listen, "0.0.0.0:6000");
   EXPECT_EQ(c->max_message_bytes, 32 << 20);
   EXPECT_FALSE(c->synchronous_full);
   EXPECT_NEAR(c->keyframe.min_rotation_rad, 5 * M_PI / 180, 1e-12);
+  EXPECT_FLOAT_EQ(c->pipeline.entropy.threshold, 0.3f);
+  EXPECT_EQ(c->pipeline.entropy.downsample, 1);
+  EXPECT_FLOAT_EQ(c->pipeline.entropy.superjuts.k, 0.8f);
 }
 
 TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
@@ -44,7 +48,8 @@ TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
   std::ofstream(tmp.File("type.json")) << R"({"max_streams": "many"})";
   std::ofstream(tmp.File("bad.json")) << R"({"listen": )";
   std::ofstream(tmp.File("range.json")) << R"({"max_streams": 0})";
-  for (const char* f : {"typo.json", "type.json", "bad.json", "range.json"}) {
+  std::ofstream(tmp.File("entropy.json")) << R"({"entropy": {"threshold": 2}})";
+  for (const char* f : {"typo.json", "type.json", "bad.json", "range.json", "entropy.json"}) {
     auto c = LoadConfigFile(tmp.File(f), ServerConfig());
     EXPECT_TRUE(absl::IsInvalidArgument(c.status())) << f << ": " << c.status();
   }
