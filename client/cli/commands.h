@@ -34,5 +34,6 @@ void AddExportCommand(CLI::App* app, CliContext* ctx);
 void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
+void AddEvalCommands(CLI::App* app, CliContext* ctx);
 
 }  // namespace lifemap::cli

@@ -385,6 +385,38 @@ TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
   ExpectDurable(Db(), acked);
 }
 
+TEST_F(CliTest, EvalEntropyStudiesWriteTheirReports) {
+  LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
+  auto r = Run({"--json", "eval", "entropy-features", "--data", dir + "/learn", "--out",
+                tmp_.File("features")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json features = json::parse(Slurp(tmp_.File("features/summary.json")));
+  for (const char* key : {"entropy", "planarity", "horizontality", "textureness"}) {
+    EXPECT_GT(features["auc"][key].get<double>(), 0.0) << key;
+    EXPECT_LE(features["pixel_auc"][key].get<double>(), 1.0) << key;
+  }
+  EXPECT_GT(features["superjuts"].get<int>(), 50);
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("features/superjuts.csv")));
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("features/entropy_planarity.png")));
+
+  r = Run({"--json", "eval", "entropy-matching", "--data", dir + "/test", "--out",
+           tmp_.File("matching"), "--keypoints", "orb", "--ransac-iterations", "2000"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json matching = json::parse(Slurp(tmp_.File("matching/summary.json")));
+  for (const char* key :
+       {"pairs", "raw_inlier_ratio", "best_threshold", "masked_inlier_ratio", "inlier_ratio_gain",
+        "recall_at_best", "null_inlier_ratio_gain", "oracle_inlier_ratio_gain", "static_gt"}) {
+    EXPECT_TRUE(matching.contains(key)) << key;
+  }
+  EXPECT_EQ(matching["pairs"].get<int>() + matching["skipped_pairs"].get<int>(), 78);
+  EXPECT_GE(matching["recall_at_best"].get<double>(), 0.8);
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("matching/pr_curve.png")));
+
+  r = Run({"eval", "entropy-features", "--data", tmp_.path(), "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("no .pcd files"), std::string::npos) << r.err;
+}
+
 // A robot that sends as fast as it can, 420 MB of raw frames, cannot make the server buffer
 // them: the server reads a stream's next frame only when fewer than max_inflight_frames are
 // waiting, and gRPC's flow control holds the sender meanwhile.
