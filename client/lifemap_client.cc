@@ -128,6 +128,9 @@ class GrpcClient final : public Client {
     req.set_name(name);
     return Unary(&v1::MapService::Stub::DeleteMap, maps_.get(), req);
   }
+  absl::StatusOr<v1::Map> UpdateMap(const v1::UpdateMapRequest& request) override {
+    return Unary(&v1::MapService::Stub::UpdateMap, maps_.get(), request);
+  }
   absl::StatusOr<v1::ListKeyframesResponse> ListKeyframes(const std::string& map,
                                                           uint64_t visit_id) override {
     v1::ListKeyframesRequest req;

@@ -68,6 +68,7 @@ class Client {
   virtual absl::StatusOr<v1::Map> RenameMap(const std::string& name,
                                             const std::string& new_name) = 0;
   virtual absl::StatusOr<v1::DeleteMapResponse> DeleteMap(const std::string& name) = 0;
+  virtual absl::StatusOr<v1::Map> UpdateMap(const v1::UpdateMapRequest& request) = 0;
   virtual absl::StatusOr<v1::ListKeyframesResponse> ListKeyframes(const std::string& map,
                                                                   uint64_t visit_id) = 0;
   virtual absl::StatusOr<v1::Keyframe> GetKeyframe(const std::string& map,

@@ -136,6 +136,7 @@ void MapToProto(const store::MapRecord& map, v1::Map* out) {
   out->set_visit_count(static_cast<uint32_t>(map.visit_count));
   out->set_keyframe_count(static_cast<uint64_t>(map.keyframe_count));
   out->set_stored_bytes(static_cast<uint64_t>(map.stored_bytes));
+  out->set_entropy_threshold(map.entropy_threshold.value_or(0.0));
 }
 
 void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
@@ -159,6 +160,33 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
   IntrinsicsToProto(k.intrinsics, out->mutable_intrinsics());
   out->set_color_bytes(static_cast<uint32_t>(k.color_bytes));
   out->set_depth_bytes(static_cast<uint32_t>(k.depth_bytes));
+  if (k.feature_counts) {
+    out->set_superjut_count(static_cast<uint32_t>(k.feature_counts->superjuts));
+    out->set_entropy_threshold(k.feature_counts->entropy_threshold);
+    out->set_keypoint_type(k.feature_counts->keypoint_type);
+    out->set_keypoints_stored(static_cast<uint32_t>(k.feature_counts->keypoints_stored));
+    out->set_keypoints_masked(static_cast<uint32_t>(k.feature_counts->keypoints_masked));
+  }
+}
+
+void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out) {
+  out->set_id(static_cast<uint32_t>(s.id));
+  out->set_size_px(static_cast<uint32_t>(s.size_px));
+  out->set_entropy(s.entropy);
+  out->set_planarity(s.planarity);
+  out->set_horizontality(s.horizontality);
+  out->set_textureness(s.textureness);
+  out->set_neg_entropy(s.neg_entropy);
+  out->set_masked(s.neg_entropy < threshold);
+}
+
+absl::StatusOr<std::optional<double>> EntropyThresholdFromProto(double value, const char* field) {
+  if (value == 0.0) return std::optional<double>();
+  if (!(value > 0.0 && value <= 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, " must be within [0, 1] (0 = the server default), got ", value));
+  }
+  return std::optional<double>(value);
 }
 
 }  // namespace lifemap::server

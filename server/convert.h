@@ -34,5 +34,10 @@ absl::StatusOr<tracking::KeyframeOptions> KeyframeOptionsFromProto(
 void MapToProto(const store::MapRecord& map, v1::Map* out);
 void VisitToProto(const store::VisitRecord& visit, v1::Visit* out);
 void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out);
+void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out);
+
+// A neg-entropy threshold field: 0 = unset (nullopt), else within (0, 1]. InvalidArgument names
+// the field otherwise (NaN included).
+absl::StatusOr<std::optional<double>> EntropyThresholdFromProto(double value, const char* field);
 
 }  // namespace lifemap::server

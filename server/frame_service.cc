@@ -9,6 +9,7 @@
 #include "absl/cleanup/cleanup.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
+#include "core/features/keypoints.h"
 #include "server/bounded_queue.h"
 #include "server/convert.h"
 #include "server/services.h"
@@ -22,6 +23,8 @@ using Clock = std::chrono::steady_clock;
 // up to 13.1 m: covers indoor Kinect-class sensors).
 constexpr double kStoredDepthScale = 5000.0;
 constexpr int kStoredJpegQuality = 90;
+// ORB keypoints detected per keyframe (before the entropy mask prunes them).
+constexpr int kKeyframeKeypoints = 1000;
 
 double MsBetween(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double, std::milli>(b - a).count();
@@ -80,17 +83,7 @@ void EntropyToProto(const entropy::EntropyMaskResult& e, v1::EntropyOutput* out)
   out->set_threshold(e.threshold);
   if (auto png = EncodePng(e.score_image); png.ok()) out->set_score_png(*std::move(png));
   if (auto png = EncodePng(e.mask); png.ok()) out->set_mask_png(*std::move(png));
-  for (const auto& s : e.superjuts) {
-    auto* j = out->add_superjuts();
-    j->set_id(static_cast<uint32_t>(s.id));
-    j->set_size_px(static_cast<uint32_t>(s.size_px));
-    j->set_entropy(s.entropy);
-    j->set_planarity(s.planarity);
-    j->set_horizontality(s.horizontality);
-    j->set_textureness(s.textureness);
-    j->set_neg_entropy(s.neg_entropy);
-    j->set_masked(s.neg_entropy < e.threshold);
-  }
+  for (const auto& s : e.superjuts) SuperjutToProto(s, e.threshold, out->add_superjuts());
 }
 
 PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
@@ -110,7 +103,15 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   };
   auto encoded = FrameFromProto(frame);
   if (!encoded.ok()) return reject(encoded.status());
-  auto analysis = ctx->pipeline->Process(*encoded, frame_request);
+  pipeline::FrameRequest effective = frame_request;
+  if (visit != nullptr && !effective.entropy_threshold) {
+    // The map's own threshold, when it has one, comes before the server's default.
+    auto map_threshold = ctx->visits->MapEntropyThreshold(visit->map_id);
+    if (map_threshold.ok() && *map_threshold) {
+      effective.entropy_threshold = static_cast<float>(**map_threshold);
+    }
+  }
+  auto analysis = ctx->pipeline->Process(*encoded, effective);
   if (!analysis.ok()) return reject(analysis.status());
   ctx->frames_processed.fetch_add(1);
 
@@ -147,6 +148,12 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   r.mutable_keyframe()->set_reason(decision.reason);
   if (decision.selected) {
     auto record = MakeKeyframeRecord(frame, f, visit->visit_id);
+    if (record.ok() && analysis->entropy) {
+      // Keypoints in zones likely to move are dropped before they are stored for matching.
+      record->features = store::KeyframeFeatures{
+          analysis->entropy->threshold, analysis->entropy->superjuts,
+          features::ExtractOrb(f.color_bgr, analysis->entropy->mask, kKeyframeKeypoints)};
+    }
     if (!record.ok()) {
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
       return p;
@@ -181,14 +188,9 @@ void FinishResult(PendingResult* p) {
 // The per-frame overrides a request's options carry. InvalidArgument for out-of-range values.
 absl::StatusOr<pipeline::FrameRequest> FrameRequestFromProto(const v1::FrameOptions& o) {
   pipeline::FrameRequest request;
-  const double t = o.entropy_threshold();
-  if (t != 0.0) {
-    if (!(t >= 0.0 && t <= 1.0)) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("options.entropy_threshold must be within [0, 1] (0 = default), got ", t));
-    }
-    request.entropy_threshold = static_cast<float>(t);
-  }
+  auto threshold = EntropyThresholdFromProto(o.entropy_threshold(), "options.entropy_threshold");
+  if (!threshold.ok()) return threshold.status();
+  if (*threshold) request.entropy_threshold = static_cast<float>(**threshold);
   return request;
 }
 

@@ -51,7 +51,9 @@ grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext*, const v1::CreateMap
                         absl::StrCat("description is ", req->description().size(),
                                      " bytes; at most ", kDescriptionMaxBytes));
   }
-  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds());
+  auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
+  if (!threshold.ok()) return ToGrpcStatus(threshold.status());
+  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds(), *threshold);
   if (!map.ok()) return ToGrpcStatus(map.status());
   spdlog::info("created map '{}' (id {})", map->name, map->id);
   MapToProto(*map, resp);
@@ -97,7 +99,34 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMap
   }
   auto map = ctx_->store->RenameMap(req->name(), req->new_name());
   if (!map.ok()) return ToGrpcStatus(map.status());
+  ctx_->visits->ForgetMap(map->id);
   MapToProto(*map, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext*, const v1::UpdateMapRequest* req,
+                                       v1::Map* resp) {
+  auto map = FindMap(ctx_->store, req->name());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  store::MapUpdate update;
+  if (req->has_description()) {
+    if (req->description().size() > kDescriptionMaxBytes) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("description is ", req->description().size(),
+                                       " bytes; at most ", kDescriptionMaxBytes));
+    }
+    update.description = req->description();
+  }
+  if (req->has_entropy_threshold()) {
+    auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
+    if (!threshold.ok()) return ToGrpcStatus(threshold.status());
+    update.set_entropy_threshold = true;
+    update.entropy_threshold = *threshold;
+  }
+  auto updated = ctx_->store->UpdateMap(req->name(), update);
+  if (!updated.ok()) return ToGrpcStatus(updated.status());
+  ctx_->visits->ForgetMap(map->id);
+  MapToProto(*updated, resp);
   return grpc::Status::OK;
 }
 
@@ -140,6 +169,11 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyf
   color->set_data(k->color);
   color->set_width(static_cast<uint32_t>(k->intrinsics.width));
   color->set_height(static_cast<uint32_t>(k->intrinsics.height));
+  if (k->features) {
+    for (const auto& s : k->features->superjuts) {
+      SuperjutToProto(s, k->features->entropy_threshold, resp->add_superjuts());
+    }
+  }
   return grpc::Status::OK;
 }
 

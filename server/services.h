@@ -45,6 +45,7 @@ class MapServiceImpl final : public v1::MapService::Service {
   grpc::Status DeleteMap(grpc::ServerContext*, const v1::DeleteMapRequest*,
                          v1::DeleteMapResponse*) override;
   grpc::Status RenameMap(grpc::ServerContext*, const v1::RenameMapRequest*, v1::Map*) override;
+  grpc::Status UpdateMap(grpc::ServerContext*, const v1::UpdateMapRequest*, v1::Map*) override;
   grpc::Status ListKeyframes(grpc::ServerContext*, const v1::ListKeyframesRequest*,
                              v1::ListKeyframesResponse*) override;
   grpc::Status GetKeyframe(grpc::ServerContext*, const v1::GetKeyframeRequest*,

@@ -37,8 +37,22 @@ void VisitRegistry::Forget(int64_t visit_id) {
   visits_.erase(visit_id);
 }
 
+absl::StatusOr<std::optional<double>> VisitRegistry::MapEntropyThreshold(int64_t map_id) {
+  {
+    absl::MutexLock lock(&mu_);
+    auto it = map_thresholds_.find(map_id);
+    if (it != map_thresholds_.end()) return it->second;
+  }
+  auto map = store_->GetMapById(map_id);
+  if (!map.ok()) return map.status();
+  absl::MutexLock lock(&mu_);
+  map_thresholds_[map_id] = map->entropy_threshold;
+  return map->entropy_threshold;
+}
+
 void VisitRegistry::ForgetMap(int64_t map_id) {
   absl::MutexLock lock(&mu_);
+  map_thresholds_.erase(map_id);
   for (auto it = visits_.begin(); it != visits_.end();) {
     it = it->second->map_id == map_id ? visits_.erase(it) : std::next(it);
   }

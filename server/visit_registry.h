@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <unordered_map>
 
@@ -34,12 +35,17 @@ class VisitRegistry {
   absl::StatusOr<std::shared_ptr<VisitState>> Get(int64_t visit_id);
   // Forgets a visit (ended, or its map deleted).
   void Forget(int64_t visit_id);
+  // Forgets a map's visits and cached settings (deleted, renamed or updated).
   void ForgetMap(int64_t map_id);
+
+  // The map's own entropy threshold (nullopt = the server default), cached.
+  absl::StatusOr<std::optional<double>> MapEntropyThreshold(int64_t map_id);
 
  private:
   store::Store* const store_;
   absl::Mutex mu_;
   std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
+  std::unordered_map<int64_t, std::optional<double>> map_thresholds_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace lifemap::server

@@ -44,10 +44,12 @@ absl::Status WriteFileAtomically(const std::string& path,
 void PrintMap(const v1::Map& m) {
   std::cout << absl::StrFormat(
       "name:        %s\nid:          %d\ndescription: %s\ncreated:     %s\nvisits:      %d\n"
-      "keyframes:   %d\nstored:      %s\n",
+      "keyframes:   %d\nstored:      %s\nentropy threshold: %s\n",
       m.name(), m.id(), m.description().empty() ? "-" : m.description(),
       HumanTime(m.created_time_s()), m.visit_count(), m.keyframe_count(),
-      HumanBytes(m.stored_bytes()));
+      HumanBytes(m.stored_bytes()),
+      m.entropy_threshold() > 0 ? absl::StrFormat("%.2f", m.entropy_threshold())
+                                : std::string("server default"));
 }
 
 const char* OutputName(v1::FrameOutput o) {
@@ -211,6 +213,33 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
           [&](const v1::Map& m) {
             std::cout << "renamed map '" << *old_name << "' to '" << m.name() << "'\n";
           });
+    };
+  });
+
+  auto* set = maps->add_subcommand("set", "Change a map's description or settings");
+  struct SetArgs {
+    std::string name, description;
+    double entropy_threshold = 0;
+  };
+  auto set_args = std::make_shared<SetArgs>();
+  set->add_option("NAME", set_args->name, "map name")->required();
+  auto* description_flag =
+      set->add_option("--description", set_args->description, "new description");
+  auto* threshold_flag = set->add_option(
+      "--entropy-threshold", set_args->entropy_threshold,
+      "neg-entropy below which superjuts are masked for this map, [0, 1]; 0 = server default");
+  set->callback([ctx, set_args, description_flag, threshold_flag] {
+    ctx->run = [ctx, set_args, description_flag, threshold_flag] {
+      v1::UpdateMapRequest req;
+      req.set_name(set_args->name);
+      if (description_flag->count() > 0) req.set_description(set_args->description);
+      if (threshold_flag->count() > 0) req.set_entropy_threshold(set_args->entropy_threshold);
+      if (!req.has_description() && !req.has_entropy_threshold()) {
+        std::cerr << "lifemap: nothing to change: give --description or --entropy-threshold\n";
+        return 2;
+      }
+      return RunCall<v1::Map>(
+          *ctx, [&](client::Client& c) { return c.UpdateMap(req); }, PrintMap);
     };
   });
 

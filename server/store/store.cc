@@ -2,6 +2,7 @@
 
 #include <sqlite3.h>
 
+#include <cstring>
 #include <filesystem>
 
 #include "absl/strings/str_cat.h"
@@ -57,6 +58,23 @@ CREATE TABLE keyframe_images (
   color BLOB NOT NULL
 );
 )sql",
+    // 1 -> 2: per-map entropy threshold; per-keyframe entropy-mask features (superjut table,
+    // threshold, keypoints kept after masking). Blobs are little-endian packed records.
+    R"sql(
+ALTER TABLE maps ADD COLUMN entropy_threshold REAL;
+CREATE TABLE keyframe_features (
+  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+  entropy_threshold REAL NOT NULL,
+  superjut_count INTEGER NOT NULL,
+  superjuts BLOB NOT NULL,
+  keypoint_type TEXT NOT NULL,
+  keypoints_stored INTEGER NOT NULL,
+  keypoints_masked INTEGER NOT NULL,
+  keypoints BLOB NOT NULL,
+  descriptor_bytes INTEGER NOT NULL,
+  descriptors BLOB NOT NULL
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -66,6 +84,59 @@ constexpr char kKeyframeColumns[] =
     "k.qz, k.qw, k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale, k.color_encoding, "
     "k.depth_bytes, k.color_bytes";
 constexpr int kKeyframeColumnCount = 22;
+
+// Superjut records: int32 id, int32 size_px, float32 entropy, planarity, horizontality,
+// textureness, neg_entropy (28 bytes). Keypoints: float32 x, y, size, angle, response (20 bytes).
+static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "blobs are written little-endian");
+constexpr size_t kSuperjutRecord = 28;
+constexpr size_t kKeypointRecord = 20;
+
+std::string EncodeSuperjuts(const std::vector<entropy::SuperjutScore>& superjuts) {
+  std::string out(superjuts.size() * kSuperjutRecord, '\0');
+  char* p = out.data();
+  for (const auto& j : superjuts) {
+    const int32_t ints[2] = {j.id, j.size_px};
+    const float floats[5] = {j.entropy, j.planarity, j.horizontality, j.textureness, j.neg_entropy};
+    std::memcpy(p, ints, 8);
+    std::memcpy(p + 8, floats, 20);
+    p += kSuperjutRecord;
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<entropy::SuperjutScore>> DecodeSuperjuts(const std::string& blob) {
+  if (blob.size() % kSuperjutRecord != 0) {
+    return absl::DataLossError("stored superjut table has a truncated record");
+  }
+  std::vector<entropy::SuperjutScore> out(blob.size() / kSuperjutRecord);
+  const char* p = blob.data();
+  for (auto& j : out) {
+    int32_t ints[2];
+    float floats[5];
+    std::memcpy(ints, p, 8);
+    std::memcpy(floats, p + 8, 20);
+    j.id = ints[0];
+    j.size_px = ints[1];
+    j.entropy = floats[0];
+    j.planarity = floats[1];
+    j.horizontality = floats[2];
+    j.textureness = floats[3];
+    j.neg_entropy = floats[4];
+    p += kSuperjutRecord;
+  }
+  return out;
+}
+
+std::string EncodeKeypoints(const std::vector<features::Keypoint>& keypoints) {
+  std::string out(keypoints.size() * kKeypointRecord, '\0');
+  char* p = out.data();
+  for (const auto& k : keypoints) {
+    const float v[5] = {k.x, k.y, k.size, k.angle, k.response};
+    std::memcpy(p, v, kKeypointRecord);
+    p += kKeypointRecord;
+  }
+  return out;
+}
 
 KeyframeRecord ReadKeyframe(const Statement& s) {
   KeyframeRecord k;
@@ -118,7 +189,7 @@ constexpr char kMapSelect[] =
     "(SELECT COUNT(*) FROM visits v WHERE v.map_id = m.id), "
     "(SELECT COUNT(*) FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), "
     "(SELECT COALESCE(SUM(k.depth_bytes + k.color_bytes), 0) FROM keyframes k "
-    " JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id) "
+    " JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), m.entropy_threshold "
     "FROM maps m ";
 
 MapRecord ReadMap(const Statement& s) {
@@ -130,6 +201,7 @@ MapRecord ReadMap(const Statement& s) {
   m.visit_count = s.ColumnInt(4);
   m.keyframe_count = s.ColumnInt(5);
   m.stored_bytes = s.ColumnInt(6);
+  if (!s.ColumnIsNull(7)) m.entropy_threshold = s.ColumnDouble(7);
   return m;
 }
 
@@ -281,15 +353,22 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
 }
 
 absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::string& description,
-                                           double created_time_s) {
+                                           double created_time_s,
+                                           std::optional<double> entropy_threshold) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
-  auto stmt =
-      db->Prepare("INSERT INTO maps (name, description, created_time_s) VALUES (?1, ?2, ?3)");
+  auto stmt = db->Prepare(
+      "INSERT INTO maps (name, description, created_time_s, entropy_threshold) "
+      "VALUES (?1, ?2, ?3, ?4)");
   if (!stmt.ok()) return stmt.status();
   {
     StatementScope s(*stmt);
     s->Bind(1, name).Bind(2, description).Bind(3, created_time_s);
+    if (entropy_threshold) {
+      s->Bind(4, *entropy_threshold);
+    } else {
+      s->BindNull(4);
+    }
     if (auto st = s->Run(); !st.ok()) {
       if (absl::IsFailedPrecondition(st)) {
         return absl::AlreadyExistsError(absl::StrCat("map '", name, "' already exists"));
@@ -297,6 +376,36 @@ absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::s
       return st;
     }
   }
+  return impl_->GetMapLocked(db, name);
+}
+
+absl::StatusOr<MapRecord> Store::UpdateMap(const std::string& name, const MapUpdate& update) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto map = impl_->GetMapLocked(db, name);
+  if (!map.ok()) return map.status();
+  if (update.description) {
+    auto stmt = db->Prepare("UPDATE maps SET description = ?2 WHERE id = ?1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, map->id).Bind(2, *update.description);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (update.set_entropy_threshold) {
+    auto stmt = db->Prepare("UPDATE maps SET entropy_threshold = ?2 WHERE id = ?1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, map->id);
+    if (update.entropy_threshold) {
+      s->Bind(2, *update.entropy_threshold);
+    } else {
+      s->BindNull(2);
+    }
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
   return impl_->GetMapLocked(db, name);
 }
 
@@ -318,6 +427,18 @@ absl::StatusOr<std::vector<MapRecord>> Store::ListMaps() {
 absl::StatusOr<MapRecord> Store::GetMap(const std::string& name) {
   absl::MutexLock lock(&impl_->read_mu);
   return impl_->GetMapLocked(impl_->read_db.get(), name);
+}
+
+absl::StatusOr<MapRecord> Store::GetMapById(int64_t map_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(kMapSelect, "WHERE m.id = ?1"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::NotFoundError(absl::StrCat("map ", map_id, " does not exist"));
+  return ReadMap(*s);
 }
 
 absl::StatusOr<std::pair<int64_t, int64_t>> Store::DeleteMap(const std::string& name) {
@@ -493,6 +614,27 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(1, k.id).BindBlob(2, k.depth_png).BindBlob(3, k.color);
       if (auto st = s->Run(); !st.ok()) return st;
     }
+    if (k.features) {
+      const auto& f = *k.features;
+      const std::string superjuts = EncodeSuperjuts(f.superjuts);
+      const std::string keypoints = EncodeKeypoints(f.keypoints.keypoints);
+      const cv::Mat& d = f.keypoints.descriptors;
+      const size_t row_bytes = d.empty() ? 0 : d.cols * d.elemSize();
+      std::string descriptors;
+      for (int r = 0; r < d.rows; ++r) descriptors.append(d.ptr<char>(r), row_bytes);
+      auto insert_features = db->Prepare(
+          "INSERT INTO keyframe_features (keyframe_id, entropy_threshold, superjut_count, "
+          "superjuts, keypoint_type, keypoints_stored, keypoints_masked, keypoints, "
+          "descriptor_bytes, descriptors) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)");
+      if (!insert_features.ok()) return insert_features.status();
+      StatementScope s(*insert_features);
+      s->Bind(1, k.id).Bind(2, f.entropy_threshold);
+      s->Bind(3, static_cast<int64_t>(f.superjuts.size())).BindBlob(4, superjuts);
+      s->Bind(5, f.keypoints.type).Bind(6, static_cast<int64_t>(f.keypoints.keypoints.size()));
+      s->Bind(7, int64_t{f.keypoints.masked}).BindBlob(8, keypoints);
+      s->Bind(9, static_cast<int64_t>(row_bytes)).BindBlob(10, descriptors);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
   }
   auto update_count =
       db->Prepare("UPDATE visits SET frame_count = MAX(frame_count, ?2) WHERE id = ?1");
@@ -513,7 +655,9 @@ absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
   absl::MutexLock lock(&impl_->read_mu);
   auto stmt = impl_->read_db->Prepare(
       absl::StrCat("SELECT ", kKeyframeColumns,
-                   " FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = ?1 "
+                   ", f.superjut_count, f.entropy_threshold, f.keypoint_type, f.keypoints_stored, "
+                   "f.keypoints_masked FROM keyframes k JOIN visits v ON v.id = k.visit_id "
+                   "LEFT JOIN keyframe_features f ON f.keyframe_id = k.id WHERE v.map_id = ?1 "
                    "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id"));
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
@@ -524,6 +668,12 @@ absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
     if (!row.ok()) return row.status();
     if (!*row) break;
     out.push_back(ReadKeyframe(*s));
+    constexpr int c = kKeyframeColumnCount;
+    if (!s->ColumnIsNull(c)) {
+      out.back().feature_counts = KeyframeFeatureCounts{
+          static_cast<int>(s->ColumnInt(c)), s->ColumnDouble(c + 1), s->ColumnText(c + 2),
+          static_cast<int>(s->ColumnInt(c + 3)), static_cast<int>(s->ColumnInt(c + 4))};
+    }
   }
   return out;
 }
@@ -560,7 +710,66 @@ absl::StatusOr<KeyframeRecord> Store::GetKeyframe(int64_t map_id, int64_t keyfra
   KeyframeRecord k = ReadKeyframe(*s);
   k.depth_png = s->ColumnBlob(kKeyframeColumnCount);
   k.color = s->ColumnBlob(kKeyframeColumnCount + 1);
+  auto features = impl_->read_db->Prepare(
+      "SELECT superjut_count, entropy_threshold, keypoint_type, keypoints_stored, "
+      "keypoints_masked, superjuts FROM keyframe_features WHERE keyframe_id = ?1");
+  if (!features.ok()) return features.status();
+  StatementScope f(*features);
+  f->Bind(1, keyframe_id);
+  auto frow = f->Step();
+  if (!frow.ok()) return frow.status();
+  if (*frow) {
+    k.feature_counts = KeyframeFeatureCounts{static_cast<int>(f->ColumnInt(0)), f->ColumnDouble(1),
+                                             f->ColumnText(2), static_cast<int>(f->ColumnInt(3)),
+                                             static_cast<int>(f->ColumnInt(4))};
+    auto superjuts = DecodeSuperjuts(f->ColumnBlob(5));
+    if (!superjuts.ok()) return superjuts.status();
+    k.features = KeyframeFeatures{f->ColumnDouble(1), *std::move(superjuts), {}};
+  }
   return k;
+}
+
+absl::StatusOr<KeyframeFeatures> Store::GetKeyframeFeatures(int64_t keyframe_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT entropy_threshold, superjuts, keypoint_type, keypoints_masked, keypoints, "
+      "descriptor_bytes, descriptors FROM keyframe_features WHERE keyframe_id = ?1");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, keyframe_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) {
+    return absl::NotFoundError(absl::StrCat("keyframe ", keyframe_id, " has no stored features"));
+  }
+  KeyframeFeatures f;
+  f.entropy_threshold = s->ColumnDouble(0);
+  auto superjuts = DecodeSuperjuts(s->ColumnBlob(1));
+  if (!superjuts.ok()) return superjuts.status();
+  f.superjuts = *std::move(superjuts);
+  f.keypoints.type = s->ColumnText(2);
+  f.keypoints.masked = static_cast<int>(s->ColumnInt(3));
+  const std::string keypoints = s->ColumnBlob(4);
+  const int64_t row_bytes = s->ColumnInt(5);
+  const std::string descriptors = s->ColumnBlob(6);
+  const size_t n = keypoints.size() / kKeypointRecord;
+  if (keypoints.size() % kKeypointRecord != 0 ||
+      descriptors.size() != n * static_cast<size_t>(row_bytes)) {
+    return absl::DataLossError(
+        absl::StrCat("stored keypoints of keyframe ", keyframe_id, " are truncated"));
+  }
+  f.keypoints.keypoints.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    float v[5];
+    std::memcpy(v, keypoints.data() + i * kKeypointRecord, kKeypointRecord);
+    f.keypoints.keypoints[i] = {v[0], v[1], v[2], v[3], v[4]};
+  }
+  f.keypoints.detected = static_cast<int>(n) + f.keypoints.masked;
+  if (n > 0) {
+    f.keypoints.descriptors = cv::Mat(static_cast<int>(n), static_cast<int>(row_bytes), CV_8UC1);
+    std::memcpy(f.keypoints.descriptors.data, descriptors.data(), descriptors.size());
+  }
+  return f;
 }
 
 absl::StatusOr<std::optional<KeyframeRecord>> Store::LastKeyframe(int64_t visit_id) {

@@ -17,6 +17,8 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/types.h"
+#include "core/entropy/superjut_scores.h"
+#include "core/features/keypoints.h"
 
 namespace lifemap::store {
 
@@ -35,7 +37,15 @@ struct MapRecord {
   double created_time_s = 0.0;
   int64_t visit_count = 0;
   int64_t keyframe_count = 0;
-  int64_t stored_bytes = 0;  // keyframe image bytes
+  int64_t stored_bytes = 0;                 // keyframe image bytes
+  std::optional<double> entropy_threshold;  // nullopt = the server's default
+};
+
+// Fields of a map to change; unset ones keep their values.
+struct MapUpdate {
+  std::optional<std::string> description;
+  bool set_entropy_threshold = false;
+  std::optional<double> entropy_threshold;  // with set_entropy_threshold: nullopt = default
 };
 
 struct VisitRecord {
@@ -53,6 +63,23 @@ struct VisitRecord {
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
 
+// What the entropy mask made of a keyframe (paper 000): its superjuts as scored, the threshold
+// applied, and the keypoints kept for matching (those in masked zones dropped).
+struct KeyframeFeatures {
+  double entropy_threshold = 0;
+  std::vector<entropy::SuperjutScore> superjuts;
+  features::KeypointSet keypoints;
+};
+
+// Counts of KeyframeFeatures, for listings (no blobs read).
+struct KeyframeFeatureCounts {
+  int superjuts = 0;
+  double entropy_threshold = 0;
+  std::string keypoint_type;
+  int keypoints_stored = 0;
+  int keypoints_masked = 0;
+};
+
 struct KeyframeRecord {
   int64_t id = 0;  // assigned by InsertKeyframes
   int64_t visit_id = 0;
@@ -66,6 +93,10 @@ struct KeyframeRecord {
   std::string color;  // JPEG or PNG bytes (empty when listed without images)
   int64_t depth_bytes = 0;
   int64_t color_bytes = 0;
+  // Written with the keyframe when entropy masks were computed. GetKeyframe returns the
+  // superjuts (keypoints: GetKeyframeFeatures); listings return only the counts.
+  std::optional<KeyframeFeatures> features;
+  std::optional<KeyframeFeatureCounts> feature_counts;
 };
 
 // A visit's frame counter, written in the same transaction as its keyframes.
@@ -92,15 +123,18 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 1;
+  static constexpr int kSchemaVersion = 2;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
   // Maps. Names are validated by the caller (ValidateMapName). ALREADY_EXISTS / NOT_FOUND.
   absl::StatusOr<MapRecord> CreateMap(const std::string& name, const std::string& description,
-                                      double created_time_s);
+                                      double created_time_s,
+                                      std::optional<double> entropy_threshold = std::nullopt);
+  absl::StatusOr<MapRecord> UpdateMap(const std::string& name, const MapUpdate& update);
   absl::StatusOr<std::vector<MapRecord>> ListMaps();
   absl::StatusOr<MapRecord> GetMap(const std::string& name);
+  absl::StatusOr<MapRecord> GetMapById(int64_t map_id);
   // Deletes the map with its visits and keyframes; returns the counts deleted.
   absl::StatusOr<std::pair<int64_t, int64_t>> DeleteMap(const std::string& name);
   absl::StatusOr<MapRecord> RenameMap(const std::string& name, const std::string& new_name);
@@ -129,6 +163,8 @@ class Store {
       const std::function<absl::Status(const KeyframeRecord&)>& fn);
   // One keyframe of the map with its images. NOT_FOUND if it is not in that map.
   absl::StatusOr<KeyframeRecord> GetKeyframe(int64_t map_id, int64_t keyframe_id);
+  // A keyframe's stored features (superjuts and keypoints). NOT_FOUND if it has none.
+  absl::StatusOr<KeyframeFeatures> GetKeyframeFeatures(int64_t keyframe_id);
   // The visit's latest keyframe (without images), to resume keyframe selection.
   absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
 

@@ -13,6 +13,7 @@
 #include "core/io/tum_dataset.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "server/server.h"
+#include "server/store/store.h"
 #include "tests/testing/test_util.h"
 
 namespace lifemap {
@@ -215,6 +216,56 @@ TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
   EXPECT_TRUE(absl::IsInvalidArgument(client_->ProcessFrame(req).status()));
   req.mutable_options()->set_entropy_threshold(std::nan(""));
   EXPECT_TRUE(absl::IsInvalidArgument(client_->ProcessFrame(req).status()));
+}
+
+// Keyframes keep their superjut tables and only the keypoints outside masked zones; a map's own
+// threshold applies to its frames unless a request overrides it.
+TEST_F(ServerTest, KeyframesStoreSuperjutsAndMaskPrunedKeypoints) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  auto frame = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+  ASSERT_TRUE(frame.ok());
+
+  ASSERT_TRUE(client_->CreateMap("loose", "").ok());
+  ASSERT_TRUE(client_->CreateMap("strict", "").ok());
+  v1::UpdateMapRequest update;
+  update.set_name("strict");
+  update.set_entropy_threshold(0.9);
+  auto strict_map = client_->UpdateMap(update);
+  ASSERT_TRUE(strict_map.ok()) << strict_map.status();
+  EXPECT_DOUBLE_EQ(strict_map->entropy_threshold(), 0.9);
+  update.set_entropy_threshold(1.5);
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->UpdateMap(update).status()));
+
+  std::map<std::string, v1::KeyframeSummary> stored;
+  for (const char* map : {"loose", "strict"}) {
+    v1::ProcessFrameRequest req;
+    req.set_map(map);
+    *req.mutable_frame() = *frame;
+    auto r = client_->ProcessFrame(req);
+    ASSERT_TRUE(r.ok()) << r.status();
+    ASSERT_TRUE(r->keyframe().committed());
+    EXPECT_DOUBLE_EQ(r->entropy().threshold(), std::string(map) == "strict" ? 0.9f : 0.5f);
+    auto list = client_->ListKeyframes(map, 0);
+    ASSERT_TRUE(list.ok());
+    ASSERT_EQ(list->keyframes_size(), 1);
+    stored[map] = list->keyframes(0);
+    const auto& kf = list->keyframes(0);
+    EXPECT_EQ(kf.superjut_count(), static_cast<uint32_t>(r->entropy().superjuts_size()));
+    EXPECT_EQ(kf.keypoint_type(), "orb");
+    EXPECT_GT(kf.keypoints_stored(), 100u);
+    EXPECT_LE(kf.keypoints_stored() + kf.keypoints_masked(), 1000u);
+    auto full = client_->GetKeyframe(map, kf.id());
+    ASSERT_TRUE(full.ok());
+    EXPECT_EQ(full->superjuts_size(), r->entropy().superjuts_size());
+  }
+  EXPECT_GT(stored["loose"].keypoints_masked(), 0u) << "the desk's clutter is masked";
+  EXPECT_GT(stored["strict"].keypoints_masked(), stored["loose"].keypoints_masked())
+      << "a stricter map threshold drops more keypoints";
 }
 
 TEST_F(ServerTest, ProcessFrameWithMapStoresAKeyframe) {
@@ -538,7 +589,7 @@ TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
   ASSERT_TRUE(info.ok());
   EXPECT_EQ(info->api_version(), "lifemap.v1");
   EXPECT_EQ(info->outputs_size(), 6);
-  EXPECT_EQ(info->schema_version(), 1u);
+  EXPECT_EQ(info->schema_version(), static_cast<uint32_t>(store::Store::kSchemaVersion));
   EXPECT_GT(info->max_message_bytes(), 0u);
 }
 

@@ -191,6 +191,117 @@ TEST(StoreOpen, MigratesAnEmptyFileToTheCurrentSchema) {
   sqlite3_close(db);
 }
 
+TEST_F(StoreTest, KeyframeFeaturesRoundTrip) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  KeyframeRecord k = Keyframe(visit->id, 1.0);
+  KeyframeFeatures f;
+  f.entropy_threshold = 0.4;
+  f.superjuts = {{0, 1200, 0.1f, 0.9f, 0.95f, 0.01f, 0.97f},
+                 {1, 300, 3.0f, 0.1f, 0.2f, 0.3f, 0.3f}};
+  f.keypoints.type = "orb";
+  f.keypoints.keypoints = {{10.5f, 20.25f, 31, 90, 0.5f}, {100, 200, 31, 45, 0.25f}};
+  f.keypoints.descriptors = cv::Mat(2, 32, CV_8UC1);
+  cv::randu(f.keypoints.descriptors, 0, 255);
+  f.keypoints.masked = 5;
+  k.features = f;
+  std::vector<KeyframeRecord> batch = {k, Keyframe(visit->id, 2.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+
+  auto map = store_->GetMap("m");
+  auto list = store_->ListKeyframes(map->id, 0);
+  ASSERT_TRUE(list.ok());
+  ASSERT_TRUE((*list)[0].feature_counts.has_value());
+  EXPECT_EQ((*list)[0].feature_counts->superjuts, 2);
+  EXPECT_EQ((*list)[0].feature_counts->keypoints_stored, 2);
+  EXPECT_EQ((*list)[0].feature_counts->keypoints_masked, 5);
+  EXPECT_FALSE((*list)[1].feature_counts.has_value()) << "a keyframe without features";
+
+  auto got = store_->GetKeyframe(map->id, batch[0].id);
+  ASSERT_TRUE(got.ok() && got->features.has_value());
+  ASSERT_EQ(got->features->superjuts.size(), 2u);
+  EXPECT_FLOAT_EQ(got->features->superjuts[1].entropy, 3.0f);
+  EXPECT_EQ(got->features->superjuts[0].size_px, 1200);
+
+  auto features = store_->GetKeyframeFeatures(batch[0].id);
+  ASSERT_TRUE(features.ok()) << features.status();
+  EXPECT_DOUBLE_EQ(features->entropy_threshold, 0.4);
+  ASSERT_EQ(features->keypoints.keypoints.size(), 2u);
+  EXPECT_FLOAT_EQ(features->keypoints.keypoints[0].y, 20.25f);
+  EXPECT_EQ(cv::norm(features->keypoints.descriptors, f.keypoints.descriptors, cv::NORM_L1), 0);
+  EXPECT_EQ(features->keypoints.detected, 7);
+  EXPECT_TRUE(absl::IsNotFound(store_->GetKeyframeFeatures(batch[1].id).status()));
+}
+
+TEST_F(StoreTest, MapEntropyThresholdIsSetAndReset) {
+  auto m = store_->CreateMap("m", "d", 1.0, 0.3);
+  ASSERT_TRUE(m.ok());
+  EXPECT_EQ(m->entropy_threshold, 0.3);
+  MapUpdate update;
+  update.set_entropy_threshold = true;
+  update.entropy_threshold = std::nullopt;
+  auto reset = store_->UpdateMap("m", update);
+  ASSERT_TRUE(reset.ok());
+  EXPECT_FALSE(reset->entropy_threshold.has_value());
+  EXPECT_EQ(reset->description, "d") << "unset fields keep their values";
+  update = {};
+  update.description = "new";
+  EXPECT_EQ(store_->UpdateMap("m", update)->description, "new");
+  EXPECT_TRUE(absl::IsNotFound(store_->UpdateMap("nope", update).status()));
+  EXPECT_EQ(store_->GetMapById(m->id)->name, "m");
+}
+
+// A database written by the first release (schema 1) opens, migrates to the current schema and
+// keeps its data. The SQL below is schema 1 as it shipped.
+TEST(StoreOpen, MigratesASchemaOneDatabaseForward) {
+  testing::TempDir tmp;
+  {
+    sqlite3* db = nullptr;
+    sqlite3_open(tmp.File("v1.db").c_str(), &db);
+    const char* v1 = R"sql(
+CREATE TABLE maps (id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE,
+  description TEXT NOT NULL DEFAULT '', created_time_s REAL NOT NULL);
+CREATE TABLE visits (id INTEGER PRIMARY KEY,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE, robot TEXT NOT NULL DEFAULT '',
+  label TEXT NOT NULL DEFAULT '', start_time_s REAL NOT NULL, end_time_s REAL NOT NULL DEFAULT 0,
+  ended INTEGER NOT NULL DEFAULT 0, frame_count INTEGER NOT NULL DEFAULT 0);
+CREATE INDEX visits_by_map ON visits(map_id, start_time_s);
+CREATE TABLE keyframes (id INTEGER PRIMARY KEY,
+  visit_id INTEGER NOT NULL REFERENCES visits(id) ON DELETE CASCADE, sequence INTEGER NOT NULL,
+  timestamp_s REAL NOT NULL, has_pose INTEGER NOT NULL,
+  tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+  fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
+  width INTEGER NOT NULL, height INTEGER NOT NULL, depth_scale REAL NOT NULL,
+  color_encoding INTEGER NOT NULL, depth_bytes INTEGER NOT NULL, color_bytes INTEGER NOT NULL);
+CREATE INDEX keyframes_by_visit ON keyframes(visit_id, timestamp_s);
+CREATE TABLE keyframe_images (
+  keyframe_id INTEGER PRIMARY KEY REFERENCES keyframes(id) ON DELETE CASCADE,
+  depth_png BLOB NOT NULL, color BLOB NOT NULL);
+INSERT INTO maps (name, description, created_time_s) VALUES ('old', 'from v1', 5.0);
+INSERT INTO visits (map_id, start_time_s) VALUES (1, 6.0);
+INSERT INTO keyframes VALUES (1, 1, 0, 7.0, 0, NULL, NULL, NULL, NULL, NULL, NULL, NULL,
+  525, 525, 319.5, 239.5, 640, 480, 5000, 1, 3, 3);
+INSERT INTO keyframe_images VALUES (1, 'dep', 'col');
+PRAGMA user_version = 1;
+)sql";
+    ASSERT_EQ(sqlite3_exec(db, v1, nullptr, nullptr, nullptr), SQLITE_OK);
+    sqlite3_close(db);
+  }
+  auto store = Store::Open(tmp.File("v1.db"));
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto map = (*store)->GetMap("old");
+  ASSERT_TRUE(map.ok());
+  EXPECT_EQ(map->description, "from v1");
+  EXPECT_FALSE(map->entropy_threshold.has_value());
+  EXPECT_EQ(map->keyframe_count, 1);
+  auto k = (*store)->GetKeyframe(map->id, 1);
+  ASSERT_TRUE(k.ok()) << k.status();
+  EXPECT_EQ(k->depth_png, "dep");
+  EXPECT_FALSE(k->features.has_value());
+  auto problems = (*store)->CheckIntegrity();
+  EXPECT_TRUE(problems.ok() && problems->empty());
+}
+
 TEST(MapName, ValidatesCharactersAndLength) {
   EXPECT_TRUE(ValidateMapName("office_2-b.v1").ok());
   EXPECT_FALSE(ValidateMapName("").ok());
