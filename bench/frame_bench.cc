@@ -187,19 +187,26 @@ void BM_EntropyMaskTotal(benchmark::State& state) {
 }
 BENCHMARK(BM_EntropyMaskTotal)->Unit(benchmark::kMillisecond);
 
-// The served path, ComputeEntropyMask, at full resolution (arg 1) and every 2nd pixel (arg 2,
-// the default).
+// The served path, ComputeEntropyMask, at full resolution and every 2nd pixel (the default),
+// image-grid and mesh variants.
 void BM_ComputeEntropyMask(benchmark::State& state) {
   const auto& f = DecodedSample();
   entropy::EntropyMaskOptions options;
   options.downsample = static_cast<int>(state.range(0));
+  options.mesh = state.range(1) != 0;
   for (auto _ : state) {
     auto r = entropy::ComputeEntropyMask(f.depth_m, f.color_bgr, f.intrinsics, {0, -1, 0}, options);
     if (!r.ok()) state.SkipWithError("entropy mask failed");
     state.counters["superjuts"] = static_cast<double>(r->superjuts.size());
   }
 }
-BENCHMARK(BM_ComputeEntropyMask)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+// Args: downsample, mesh variant (0 = image grid, 1 = organized mesh).
+BENCHMARK(BM_ComputeEntropyMask)
+    ->Args({1, 0})
+    ->Args({2, 0})
+    ->Args({1, 1})
+    ->Args({2, 1})
+    ->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace lifemap

@@ -108,6 +108,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             c.pipeline.entropy.downsample = v.get<int>();
           } else if (k == "k") {
             c.pipeline.entropy.superjuts.k = v.get<float>();
+          } else if (k == "mesh") {
+            c.pipeline.entropy.mesh = v.get<bool>();
           } else if (k == "min_size_px") {
             c.pipeline.entropy.superjuts.min_size_px = v.get<int>();
           } else {

@@ -31,7 +31,7 @@ struct ServerConfig {
 // Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
 // keyframe {min_translation_m, min_rotation_deg, max_interval_s},
-// entropy {enabled, threshold, downsample, k, min_size_px}.
+// entropy {enabled, threshold, downsample, k, min_size_px, mesh}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

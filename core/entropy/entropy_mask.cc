@@ -67,10 +67,14 @@ absl::StatusOr<EntropyMaskResult> ComputeEntropyMask(const cv::Mat& depth_m,
   normals::NormalOptions normal_options = options.normals;
   normal_options.smoothing_radius_px = std::max(1, normal_options.smoothing_radius_px / f);
   normal_options.neighbor_step_px = std::max(1, normal_options.neighbor_step_px / f);
+  normal_options.method =
+      options.mesh ? normals::NormalMethod::kMeshVertex : normals::NormalMethod::kCrossProduct;
   auto map = normals::ComputeNormals(depth, k, normal_options);
   if (!map.ok()) return map.status();
   segmentation::SuperjutOptions superjut_options = options.superjuts;
   superjut_options.min_size_px = std::max(1, superjut_options.min_size_px / (f * f));
+  superjut_options.graph =
+      options.mesh ? segmentation::SuperjutGraph::kMesh : segmentation::SuperjutGraph::kImageGrid;
   auto superjuts = segmentation::SegmentSuperjuts(*map, superjut_options);
   if (!superjuts.ok()) return superjuts.status();
   auto scores = ScoreSuperjuts(*superjuts, *map, gray, up_camera, options.scores);

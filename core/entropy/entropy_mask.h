@@ -17,6 +17,10 @@ struct EntropyMaskOptions {
   // averaged, so depth edges stay sharp); the score image and mask come back at full size.
   // 2 (320x240 from 640x480) keeps the whole path near 10 ms on one core; 1 = full resolution.
   int downsample = 2;
+  // The paper's mesh variant (organized-mesh vertex normals and triangle edges) instead of the
+  // image-domain one (eq. 2 normals, 8-connected grid). Overrides normals.method and
+  // superjuts.graph.
+  bool mesh = false;
   normals::NormalOptions normals;
   segmentation::SuperjutOptions superjuts;  // min_size_px counts full-resolution pixels
   EntropyOptions scores;

@@ -41,7 +41,35 @@ void SmoothPass(const cv::Mat& in, cv::Mat* out, int radius, float ratio, bool h
   }
 }
 
+bool Continuous(const cv::Vec3f& a, const cv::Vec3f& b, float ratio) {
+  return a[2] > 0.0f && b[2] > 0.0f && std::abs(a[2] - b[2]) < ratio * std::min(a[2], b[2]);
+}
+
+// Accumulates area-weighted triangle normals (the cross product's length is twice the area) at
+// the triangle's corners.
+void AddTriangle(const cv::Mat& points, cv::Mat* sums, cv::Point p0, cv::Point p1, cv::Point p2) {
+  const cv::Vec3f& a = points.at<cv::Vec3f>(p0);
+  const cv::Vec3f n = (points.at<cv::Vec3f>(p1) - a).cross(points.at<cv::Vec3f>(p2) - a);
+  for (const cv::Point& p : {p0, p1, p2}) sums->at<cv::Vec3f>(p) += n;
+}
+
 }  // namespace
+
+bool UpperTriangle(const cv::Mat& points, int r, int c, float ratio) {
+  if (r + 1 >= points.rows || c + 1 >= points.cols) return false;
+  const cv::Vec3f& a = points.at<cv::Vec3f>(r, c);
+  const cv::Vec3f& b = points.at<cv::Vec3f>(r + 1, c);
+  const cv::Vec3f& d = points.at<cv::Vec3f>(r, c + 1);
+  return Continuous(a, b, ratio) && Continuous(a, d, ratio) && Continuous(b, d, ratio);
+}
+
+bool LowerTriangle(const cv::Mat& points, int r, int c, float ratio) {
+  if (r + 1 >= points.rows || c + 1 >= points.cols) return false;
+  const cv::Vec3f& a = points.at<cv::Vec3f>(r, c + 1);
+  const cv::Vec3f& b = points.at<cv::Vec3f>(r + 1, c);
+  const cv::Vec3f& d = points.at<cv::Vec3f>(r + 1, c + 1);
+  return Continuous(a, b, ratio) && Continuous(a, d, ratio) && Continuous(b, d, ratio);
+}
 
 absl::Status NormalOptions::Validate() const {
   if (smoothing_radius_px < 0 || smoothing_radius_px > 15) {
@@ -95,6 +123,39 @@ absl::StatusOr<NormalMap> ComputeNormals(const cv::Mat& depth_m, const CameraInt
         p[c] = cv::Vec3f((static_cast<float>(c) - cx) * inv_fx * z[c], y_scale * z[c], z[c]);
       }
     }
+  }
+
+  if (options.method == NormalMethod::kMeshVertex) {
+    cv::Mat sums(rows, cols, CV_32FC3, cv::Scalar::all(0));
+    for (int r = 0; r + 1 < rows; ++r) {
+      for (int c = 0; c + 1 < cols; ++c) {
+        if (UpperTriangle(out.points, r, c, options.max_depth_jump_ratio)) {
+          AddTriangle(out.points, &sums, {c, r}, {c, r + 1}, {c + 1, r});
+        }
+        if (LowerTriangle(out.points, r, c, options.max_depth_jump_ratio)) {
+          AddTriangle(out.points, &sums, {c + 1, r}, {c, r + 1}, {c + 1, r + 1});
+        }
+      }
+    }
+    int valid = 0;
+    for (int r = 0; r < rows; ++r) {
+      const cv::Vec3f* p = out.points.ptr<cv::Vec3f>(r);
+      const cv::Vec3f* sum = sums.ptr<cv::Vec3f>(r);
+      cv::Vec3f* n = out.normals.ptr<cv::Vec3f>(r);
+      for (int c = 0; c < cols; ++c) {
+        const float norm = static_cast<float>(cv::norm(sum[c]));
+        if (!(norm > 0.0f)) continue;
+        n[c] = sum[c] * (1.0f / norm);
+        if (n[c].dot(p[c]) > 0.0f) n[c] = -n[c];  // face the camera
+        ++valid;
+      }
+    }
+    out.valid_normals = valid;
+    if (valid == 0) {
+      return absl::FailedPreconditionError(
+          "no pixel has a usable normal: the depth image has no valid neighbouring readings");
+    }
+    return out;
   }
 
   // Eq. 2: n = (X[k, l+s] - X[k, l]) x (X[k+s, l] - X[k, l]), normalised. Where the right or

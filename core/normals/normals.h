@@ -8,7 +8,22 @@
 
 namespace lifemap::normals {
 
+// How a pixel's normal is estimated.
+enum class NormalMethod {
+  kCrossProduct,  // eq. 2 of paper 000: cross product of the right and lower neighbours
+  kMeshVertex,    // the paper's mesh variant: the organized cloud's triangles (two per pixel
+                  // quad, corners depth-continuous), each vertex the area-weighted mean of its
+                  // triangles' normals
+};
+
+// The triangles of the organized mesh over a pixel quad (r, c)-(r+1, c+1): the upper-left one
+// (r,c),(r+1,c),(r,c+1) and the lower-right one (r,c+1),(r+1,c),(r+1,c+1). A triangle exists
+// when its three corners have depth within max_depth_jump_ratio of each other.
+bool UpperTriangle(const cv::Mat& points, int r, int c, float max_depth_jump_ratio);
+bool LowerTriangle(const cv::Mat& points, int r, int c, float max_depth_jump_ratio);
+
 struct NormalOptions {
+  NormalMethod method = NormalMethod::kCrossProduct;
   // Edge-aware smoothing of depth before the cross products: a separable box of this radius
   // (pixels) that averages only neighbours within max_depth_jump_ratio of the centre's depth.
   // Raw Kinect normals on a flat table scatter by ~30 degrees; radius 3 brings that to a few

@@ -88,33 +88,60 @@ absl::StatusOr<Superjuts> SegmentSuperjuts(const normals::NormalMap& map,
   const size_t n = static_cast<size_t>(rows) * cols;
   auto has_normal = [&](int r, int c) { return map.normals.at<cv::Vec3f>(r, c)[2] != 0.0f; };
 
-  // 8-connected grid: right, down, down-right, down-left neighbours of every pixel.
-  static constexpr int kDr[4] = {0, 1, 1, 1};
-  static constexpr int kDc[4] = {1, 0, 1, -1};
   std::vector<uint16_t> bin;
   std::vector<Edge> unsorted;
   unsorted.reserve(n * 4);
   bin.reserve(n * 4);
   std::vector<uint32_t> count(kWeightBins + 1, 0);
+  auto add_edge = [&](int r, int c, int r2, int c2) {
+    const float w = EdgeWeight(map.points.at<cv::Vec3f>(r, c), map.normals.at<cv::Vec3f>(r, c),
+                               map.points.at<cv::Vec3f>(r2, c2), map.normals.at<cv::Vec3f>(r2, c2),
+                               options.convex_squared);
+    const int b =
+        std::min(kWeightBins - 1, static_cast<int>(std::max(w, 0.0f) * (kWeightBins / kMaxWeight)));
+    unsorted.push_back(
+        {static_cast<uint32_t>(r * cols + c), static_cast<uint32_t>(r2 * cols + c2)});
+    bin.push_back(static_cast<uint16_t>(b));
+    ++count[b + 1];
+  };
   const float ratio = options.max_depth_jump_ratio;
-  for (int r = 0; r < rows; ++r) {
-    const cv::Vec3f* x = map.points.ptr<cv::Vec3f>(r);
-    const cv::Vec3f* nr = map.normals.ptr<cv::Vec3f>(r);
-    for (int c = 0; c < cols; ++c) {
-      if (nr[c][2] == 0.0f) continue;
-      for (int e = 0; e < 4; ++e) {
-        const int r2 = r + kDr[e], c2 = c + kDc[e];
-        if (r2 >= rows || c2 < 0 || c2 >= cols || !has_normal(r2, c2)) continue;
-        const cv::Vec3f& x2 = map.points.at<cv::Vec3f>(r2, c2);
-        if (std::abs(x2[2] - x[c][2]) > ratio * x[c][2]) continue;  // depth jump: no edge
-        const float w =
-            EdgeWeight(x[c], nr[c], x2, map.normals.at<cv::Vec3f>(r2, c2), options.convex_squared);
-        const int b = std::min(kWeightBins - 1,
-                               static_cast<int>(std::max(w, 0.0f) * (kWeightBins / kMaxWeight)));
-        unsorted.push_back(
-            {static_cast<uint32_t>(r * cols + c), static_cast<uint32_t>(r2 * cols + c2)});
-        bin.push_back(static_cast<uint16_t>(b));
-        ++count[b + 1];
+  if (options.graph == SuperjutGraph::kImageGrid) {
+    // 8-connected grid: right, down, down-right, down-left neighbours of every pixel.
+    static constexpr int kDr[4] = {0, 1, 1, 1};
+    static constexpr int kDc[4] = {1, 0, 1, -1};
+    for (int r = 0; r < rows; ++r) {
+      const cv::Vec3f* x = map.points.ptr<cv::Vec3f>(r);
+      const cv::Vec3f* nr = map.normals.ptr<cv::Vec3f>(r);
+      for (int c = 0; c < cols; ++c) {
+        if (nr[c][2] == 0.0f) continue;
+        for (int e = 0; e < 4; ++e) {
+          const int r2 = r + kDr[e], c2 = c + kDc[e];
+          if (r2 >= rows || c2 < 0 || c2 >= cols || !has_normal(r2, c2)) continue;
+          const cv::Vec3f& x2 = map.points.at<cv::Vec3f>(r2, c2);
+          if (std::abs(x2[2] - x[c][2]) > ratio * x[c][2]) continue;  // depth jump: no edge
+          add_edge(r, c, r2, c2);
+        }
+      }
+    }
+  } else {
+    // Mesh: each quad's edges right, down and the shared diagonal (r, c+1)-(r+1, c) exist when
+    // a triangle of the quad (or, for the outer edges, of the neighbouring quad) holds them.
+    // Adding an edge twice is harmless: FH skips edges inside one component.
+    for (int r = 0; r + 1 < rows; ++r) {
+      for (int c = 0; c + 1 < cols; ++c) {
+        const bool upper = normals::UpperTriangle(map.points, r, c, ratio) && has_normal(r, c) &&
+                           has_normal(r + 1, c) && has_normal(r, c + 1);
+        const bool lower = normals::LowerTriangle(map.points, r, c, ratio) &&
+                           has_normal(r, c + 1) && has_normal(r + 1, c) && has_normal(r + 1, c + 1);
+        if (upper) {
+          add_edge(r, c, r + 1, c);
+          add_edge(r, c, r, c + 1);
+        }
+        if (upper || lower) add_edge(r, c + 1, r + 1, c);
+        if (lower) {
+          add_edge(r, c + 1, r + 1, c + 1);
+          add_edge(r + 1, c, r + 1, c + 1);
+        }
       }
     }
   }

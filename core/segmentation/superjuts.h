@@ -11,7 +11,15 @@
 
 namespace lifemap::segmentation {
 
+// The graph whose vertices (pixels with a normal) are segmented.
+enum class SuperjutGraph {
+  kImageGrid,  // the paper's image-domain variant: 8-connected pixels
+  kMesh,       // the mesh variant: edges between vertices sharing a triangle of the organized
+               // mesh (see normals::UpperTriangle / LowerTriangle)
+};
+
 struct SuperjutOptions {
+  SuperjutGraph graph = SuperjutGraph::kImageGrid;
   // FH's scale: a component C absorbs an edge of weight w while w <= Int(C) + k / |C|. Larger k,
   // larger superjuts. The paper uses 0.6 for all its experiments.
   float k = 0.6f;

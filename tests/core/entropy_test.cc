@@ -67,12 +67,18 @@ struct Analysis {
   std::vector<entropy::SuperjutScore> scores;
 };
 
-Analysis Analyse(const cv::Mat& depth) {
+Analysis Analyse(const cv::Mat& depth, bool mesh = false) {
   Analysis a;
-  auto n = normals::ComputeNormals(depth, kCamera);
+  normals::NormalOptions normal_options;
+  segmentation::SuperjutOptions superjut_options;
+  if (mesh) {
+    normal_options.method = normals::NormalMethod::kMeshVertex;
+    superjut_options.graph = segmentation::SuperjutGraph::kMesh;
+  }
+  auto n = normals::ComputeNormals(depth, kCamera, normal_options);
   EXPECT_TRUE(n.ok()) << n.status();
   a.normals = *n;
-  auto s = segmentation::SegmentSuperjuts(a.normals);
+  auto s = segmentation::SegmentSuperjuts(a.normals, superjut_options);
   EXPECT_TRUE(s.ok()) << s.status();
   a.superjuts = *s;
   auto sc = entropy::ScoreSuperjuts(a.superjuts, a.normals, cv::Mat(), {0, -1, 0});
@@ -193,6 +199,53 @@ TEST(Superjuts, ASphereHasHighEntropy) {
   EXPECT_EQ(mask.at<unsigned char>(5, 5), 0) << "the wall is kept";
   const cv::Mat score = entropy::NegEntropyImage(a.superjuts, a.scores);
   EXPECT_LT(score.at<unsigned char>(120, 160), score.at<unsigned char>(5, 5));
+}
+
+// The paper's mesh variant (vertex normals averaged over the organized mesh's triangles, edges
+// between vertices sharing a triangle) behaves the same on the analytic scenes.
+TEST(MeshSuperjuts, PlaneBoxAndSphere) {
+  const Analysis plane = Analyse(Scene().Render(), true);
+  ASSERT_EQ(plane.superjuts.count(), 1);
+  EXPECT_GT(plane.scores[0].neg_entropy, 0.98f);
+
+  Scene s;
+  s.plane_normal = Eigen::Vector3f(0, -1, 0);
+  s.plane_d = -0.6f;
+  s.has_box = true;
+  s.box_min = {-0.15f, 0.3f, 2.0f};
+  s.box_max = {0.15f, 0.6f, 2.3f};
+  const cv::Mat depth = s.Render();
+  const Analysis box = Analyse(depth, true);
+  int front_row = -1;
+  for (int v = 120; v < 240 && front_row < 0; ++v) {
+    if (std::abs(depth.at<float>(v, 160) - 2.0f) < 1e-3f) front_row = v;
+  }
+  ASSERT_GE(front_row, 0);
+  EXPECT_NE(box.superjuts.labels.at<int>(front_row + 5, 160),
+            box.superjuts.labels.at<int>(235, 160))
+      << "box front face and floor are separate superjuts";
+
+  Scene ball;
+  ball.has_sphere = true;
+  ball.sphere_center = {0, 0, 1.2f};
+  ball.sphere_radius = 0.35f;
+  const Analysis sphere = Analyse(ball.Render(), true);
+  const int id = sphere.superjuts.labels.at<int>(120, 160);
+  ASSERT_GE(id, 0);
+  EXPECT_LT(sphere.scores[id].neg_entropy, 0.6f);
+}
+
+TEST(Normals, MeshVertexNormalOfAPlaneMatchesEq2) {
+  Scene floor;
+  floor.plane_normal = Eigen::Vector3f(0, -1, -0.3f).normalized();
+  floor.plane_d = floor.plane_normal.dot(Eigen::Vector3f(0, 1.0f, 0));
+  normals::NormalOptions mesh;
+  mesh.method = normals::NormalMethod::kMeshVertex;
+  auto n = normals::ComputeNormals(floor.Render(), kCamera, mesh);
+  ASSERT_TRUE(n.ok());
+  const cv::Vec3f normal = n->normals.at<cv::Vec3f>(200, 160);
+  EXPECT_NEAR(normal[1], floor.plane_normal.y(), 1e-3);
+  EXPECT_NEAR(normal[2], floor.plane_normal.z(), 1e-3);
 }
 
 TEST(Superjuts, RejectsBadOptions) {
