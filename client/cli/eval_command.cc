@@ -11,9 +11,11 @@
 #include "absl/strings/str_join.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
+#include "core/common/image_codec.h"
 #include "core/eval/entropy_study.h"
 #include "core/eval/metrics.h"
 #include "core/io/labeled_pcd.h"
+#include "core/io/tum_dataset.h"
 
 namespace lifemap::cli {
 namespace {
@@ -49,6 +51,42 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadPcdFolder(const std::string&
   return scenes;
 }
 
+// Every `stride`-th frame of a TUM-format folder as a scene without ground truth.
+absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride) {
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return seq.status();
+  std::vector<eval::LabeledScene> scenes;
+  for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
+    const auto& e = seq->frames[i];
+    auto depth = ReadFileBytes(e.depth_path);
+    auto color = ReadFileBytes(e.rgb_path);
+    if (!depth.ok()) return depth.status();
+    if (!color.ok()) return color.status();
+    auto header = ProbeImage(*color);
+    if (!header.ok()) return header.status();
+    EncodedRgbdFrame encoded;
+    encoded.timestamp_s = e.timestamp_s;
+    encoded.intrinsics = seq->intrinsics
+                             ? *seq->intrinsics
+                             : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
+    encoded.intrinsics.width = header->width;
+    encoded.intrinsics.height = header->height;
+    encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
+    encoded.color = {
+        header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg, *color, 0,
+        0};
+    auto frame = DecodeRgbdFrame(encoded);
+    if (!frame.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+    }
+    eval::LabeledScene s;
+    s.name = absl::StrFormat("%s@%.3f", fs::path(dir).filename().string(), e.timestamp_s);
+    s.frame = *std::move(frame);
+    scenes.push_back(std::move(s));
+  }
+  return scenes;
+}
+
 absl::Status WriteText(const fs::path& path, const std::string& text) {
   std::ofstream out(path);
   out << text;
@@ -76,6 +114,9 @@ struct EvalArgs {
   int downsample = 1;
   bool mesh = false;
   std::string keypoints = "sift";
+  std::string tum_a, tum_b;
+  int frame_stride = 4;
+  int min_gap = 8;
   double min_recall = 0.8;
   int iterations = 10000;
 };
@@ -188,15 +229,63 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
   const cv::Scalar colors[] = {cv::Scalar(200, 80, 0), cv::Scalar(0, 140, 0), cv::Scalar(0, 0, 200),
                                cv::Scalar(150, 0, 150)};
   json first_summary;
-  for (size_t set = 0; set < a.data.size(); ++set) {
-    auto scenes = ReadPcdFolder(a.data[set]);
+  struct Set {
+    std::string name;
+    std::vector<eval::LabeledScene> scenes;
+    std::vector<std::pair<size_t, size_t>> pairs;  // empty = every pair
+  };
+  std::vector<Set> inputs;
+  for (const auto& dir : a.data) {
+    auto scenes = ReadPcdFolder(dir);
     if (!scenes.ok()) return Fail(scenes.status());
+    inputs.push_back({fs::path(dir).filename().string(), *std::move(scenes), {}});
+  }
+  if (!a.tum_a.empty()) {
+    // Two TUM recordings of one place (or one recording against itself, frames far apart).
+    const bool same = fs::equivalent(a.tum_a, a.tum_b);
+    auto scenes_a = ReadTumScenes(a.tum_a, a.frame_stride);
+    if (!scenes_a.ok()) return Fail(scenes_a.status());
+    Set set{fs::path(a.tum_a).filename().string(), *std::move(scenes_a), {}};
+    const size_t na = set.scenes.size();
+    if (same) {
+      for (size_t i = 0; i < na; ++i) {
+        for (size_t j = i + 1; j < na; ++j) {
+          if ((j - i) * static_cast<size_t>(a.frame_stride) >= static_cast<size_t>(a.min_gap)) {
+            set.pairs.emplace_back(i, j);
+          }
+        }
+      }
+    } else {
+      auto scenes_b = ReadTumScenes(a.tum_b, a.frame_stride);
+      if (!scenes_b.ok()) return Fail(scenes_b.status());
+      set.name += "+" + fs::path(a.tum_b).filename().string();
+      for (auto& s : *scenes_b) set.scenes.push_back(std::move(s));
+      for (size_t i = 0; i < na; ++i) {
+        for (size_t j = na; j < set.scenes.size(); ++j) set.pairs.emplace_back(i, j);
+      }
+    }
+    if (set.pairs.empty()) {
+      std::cerr << "lifemap: no frame pair is " << a.min_gap
+                << " frames apart; lower --min-gap or --frame-stride\n";
+      return 2;
+    }
+    report +=
+        "\nThe TUM set has no labels: its oracle and static figures equal the unmasked "
+        "ones.\n\n";
+    inputs.push_back(std::move(set));
+  }
+  if (inputs.empty()) {
+    std::cerr << "lifemap: give --data DIR (labelled .pcd scenes) or --a DIR --b DIR (TUM)\n";
+    return 2;
+  }
+  for (size_t set = 0; set < inputs.size(); ++set) {
     // The first set picks one threshold for every pair; later sets reuse it (cross-set check).
-    auto study = eval::RunMatchingStudy(*scenes, options, set == 0 ? -1.0 : fixed);
+    auto study = eval::RunMatchingStudy(inputs[set].scenes, options, set == 0 ? -1.0 : fixed,
+                                        inputs[set].pairs);
     if (!study.ok()) return Fail(study.status());
     const auto& m = study->summary;
     if (set == 0) fixed = m.fixed_threshold;
-    const std::string name = fs::path(a.data[set]).filename().string();
+    const std::string& name = inputs[set].name;
     for (const auto& p : study->pairs) {
       for (const auto* sweep : {&p.entropy_sweep, &p.null_sweep}) {
         for (const auto& q : *sweep) {
@@ -275,10 +364,11 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   auto* ev = app->add_subcommand("eval", "Run the papers' experiments locally on datasets");
   ev->require_subcommand(1);
   auto a = std::make_shared<EvalArgs>();
-  auto common = [a](CLI::App* cmd) {
-    cmd->add_option("--data", a->data, "folder of labelled organized .pcd files (e.g. mOSD)")
-        ->required()
-        ->check(CLI::ExistingDirectory);
+  auto common = [a](CLI::App* cmd, bool data_required) {
+    auto* data =
+        cmd->add_option("--data", a->data, "folder of labelled organized .pcd files (e.g. mOSD)")
+            ->check(CLI::ExistingDirectory);
+    if (data_required) data->required();
     cmd->add_option("--out", a->out, "output folder (created)")->required();
     cmd->add_option("--k", a->k, "superjut scale k (paper: 0.6)")->check(CLI::Range(0.01, 100.0));
     cmd->add_option("--downsample", a->downsample, "working resolution 1/N (default 1)")
@@ -289,13 +379,28 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   };
   auto* features = ev->add_subcommand(
       "entropy-features", "Paper 000 Fig. 6: which superjut features tell moved from static");
-  common(features);
+  common(features, true);
   features->callback([ctx, a] { ctx->run = [ctx, a] { return RunFeatures(*ctx, *a); }; });
   auto* matching = ev->add_subcommand(
       "entropy-matching",
       "Paper 000 Figs. 9-10: match precision/recall as neg-entropy masks prune keypoints; a "
       "second --data set reuses the first set's threshold");
-  common(matching);
+  common(matching, false);
+  auto* tum_a = matching->add_option("--a", a->tum_a, "TUM-format folder of one visit")
+                    ->check(CLI::ExistingDirectory);
+  auto* tum_b = matching
+                    ->add_option("--b", a->tum_b,
+                                 "TUM-format folder of another visit "
+                                 "(or the same folder: frames far apart)")
+                    ->check(CLI::ExistingDirectory);
+  tum_a->needs(tum_b);
+  tum_b->needs(tum_a);
+  matching->add_option("--frame-stride", a->frame_stride, "TUM: use every N-th frame (default 4)")
+      ->check(CLI::Range(1, 1000));
+  matching
+      ->add_option("--min-gap", a->min_gap,
+                   "TUM, same folder: pair frames at least N frames apart (default 8)")
+      ->check(CLI::Range(1, 100000));
   matching->add_option("--keypoints", a->keypoints, "sift | orb")
       ->check(CLI::IsMember({"sift", "orb"}));
   matching->add_option("--min-recall", a->min_recall, "recall the best threshold keeps")

@@ -79,7 +79,7 @@ absl::StatusOr<SceneKeypoints> Describe(const LabeledScene& s, const MatchingStu
     const int id = e->labels.at<int>(r, c);
     k.score.push_back(id >= 0 ? e->superjuts[id].neg_entropy : kNoSuperjut);
     k.null_score.push_back(id >= 0 ? permuted[id] : kNoSuperjut);
-    k.on_object.push_back(s.moved.at<unsigned char>(r, c) != 0);
+    k.on_object.push_back(!s.moved.empty() && s.moved.at<unsigned char>(r, c) != 0);
   }
   return k;
 }
@@ -133,6 +133,10 @@ absl::StatusOr<FeatureStudy> RunFeatureStudy(const std::vector<LabeledScene>& sc
   FeatureStudy study;
   std::vector<std::array<double, 4>> moved, still, moved_px, still_px;
   for (const auto& s : scenes) {
+    if (s.labelled.empty() || s.moved.empty()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(s.name, " has no ground truth of what moved: the feature study needs it"));
+    }
     auto e = Entropy(s, options.entropy);
     if (!e.ok()) return e.status();
     const int n = static_cast<int>(e->superjuts.size());
@@ -169,7 +173,8 @@ absl::StatusOr<FeatureStudy> RunFeatureStudy(const std::vector<LabeledScene>& sc
 
 absl::StatusOr<MatchingStudy> RunMatchingStudy(const std::vector<LabeledScene>& scenes,
                                                const MatchingStudyOptions& options,
-                                               double fixed_threshold) {
+                                               double fixed_threshold,
+                                               std::vector<std::pair<size_t, size_t>> pairs) {
   if (scenes.size() < 2) return absl::InvalidArgumentError("the matching study needs >= 2 scenes");
   if (!(options.ratio > 0 && options.ratio <= 1)) {
     return absl::InvalidArgumentError("ratio must be within (0, 1]");
@@ -188,8 +193,16 @@ absl::StatusOr<MatchingStudy> RunMatchingStudy(const std::vector<LabeledScene>& 
   const int norm = options.keypoints == Keypoints::kSift ? cv::NORM_L2 : cv::NORM_HAMMING;
   cv::BFMatcher matcher(norm);
   MatchingStudy study;
-  for (size_t ia = 0; ia < scenes.size(); ++ia) {
-    for (size_t ib = ia + 1; ib < scenes.size(); ++ib) {
+  if (pairs.empty()) {
+    for (size_t ia = 0; ia < scenes.size(); ++ia) {
+      for (size_t ib = ia + 1; ib < scenes.size(); ++ib) pairs.emplace_back(ia, ib);
+    }
+  }
+  for (const auto& [ia, ib] : pairs) {
+    if (ia >= scenes.size() || ib >= scenes.size()) {
+      return absl::InvalidArgumentError("a pair names a scene that does not exist");
+    }
+    {
       const auto& A = described[ia];
       const auto& B = described[ib];
       std::vector<std::vector<cv::DMatch>> knn;

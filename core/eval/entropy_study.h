@@ -117,10 +117,13 @@ struct MatchingStudy {
   MatchingSummary summary;
 };
 
-// Every pair of scenes. fixed_threshold < 0: chosen on this set (the threshold of the best mean
-// precision with mean recall >= min_recall).
+// The pairs (indices into `scenes`) to match; empty = every pair. fixed_threshold < 0: chosen
+// on this set (the threshold of the best mean precision with mean recall >= min_recall).
+// Scenes without ground truth (empty `moved`) count nothing as moved: oracle and static figures
+// then equal the unmasked ones.
 absl::StatusOr<MatchingStudy> RunMatchingStudy(const std::vector<LabeledScene>& scenes,
                                                const MatchingStudyOptions& options,
-                                               double fixed_threshold = -1.0);
+                                               double fixed_threshold = -1.0,
+                                               std::vector<std::pair<size_t, size_t>> pairs = {});
 
 }  // namespace lifemap::eval

@@ -417,6 +417,20 @@ TEST_F(CliTest, EvalEntropyStudiesWriteTheirReports) {
   EXPECT_NE(r.err.find("no .pcd files"), std::string::npos) << r.err;
 }
 
+TEST_F(CliTest, EvalEntropyMatchingOnTumFramesFarApart) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto r = Run({"--json", "eval", "entropy-matching", "--a", dir, "--b", dir, "--frame-stride", "4",
+                "--min-gap", "16", "--ransac-iterations", "2000", "--out", tmp_.File("tum")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json summary = json::parse(Slurp(tmp_.File("tum/summary.json")));
+  EXPECT_GT(summary["pairs"].get<int>(), 5);
+  EXPECT_GT(summary["raw_inlier_ratio"].get<double>(), 0.3) << "one static desk, little motion";
+  r = Run({"eval", "entropy-matching", "--a", dir, "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2) << "--a needs --b";
+  r = Run({"eval", "entropy-matching", "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2) << "no data at all";
+}
+
 // A robot that sends as fast as it can, 420 MB of raw frames, cannot make the server buffer
 // them: the server reads a stream's next frame only when fewer than max_inflight_frames are
 // waiting, and gRPC's flow control holds the sender meanwhile.
