@@ -35,5 +35,6 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);
+void AddSimCommands(CLI::App* app, CliContext* ctx);
 
 }  // namespace lifemap::cli

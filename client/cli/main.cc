@@ -26,6 +26,7 @@ int main(int argc, char** argv) {
   lifemap::cli::AddProcessCommand(&app, &ctx);
   lifemap::cli::AddAdminCommands(&app, &ctx);
   lifemap::cli::AddEvalCommands(&app, &ctx);
+  lifemap::cli::AddSimCommands(&app, &ctx);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

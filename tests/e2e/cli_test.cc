@@ -385,6 +385,33 @@ TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
   ExpectDurable(Db(), acked);
 }
 
+// The synthetic world's folders stream into lifemapd unchanged, with their exact poses.
+TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
+  auto r = Run({"--json", "sim", "--seed", "5", "--place-shape", "square", "--visits", "2",
+                "--frames", "12", "--conditions", "scenery,lighting", "--out", tmp_.File("sim")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json manifest = json::parse(Slurp(tmp_.File("sim/manifest.json")));
+  ASSERT_EQ(manifest["visits"].size(), 2u);
+  EXPECT_GT(manifest["visits"][0]["mean_valid_depth"].get<double>(), 0.5);
+  const json scene = json::parse(Slurp(tmp_.File("sim/visit_01/scene.json")));
+  EXPECT_EQ(scene["floor_plan"]["walls"].size(), 4u) << "a square room";
+  EXPECT_FALSE(scene["objects"].empty());
+
+  ASSERT_EQ(Run({"maps", "create", "sim"}).code, 0);
+  r = Run({"--json", "stream", "--map", "sim", "--tum", tmp_.File("sim/visit_00"),
+           "--use-groundtruth", "--rate", "0"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json summary = json::parse(Lines(r.out).back())["summary"];
+  EXPECT_EQ(summary["frames_sent"], 12);
+  EXPECT_GE(summary["keyframes_stored"].get<int>(), 1);
+
+  r = Run({"sim", "--place-shape", "octagon", "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 2);
+  r = Run({"sim", "--conditions", "weather", "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("unknown condition"), std::string::npos) << r.err;
+}
+
 TEST_F(CliTest, EvalEntropyStudiesWriteTheirReports) {
   LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
   auto r = Run({"--json", "eval", "entropy-features", "--data", dir + "/learn", "--out",

@@ -1,0 +1,381 @@
+#include "core/sim/generator.h"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+
+namespace lifemap::sim {
+namespace {
+
+bool Inside(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
+  bool inside = false;
+  for (size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    const auto& a = poly[i];
+    const auto& b = poly[j];
+    if (((a.y() > p.y()) != (b.y() > p.y())) &&
+        (p.x() < (b.x() - a.x()) * (p.y() - a.y()) / (b.y() - a.y()) + a.x())) {
+      inside = !inside;
+    }
+  }
+  return inside;
+}
+
+double DistanceToWalls(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
+  double best = 1e9;
+  for (size_t i = 0; i < poly.size(); ++i) {
+    const Eigen::Vector2d a = poly[i], b = poly[(i + 1) % poly.size()];
+    const double t = std::clamp((p - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
+    best = std::min(best, (a + t * (b - a) - p).norm());
+  }
+  return best;
+}
+
+double Radius(const Solid& s) {
+  return s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+}
+
+// A place for `s` whose footprint lies inside the room `margin` from the walls and clear of the
+// solids standing on the same surface; false after many tries.
+bool PlaceFreely(const Place& place, const std::vector<Solid>& others, Solid* s,
+                 std::mt19937_64* rng, double margin, const Eigen::Vector2d& lo,
+                 const Eigen::Vector2d& hi) {
+  std::uniform_real_distribution<double> ux(lo.x(), hi.x()), uy(lo.y(), hi.y()), yaw(-M_PI, M_PI);
+  for (int attempt = 0; attempt < 200; ++attempt) {
+    s->center = {ux(*rng), uy(*rng)};
+    s->yaw = yaw(*rng);
+    if (!Inside(place.footprint, s->center) ||
+        DistanceToWalls(place.footprint, s->center) < Radius(*s) + margin) {
+      continue;
+    }
+    bool clear = true;
+    for (const auto& o : others) {
+      if (std::abs(o.base_z - s->base_z) < 0.05 &&
+          (o.center - s->center).norm() < Radius(o) + Radius(*s) + 0.05) {
+        clear = false;
+        break;
+      }
+    }
+    if (clear) return true;
+  }
+  return false;
+}
+
+Eigen::Vector3f RandomColor(std::mt19937_64* rng) {
+  std::uniform_real_distribution<float> c(0.2f, 0.95f);
+  return {c(*rng), c(*rng), c(*rng)};
+}
+
+// A movable prop of a random kind at height base_z.
+Solid RandomProp(std::mt19937_64* rng, int instance, double base_z) {
+  std::uniform_int_distribution<int> kind(0, 4);
+  std::uniform_real_distribution<double> size(0.12, 0.35);
+  Solid s;
+  s.instance = instance;
+  s.movable = true;
+  s.base_z = base_z;
+  s.texture_seed = static_cast<uint32_t>((*rng)());
+  s.color = RandomColor(rng);
+  switch (kind(*rng)) {
+    case 0:
+      s.cls = SemanticClass::kBox;
+      s.size = {size(*rng), size(*rng), size(*rng)};
+      break;
+    case 1:
+      s.cls = SemanticClass::kCylinder;
+      s.shape = Solid::Shape::kCylinder;
+      s.size = {size(*rng) * 0.7, 0, size(*rng) * 1.2};
+      break;
+    case 2:
+      s.cls = SemanticClass::kMug;
+      s.shape = Solid::Shape::kCylinder;
+      s.size = {0.08, 0, 0.1};
+      break;
+    case 3:
+      s.cls = SemanticClass::kBook;
+      s.size = {0.22, 0.16, 0.04};
+      break;
+    default:
+      s.cls = SemanticClass::kClutter;
+      s.size = {0.08, 0.06, 0.05};
+  }
+  return s;
+}
+
+Pose LookPose(const Eigen::Vector3d& position, double yaw, double pitch) {
+  const Eigen::Vector3d forward(std::cos(yaw) * std::cos(pitch), std::sin(yaw) * std::cos(pitch),
+                                -std::sin(pitch));
+  const Eigen::Vector3d right = forward.cross(Eigen::Vector3d::UnitZ()).normalized();
+  const Eigen::Vector3d down = forward.cross(right);
+  Eigen::Matrix3d R;
+  R.col(0) = right;
+  R.col(1) = down;
+  R.col(2) = forward;
+  Pose p;
+  p.translation = position;
+  p.rotation = Eigen::Quaterniond(R).normalized();
+  return p;
+}
+
+}  // namespace
+
+absl::StatusOr<Conditions> ParseConditions(const std::string& text) {
+  Conditions c;
+  if (text.empty() || text == "none") return c;
+  for (absl::string_view part : absl::StrSplit(text, ',')) {
+    if (part == "lighting") {
+      c.lighting = true;
+    } else if (part == "scenery") {
+      c.scenery = true;
+    } else if (part == "dynamic") {
+      return absl::UnimplementedError(
+          "condition 'dynamic' (people walking through) is not rendered yet; use lighting, "
+          "scenery or none");
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown condition '", part, "': use lighting, scenery (comma-separated) or none"));
+    }
+  }
+  return c;
+}
+
+absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
+  std::mt19937_64 rng(seed * 0x9E3779B97F4A7C15ULL + 1);
+  std::uniform_real_distribution<double> side(3.5, 7.5);
+  Place place;
+  place.shape = shape;
+  place.id = absl::StrCat("place-", seed, "-", shape);
+  place.texture_seed = static_cast<uint32_t>(rng());
+  place.wall_height_m = std::uniform_real_distribution<double>(2.5, 3.2)(rng);
+  const double w = side(rng);
+  const double d = shape == "square" ? w : side(rng);
+  if (shape == "rect" || shape == "square") {
+    place.footprint = {{0, 0}, {w, 0}, {w, d}, {0, d}};
+  } else if (shape == "L") {
+    const double cw = w * std::uniform_real_distribution<double>(0.35, 0.55)(rng);
+    const double cd = d * std::uniform_real_distribution<double>(0.35, 0.55)(rng);
+    place.footprint = {{0, 0}, {w, 0}, {w, d - cd}, {w - cw, d - cd}, {w - cw, d}, {0, d}};
+  } else {
+    return absl::InvalidArgumentError(
+        absl::StrCat("place shape '", shape, "' is not one of rect, square, L"));
+  }
+  // A door on the first wall, windows on other walls long enough for one.
+  const size_t n = place.footprint.size();
+  auto wall_length = [&](size_t i) {
+    return (place.footprint[(i + 1) % n] - place.footprint[i]).norm();
+  };
+  Opening door;
+  door.type = OpeningType::kDoor;
+  door.wall = 0;
+  door.width_m = 0.9;
+  door.offset_m = std::uniform_real_distribution<double>(0.4, wall_length(0) - 1.3)(rng);
+  door.open = true;
+  place.openings.push_back(door);
+  for (size_t i = 1; i < n; ++i) {
+    if (wall_length(i) < 2.2 || (rng() % 3) == 0) continue;
+    Opening window;
+    window.type = OpeningType::kWindow;
+    window.wall = static_cast<int>(i);
+    window.width_m = std::uniform_real_distribution<double>(0.8, 1.4)(rng);
+    window.offset_m =
+        std::uniform_real_distribution<double>(0.4, wall_length(i) - window.width_m - 0.4)(rng);
+    window.sill_m = std::uniform_real_distribution<double>(1.1, 1.3)(rng);
+    window.top_m = 2.1;
+    place.openings.push_back(window);
+  }
+
+  // Furniture: a table in the open, a shelf and a cabinet against walls.
+  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
+  for (const auto& p : place.footprint) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  int instance = 1;
+  Solid table;
+  table.cls = SemanticClass::kTable;
+  table.instance = instance++;
+  table.size = {1.2, 0.8, 0.75};
+  table.texture_seed = static_cast<uint32_t>(rng());
+  table.color = {0.6f, 0.45f, 0.3f};
+  if (PlaceFreely(place, place.solids, &table, &rng, 0.7, lo, hi)) place.solids.push_back(table);
+  for (auto [cls, size] : {std::pair{SemanticClass::kShelf, Eigen::Vector3d(0.9, 0.35, 1.8)},
+                           std::pair{SemanticClass::kCabinet, Eigen::Vector3d(0.6, 0.5, 0.9)}}) {
+    // Against a wall: along the wall's direction, pushed in from it.
+    const size_t wi = 1 + rng() % (n - 1);
+    const Eigen::Vector2d a = place.footprint[wi], b = place.footprint[(wi + 1) % n];
+    const double length = (b - a).norm();
+    if (length < size.x() + 0.8) continue;
+    const Eigen::Vector2d e = (b - a) / length, inward(-e.y(), e.x());
+    Solid s;
+    s.cls = cls;
+    s.instance = instance++;
+    s.size = size;
+    s.yaw = std::atan2(e.y(), e.x());
+    s.center = a +
+               e * std::uniform_real_distribution<double>(0.4 + size.x() / 2,
+                                                          length - 0.4 - size.x() / 2)(rng) +
+               inward * (size.y() / 2 + 0.02);
+    s.texture_seed = static_cast<uint32_t>(rng());
+    s.color = RandomColor(&rng);
+    bool clear = true;
+    for (const auto& o : place.solids) {
+      if ((o.center - s.center).norm() < Radius(o) + Radius(s)) clear = false;
+    }
+    // Keep clear of the wall's openings.
+    for (const auto& op : place.openings) {
+      const double u = e.dot(s.center - a);
+      if (op.wall == static_cast<int>(wi) && u + size.x() / 2 > op.offset_m - 0.1 &&
+          u - size.x() / 2 < op.offset_m + op.width_m + 0.1) {
+        clear = false;
+      }
+    }
+    if (clear) place.solids.push_back(s);
+  }
+  // Props: on the table and on the floor.
+  std::uniform_int_distribution<int> count(3, 6);
+  const int on_table = place.solids.empty() ? 0 : count(rng);
+  for (int i = 0; i < on_table; ++i) {
+    Solid prop = RandomProp(&rng, instance, table.base_z + table.size.z());
+    const double r = std::min(table.size.x(), table.size.y()) / 2 - 0.05;
+    const Eigen::Vector2d tlo = table.center - Eigen::Vector2d(r, r);
+    const Eigen::Vector2d thi = table.center + Eigen::Vector2d(r, r);
+    if (PlaceFreely(place, place.solids, &prop, &rng, 0.0, tlo, thi)) {
+      ++instance;
+      place.solids.push_back(prop);
+    }
+  }
+  for (int i = 0; i < 3; ++i) {
+    Solid prop = RandomProp(&rng, instance, 0.0);
+    if (PlaceFreely(place, place.solids, &prop, &rng, 0.3, lo, hi)) {
+      ++instance;
+      place.solids.push_back(prop);
+    }
+  }
+  return place;
+}
+
+absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t seed, int count,
+                                                  double months_apart, const Conditions& conditions,
+                                                  int frames) {
+  if (count < 1 || count > 100) {
+    return absl::InvalidArgumentError(absl::StrCat("visits must be within [1, 100], got ", count));
+  }
+  if (frames < 2 || frames > 100000) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("frames per visit must be within [2, 100000], got ", frames));
+  }
+  if (!(months_apart >= 0 && months_apart <= 120)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("months apart must be within [0, 120], got ", months_apart));
+  }
+  std::mt19937_64 rng(seed * 0xD1B54A32D192ED03ULL + 7);
+  // The trajectory circles the point farthest from the walls.
+  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
+  for (const auto& p : place.footprint) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  Eigen::Vector2d centre = (lo + hi) / 2;
+  double clearance = 0;
+  for (double x = lo.x(); x <= hi.x(); x += 0.1) {
+    for (double y = lo.y(); y <= hi.y(); y += 0.1) {
+      const Eigen::Vector2d p(x, y);
+      if (!Inside(place.footprint, p)) continue;
+      const double dist = DistanceToWalls(place.footprint, p);
+      if (dist > clearance) clearance = dist, centre = p;
+    }
+  }
+  const double radius = std::min(0.8, 0.4 * clearance);
+  constexpr double kFirstVisit = 1.7e9;  // 2023-11-14 UTC
+  std::vector<Visit> visits;
+  int next_instance = 1;
+  for (const auto& s : place.solids) next_instance = std::max(next_instance, s.instance + 1);
+  for (int vi = 0; vi < count; ++vi) {
+    Visit v;
+    v.index = vi;
+    v.months_since_first = vi * months_apart;
+    v.start_time_s = kFirstVisit + v.months_since_first * 30.44 * 86400.0;
+    if (vi == 0) {
+      v.solids = place.solids;
+      v.openings = place.openings;
+    } else {
+      const Visit& prev = visits.back();
+      v.solids = prev.solids;
+      v.openings = prev.openings;
+      v.lighting = prev.lighting;
+      if (conditions.scenery) {
+        std::uniform_real_distribution<double> p(0.0, 1.0);
+        std::vector<Solid> kept;
+        for (auto s : v.solids) {
+          if (!s.movable) {
+            kept.push_back(s);
+            continue;
+          }
+          const double r = p(rng);
+          if (r < 0.2) {
+            v.changes.push_back({"vanished", s.instance, ClassName(s.cls)});
+            continue;
+          }
+          if (r < 0.7) {
+            std::vector<Solid> others = kept;
+            for (const auto& o : v.solids) {
+              if (o.instance != s.instance) others.push_back(o);
+            }
+            Solid moved = s;
+            const Eigen::Vector2d span(0.5, 0.5);
+            if (PlaceFreely(place, others, &moved, &rng, 0.0, s.center - span, s.center + span)) {
+              v.changes.push_back({"moved", s.instance, ClassName(s.cls)});
+              s = moved;
+            }
+          }
+          kept.push_back(s);
+        }
+        v.solids = kept;
+        const Solid* table = nullptr;
+        for (const auto& s : place.solids) {
+          if (s.cls == SemanticClass::kTable) table = &s;
+        }
+        for (int i = 0; i < 2; ++i) {
+          const double base = table && (rng() & 1) ? table->base_z + table->size.z() : 0.0;
+          Solid prop = RandomProp(&rng, next_instance, base);
+          Eigen::Vector2d plo = lo, phi = hi;
+          if (base > 0) {
+            const double r = std::min(table->size.x(), table->size.y()) / 2 - 0.05;
+            plo = table->center - Eigen::Vector2d(r, r);
+            phi = table->center + Eigen::Vector2d(r, r);
+          }
+          if (PlaceFreely(place, v.solids, &prop, &rng, base > 0 ? 0.0 : 0.3, plo, phi)) {
+            v.changes.push_back({"appeared", next_instance, ClassName(prop.cls)});
+            ++next_instance;
+            v.solids.push_back(prop);
+          }
+        }
+        for (auto& op : v.openings) {
+          if (op.type == OpeningType::kDoor && p(rng) < 0.5) {
+            op.open = !op.open;
+            v.changes.push_back({op.open ? "door_opened" : "door_closed", 0, ""});
+          }
+        }
+      }
+      if (conditions.lighting) {
+        std::uniform_real_distribution<double> b(0.55, 1.3), t(-0.15, 0.15);
+        v.lighting.brightness = b(rng);
+        const float warm = static_cast<float>(t(rng));
+        v.lighting.tint = {1.0f + warm, 1.0f, 1.0f - warm};
+        v.changes.push_back({"lighting", 0, absl::StrCat("brightness ", v.lighting.brightness)});
+      }
+    }
+    // One loop around the centre, looking outwards at the walls, camera at ~1.4 m.
+    const double phase = std::uniform_real_distribution<double>(0, 2 * M_PI)(rng);
+    const double height = std::uniform_real_distribution<double>(1.3, 1.5)(rng);
+    for (int f = 0; f < frames; ++f) {
+      const double a = phase + 2 * M_PI * f / frames;
+      const Eigen::Vector3d position(centre.x() + radius * std::cos(a),
+                                     centre.y() + radius * std::sin(a),
+                                     height + 0.03 * std::sin(5 * a));
+      const double yaw = a + 0.35 * std::sin(3 * a);
+      const double pitch = 0.30 + 0.08 * std::sin(2 * a);
+      v.trajectory.push_back({v.start_time_s + f / 30.0, LookPose(position, yaw, pitch)});
+    }
+    visits.push_back(std::move(v));
+  }
+  return visits;
+}
+
+}  // namespace lifemap::sim

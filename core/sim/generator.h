@@ -1,0 +1,55 @@
+// Deterministic generation of places, visits months apart, and camera trajectories.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/common/types.h"
+#include "core/sim/world.h"
+
+namespace lifemap::sim {
+
+// What changes between visits (paper 004's Table 1 conditions).
+struct Conditions {
+  bool lighting = false;  // brightness and colour temperature change
+  bool scenery = false;   // props move, appear, vanish; a door opens or closes
+  bool dynamic = false;   // people walking through: not rendered yet (refused)
+};
+
+// Parses "lighting,scenery" (or "none"). InvalidArgument names an unknown condition.
+absl::StatusOr<Conditions> ParseConditions(const std::string& text);
+
+struct Change {
+  std::string kind;  // "moved", "appeared", "vanished", "door_opened", "door_closed", "lighting"
+  int instance = 0;  // the solid, for object changes
+  std::string detail;
+};
+
+struct TimedCameraPose {
+  double timestamp_s = 0;
+  Pose T_world_camera;
+};
+
+struct Visit {
+  int index = 0;
+  double months_since_first = 0;
+  double start_time_s = 0;        // Unix time of the first frame
+  std::vector<Solid> solids;      // the arrangement seen on this visit
+  std::vector<Opening> openings;  // with this visit's door states
+  Lighting lighting;
+  std::vector<Change> changes;  // relative to the previous visit
+  std::vector<TimedCameraPose> trajectory;
+};
+
+// shape: rect, square or L (T and U: not yet). InvalidArgument for other shapes.
+absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape);
+
+// `count` visits `months_apart` months apart, each with `frames` frames at 30 Hz along one loop
+// through the room. Visit 0 is the reference; later ones apply the conditions' changes.
+absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t seed, int count,
+                                                  double months_apart, const Conditions& conditions,
+                                                  int frames);
+
+}  // namespace lifemap::sim

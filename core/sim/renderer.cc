@@ -1,0 +1,363 @@
+#include "core/sim/renderer.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <random>
+
+#include <Eigen/Geometry>
+
+namespace lifemap::sim {
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+struct Hit {
+  double t = kInf;  // along a camera ray whose z component is 1: t is the depth
+  SemanticClass cls = SemanticClass::kNone;
+  uint16_t instance = 0;
+  Eigen::Vector3d normal{0, 0, 1};
+  Eigen::Vector2d uv{0, 0};  // surface coordinates, metres
+  uint32_t texture_seed = 0;
+  Eigen::Vector3f albedo{0.5f, 0.5f, 0.5f};
+  bool has_depth = true;  // false: seen, but no depth reading (glass, far outdoors)
+  double texture_scale = 1.0;
+};
+
+uint32_t Hash(uint32_t x) {
+  x ^= x >> 16;
+  x *= 0x7feb352dU;
+  x ^= x >> 15;
+  x *= 0x846ca68bU;
+  x ^= x >> 16;
+  return x;
+}
+
+float Lattice(uint32_t seed, int32_t i, int32_t j) {
+  return static_cast<float>(Hash(seed ^ Hash(static_cast<uint32_t>(i) * 73856093U ^
+                                             static_cast<uint32_t>(j) * 19349663U)) &
+                            0xffffff) /
+         16777215.0f;
+}
+
+// Bilinear value noise in [0, 1].
+float Noise(uint32_t seed, double u, double v) {
+  const double fu = std::floor(u), fv = std::floor(v);
+  const int32_t i = static_cast<int32_t>(fu), j = static_cast<int32_t>(fv);
+  const float a = static_cast<float>(u - fu), b = static_cast<float>(v - fv);
+  const float sa = a * a * (3 - 2 * a), sb = b * b * (3 - 2 * b);
+  const float n00 = Lattice(seed, i, j), n10 = Lattice(seed, i + 1, j);
+  const float n01 = Lattice(seed, i, j + 1), n11 = Lattice(seed, i + 1, j + 1);
+  return (n00 * (1 - sa) + n10 * sa) * (1 - sb) + (n01 * (1 - sa) + n11 * sa) * sb;
+}
+
+// Procedural albedo: two octaves of value noise plus, for some surfaces, printed patches, so
+// keypoint detectors find structure everywhere.
+Eigen::Vector3f Texture(const Hit& h) {
+  const double s = h.texture_scale;
+  const float coarse = Noise(h.texture_seed, h.uv.x() * 3 * s, h.uv.y() * 3 * s);
+  const float fine = Noise(h.texture_seed * 7 + 1, h.uv.x() * 25 * s, h.uv.y() * 25 * s);
+  float shade = 0.55f + 0.35f * coarse + 0.2f * (fine - 0.5f);
+  // Printed patches: a coarse grid of cells, some of which carry a dark or bright print.
+  const int32_t ci = static_cast<int32_t>(std::floor(h.uv.x() * 4 * s));
+  const int32_t cj = static_cast<int32_t>(std::floor(h.uv.y() * 4 * s));
+  const uint32_t cell = Hash(
+      h.texture_seed ^ Hash(static_cast<uint32_t>(ci) * 31U + static_cast<uint32_t>(cj) * 977U));
+  if ((cell & 7U) == 0U) shade *= 0.45f;
+  if ((cell & 7U) == 1U) shade = std::min(1.2f, shade * 1.5f);
+  return h.albedo * shade;
+}
+
+bool InsidePolygon(const std::vector<Eigen::Vector2d>& poly, double x, double y) {
+  bool inside = false;
+  for (size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    const auto& a = poly[i];
+    const auto& b = poly[j];
+    if (((a.y() > y) != (b.y() > y)) &&
+        (x < (b.x() - a.x()) * (y - a.y()) / (b.y() - a.y()) + a.x())) {
+      inside = !inside;
+    }
+  }
+  return inside;
+}
+
+void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Vector3d& d, double z,
+                   bool floor, Hit* best) {
+  if (std::abs(d.z()) < 1e-12) return;
+  const double t = (z - o.z()) / d.z();
+  if (t <= 1e-6 || t >= best->t) return;
+  const Eigen::Vector3d p = o + t * d;
+  if (!InsidePolygon(place.footprint, p.x(), p.y())) return;
+  best->t = t;
+  best->cls = floor ? SemanticClass::kFloor : SemanticClass::kCeiling;
+  best->instance = 0;
+  best->normal = Eigen::Vector3d(0, 0, floor ? 1 : -1);
+  best->uv = p.head<2>();
+  best->texture_seed = place.texture_seed * 3 + (floor ? 11 : 13);
+  best->albedo = floor ? Eigen::Vector3f(0.55f, 0.42f, 0.30f) : Eigen::Vector3f(0.9f, 0.9f, 0.88f);
+  best->has_depth = true;
+  best->texture_scale = floor ? 1.0 : 0.3;
+}
+
+void HitWalls(const Place& place, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
+  const size_t n = place.footprint.size();
+  for (size_t w = 0; w < n; ++w) {
+    const Eigen::Vector2d a = place.footprint[w];
+    const Eigen::Vector2d b = place.footprint[(w + 1) % n];
+    const double length = (b - a).norm();
+    const Eigen::Vector2d e = (b - a) / length;
+    const Eigen::Vector2d inward(-e.y(), e.x());  // counter-clockwise footprint
+    const double facing = inward.dot(d.head<2>());
+    if (facing >= -1e-12) continue;  // seen from behind or edge-on
+    const double t = inward.dot(a - o.head<2>()) / facing;
+    if (t <= 1e-6 || t >= best->t) continue;
+    const Eigen::Vector3d p = o + t * d;
+    const double u = e.dot(p.head<2>() - a);
+    if (u < 0 || u > length || p.z() < 0 || p.z() > place.wall_height_m) continue;
+    Hit h;
+    h.t = t;
+    h.cls = SemanticClass::kWall;
+    h.normal = Eigen::Vector3d(inward.x(), inward.y(), 0);
+    h.uv = Eigen::Vector2d(u + 10.0 * w, p.z());
+    h.texture_seed = place.texture_seed * 5 + static_cast<uint32_t>(w);
+    h.albedo = Eigen::Vector3f(0.82f, 0.80f, 0.74f);
+    h.texture_scale = 0.5;
+    for (const auto& op : place.openings) {
+      if (op.wall != static_cast<int>(w)) continue;
+      if (u < op.offset_m || u > op.offset_m + op.width_m || p.z() < op.sill_m ||
+          p.z() > op.top_m) {
+        continue;
+      }
+      if (op.type == OpeningType::kWindow) {
+        // Glass and the outdoors beyond it give the Kinect no reading.
+        h.cls = SemanticClass::kWindow;
+        h.has_depth = false;
+        h.albedo = Eigen::Vector3f(0.85f, 0.92f, 1.0f);
+        h.texture_scale = 0.1;
+      } else if (op.open) {
+        // An open door shows the space beyond: a surface 2 m behind the wall, not this room's.
+        h.t = t + 2.0 / -facing;
+        h.cls = SemanticClass::kNone;
+        h.albedo = Eigen::Vector3f(0.35f, 0.35f, 0.38f);
+      } else {
+        h.cls = SemanticClass::kDoor;
+        h.albedo = Eigen::Vector3f(0.45f, 0.30f, 0.18f);
+        h.texture_scale = 2.0;
+      }
+      break;
+    }
+    if (h.t < best->t) *best = h;
+  }
+}
+
+void HitSolid(const Solid& s, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
+  const double half_h = s.size.z() / 2;
+  const Eigen::Vector3d c(s.center.x(), s.center.y(), s.base_z + half_h);
+  const double cy = std::cos(-s.yaw), sy = std::sin(-s.yaw);
+  auto to_local = [&](const Eigen::Vector3d& v) {
+    return Eigen::Vector3d(cy * v.x() - sy * v.y(), sy * v.x() + cy * v.y(), v.z());
+  };
+  const Eigen::Vector3d lo = to_local(o - c), ld = to_local(d);
+  double t_hit = kInf;
+  Eigen::Vector3d local_normal = Eigen::Vector3d::Zero();
+  Eigen::Vector2d uv = Eigen::Vector2d::Zero();
+  if (s.shape == Solid::Shape::kBox) {
+    const Eigen::Vector3d half(s.size.x() / 2, s.size.y() / 2, half_h);
+    double t0 = -kInf, t1 = kInf;
+    int axis = -1;
+    double sign = 1;
+    for (int i = 0; i < 3; ++i) {
+      if (std::abs(ld[i]) < 1e-12) {
+        if (std::abs(lo[i]) > half[i]) return;
+        continue;
+      }
+      double a = (-half[i] - lo[i]) / ld[i], b = (half[i] - lo[i]) / ld[i];
+      double near_sign = -1;
+      if (a > b) {
+        std::swap(a, b);
+        near_sign = 1;
+      }
+      if (a > t0) {
+        t0 = a;
+        axis = i;
+        sign = near_sign;
+      }
+      t1 = std::min(t1, b);
+      if (t0 > t1) return;
+    }
+    if (axis < 0 || t0 <= 1e-6) return;
+    t_hit = t0;
+    local_normal = Eigen::Vector3d::Zero();
+    local_normal[axis] = sign;
+    const Eigen::Vector3d p = lo + t0 * ld;
+    uv = axis == 2 ? Eigen::Vector2d(p.x(), p.y())
+                   : Eigen::Vector2d(axis == 0 ? p.y() : p.x(), p.z());
+  } else {
+    const double r = s.size.x() / 2;
+    // Side: (lo + t ld)_xy on the circle of radius r.
+    const double a = ld.x() * ld.x() + ld.y() * ld.y();
+    const double b = lo.x() * ld.x() + lo.y() * ld.y();
+    const double cc = lo.x() * lo.x() + lo.y() * lo.y() - r * r;
+    const double disc = b * b - a * cc;
+    if (a > 1e-12 && disc >= 0) {
+      const double t = (-b - std::sqrt(disc)) / a;
+      const Eigen::Vector3d p = lo + t * ld;
+      if (t > 1e-6 && std::abs(p.z()) <= half_h) {
+        t_hit = t;
+        local_normal = Eigen::Vector3d(p.x(), p.y(), 0).normalized();
+        uv = Eigen::Vector2d(std::atan2(p.y(), p.x()) * r, p.z());
+      }
+    }
+    // Top cap.
+    if (std::abs(ld.z()) > 1e-12) {
+      const double t = (half_h - lo.z()) / ld.z();
+      const Eigen::Vector3d p = lo + t * ld;
+      if (t > 1e-6 && t < t_hit && p.x() * p.x() + p.y() * p.y() <= r * r && ld.z() < 0) {
+        t_hit = t;
+        local_normal = Eigen::Vector3d(0, 0, 1);
+        uv = p.head<2>();
+      }
+    }
+    if (t_hit == kInf) return;
+  }
+  if (t_hit >= best->t) return;
+  const double cw = std::cos(s.yaw), sw = std::sin(s.yaw);
+  best->t = t_hit;
+  best->cls = s.cls;
+  best->instance = static_cast<uint16_t>(s.instance);
+  best->normal = Eigen::Vector3d(cw * local_normal.x() - sw * local_normal.y(),
+                                 sw * local_normal.x() + cw * local_normal.y(), local_normal.z());
+  best->uv = uv;
+  best->texture_seed = s.texture_seed;
+  best->albedo = s.color;
+  best->has_depth = true;
+  best->texture_scale = 2.0;
+}
+
+// The image rectangle a solid can cover (its bounding box's corners projected), or the whole
+// image when a corner is behind the camera.
+cv::Rect ScreenRect(const Solid& s, const CameraIntrinsics& k, const Eigen::Isometry3d& T_cw) {
+  const double r =
+      s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+  double u0 = kInf, v0 = kInf, u1 = -kInf, v1 = -kInf;
+  for (int i = 0; i < 8; ++i) {
+    const Eigen::Vector3d corner(s.center.x() + ((i & 1) ? r : -r),
+                                 s.center.y() + ((i & 2) ? r : -r),
+                                 s.base_z + ((i & 4) ? s.size.z() : 0.0));
+    const Eigen::Vector3d pc = T_cw * corner;
+    if (pc.z() < 0.05) return cv::Rect(0, 0, k.width, k.height);
+    const double u = k.fx * pc.x() / pc.z() + k.cx, v = k.fy * pc.y() / pc.z() + k.cy;
+    u0 = std::min(u0, u), u1 = std::max(u1, u), v0 = std::min(v0, v), v1 = std::max(v1, v);
+  }
+  const int x0 = std::max(0, static_cast<int>(std::floor(u0)) - 1);
+  const int y0 = std::max(0, static_cast<int>(std::floor(v0)) - 1);
+  const int x1 = std::min(k.width, static_cast<int>(std::ceil(u1)) + 2);
+  const int y1 = std::min(k.height, static_cast<int>(std::ceil(v1)) + 2);
+  if (x1 <= x0 || y1 <= y0) return cv::Rect();
+  return cv::Rect(x0, y0, x1 - x0, y1 - y0);
+}
+
+}  // namespace
+
+RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const Lighting& lighting,
+                     const CameraIntrinsics& k, const Pose& T_world_camera,
+                     const SensorOptions& sensor, uint64_t seed) {
+  RenderedFrame out;
+  out.depth_m = cv::Mat(k.height, k.width, CV_32FC1, cv::Scalar(0.0f));
+  out.true_depth_m = cv::Mat(k.height, k.width, CV_32FC1, cv::Scalar(0.0f));
+  out.color_bgr = cv::Mat(k.height, k.width, CV_8UC3, cv::Scalar::all(0));
+  out.class_id = cv::Mat(k.height, k.width, CV_8UC1, cv::Scalar(0));
+  out.instance_id = cv::Mat(k.height, k.width, CV_16UC1, cv::Scalar(0));
+
+  const Eigen::Isometry3d T_wc = T_world_camera.ToIsometry();
+  const Eigen::Isometry3d T_cw = T_wc.inverse();
+  const Eigen::Matrix3d R = T_wc.linear();
+  const Eigen::Vector3d o = T_wc.translation();
+  std::vector<cv::Rect> rects;
+  rects.reserve(solids.size());
+  for (const auto& s : solids) rects.push_back(ScreenRect(s, k, T_cw));
+  const Eigen::Vector3d light = Eigen::Vector3d(0.3, 0.5, 1.0).normalized();
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  cv::Mat normal_dot(k.height, k.width, CV_32FC1, cv::Scalar(1.0f));
+
+  for (int v = 0; v < k.height; ++v) {
+    float* true_depth = out.true_depth_m.ptr<float>(v);
+    cv::Vec3b* bgr = out.color_bgr.ptr<cv::Vec3b>(v);
+    uint8_t* cls = out.class_id.ptr<uint8_t>(v);
+    uint16_t* inst = out.instance_id.ptr<uint16_t>(v);
+    float* cosine = normal_dot.ptr<float>(v);
+    for (int u = 0; u < k.width; ++u) {
+      const Eigen::Vector3d d_cam((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+      const Eigen::Vector3d d = R * d_cam;  // unnormalised: t is the depth
+      Hit hit;
+      HitHorizontal(place, o, d, 0.0, true, &hit);
+      HitHorizontal(place, o, d, place.wall_height_m, false, &hit);
+      HitWalls(place, o, d, &hit);
+      for (size_t i = 0; i < solids.size(); ++i) {
+        if (rects[i].contains(cv::Point(u, v))) HitSolid(solids[i], o, d, &hit);
+      }
+      if (hit.t == kInf) continue;
+      cls[u] = static_cast<uint8_t>(hit.cls);
+      inst[u] = hit.instance;
+      if (hit.has_depth) true_depth[u] = static_cast<float>(hit.t);
+      const Eigen::Vector3d dn = d.normalized();
+      cosine[u] = static_cast<float>(std::abs(hit.normal.dot(dn)));
+      const float lambert = static_cast<float>(std::abs(hit.normal.dot(light)));
+      Eigen::Vector3f c = Texture(hit) * (0.45f + 0.55f * lambert);
+      if (hit.cls == SemanticClass::kWindow) c = hit.albedo;  // bright outdoors
+      c = c.cwiseProduct(lighting.tint) * static_cast<float>(lighting.brightness * sensor.exposure);
+      for (int ch = 0; ch < 3; ++ch) {
+        const float noise =
+            sensor.noise ? static_cast<float>(sensor.color_noise) * gauss(rng) : 0.0f;
+        const float value = std::clamp(c[2 - ch] * 255.0f + noise, 0.0f, 255.0f);
+        bgr[u][ch] = static_cast<uint8_t>(std::lround(value));
+      }
+    }
+  }
+
+  // Sensor model on the exact depth.
+  std::uniform_real_distribution<double> uniform(0.0, 1.0);
+  constexpr double kDisparityStep = 1.0 / (8.0 * 580.0 * 0.075);  // 1/8 px, f 580 px, 7.5 cm
+  for (int v = 0; v < k.height; ++v) {
+    const float* true_depth = out.true_depth_m.ptr<float>(v);
+    const float* cosine = normal_dot.ptr<float>(v);
+    float* depth = out.depth_m.ptr<float>(v);
+    for (int u = 0; u < k.width; ++u) {
+      const double z = true_depth[u];
+      if (!(z > 0)) continue;
+      if (!sensor.noise) {
+        depth[u] = static_cast<float>(z);
+        continue;
+      }
+      if (z > sensor.max_range_m || z < sensor.min_range_m || cosine[u] < sensor.grazing_cos) {
+        continue;
+      }
+      bool edge = false;
+      for (const auto& [dv, du] :
+           {std::pair{0, 1}, std::pair{1, 0}, std::pair{0, -1}, std::pair{-1, 0}}) {
+        const int vv = v + dv, uu = u + du;
+        if (vv < 0 || vv >= k.height || uu < 0 || uu >= k.width) continue;
+        const float zn = out.true_depth_m.at<float>(vv, uu);
+        if (zn > 0 && std::abs(zn - z) > 0.05 * z) edge = true;
+      }
+      if (edge && uniform(rng) < sensor.edge_dropout) continue;
+      // Noise as Nguyen et al. (3DIMPVT 2012) for Kinect v1, then disparity quantisation.
+      const double sigma = 0.0012 + 0.0019 * (z - 0.4) * (z - 0.4);
+      const double noisy = z + sigma * gauss(rng);
+      const double disparity = std::round((1.0 / noisy) / kDisparityStep) * kDisparityStep;
+      depth[u] = static_cast<float>(1.0 / disparity);
+    }
+  }
+  return out;
+}
+
+const char* ClassName(SemanticClass c) {
+  static const char* const kNames[kClassCount] = {
+      "none", "floor", "wall",  "ceiling", "door",     "window", "table", "shelf",  "cabinet",
+      "bed",  "sofa",  "chair", "box",     "cylinder", "book",   "mug",   "clutter"};
+  const int i = static_cast<int>(c);
+  return i >= 0 && i < kClassCount ? kNames[i] : "unknown";
+}
+
+}  // namespace lifemap::sim

@@ -1,0 +1,85 @@
+// A synthetic indoor world with exact ground truth (issue 3): a place made of a room footprint,
+// walls with doors and windows, furniture and movable props, as plain data that the generator
+// fills, the renderer ray-casts and the writer describes in scene.json.
+//
+// Frame: world z is up, metres; the floor is z = 0. Cameras follow TUM: x right, y down,
+// z forward, poses T_world_camera.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+namespace lifemap::sim {
+
+// Class ids written to labels/ (8-bit PNG). 0 = no surface (missing depth or sky through a
+// window).
+enum class SemanticClass : uint8_t {
+  kNone = 0,
+  kFloor = 1,
+  kWall = 2,
+  kCeiling = 3,
+  kDoor = 4,
+  kWindow = 5,
+  kTable = 6,
+  kShelf = 7,
+  kCabinet = 8,
+  kBed = 9,
+  kSofa = 10,
+  kChair = 11,
+  kBox = 12,
+  kCylinder = 13,
+  kBook = 14,
+  kMug = 15,
+  kClutter = 16,
+};
+constexpr int kClassCount = 17;
+const char* ClassName(SemanticClass c);
+
+enum class OpeningType { kDoor, kWindow };
+
+// A door or window in a wall segment, in metres along the wall from its start corner.
+struct Opening {
+  OpeningType type = OpeningType::kDoor;
+  int wall = 0;         // index of the wall segment (corner i to corner i+1)
+  double offset_m = 0;  // from the wall's start to the opening's near edge
+  double width_m = 0.9;
+  double sill_m = 0;   // bottom: 0 for doors, ~1.2 for windows
+  double top_m = 2.1;  // top: 2.10 m for doors and windows (paper 004's norms)
+  bool open = true;    // doors: open shows the next space (rendered as far void);
+                       // closed doors are a panel flush with the wall
+};
+
+// A solid: an upright box or cylinder standing on `base_z`, rotated by yaw about z.
+struct Solid {
+  enum class Shape { kBox, kCylinder } shape = Shape::kBox;
+  SemanticClass cls = SemanticClass::kBox;
+  int instance = 0;      // unique within the place, > 0
+  bool movable = false;  // props move between visits; furniture rarely
+  Eigen::Vector2d center{0, 0};
+  double base_z = 0;
+  double yaw = 0;                       // radians
+  Eigen::Vector3d size{0.3, 0.3, 0.3};  // box: x, y, height; cylinder: diameter, -, height
+  uint32_t texture_seed = 1;
+  Eigen::Vector3f color{0.6f, 0.5f, 0.4f};  // base albedo, RGB in [0, 1]
+};
+
+struct Place {
+  std::string id;                          // e.g. "place-7-L"
+  std::string shape;                       // rect, square, L, T, U
+  std::vector<Eigen::Vector2d> footprint;  // counter-clockwise corners of the room, metres
+  double wall_height_m = 2.7;
+  std::vector<Opening> openings;
+  std::vector<Solid> solids;  // furniture and props
+  uint32_t texture_seed = 1;
+};
+
+// Lighting of one visit: global brightness and colour temperature gain.
+struct Lighting {
+  double brightness = 1.0;                 // multiplies albedo
+  Eigen::Vector3f tint{1.0f, 1.0f, 1.0f};  // RGB gain (warm/cool light)
+};
+
+}  // namespace lifemap::sim

@@ -1,0 +1,185 @@
+#include "core/sim/writer.h"
+
+#include <filesystem>
+#include <fstream>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/io/tum_dataset.h"
+
+namespace lifemap::sim {
+namespace {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+const char* OpeningName(OpeningType t) { return t == OpeningType::kDoor ? "door" : "window"; }
+
+json SceneJson(const Place& place, const Visit& visit, const WriteOptions& options) {
+  json walls = json::array();
+  const size_t n = place.footprint.size();
+  for (size_t i = 0; i < n; ++i) {
+    const auto& a = place.footprint[i];
+    const auto& b = place.footprint[(i + 1) % n];
+    walls.push_back({{"index", i},
+                     {"start", {a.x(), a.y()}},
+                     {"end", {b.x(), b.y()}},
+                     {"length_m", (b - a).norm()}});
+  }
+  json openings = json::array();
+  for (const auto& o : visit.openings) {
+    openings.push_back({{"type", OpeningName(o.type)},
+                        {"wall", o.wall},
+                        {"offset_m", o.offset_m},
+                        {"width_m", o.width_m},
+                        {"sill_m", o.sill_m},
+                        {"top_m", o.top_m},
+                        {"open", o.open}});
+  }
+  json objects = json::array();
+  for (const auto& s : visit.solids) {
+    objects.push_back({{"instance", s.instance},
+                       {"class", ClassName(s.cls)},
+                       {"class_id", static_cast<int>(s.cls)},
+                       {"shape", s.shape == Solid::Shape::kBox ? "box" : "cylinder"},
+                       {"center", {s.center.x(), s.center.y(), s.base_z}},
+                       {"yaw_rad", s.yaw},
+                       {"size_m", {s.size.x(), s.size.y(), s.size.z()}},
+                       {"movable", s.movable}});
+  }
+  json changes = json::array();
+  for (const auto& c : visit.changes) {
+    changes.push_back({{"kind", c.kind}, {"instance", c.instance}, {"detail", c.detail}});
+  }
+  json classes = json::object();
+  for (int c = 0; c < kClassCount; ++c)
+    classes[std::to_string(c)] = ClassName(static_cast<SemanticClass>(c));
+  const auto& k = options.intrinsics;
+  return {{"place_id", place.id},
+          {"shape", place.shape},
+          {"visit", visit.index},
+          {"months_since_first", visit.months_since_first},
+          {"start_time_s", visit.start_time_s},
+          {"frame", "world z up, metres, floor at z = 0; poses T_world_camera (TUM)"},
+          {"floor_plan",
+           {{"footprint",
+             [&] {
+               json f = json::array();
+               for (const auto& p : place.footprint) f.push_back({p.x(), p.y()});
+               return f;
+             }()},
+            {"wall_height_m", place.wall_height_m},
+            {"walls", walls},
+            {"openings", openings},
+            {"stairs", json::array()}}},
+          {"objects", objects},
+          {"changes", changes},
+          {"lighting",
+           {{"brightness", visit.lighting.brightness},
+            {"tint", {visit.lighting.tint.x(), visit.lighting.tint.y(), visit.lighting.tint.z()}}}},
+          {"intrinsics",
+           {{"fx", k.fx},
+            {"fy", k.fy},
+            {"cx", k.cx},
+            {"cy", k.cy},
+            {"width", k.width},
+            {"height", k.height}}},
+          {"depth_scale", 5000},
+          {"classes", classes}};
+}
+
+absl::Status Write(const fs::path& path, const cv::Mat& image) {
+  if (!cv::imwrite(path.string(), image)) {
+    return absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& place,
+                                        const Visit& visit, const Visit* previous,
+                                        const WriteOptions& options) {
+  if (auto s = options.intrinsics.Validate(); !s.ok()) return s;
+  const fs::path root(dir);
+  std::error_code ec;
+  for (const char* sub : {"rgb", "depth", "labels/class", "labels/instance", "moved"}) {
+    fs::create_directories(root / sub, ec);
+    if (ec)
+      return absl::PermissionDeniedError(absl::StrCat("cannot create ", (root / sub).string()));
+  }
+  Place seen = place;
+  seen.openings = visit.openings;
+  Place before = place;
+  if (previous) before.openings = previous->openings;
+  SensorOptions exact = options.sensor;
+  exact.noise = false;
+
+  std::ofstream rgb_list(root / "rgb.txt"), depth_list(root / "depth.txt"),
+      associations(root / "associations.txt"), groundtruth(root / "groundtruth.txt");
+  rgb_list << "# color images\n# timestamp filename\n";
+  depth_list << "# depth maps\n# timestamp filename\n";
+  groundtruth << "# ground truth trajectory (exact)\n# timestamp tx ty tz qx qy qz qw\n";
+  const auto& k = options.intrinsics;
+  std::ofstream(root / "intrinsics.txt")
+      << absl::StrFormat("%.6f %.6f %.6f %.6f %d %d\n", k.fx, k.fy, k.cx, k.cy, k.width, k.height);
+  WriteSummary summary;
+  for (size_t f = 0; f < visit.trajectory.size(); ++f) {
+    const auto& tp = visit.trajectory[f];
+    const uint64_t frame_seed = options.seed * 1000003ULL + visit.index * 100003ULL + f;
+    RenderedFrame frame = Render(seen, visit.solids, visit.lighting, k, tp.T_world_camera,
+                                 options.sensor, frame_seed);
+    cv::Mat moved(k.height, k.width, CV_8UC1, cv::Scalar(0));
+    if (previous) {
+      // What this pose showed on the previous visit, exactly: changed pixels differ in what
+      // surface they show or where it is.
+      const RenderedFrame then = Render(before, previous->solids, previous->lighting, k,
+                                        tp.T_world_camera, exact, frame_seed);
+      for (int r = 0; r < k.height; ++r) {
+        const uint16_t* a = frame.instance_id.ptr<uint16_t>(r);
+        const uint16_t* b = then.instance_id.ptr<uint16_t>(r);
+        const uint8_t* ca = frame.class_id.ptr<uint8_t>(r);
+        const uint8_t* cb = then.class_id.ptr<uint8_t>(r);
+        const float* za = frame.true_depth_m.ptr<float>(r);
+        const float* zb = then.true_depth_m.ptr<float>(r);
+        uint8_t* m = moved.ptr<uint8_t>(r);
+        for (int c = 0; c < k.width; ++c) {
+          if (a[c] != b[c] || ca[c] != cb[c] || std::abs(za[c] - zb[c]) > 0.02f) m[c] = 255;
+        }
+      }
+    }
+    const std::string stamp = absl::StrFormat("%.6f", tp.timestamp_s);
+    const std::string name = stamp + ".png";
+    cv::Mat depth16;
+    frame.depth_m.convertTo(depth16, CV_16UC1, 5000.0);
+    for (auto s :
+         {Write(root / "rgb" / name, frame.color_bgr), Write(root / "depth" / name, depth16),
+          Write(root / "labels/class" / name, frame.class_id),
+          Write(root / "labels/instance" / name, frame.instance_id),
+          Write(root / "moved" / name, moved)}) {
+      if (!s.ok()) return s;
+    }
+    rgb_list << stamp << " rgb/" << name << "\n";
+    depth_list << stamp << " depth/" << name << "\n";
+    associations << stamp << " rgb/" << name << " " << stamp << " depth/" << name << "\n";
+    groundtruth << io::FormatTumPoseLine(tp.timestamp_s, tp.T_world_camera) << "\n";
+    summary.mean_valid_depth +=
+        cv::countNonZero(frame.depth_m > 0) / static_cast<double>(k.width * k.height);
+    summary.mean_moved += cv::countNonZero(moved) / static_cast<double>(k.width * k.height);
+    ++summary.frames;
+  }
+  if (summary.frames > 0) {
+    summary.mean_valid_depth /= summary.frames;
+    summary.mean_moved /= summary.frames;
+  }
+  std::ofstream(root / "scene.json") << SceneJson(seen, visit, options).dump(2) << "\n";
+  if (!rgb_list || !groundtruth) {
+    return absl::DataLossError(absl::StrCat("writing the lists in ", dir, " failed"));
+  }
+  return summary;
+}
+
+}  // namespace lifemap::sim

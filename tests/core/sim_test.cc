@@ -1,0 +1,172 @@
+// Exact checks of the synthetic world where exact answers exist.
+#include <filesystem>
+
+#include <gtest/gtest.h>
+#include <opencv2/imgcodecs.hpp>
+
+#include "core/io/tum_dataset.h"
+#include "core/sim/generator.h"
+#include "core/sim/renderer.h"
+#include "core/sim/writer.h"
+#include "tests/testing/test_util.h"
+
+namespace lifemap::sim {
+namespace {
+
+const CameraIntrinsics kCamera{262.5, 262.5, 159.5, 119.5, 320, 240};
+
+// A 4 m x 6 m room, 3 m high, nothing in it.
+Place EmptyRoom() {
+  Place p;
+  p.id = "test";
+  p.shape = "rect";
+  p.footprint = {{0, 0}, {4, 0}, {4, 6}, {0, 6}};
+  p.wall_height_m = 3.0;
+  return p;
+}
+
+// A camera at (x, y, z) looking horizontally along +x (right = -y, down = -z).
+Pose LookAlongX(double x, double y, double z) {
+  Eigen::Matrix3d R;
+  R.col(0) = Eigen::Vector3d(0, -1, 0);
+  R.col(1) = Eigen::Vector3d(0, 0, -1);
+  R.col(2) = Eigen::Vector3d(1, 0, 0);
+  Pose pose;
+  pose.translation = {x, y, z};
+  pose.rotation = Eigen::Quaterniond(R);
+  return pose;
+}
+
+SensorOptions Exact() {
+  SensorOptions s;
+  s.noise = false;
+  return s;
+}
+
+TEST(Render, DepthOfAKnownWallAtAKnownPixel) {
+  const RenderedFrame f =
+      Render(EmptyRoom(), {}, {}, kCamera, LookAlongX(0.5, 3.0, 1.5), Exact(), 1);
+  // The principal point looks straight at the wall x = 4: 3.5 m away.
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 3.5f, 1e-4);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kWall));
+  // Row 219 looks down by 99.5/262.5: the floor 1.5 m below would be at depth 3.96, beyond the
+  // wall, so it is still the wall at 3.5 m.
+  EXPECT_NEAR(f.depth_m.at<float>(219, 159), 3.5f, 1e-4);
+  // The bottom row (119.5/262.5 down) meets the floor first, at depth 1.5 / (119.5/262.5).
+  EXPECT_EQ(f.class_id.at<uint8_t>(239, 159), static_cast<uint8_t>(SemanticClass::kFloor));
+  EXPECT_NEAR(f.depth_m.at<float>(239, 159), 1.5 / (119.5 / 262.5), 1e-4);
+}
+
+TEST(Render, ClassAndInstanceWhereAKnownObjectProjects) {
+  Solid box;
+  box.cls = SemanticClass::kBox;
+  box.instance = 9;
+  box.center = {2.5, 3.0};
+  box.base_z = 1.2;
+  box.size = {0.4, 0.4, 0.6};  // spans z 1.2..1.8, its front face at x = 2.3
+  const RenderedFrame f =
+      Render(EmptyRoom(), {box}, {}, kCamera, LookAlongX(1.0, 3.0, 1.5), Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kBox));
+  EXPECT_EQ(f.instance_id.at<uint16_t>(119, 159), 9);
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 1.3f, 1e-4);
+}
+
+TEST(Render, WindowGivesNoDepthAndIsLabelled) {
+  Place room = EmptyRoom();
+  Opening window;
+  window.type = OpeningType::kWindow;
+  window.wall = 1;  // the wall x = 4, from (4, 0) to (4, 6)
+  window.offset_m = 2.5;
+  window.width_m = 1.0;
+  window.sill_m = 1.2;
+  window.top_m = 2.1;
+  room.openings = {window};
+  const RenderedFrame f = Render(room, {}, {}, kCamera, LookAlongX(1.0, 3.0, 1.5), Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kWindow));
+  EXPECT_EQ(f.depth_m.at<float>(119, 159), 0.0f);
+}
+
+TEST(Render, IsBitForBitDeterministicForASeed) {
+  auto place = GeneratePlace(3, "L");
+  ASSERT_TRUE(place.ok());
+  auto visits = GenerateVisits(*place, 3, 1, 0, {}, 4);
+  ASSERT_TRUE(visits.ok());
+  const auto& pose = (*visits)[0].trajectory[2].T_world_camera;
+  const RenderedFrame a = Render(*place, (*visits)[0].solids, {}, kCamera, pose, {}, 42);
+  const RenderedFrame b = Render(*place, (*visits)[0].solids, {}, kCamera, pose, {}, 42);
+  EXPECT_EQ(cv::norm(a.depth_m, b.depth_m, cv::NORM_INF), 0.0);
+  EXPECT_EQ(cv::norm(a.color_bgr, b.color_bgr, cv::NORM_INF), 0.0);
+  const RenderedFrame c = Render(*place, (*visits)[0].solids, {}, kCamera, pose, {}, 43);
+  EXPECT_GT(cv::norm(a.depth_m, c.depth_m, cv::NORM_INF), 0.0) << "another seed, other noise";
+  auto again = GeneratePlace(3, "L");
+  EXPECT_EQ(again->footprint, place->footprint);
+  EXPECT_EQ(again->solids.size(), place->solids.size());
+}
+
+TEST(Generator, RejectsBadArguments) {
+  EXPECT_TRUE(absl::IsInvalidArgument(GeneratePlace(1, "octagon").status()));
+  auto place = GeneratePlace(1, "rect");
+  ASSERT_TRUE(place.ok());
+  EXPECT_TRUE(absl::IsInvalidArgument(GenerateVisits(*place, 1, 0, 6, {}, 10).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(GenerateVisits(*place, 1, 2, -1, {}, 10).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(ParseConditions("weather").status()));
+  EXPECT_TRUE(absl::IsUnimplemented(ParseConditions("dynamic").status()));
+  auto c = ParseConditions("lighting,scenery");
+  ASSERT_TRUE(c.ok());
+  EXPECT_TRUE(c->lighting && c->scenery);
+}
+
+// Two visits that differ by one box: moved/ marks exactly the pixels where the box is now or
+// was before, and the TUM folder reads back with its exact poses.
+TEST(Writer, MovedMasksCoverExactlyTheMovedObjectAndTumReadsBack) {
+  testing::TempDir tmp;
+  const Place room = EmptyRoom();
+  Solid box;
+  box.cls = SemanticClass::kBox;
+  box.instance = 5;
+  box.movable = true;
+  box.center = {3.0, 2.6};
+  box.size = {0.4, 0.4, 0.8};
+  Visit first, second;
+  first.index = 0;
+  first.solids = {box};
+  second.index = 1;
+  box.center = {3.0, 3.6};  // moved 1 m sideways
+  second.solids = {box};
+  for (Visit* v : {&first, &second}) {
+    for (int f = 0; f < 3; ++f) {
+      v->trajectory.push_back({1000.0 + v->index * 100 + f / 30.0, LookAlongX(0.5, 3.0, 1.2)});
+    }
+  }
+  WriteOptions options;
+  options.intrinsics = kCamera;
+  options.sensor = Exact();
+  auto summary = WriteVisit(tmp.File("v1"), room, second, &first, options);
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->frames, 3);
+
+  auto seq = io::ReadTumSequence(tmp.File("v1"));
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_EQ(seq->frames.size(), 3u);
+  ASSERT_TRUE(seq->frames[0].T_world_camera.has_value());
+  EXPECT_NEAR(seq->frames[0].T_world_camera->translation.x(), 0.5, 1e-6);
+  ASSERT_TRUE(seq->intrinsics.has_value());
+  EXPECT_DOUBLE_EQ(seq->intrinsics->fx, 262.5);
+
+  const std::string name = std::filesystem::path(seq->frames[0].rgb_path).filename().string();
+  const cv::Mat moved = cv::imread(tmp.File("v1/moved/" + name), cv::IMREAD_UNCHANGED);
+  const cv::Mat now = cv::imread(tmp.File("v1/labels/instance/" + name), cv::IMREAD_UNCHANGED);
+  const RenderedFrame before =
+      Render(room, first.solids, {}, kCamera, LookAlongX(0.5, 3.0, 1.2), Exact(), 1);
+  const cv::Mat box_now = now == 5;
+  const cv::Mat box_before = before.instance_id == 5;
+  ASSERT_GT(cv::countNonZero(box_now), 100);
+  ASSERT_GT(cv::countNonZero(box_before), 100);
+  cv::Mat expected = box_now | box_before;
+  EXPECT_EQ(cv::countNonZero(moved != expected), 0) << "moved = where the box is or was";
+  const cv::Mat depth = cv::imread(tmp.File("v1/depth/" + name), cv::IMREAD_UNCHANGED);
+  EXPECT_EQ(depth.type(), CV_16UC1);
+}
+
+}  // namespace
+}  // namespace lifemap::sim
