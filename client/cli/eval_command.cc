@@ -52,9 +52,36 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadPcdFolder(const std::string&
 }
 
 // Every `stride`-th frame of a TUM-format folder as a scene without ground truth.
-absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride) {
+// Ground truth a synthetic visit folder carries (lifemap sim): which pixels count as "moved".
+enum class SimTruth {
+  kNone,        // a real recording, or ignore the labels
+  kMovedZones,  // moved/: what changed since the previous visit (eq. 3's ground truth)
+  kMovable,     // labels/instance of the objects scene.json marks movable (props)
+};
+
+// The instance ids scene.json marks movable; empty when there is no scene.json.
+std::vector<int> MovableInstances(const std::string& dir) {
+  std::vector<int> ids;
+  std::ifstream in(fs::path(dir) / "scene.json");
+  if (!in) return ids;
+  try {
+    json scene;
+    in >> scene;
+    for (const auto& o : scene.at("objects")) {
+      if (o.at("movable").get<bool>()) ids.push_back(o.at("instance").get<int>());
+    }
+  } catch (const json::exception&) {
+  }
+  return ids;
+}
+
+// Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
+// truth as the scenes' moved/labelled masks.
+absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride,
+                                                              SimTruth truth = SimTruth::kNone) {
   auto seq = io::ReadTumSequence(dir);
   if (!seq.ok()) return seq.status();
+  const std::vector<int> movable = MovableInstances(dir);
   std::vector<eval::LabeledScene> scenes;
   for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
     const auto& e = seq->frames[i];
@@ -82,9 +109,38 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
     eval::LabeledScene s;
     s.name = absl::StrFormat("%s@%.3f", fs::path(dir).filename().string(), e.timestamp_s);
     s.frame = *std::move(frame);
+    if (truth != SimTruth::kNone) {
+      const std::string file = fs::path(e.rgb_path).filename().string();
+      if (truth == SimTruth::kMovedZones) {
+        s.moved = cv::imread((fs::path(dir) / "moved" / file).string(), cv::IMREAD_GRAYSCALE);
+      } else {
+        const cv::Mat instance = cv::imread((fs::path(dir) / "labels" / "instance" / file).string(),
+                                            cv::IMREAD_UNCHANGED);
+        if (!instance.empty()) {
+          s.moved = cv::Mat(instance.size(), CV_8UC1, cv::Scalar(0));
+          for (int id : movable) s.moved |= (instance == id);
+        }
+      }
+      if (s.moved.empty() || s.moved.size() != s.frame.depth_m.size()) {
+        return absl::NotFoundError(
+            absl::StrCat(dir, ": no ground truth for ", file,
+                         " (expected moved/ and labels/instance/ of a lifemap sim visit)"));
+      }
+      s.labelled = s.frame.depth_m > 0;
+    }
     scenes.push_back(std::move(s));
   }
   return scenes;
+}
+
+// A folder of .pcd scenes, or a synthetic visit (TUM folder with moved/): the feature study's
+// input.
+absl::StatusOr<std::vector<eval::LabeledScene>> ReadLabeledFolder(const std::string& dir,
+                                                                  int stride) {
+  if (fs::exists(fs::path(dir) / "moved") && fs::exists(fs::path(dir) / "rgb.txt")) {
+    return ReadTumScenes(dir, stride, SimTruth::kMovedZones);
+  }
+  return ReadPcdFolder(dir);
 }
 
 absl::Status WriteText(const fs::path& path, const std::string& text) {
@@ -133,7 +189,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   std::vector<eval::LabeledScene> scenes;
   for (const auto& dir : a.data) {
-    auto more = ReadPcdFolder(dir);
+    auto more = ReadLabeledFolder(dir, a.frame_stride);
     if (!more.ok()) return Fail(more.status());
     for (auto& s : *more) scenes.push_back(std::move(s));
   }
@@ -147,8 +203,8 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   std::string csv =
       "scene,superjut,size_px,moved_fraction,moved,entropy,planarity,"
       "horizontality,textureness,neg_entropy\n";
-  eval::Series moved{"moved (objects)", {}, {}, cv::Scalar(200, 80, 0), false};
-  eval::Series still{"static (table)", {}, {}, cv::Scalar(0, 0, 220), false};
+  eval::Series moved{"moved", {}, {}, cv::Scalar(200, 80, 0), false};
+  eval::Series still{"static", {}, {}, cv::Scalar(0, 0, 220), false};
   const double log_m = std::log(80.0);
   for (const auto& s : study->superjuts) {
     csv += absl::StrFormat("%s,%d,%d,%.4f,%d,%.5f,%.5f,%.5f,%.5f,%.5f\n", s.scene, s.id, s.size_px,
@@ -170,7 +226,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   const auto& pa = study->pixel_auc;
   const std::string report = absl::StrFormat(
       "# Entropy feature study (paper 000, Fig. 6)\n\n"
-      "%d scenes from %s; %d superjuts with ground truth, %d of them moved (objects).\n"
+      "%d scenes from %s; %d superjuts with ground truth, %d of them moved.\n"
       "Superjuts: %s variant, k = %.2f, working resolution 1/%d.\n\n"
       "Area under the ROC curve for telling moved from static, oriented as the paper's "
       "hypothesis (entropy and textureness higher on moved, planarity and horizontality lower); "
@@ -181,8 +237,8 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
       "Files: `superjuts.csv` (every superjut), `entropy_planarity.png` (the paper's Fig. 6c), "
       "`summary.json`.\n",
       scenes.size(), absl::StrJoin(a.data, ", "), study->superjuts.size(), study->moved_superjuts,
-      a.k, a.downsample, sa.entropy, pa.entropy, sa.planarity, pa.planarity, sa.horizontality,
-      pa.horizontality, sa.textureness, pa.textureness);
+      a.mesh ? "mesh" : "image-grid", a.k, a.downsample, sa.entropy, pa.entropy, sa.planarity,
+      pa.planarity, sa.horizontality, pa.horizontality, sa.textureness, pa.textureness);
   const fs::path out(a.out);
   for (auto s : {WriteText(out / "superjuts.csv", csv),
                  WriteText(out / "summary.json", summary.dump(2) + "\n"),
@@ -243,7 +299,12 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
   if (!a.tum_a.empty()) {
     // Two TUM recordings of one place (or one recording against itself, frames far apart).
     const bool same = fs::equivalent(a.tum_a, a.tum_b);
-    auto scenes_a = ReadTumScenes(a.tum_a, a.frame_stride);
+    // Synthetic visits carry labels: their movable props are the oracle's objects.
+    const SimTruth truth = fs::exists(fs::path(a.tum_a) / "labels" / "instance") &&
+                                   fs::exists(fs::path(a.tum_b) / "labels" / "instance")
+                               ? SimTruth::kMovable
+                               : SimTruth::kNone;
+    auto scenes_a = ReadTumScenes(a.tum_a, a.frame_stride, truth);
     if (!scenes_a.ok()) return Fail(scenes_a.status());
     Set set{fs::path(a.tum_a).filename().string(), *std::move(scenes_a), {}};
     const size_t na = set.scenes.size();
@@ -256,7 +317,7 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
         }
       }
     } else {
-      auto scenes_b = ReadTumScenes(a.tum_b, a.frame_stride);
+      auto scenes_b = ReadTumScenes(a.tum_b, a.frame_stride, truth);
       if (!scenes_b.ok()) return Fail(scenes_b.status());
       set.name += "+" + fs::path(a.tum_b).filename().string();
       for (auto& s : *scenes_b) set.scenes.push_back(std::move(s));
@@ -366,13 +427,18 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   auto a = std::make_shared<EvalArgs>();
   auto common = [a](CLI::App* cmd, bool data_required) {
     auto* data =
-        cmd->add_option("--data", a->data, "folder of labelled organized .pcd files (e.g. mOSD)")
+        cmd->add_option("--data", a->data,
+                        "folder of labelled organized .pcd files (mOSD), or for entropy-features "
+                        "a synthetic visit (lifemap sim visit_NN, its moved/ masks)")
             ->check(CLI::ExistingDirectory);
     if (data_required) data->required();
     cmd->add_option("--out", a->out, "output folder (created)")->required();
     cmd->add_option("--k", a->k, "superjut scale k (paper: 0.6)")->check(CLI::Range(0.01, 100.0));
     cmd->add_option("--downsample", a->downsample, "working resolution 1/N (default 1)")
         ->check(CLI::Range(1, 8));
+    cmd->add_option("--frame-stride", a->frame_stride,
+                    "TUM/synthetic folders: use every N-th frame (default 4)")
+        ->check(CLI::Range(1, 1000));
     cmd->add_flag("--mesh", a->mesh,
                   "the paper's mesh variant (organized-mesh vertex normals and triangle edges) "
                   "instead of the image-domain one");
@@ -395,8 +461,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
                     ->check(CLI::ExistingDirectory);
   tum_a->needs(tum_b);
   tum_b->needs(tum_a);
-  matching->add_option("--frame-stride", a->frame_stride, "TUM: use every N-th frame (default 4)")
-      ->check(CLI::Range(1, 1000));
+
   matching
       ->add_option("--min-gap", a->min_gap,
                    "TUM, same folder: pair frames at least N frames apart (default 8)")

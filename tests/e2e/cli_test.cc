@@ -425,6 +425,8 @@ TEST_F(CliTest, EvalEntropyStudiesWriteTheirReports) {
   EXPECT_GT(features["superjuts"].get<int>(), 50);
   EXPECT_TRUE(std::filesystem::exists(tmp_.File("features/superjuts.csv")));
   EXPECT_TRUE(std::filesystem::exists(tmp_.File("features/entropy_planarity.png")));
+  EXPECT_NE(Slurp(tmp_.File("features/report.md")).find("| entropy |"), std::string::npos);
+  EXPECT_NE(r.out.find("\"auc\""), std::string::npos);
 
   r = Run({"--json", "eval", "entropy-matching", "--data", dir + "/test", "--out",
            tmp_.File("matching"), "--keypoints", "orb", "--ransac-iterations", "2000"});
@@ -438,6 +440,7 @@ TEST_F(CliTest, EvalEntropyStudiesWriteTheirReports) {
   EXPECT_EQ(matching["pairs"].get<int>() + matching["skipped_pairs"].get<int>(), 78);
   EXPECT_GE(matching["recall_at_best"].get<double>(), 0.8);
   EXPECT_TRUE(std::filesystem::exists(tmp_.File("matching/pr_curve.png")));
+  EXPECT_NE(Slurp(tmp_.File("matching/report.md")).find("| test |"), std::string::npos);
 
   r = Run({"eval", "entropy-features", "--data", tmp_.path(), "--out", tmp_.File("x")});
   EXPECT_EQ(r.code, 1);
