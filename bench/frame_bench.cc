@@ -21,6 +21,8 @@
 #include "core/normals/normals.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/segmentation/superjuts.h"
+#include "core/sim/generator.h"
+#include "core/sim/renderer.h"
 #include "server/store/store.h"
 
 namespace lifemap {
@@ -207,6 +209,22 @@ BENCHMARK(BM_ComputeEntropyMask)
     ->Args({1, 1})
     ->Args({2, 1})
     ->Unit(benchmark::kMillisecond);
+
+// The synthetic world's renderer, one 640x480 frame of an L-shaped furnished room, with the
+// sensor model (arg 1) and exact (arg 0).
+void BM_SimRender(benchmark::State& state) {
+  const auto place = *sim::GeneratePlace(7, "L");
+  const auto visits = *sim::GenerateVisits(place, 7, 1, 0, {}, 30);
+  sim::SensorOptions sensor;
+  sensor.noise = state.range(0) != 0;
+  const CameraIntrinsics k{525, 525, 319.5, 239.5, 640, 480};
+  size_t f = 0;
+  for (auto _ : state) {
+    const auto& pose = visits[0].trajectory[f++ % visits[0].trajectory.size()].T_world_camera;
+    benchmark::DoNotOptimize(sim::Render(place, visits[0].solids, {}, k, pose, sensor, f));
+  }
+}
+BENCHMARK(BM_SimRender)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace lifemap

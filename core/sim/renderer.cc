@@ -99,14 +99,32 @@ void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Ve
   best->texture_scale = floor ? 1.0 : 0.3;
 }
 
-void HitWalls(const Place& place, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
+// A wall segment's geometry, computed once per frame.
+struct WallGeometry {
+  Eigen::Vector2d a, e, inward;
+  double length;
+};
+
+std::vector<WallGeometry> Walls(const Place& place) {
+  std::vector<WallGeometry> walls;
   const size_t n = place.footprint.size();
   for (size_t w = 0; w < n; ++w) {
     const Eigen::Vector2d a = place.footprint[w];
     const Eigen::Vector2d b = place.footprint[(w + 1) % n];
     const double length = (b - a).norm();
     const Eigen::Vector2d e = (b - a) / length;
-    const Eigen::Vector2d inward(-e.y(), e.x());  // counter-clockwise footprint
+    walls.push_back({a, e, Eigen::Vector2d(-e.y(), e.x()), length});  // counter-clockwise
+  }
+  return walls;
+}
+
+void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const Eigen::Vector3d& o,
+              const Eigen::Vector3d& d, Hit* best) {
+  for (size_t w = 0; w < walls.size(); ++w) {
+    const Eigen::Vector2d& a = walls[w].a;
+    const Eigen::Vector2d& e = walls[w].e;
+    const Eigen::Vector2d& inward = walls[w].inward;
+    const double length = walls[w].length;
     const double facing = inward.dot(d.head<2>());
     if (facing >= -1e-12) continue;  // seen from behind or edge-on
     const double t = inward.dot(a - o.head<2>()) / facing;
@@ -150,10 +168,24 @@ void HitWalls(const Place& place, const Eigen::Vector3d& o, const Eigen::Vector3
   }
 }
 
-void HitSolid(const Solid& s, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
+// A solid's placement, computed once per frame: centre and yaw's cosine and sine.
+struct SolidFrame {
+  const Solid* solid;
+  Eigen::Vector3d centre;
+  double cos_yaw, sin_yaw;
+};
+
+SolidFrame Prepare(const Solid& s) {
+  return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + s.size.z() / 2),
+          std::cos(s.yaw), std::sin(s.yaw)};
+}
+
+void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
+  const Solid& s = *sf.solid;
   const double half_h = s.size.z() / 2;
-  const Eigen::Vector3d c(s.center.x(), s.center.y(), s.base_z + half_h);
-  const double cy = std::cos(-s.yaw), sy = std::sin(-s.yaw);
+  const Eigen::Vector3d& c = sf.centre;
+  // World to the solid's frame: rotate by -yaw.
+  const double cy = sf.cos_yaw, sy = -sf.sin_yaw;
   auto to_local = [&](const Eigen::Vector3d& v) {
     return Eigen::Vector3d(cy * v.x() - sy * v.y(), sy * v.x() + cy * v.y(), v.z());
   };
@@ -221,7 +253,7 @@ void HitSolid(const Solid& s, const Eigen::Vector3d& o, const Eigen::Vector3d& d
     if (t_hit == kInf) return;
   }
   if (t_hit >= best->t) return;
-  const double cw = std::cos(s.yaw), sw = std::sin(s.yaw);
+  const double cw = sf.cos_yaw, sw = sf.sin_yaw;
   best->t = t_hit;
   best->cls = s.cls;
   best->instance = static_cast<uint16_t>(s.instance);
@@ -274,11 +306,31 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
   const Eigen::Matrix3d R = T_wc.linear();
   const Eigen::Vector3d o = T_wc.translation();
   std::vector<cv::Rect> rects;
+  std::vector<SolidFrame> prepared;
   rects.reserve(solids.size());
-  for (const auto& s : solids) rects.push_back(ScreenRect(s, k, T_cw));
+  for (const auto& s : solids) {
+    rects.push_back(ScreenRect(s, k, T_cw));
+    prepared.push_back(Prepare(s));
+  }
   const Eigen::Vector3d light = Eigen::Vector3d(0.3, 0.5, 1.0).normalized();
+  const std::vector<WallGeometry> walls = Walls(place);
   std::mt19937_64 rng(seed);
-  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  // Gaussian samples come from a table indexed by a fast generator: a normal_distribution
+  // draw per pixel and channel cost a quarter of the frame.
+  static const std::vector<float> kGauss = [] {
+    std::mt19937 table_rng(12345);
+    std::normal_distribution<float> g(0.0f, 1.0f);
+    std::vector<float> t(1 << 16);
+    for (auto& v : t) v = g(table_rng);
+    return t;
+  }();
+  uint64_t state = seed * 0x9E3779B97F4A7C15ULL + 1;
+  auto gauss = [&state]() {
+    state ^= state << 13;
+    state ^= state >> 7;
+    state ^= state << 17;
+    return kGauss[state & 0xffff];
+  };
   cv::Mat normal_dot(k.height, k.width, CV_32FC1, cv::Scalar(1.0f));
 
   for (int v = 0; v < k.height; ++v) {
@@ -291,11 +343,14 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
       const Eigen::Vector3d d_cam((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
       const Eigen::Vector3d d = R * d_cam;  // unnormalised: t is the depth
       Hit hit;
-      HitHorizontal(place, o, d, 0.0, true, &hit);
-      HitHorizontal(place, o, d, place.wall_height_m, false, &hit);
-      HitWalls(place, o, d, &hit);
+      HitWalls(place, walls, o, d, &hit);
+      if (d.z() < 0) {
+        HitHorizontal(place, o, d, 0.0, true, &hit);
+      } else {
+        HitHorizontal(place, o, d, place.wall_height_m, false, &hit);
+      }
       for (size_t i = 0; i < solids.size(); ++i) {
-        if (rects[i].contains(cv::Point(u, v))) HitSolid(solids[i], o, d, &hit);
+        if (rects[i].contains(cv::Point(u, v))) HitSolid(prepared[i], o, d, &hit);
       }
       if (hit.t == kInf) continue;
       cls[u] = static_cast<uint8_t>(hit.cls);
@@ -308,8 +363,7 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
       if (hit.cls == SemanticClass::kWindow) c = hit.albedo;  // bright outdoors
       c = c.cwiseProduct(lighting.tint) * static_cast<float>(lighting.brightness * sensor.exposure);
       for (int ch = 0; ch < 3; ++ch) {
-        const float noise =
-            sensor.noise ? static_cast<float>(sensor.color_noise) * gauss(rng) : 0.0f;
+        const float noise = sensor.noise ? static_cast<float>(sensor.color_noise) * gauss() : 0.0f;
         const float value = std::clamp(c[2 - ch] * 255.0f + noise, 0.0f, 255.0f);
         bgr[u][ch] = static_cast<uint8_t>(std::lround(value));
       }
@@ -344,7 +398,7 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
       if (edge && uniform(rng) < sensor.edge_dropout) continue;
       // Noise as Nguyen et al. (3DIMPVT 2012) for Kinect v1, then disparity quantisation.
       const double sigma = 0.0012 + 0.0019 * (z - 0.4) * (z - 0.4);
-      const double noisy = z + sigma * gauss(rng);
+      const double noisy = z + sigma * gauss();
       const double disparity = std::round((1.0 / noisy) / kDisparityStep) * kDisparityStep;
       depth[u] = static_cast<float>(1.0 / disparity);
     }
