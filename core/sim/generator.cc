@@ -130,12 +130,11 @@ absl::StatusOr<Conditions> ParseConditions(const std::string& text) {
     } else if (part == "scenery") {
       c.scenery = true;
     } else if (part == "dynamic") {
-      return absl::UnimplementedError(
-          "condition 'dynamic' (people walking through) is not rendered yet; use lighting, "
-          "scenery or none");
+      c.dynamic = true;
     } else {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "unknown condition '", part, "': use lighting, scenery (comma-separated) or none"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown condition '", part,
+                       "': use lighting, dynamic, scenery (comma-separated) or none"));
     }
   }
   return c;
@@ -157,9 +156,23 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
     const double cw = w * std::uniform_real_distribution<double>(0.35, 0.55)(rng);
     const double cd = d * std::uniform_real_distribution<double>(0.35, 0.55)(rng);
     place.footprint = {{0, 0}, {w, 0}, {w, d - cd}, {w - cw, d - cd}, {w - cw, d}, {0, d}};
+  } else if (shape == "T") {
+    // A stem (width sw, length sl) below a bar (width w + 2, depth bd), counter-clockwise.
+    const double bar = w + 2.0;
+    const double sw = std::max(2.2, w * 0.5), sl = d * 0.6, bd = std::max(2.5, d * 0.6);
+    const double x0 = (bar - sw) / 2, x1 = (bar + sw) / 2;
+    place.footprint = {{x0, 0},        {x1, 0},      {x1, sl}, {bar, sl},
+                       {bar, sl + bd}, {0, sl + bd}, {0, sl},  {x0, sl}};
+  } else if (shape == "U") {
+    // A block with a notch (width nw, depth nd) cut into its far side, counter-clockwise.
+    const double uw = w + 2.0, ud = d + 1.0;
+    const double nw = uw * 0.34, nd = ud * 0.45;
+    const double x0 = (uw - nw) / 2, x1 = (uw + nw) / 2;
+    place.footprint = {{0, 0},        {uw, 0},       {uw, ud}, {x1, ud},
+                       {x1, ud - nd}, {x0, ud - nd}, {x0, ud}, {0, ud}};
   } else {
     return absl::InvalidArgumentError(
-        absl::StrCat("place shape '", shape, "' is not one of rect, square, L"));
+        absl::StrCat("place shape '", shape, "' is not one of rect, square, L, T, U"));
   }
   // A door on the first wall, windows on other walls long enough for one.
   const size_t n = place.footprint.size();
@@ -251,6 +264,17 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
     }
   }
   return place;
+}
+
+std::vector<Solid> Visit::SolidsAt(size_t f) const {
+  std::vector<Solid> out = solids;
+  const double t = trajectory.size() > 1 ? static_cast<double>(f) / (trajectory.size() - 1) : 0.0;
+  for (const auto& w : walkers) {
+    Solid body = w.body;
+    body.center = w.from + t * (w.to - w.from);
+    out.push_back(body);
+  }
+  return out;
 }
 
 absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t seed, int count,
@@ -359,6 +383,33 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         const float warm = static_cast<float>(t(rng));
         v.lighting.tint = {1.0f + warm, 1.0f, 1.0f - warm};
         v.changes.push_back({"lighting", 0, absl::StrCat("brightness ", v.lighting.brightness)});
+      }
+    }
+    if (conditions.dynamic && vi > 0) {
+      // One or two people cross the room during the visit.
+      const int people = 1 + static_cast<int>(rng() % 2);
+      for (int i = 0; i < people; ++i) {
+        Walker w;
+        w.body.shape = Solid::Shape::kCylinder;
+        w.body.cls = SemanticClass::kPerson;
+        w.body.instance = next_instance++;
+        w.body.movable = true;
+        w.body.size = {0.4, 0, std::uniform_real_distribution<double>(1.6, 1.85)(rng)};
+        w.body.color = RandomColor(&rng);
+        w.body.texture_seed = static_cast<uint32_t>(rng());
+        // From near one wall to near another, through the room's free middle.
+        for (Eigen::Vector2d* end : {&w.from, &w.to}) {
+          for (int attempt = 0; attempt < 200; ++attempt) {
+            const Eigen::Vector2d p(std::uniform_real_distribution<double>(lo.x(), hi.x())(rng),
+                                    std::uniform_real_distribution<double>(lo.y(), hi.y())(rng));
+            if (Inside(place.footprint, p) && DistanceToWalls(place.footprint, p) > 0.5) {
+              *end = p;
+              break;
+            }
+          }
+        }
+        v.walkers.push_back(w);
+        v.changes.push_back({"person", w.body.instance, "walking through"});
       }
     }
     // One loop around the centre, looking outwards at the walls, camera at ~1.4 m.

@@ -15,7 +15,7 @@ namespace lifemap::sim {
 struct Conditions {
   bool lighting = false;  // brightness and colour temperature change
   bool scenery = false;   // props move, appear, vanish; a door opens or closes
-  bool dynamic = false;   // people walking through: not rendered yet (refused)
+  bool dynamic = false;   // people walk through the room during the visit
 };
 
 // Parses "lighting,scenery" (or "none"). InvalidArgument names an unknown condition.
@@ -32,6 +32,12 @@ struct TimedCameraPose {
   Pose T_world_camera;
 };
 
+// A person walking in a straight line across the room during a visit (dynamic objects).
+struct Walker {
+  Solid body;                // a cylinder of class kPerson; body.center is ignored
+  Eigen::Vector2d from, to;  // positions at the visit's first and last frame
+};
+
 struct Visit {
   int index = 0;
   double months_since_first = 0;
@@ -41,9 +47,13 @@ struct Visit {
   Lighting lighting;
   std::vector<Change> changes;  // relative to the previous visit
   std::vector<TimedCameraPose> trajectory;
+  std::vector<Walker> walkers;
+
+  // The solids seen at frame `f`: the arrangement plus the walkers where they are then.
+  std::vector<Solid> SolidsAt(size_t f) const;
 };
 
-// shape: rect, square or L (T and U: not yet). InvalidArgument for other shapes.
+// shape: rect, square, L, T or U. InvalidArgument for other shapes.
 absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape);
 
 // `count` visits `months_apart` months apart, each with `frames` frames at 30 Hz along one loop

@@ -407,9 +407,10 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
 }
 
 const char* ClassName(SemanticClass c) {
-  static const char* const kNames[kClassCount] = {
-      "none", "floor", "wall",  "ceiling", "door",     "window", "table", "shelf",  "cabinet",
-      "bed",  "sofa",  "chair", "box",     "cylinder", "book",   "mug",   "clutter"};
+  static const char* const kNames[] = {
+      "none", "floor", "wall",  "ceiling", "door",     "window", "table", "shelf",   "cabinet",
+      "bed",  "sofa",  "chair", "box",     "cylinder", "book",   "mug",   "clutter", "person"};
+  static_assert(sizeof(kNames) / sizeof(kNames[0]) == kClassCount, "a name for every class");
   const int i = static_cast<int>(c);
   return i >= 0 && i < kClassCount ? kNames[i] : "unknown";
 }

@@ -34,8 +34,9 @@ enum class SemanticClass : uint8_t {
   kBook = 14,
   kMug = 15,
   kClutter = 16,
+  kPerson = 17,
 };
-constexpr int kClassCount = 17;
+constexpr int kClassCount = 18;
 const char* ClassName(SemanticClass c);
 
 enum class OpeningType { kDoor, kWindow };

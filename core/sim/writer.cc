@@ -50,6 +50,15 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
                        {"size_m", {s.size.x(), s.size.y(), s.size.z()}},
                        {"movable", s.movable}});
   }
+  json people = json::array();
+  for (const auto& w : visit.walkers) {
+    people.push_back({{"instance", w.body.instance},
+                      {"class", ClassName(w.body.cls)},
+                      {"from", {w.from.x(), w.from.y()}},
+                      {"to", {w.to.x(), w.to.y()}},
+                      {"height_m", w.body.size.z()},
+                      {"diameter_m", w.body.size.x()}});
+  }
   json changes = json::array();
   for (const auto& c : visit.changes) {
     changes.push_back({{"kind", c.kind}, {"instance", c.instance}, {"detail", c.detail}});
@@ -76,6 +85,7 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
             {"openings", openings},
             {"stairs", json::array()}}},
           {"objects", objects},
+          {"people", people},
           {"changes", changes},
           {"lighting",
            {{"brightness", visit.lighting.brightness},
@@ -130,14 +140,15 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
   for (size_t f = 0; f < visit.trajectory.size(); ++f) {
     const auto& tp = visit.trajectory[f];
     const uint64_t frame_seed = options.seed * 1000003ULL + visit.index * 100003ULL + f;
-    RenderedFrame frame = Render(seen, visit.solids, visit.lighting, k, tp.T_world_camera,
+    RenderedFrame frame = Render(seen, visit.SolidsAt(f), visit.lighting, k, tp.T_world_camera,
                                  options.sensor, frame_seed);
     cv::Mat moved(k.height, k.width, CV_8UC1, cv::Scalar(0));
     if (previous) {
       // What this pose showed on the previous visit, exactly: changed pixels differ in what
       // surface they show or where it is.
-      const RenderedFrame then = Render(before, previous->solids, previous->lighting, k,
-                                        tp.T_world_camera, exact, frame_seed);
+      const RenderedFrame then =
+          Render(before, previous->SolidsAt(std::min(f, previous->trajectory.size() - 1)),
+                 previous->lighting, k, tp.T_world_camera, exact, frame_seed);
       for (int r = 0; r < k.height; ++r) {
         const uint16_t* a = frame.instance_id.ptr<uint16_t>(r);
         const uint16_t* b = then.instance_id.ptr<uint16_t>(r);

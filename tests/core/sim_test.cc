@@ -103,6 +103,25 @@ TEST(Render, IsBitForBitDeterministicForASeed) {
   EXPECT_EQ(again->solids.size(), place->solids.size());
 }
 
+// A person walking through on a "dynamic" visit shows up in the frames, labelled, and in the
+// moved masks.
+TEST(Generator, DynamicVisitsHaveWalkersThatRenderAsPeople) {
+  auto place = GeneratePlace(4, "rect");
+  ASSERT_TRUE(place.ok());
+  Conditions dynamic;
+  dynamic.dynamic = true;
+  auto visits = GenerateVisits(*place, 4, 2, 1, dynamic, 20);
+  ASSERT_TRUE(visits.ok());
+  ASSERT_FALSE((*visits)[1].walkers.empty());
+  EXPECT_TRUE((*visits)[0].walkers.empty()) << "the reference visit is quiet";
+  const auto& w = (*visits)[1].walkers[0];
+  const auto start = (*visits)[1].SolidsAt(0), end = (*visits)[1].SolidsAt(19);
+  EXPECT_EQ(start.size(), (*visits)[1].solids.size() + (*visits)[1].walkers.size());
+  EXPECT_NEAR((start.back().center - w.from).norm(), 0.0, 1e-9);
+  EXPECT_NEAR((end.back().center - w.to).norm(), 0.0, 1e-9);
+  EXPECT_EQ(start.back().cls, SemanticClass::kPerson);
+}
+
 TEST(Generator, RejectsBadArguments) {
   EXPECT_TRUE(absl::IsInvalidArgument(GeneratePlace(1, "octagon").status()));
   auto place = GeneratePlace(1, "rect");
@@ -110,10 +129,22 @@ TEST(Generator, RejectsBadArguments) {
   EXPECT_TRUE(absl::IsInvalidArgument(GenerateVisits(*place, 1, 0, 6, {}, 10).status()));
   EXPECT_TRUE(absl::IsInvalidArgument(GenerateVisits(*place, 1, 2, -1, {}, 10).status()));
   EXPECT_TRUE(absl::IsInvalidArgument(ParseConditions("weather").status()));
-  EXPECT_TRUE(absl::IsUnimplemented(ParseConditions("dynamic").status()));
-  auto c = ParseConditions("lighting,scenery");
+  auto c = ParseConditions("lighting,scenery,dynamic");
   ASSERT_TRUE(c.ok());
-  EXPECT_TRUE(c->lighting && c->scenery);
+  EXPECT_TRUE(c->lighting && c->scenery && c->dynamic);
+  for (const char* shape : {"rect", "square", "L", "T", "U"}) {
+    auto p = GeneratePlace(11, shape);
+    ASSERT_TRUE(p.ok()) << shape;
+    // Counter-clockwise footprints: positive signed area.
+    double area = 0;
+    for (size_t i = 0; i < p->footprint.size(); ++i) {
+      const auto& a = p->footprint[i];
+      const auto& b = p->footprint[(i + 1) % p->footprint.size()];
+      area += a.x() * b.y() - b.x() * a.y();
+    }
+    EXPECT_GT(area / 2, 9.0) << shape;
+    EXPECT_LT(area / 2, 150.0) << shape;
+  }
 }
 
 // Two visits that differ by one box: moved/ marks exactly the pixels where the box is now or

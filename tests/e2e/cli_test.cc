@@ -405,6 +405,18 @@ TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   EXPECT_EQ(summary["frames_sent"], 12);
   EXPECT_GE(summary["keyframes_stored"].get<int>(), 1);
 
+  r = Run({"--json", "sim", "suite", "--seed", "3", "--places", "1", "--frames", "3", "--out",
+           tmp_.File("suite")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json suite = json::parse(Slurp(tmp_.File("suite/manifest.json")));
+  ASSERT_EQ(suite["visits"].size(), 9u) << "a reference and the 8 condition subsets";
+  for (const auto& v : suite["visits"]) {
+    EXPECT_TRUE(std::filesystem::exists(
+        tmp_.File("suite/" + v["path"].get<std::string>() + "/groundtruth.txt")))
+        << v["path"];
+  }
+  EXPECT_EQ(suite["visits"][8]["conditions"], "lighting,dynamic,scenery");
+
   r = Run({"sim", "--place-shape", "octagon", "--out", tmp_.File("bad")});
   EXPECT_EQ(r.code, 2);
   r = Run({"sim", "--conditions", "weather", "--out", tmp_.File("bad")});
