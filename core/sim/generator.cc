@@ -52,8 +52,10 @@ bool PlaceFreely(const Place& place, const std::vector<Solid>& others, Solid* s,
     }
     bool clear = true;
     for (const auto& o : others) {
-      if (std::abs(o.base_z - s->base_z) < 0.05 &&
-          (o.center - s->center).norm() < Radius(o) + Radius(*s) + 0.05) {
+      // Stairs block every surface (a flight down leaves a hole in the floor).
+      const bool same_surface =
+          o.cls == SemanticClass::kStairs || std::abs(o.base_z - s->base_z) < 0.05;
+      if (same_surface && (o.center - s->center).norm() < Radius(o) + Radius(*s) + 0.05) {
         clear = false;
         break;
       }
@@ -120,6 +122,34 @@ Pose LookPose(const Eigen::Vector3d& position, double yaw, double pitch) {
 }
 
 }  // namespace
+
+std::vector<Solid> StairSolids(const Stairs& st, int first_instance) {
+  std::vector<Solid> steps;
+  const Eigen::Vector2d dir(std::cos(st.yaw), std::sin(st.yaw));
+  for (int i = 0; i < st.steps; ++i) {
+    Solid s;
+    s.cls = SemanticClass::kStairs;
+    s.instance = first_instance + i;
+    s.yaw = st.yaw;
+    s.color = {0.5f, 0.5f, 0.52f};
+    s.texture_seed = 977U + static_cast<uint32_t>(i);
+    s.center = st.origin + dir * (st.run_m * (i + 0.5));
+    s.size = {st.run_m, st.width_m, 0};
+    if (st.up) {
+      // Step i: a block from the floor up to its tread, (i + 1) risers high.
+      s.base_z = 0;
+      s.size.z() = st.rise_m * (i + 1);
+    } else {
+      // Step i down: its tread (i + 1) risers below the floor, a block down to the flight's
+      // bottom.
+      const double bottom = -st.rise_m * (st.steps + 1);
+      s.base_z = bottom;
+      s.size.z() = -st.rise_m * (i + 1) - bottom;
+    }
+    steps.push_back(s);
+  }
+  return steps;
+}
 
 absl::StatusOr<Conditions> ParseConditions(const std::string& text) {
   Conditions c;
@@ -242,6 +272,42 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
       }
     }
     if (clear) place.solids.push_back(s);
+  }
+  // Half the places have a flight of stairs along a wall, going up or down: the first wall
+  // (from a random one) with room for it clear of openings and furniture.
+  if (rng() % 2 == 0) {
+    Stairs st;
+    st.up = rng() % 2 == 0;
+    st.steps = 5 + static_cast<int>(rng() % 4);
+    st.rise_m = std::uniform_real_distribution<double>(0.15, 0.19)(rng);
+    st.run_m = std::uniform_real_distribution<double>(0.26, 0.32)(rng);
+    st.width_m = 1.0;
+    const double flight = st.run_m * st.steps;
+    const size_t first = rng() % n;
+    for (size_t k = 0; k < n && place.stairs.empty(); ++k) {
+      const size_t wi = (first + k) % n;
+      const Eigen::Vector2d a = place.footprint[wi], b = place.footprint[(wi + 1) % n];
+      const double length = (b - a).norm();
+      if (length < flight + 1.0) continue;
+      const Eigen::Vector2d e = (b - a) / length, inward(-e.y(), e.x());
+      const double u = std::uniform_real_distribution<double>(0.4, length - flight - 0.4)(rng);
+      bool clear = true;
+      for (const auto& op : place.openings) {
+        if (op.wall == static_cast<int>(wi) && u < op.offset_m + op.width_m + 0.3 &&
+            u + flight > op.offset_m - 0.3) {
+          clear = false;
+        }
+      }
+      st.yaw = std::atan2(e.y(), e.x());
+      st.origin = a + e * u + inward * (st.width_m / 2 + 0.02);
+      const Eigen::Vector2d mid = st.origin + e * (flight / 2);
+      for (const auto& o : place.solids) {
+        if ((o.center - mid).norm() < Radius(o) + flight / 2 + 0.3) clear = false;
+      }
+      if (!clear) continue;
+      place.stairs.push_back(st);
+      for (const auto& step : StairSolids(st, 1000)) place.solids.push_back(step);
+    }
   }
   // Props: on the table and on the floor.
   std::uniform_int_distribution<int> count(3, 6);

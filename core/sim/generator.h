@@ -53,6 +53,9 @@ struct Visit {
   std::vector<Solid> SolidsAt(size_t f) const;
 };
 
+// The boxes a flight of stairs is made of (class kStairs, not movable), for rendering.
+std::vector<Solid> StairSolids(const Stairs& stairs, int first_instance);
+
 // shape: rect, square, L, T or U. InvalidArgument for other shapes.
 absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape);
 

@@ -88,6 +88,16 @@ void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Ve
   if (t <= 1e-6 || t >= best->t) return;
   const Eigen::Vector3d p = o + t * d;
   if (!InsidePolygon(place.footprint, p.x(), p.y())) return;
+  if (floor) {
+    for (const auto& st : place.stairs) {
+      if (st.up) continue;
+      // The stairwell: the flight's footprint is open.
+      const Eigen::Vector2d rel = p.head<2>() - st.origin;
+      const double along = rel.x() * std::cos(st.yaw) + rel.y() * std::sin(st.yaw);
+      const double across = -rel.x() * std::sin(st.yaw) + rel.y() * std::cos(st.yaw);
+      if (along >= 0 && along <= st.run_m * st.steps && std::abs(across) <= st.width_m / 2) return;
+    }
+  }
   best->t = t;
   best->cls = floor ? SemanticClass::kFloor : SemanticClass::kCeiling;
   best->instance = 0;
@@ -408,8 +418,8 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
 
 const char* ClassName(SemanticClass c) {
   static const char* const kNames[] = {
-      "none", "floor", "wall",  "ceiling", "door",     "window", "table", "shelf",   "cabinet",
-      "bed",  "sofa",  "chair", "box",     "cylinder", "book",   "mug",   "clutter", "person"};
+      "none", "floor", "wall", "ceiling",  "door", "window", "table",   "shelf",  "cabinet", "bed",
+      "sofa", "chair", "box",  "cylinder", "book", "mug",    "clutter", "person", "stairs"};
   static_assert(sizeof(kNames) / sizeof(kNames[0]) == kClassCount, "a name for every class");
   const int i = static_cast<int>(c);
   return i >= 0 && i < kClassCount ? kNames[i] : "unknown";

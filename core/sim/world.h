@@ -35,8 +35,9 @@ enum class SemanticClass : uint8_t {
   kMug = 15,
   kClutter = 16,
   kPerson = 17,
+  kStairs = 18,
 };
-constexpr int kClassCount = 18;
+constexpr int kClassCount = 19;
 const char* ClassName(SemanticClass c);
 
 enum class OpeningType { kDoor, kWindow };
@@ -67,13 +68,26 @@ struct Solid {
   Eigen::Vector3f color{0.6f, 0.5f, 0.4f};  // base albedo, RGB in [0, 1]
 };
 
+// A straight flight of stairs. Going up: `steps` boxes on the floor, each `rise_m` higher than
+// the one before. Going down: a hole in the floor with the steps below floor level.
+struct Stairs {
+  bool up = true;
+  Eigen::Vector2d origin{0, 0};  // centre of the first step's near edge, on the floor
+  double yaw = 0;                // direction of travel (up or down the flight), radians
+  double width_m = 1.0;
+  double run_m = 0.28;   // tread depth
+  double rise_m = 0.17;  // riser height
+  int steps = 6;
+};
+
 struct Place {
   std::string id;                          // e.g. "place-7-L"
   std::string shape;                       // rect, square, L, T, U
   std::vector<Eigen::Vector2d> footprint;  // counter-clockwise corners of the room, metres
   double wall_height_m = 2.7;
   std::vector<Opening> openings;
-  std::vector<Solid> solids;  // furniture and props
+  std::vector<Solid> solids;  // furniture and props (and the steps of stairs, class kStairs)
+  std::vector<Stairs> stairs;
   uint32_t texture_seed = 1;
 };
 

@@ -1,5 +1,6 @@
 #include "core/sim/writer.h"
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 
@@ -41,6 +42,7 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
   }
   json objects = json::array();
   for (const auto& s : visit.solids) {
+    if (s.cls == SemanticClass::kStairs) continue;  // described under floor_plan.stairs
     objects.push_back({{"instance", s.instance},
                        {"class", ClassName(s.cls)},
                        {"class_id", static_cast<int>(s.cls)},
@@ -49,6 +51,28 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
                        {"yaw_rad", s.yaw},
                        {"size_m", {s.size.x(), s.size.y(), s.size.z()}},
                        {"movable", s.movable}});
+  }
+  json stairs = json::array();
+  for (const auto& st : place.stairs) {
+    const Eigen::Vector2d dir(std::cos(st.yaw), std::sin(st.yaw));
+    const Eigen::Vector2d centre = st.origin + dir * (st.run_m * st.steps / 2);
+    double nearest_wall = 1e9;
+    for (size_t i = 0; i < n; ++i) {
+      const auto& a = place.footprint[i];
+      const auto& b = place.footprint[(i + 1) % n];
+      const double t = std::clamp((centre - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
+      nearest_wall = std::min(nearest_wall, (a + t * (b - a) - centre).norm());
+    }
+    stairs.push_back({{"type", st.up ? "up" : "down"},
+                      {"origin", {st.origin.x(), st.origin.y()}},
+                      {"yaw_rad", st.yaw},
+                      {"steps", st.steps},
+                      {"rise_m", st.rise_m},
+                      {"run_m", st.run_m},
+                      {"width_m", st.width_m},
+                      {"length_m", st.run_m * st.steps},
+                      {"height_m", st.rise_m * st.steps},
+                      {"centre_distance_to_nearest_wall_m", nearest_wall}});
   }
   json people = json::array();
   for (const auto& w : visit.walkers) {
@@ -83,7 +107,7 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
             {"wall_height_m", place.wall_height_m},
             {"walls", walls},
             {"openings", openings},
-            {"stairs", json::array()}}},
+            {"stairs", stairs}}},
           {"objects", objects},
           {"people", people},
           {"changes", changes},

@@ -86,6 +86,36 @@ TEST(Render, WindowGivesNoDepthAndIsLabelled) {
   EXPECT_EQ(f.depth_m.at<float>(119, 159), 0.0f);
 }
 
+// Stairs: a flight up stands on the floor; a flight down opens the floor and its treads are
+// below floor level, one riser deeper per step.
+TEST(Render, StairsGoingUpAndDown) {
+  for (bool up : {true, false}) {
+    Place room = EmptyRoom();
+    Stairs st;
+    st.up = up;
+    st.origin = {1.5, 3.0};
+    st.yaw = 0;  // the flight runs along +x from x = 1.5
+    st.steps = 4;
+    st.run_m = 0.3;
+    st.rise_m = 0.2;
+    room.stairs = {st};
+    // A camera 1.5 m above the floor looking straight down at the third step (x = 2.25).
+    Pose down;
+    down.translation = {2.25, 3.0, 1.5};
+    Eigen::Matrix3d R;
+    R.col(0) = Eigen::Vector3d(0, -1, 0);
+    R.col(1) = Eigen::Vector3d(-1, 0, 0);
+    R.col(2) = Eigen::Vector3d(0, 0, -1);
+    down.rotation = Eigen::Quaterniond(R);
+    const RenderedFrame f = Render(room, StairSolids(st, 100), {}, kCamera, down, Exact(), 1);
+    EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kStairs))
+        << (up ? "up" : "down");
+    // Step 3's tread is 3 risers above (up) or below (down) the floor.
+    EXPECT_NEAR(f.depth_m.at<float>(119, 159), up ? 1.5 - 0.6 : 1.5 + 0.6, 1e-4)
+        << (up ? "up" : "down");
+  }
+}
+
 TEST(Render, IsBitForBitDeterministicForASeed) {
   auto place = GeneratePlace(3, "L");
   ASSERT_TRUE(place.ok());
