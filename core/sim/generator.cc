@@ -329,6 +329,54 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
       place.solids.push_back(prop);
     }
   }
+  // Chairs (furniture that gets rearranged: movable) and, in larger rooms, a sofa or a bed.
+  for (int i = 0; i < 2; ++i) {
+    Solid chair;
+    chair.cls = SemanticClass::kChair;
+    chair.instance = instance;
+    chair.movable = true;
+    chair.size = {0.45, 0.45, 0.9};
+    chair.texture_seed = static_cast<uint32_t>(rng());
+    chair.color = RandomColor(&rng);
+    if (PlaceFreely(place, place.solids, &chair, &rng, 0.3, lo, hi)) {
+      ++instance;
+      place.solids.push_back(chair);
+    }
+  }
+  if ((hi - lo).prod() > 20.0) {
+    Solid big;
+    const bool bed = rng() % 2 == 0;
+    big.cls = bed ? SemanticClass::kBed : SemanticClass::kSofa;
+    big.instance = instance;
+    big.size = bed ? Eigen::Vector3d(2.0, 1.4, 0.55) : Eigen::Vector3d(1.9, 0.85, 0.8);
+    big.texture_seed = static_cast<uint32_t>(rng());
+    big.color = RandomColor(&rng);
+    if (PlaceFreely(place, place.solids, &big, &rng, 0.4, lo, hi)) {
+      ++instance;
+      place.solids.push_back(big);
+    }
+  }
+  // Clutter: a heap of many small pieces on the floor (each its own instance).
+  Solid heap_centre = RandomProp(&rng, 0, 0.0);
+  heap_centre.size = {0.6, 0.6, 0.1};
+  if (PlaceFreely(place, place.solids, &heap_centre, &rng, 0.3, lo, hi)) {
+    std::uniform_real_distribution<double> offset(-0.25, 0.25), piece(0.04, 0.14);
+    const int pieces = 6 + static_cast<int>(rng() % 7);
+    for (int i = 0; i < pieces; ++i) {
+      Solid bit;
+      bit.cls = SemanticClass::kClutter;
+      bit.instance = instance++;
+      bit.movable = true;
+      bit.shape = rng() % 3 == 0 ? Solid::Shape::kCylinder : Solid::Shape::kBox;
+      bit.center = heap_centre.center + Eigen::Vector2d(offset(rng), offset(rng));
+      bit.yaw = std::uniform_real_distribution<double>(-M_PI, M_PI)(rng);
+      bit.base_z = (i % 3) * 0.04;  // a little pile: some pieces rest on others
+      bit.size = {piece(rng), piece(rng), piece(rng) * 0.6};
+      bit.texture_seed = static_cast<uint32_t>(rng());
+      bit.color = RandomColor(&rng);
+      place.solids.push_back(bit);
+    }
+  }
   return place;
 }
 
@@ -478,11 +526,12 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         v.changes.push_back({"person", w.body.instance, "walking through"});
       }
     }
-    // One loop around the centre, looking outwards at the walls, camera at ~1.4 m.
+    // A loop and a quarter around the centre, looking outwards at the walls, camera at ~1.4 m:
+    // consecutive frames overlap, and the last quarter revisits the start (a loop closure).
     const double phase = std::uniform_real_distribution<double>(0, 2 * M_PI)(rng);
     const double height = std::uniform_real_distribution<double>(1.3, 1.5)(rng);
     for (int f = 0; f < frames; ++f) {
-      const double a = phase + 2 * M_PI * f / frames;
+      const double a = phase + 2.5 * M_PI * f / frames;
       const Eigen::Vector3d position(centre.x() + radius * std::cos(a),
                                      centre.y() + radius * std::sin(a),
                                      height + 0.03 * std::sin(5 * a));

@@ -183,17 +183,24 @@ struct SolidFrame {
   const Solid* solid;
   Eigen::Vector3d centre;
   double cos_yaw, sin_yaw;
+  double radius_sq;  // of a sphere around the solid, for a cheap rejection per ray
 };
 
 SolidFrame Prepare(const Solid& s) {
-  return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + s.size.z() / 2),
-          std::cos(s.yaw), std::sin(s.yaw)};
+  const double r_xy =
+      s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+  const double half_h = s.size.z() / 2;
+  return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + half_h), std::cos(s.yaw),
+          std::sin(s.yaw), r_xy * r_xy + half_h * half_h};
 }
 
 void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
   const Solid& s = *sf.solid;
   const double half_h = s.size.z() / 2;
   const Eigen::Vector3d& c = sf.centre;
+  // Reject rays that miss the bounding sphere: |(c - o) x d|^2 / |d|^2 > r^2.
+  const Eigen::Vector3d oc = c - o;
+  if (oc.cross(d).squaredNorm() > sf.radius_sq * d.squaredNorm()) return;
   // World to the solid's frame: rotate by -yaw.
   const double cy = sf.cos_yaw, sy = -sf.sin_yaw;
   auto to_local = [&](const Eigen::Vector3d& v) {
