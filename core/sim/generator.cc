@@ -496,7 +496,15 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         v.lighting.brightness = b(rng);
         const float warm = static_cast<float>(t(rng));
         v.lighting.tint = {1.0f + warm, 1.0f, 1.0f - warm};
-        v.changes.push_back({"lighting", 0, absl::StrCat("brightness ", v.lighting.brightness)});
+        // A standing lamp near a corner, switched on or off.
+        v.lighting.lamp_on = rng() % 2 == 0;
+        const Eigen::Vector2d corner = place.footprint[rng() % place.footprint.size()];
+        const Eigen::Vector2d towards = (centre - corner).normalized();
+        v.lighting.lamp =
+            Eigen::Vector3d(corner.x() + 0.5 * towards.x(), corner.y() + 0.5 * towards.y(), 1.7);
+        v.changes.push_back({"lighting", 0,
+                             absl::StrCat("brightness ", v.lighting.brightness, ", lamp ",
+                                          v.lighting.lamp_on ? "on" : "off")});
       }
     }
     if (conditions.dynamic && vi > 0) {

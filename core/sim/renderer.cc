@@ -376,7 +376,18 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
       const Eigen::Vector3d dn = d.normalized();
       cosine[u] = static_cast<float>(std::abs(hit.normal.dot(dn)));
       const float lambert = static_cast<float>(std::abs(hit.normal.dot(light)));
-      Eigen::Vector3f c = Texture(hit) * (0.45f + 0.55f * lambert);
+      float shade = 0.45f + 0.55f * lambert;
+      Eigen::Vector3f lamp_gain(1.0f, 1.0f, 1.0f);
+      if (lighting.lamp_on) {
+        // Inverse-square fall-off, cosine at the surface; a warm colour.
+        const Eigen::Vector3d p = o + hit.t * d;
+        const Eigen::Vector3d to_lamp = lighting.lamp - p;
+        const double dist_sq = std::max(to_lamp.squaredNorm(), 0.05);
+        const double cosine_lamp = std::max(0.0, hit.normal.dot(to_lamp) / std::sqrt(dist_sq));
+        const float extra = static_cast<float>(lighting.lamp_power * cosine_lamp / dist_sq);
+        lamp_gain = Eigen::Vector3f(1.0f + extra, 1.0f + 0.8f * extra, 1.0f + 0.55f * extra);
+      }
+      Eigen::Vector3f c = Texture(hit).cwiseProduct(lamp_gain) * shade;
       if (hit.cls == SemanticClass::kWindow) c = hit.albedo;  // bright outdoors
       c = c.cwiseProduct(lighting.tint) * static_cast<float>(lighting.brightness * sensor.exposure);
       for (int ch = 0; ch < 3; ++ch) {

@@ -95,6 +95,9 @@ struct Place {
 struct Lighting {
   double brightness = 1.0;                 // multiplies albedo
   Eigen::Vector3f tint{1.0f, 1.0f, 1.0f};  // RGB gain (warm/cool light)
+  bool lamp_on = false;                    // a warm point light (a standing lamp)
+  Eigen::Vector3d lamp{0, 0, 1.7};         // its position, world frame
+  double lamp_power = 1.2;                 // irradiance gain at 1 m
 };
 
 }  // namespace lifemap::sim

@@ -116,6 +116,17 @@ TEST(Render, StairsGoingUpAndDown) {
   }
 }
 
+TEST(Render, LampOnBrightensAndDepthIsUnchanged) {
+  Lighting off, on;
+  on.lamp_on = true;
+  on.lamp = {3.2, 3.0, 1.7};  // near the wall the camera faces
+  const Pose pose = LookAlongX(0.5, 3.0, 1.5);
+  const RenderedFrame dark = Render(EmptyRoom(), {}, off, kCamera, pose, Exact(), 1);
+  const RenderedFrame lit = Render(EmptyRoom(), {}, on, kCamera, pose, Exact(), 1);
+  EXPECT_GT(cv::mean(lit.color_bgr)[2], cv::mean(dark.color_bgr)[2] + 5) << "red channel";
+  EXPECT_EQ(cv::norm(lit.depth_m, dark.depth_m, cv::NORM_INF), 0.0);
+}
+
 TEST(Render, IsBitForBitDeterministicForASeed) {
   auto place = GeneratePlace(3, "L");
   ASSERT_TRUE(place.ok());
