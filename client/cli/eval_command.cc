@@ -156,6 +156,26 @@ absl::Status WritePng(const fs::path& path, const cv::Mat& image) {
              : absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
 }
 
+// Writes a study's files to `out` and prints its report (or summary with --json).
+int FinishStudy(const CliContext& ctx, const fs::path& out,
+                const std::vector<std::pair<std::string, std::string>>& texts,
+                const std::string& png_name, const cv::Mat& png, const json& summary,
+                const std::string& report) {
+  for (const auto& [name, text] : texts) {
+    if (auto s = WriteText(out / name, text); !s.ok()) return Fail(s);
+  }
+  for (auto s : {WriteText(out / "summary.json", summary.dump(2) + "\n"),
+                 WriteText(out / "report.md", report), WritePng(out / png_name, png)}) {
+    if (!s.ok()) return Fail(s);
+  }
+  if (ctx.json) {
+    std::cout << summary.dump() << "\n";
+  } else {
+    std::cout << report;
+  }
+  return 0;
+}
+
 json AucJson(const eval::FeatureAuc& a) {
   return {{"entropy", a.entropy},
           {"planarity", a.planarity},
@@ -239,21 +259,10 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
       scenes.size(), absl::StrJoin(a.data, ", "), study->superjuts.size(), study->moved_superjuts,
       a.mesh ? "mesh" : "image-grid", a.k, a.downsample, sa.entropy, pa.entropy, sa.planarity,
       pa.planarity, sa.horizontality, pa.horizontality, sa.textureness, pa.textureness);
-  const fs::path out(a.out);
-  for (auto s : {WriteText(out / "superjuts.csv", csv),
-                 WriteText(out / "summary.json", summary.dump(2) + "\n"),
-                 WriteText(out / "report.md", report),
-                 WritePng(out / "entropy_planarity.png",
-                          eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
-                                           "entropy / log M", "planarity"))}) {
-    if (!s.ok()) return Fail(s);
-  }
-  if (ctx.json) {
-    std::cout << summary.dump() << "\n";
-  } else {
-    std::cout << report;
-  }
-  return 0;
+  return FinishStudy(ctx, a.out, {{"superjuts.csv", csv}}, "entropy_planarity.png",
+                     eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
+                                      "entropy / log M", "planarity"),
+                     summary, report);
 }
 
 int RunMatching(const CliContext& ctx, const EvalArgs& a) {
@@ -402,21 +411,10 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
   report +=
       "\nFiles: `pairs.csv` (every pair and threshold), `pr_curve.png` (mean precision "
       "against mean recall as the threshold sweeps), `summary.json`.\n";
-  const fs::path out(a.out);
-  for (auto s : {WriteText(out / "pairs.csv", pairs_csv),
-                 WriteText(out / "summary.json", summary.dump(2) + "\n"),
-                 WriteText(out / "report.md", report),
-                 WritePng(out / "pr_curve.png",
-                          eval::PlotCurves(curves, "matches kept by neg-entropy threshold",
-                                           "recall", "precision (inlier ratio)"))}) {
-    if (!s.ok()) return Fail(s);
-  }
-  if (ctx.json) {
-    std::cout << summary.dump() << "\n";
-  } else {
-    std::cout << report;
-  }
-  return 0;
+  return FinishStudy(ctx, a.out, {{"pairs.csv", pairs_csv}}, "pr_curve.png",
+                     eval::PlotCurves(curves, "matches kept by neg-entropy threshold", "recall",
+                                      "precision (inlier ratio)"),
+                     summary, report);
 }
 
 }  // namespace

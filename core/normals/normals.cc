@@ -53,6 +53,16 @@ void AddTriangle(const cv::Mat& points, cv::Mat* sums, cv::Point p0, cv::Point p
   for (const cv::Point& p : {p0, p1, p2}) sums->at<cv::Vec3f>(p) += n;
 }
 
+// Records the count of valid normals; FailedPrecondition when there is none.
+absl::StatusOr<NormalMap> Finish(NormalMap out, int valid) {
+  out.valid_normals = valid;
+  if (valid == 0) {
+    return absl::FailedPreconditionError(
+        "no pixel has a usable normal: the depth image has no valid neighbouring readings");
+  }
+  return out;
+}
+
 }  // namespace
 
 bool UpperTriangle(const cv::Mat& points, int r, int c, float ratio) {
@@ -150,12 +160,7 @@ absl::StatusOr<NormalMap> ComputeNormals(const cv::Mat& depth_m, const CameraInt
         ++valid;
       }
     }
-    out.valid_normals = valid;
-    if (valid == 0) {
-      return absl::FailedPreconditionError(
-          "no pixel has a usable normal: the depth image has no valid neighbouring readings");
-    }
-    return out;
+    return Finish(std::move(out), valid);
   }
 
   // Eq. 2: n = (X[k, l+s] - X[k, l]) x (X[k+s, l] - X[k, l]), normalised. Where the right or
@@ -199,12 +204,7 @@ absl::StatusOr<NormalMap> ComputeNormals(const cv::Mat& depth_m, const CameraInt
       ++valid;
     }
   }
-  out.valid_normals = valid;
-  if (valid == 0) {
-    return absl::FailedPreconditionError(
-        "no pixel has a usable normal: the depth image has no valid neighbouring readings");
-  }
-  return out;
+  return Finish(std::move(out), valid);
 }
 
 }  // namespace lifemap::normals

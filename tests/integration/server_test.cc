@@ -22,6 +22,16 @@ namespace {
 using client::Client;
 using testing::MakeFrame;
 
+// The first frame of a TUM fr1 folder as a Frame (fr1 calibration, PNG bytes as on disk).
+absl::StatusOr<v1::Frame> FirstTumFrame(const std::string& dir) {
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return seq.status();
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  return client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+}
+
 class ServerTest : public ::testing::Test {
  protected:
   void StartServer(server::ServerConfig config = {}) {
@@ -174,13 +184,8 @@ TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
 
 TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
   LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
-  auto seq = io::ReadTumSequence(dir);
-  ASSERT_TRUE(seq.ok());
-  v1::CameraIntrinsics k;
-  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
-  const auto& e = seq->frames[0];
-  auto frame = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
-  ASSERT_TRUE(frame.ok());
+  auto frame = FirstTumFrame(dir);
+  ASSERT_TRUE(frame.ok()) << frame.status();
   v1::ProcessFrameRequest req;
   *req.mutable_frame() = *frame;
   auto r = client_->ProcessFrame(req);
@@ -222,13 +227,8 @@ TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
 // threshold applies to its frames unless a request overrides it.
 TEST_F(ServerTest, KeyframesStoreSuperjutsAndMaskPrunedKeypoints) {
   LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
-  auto seq = io::ReadTumSequence(dir);
-  ASSERT_TRUE(seq.ok());
-  v1::CameraIntrinsics k;
-  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
-  const auto& e = seq->frames[0];
-  auto frame = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
-  ASSERT_TRUE(frame.ok());
+  auto frame = FirstTumFrame(dir);
+  ASSERT_TRUE(frame.ok()) << frame.status();
 
   ASSERT_TRUE(client_->CreateMap("loose", "").ok());
   ASSERT_TRUE(client_->CreateMap("strict", "").ok());
