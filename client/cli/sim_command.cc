@@ -5,9 +5,11 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
@@ -28,7 +30,29 @@ struct SimArgs {
   int frames = 90;
   std::string out;
   bool no_noise = false;
+  std::string intrinsics;  // FX,FY,CX,CY
+  std::string size = "640x480";
 };
+
+// The camera of --size WxH and --intrinsics FX,FY,CX,CY (default: Kinect v1's 525 px focal
+// length, centred, scaled to the size).
+absl::StatusOr<CameraIntrinsics> SimCamera(const SimArgs& a) {
+  int w = 0, h = 0;
+  char x = 0;
+  std::istringstream size(a.size);
+  if (!(size >> w >> x >> h) || x != 'x' || !size.eof()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--size must be WIDTHxHEIGHT, e.g. 640x480, got '", a.size, "'"));
+  }
+  CameraIntrinsics k{525.0 * w / 640.0, 525.0 * h / 480.0, (w - 1) / 2.0, (h - 1) / 2.0, w, h};
+  if (!a.intrinsics.empty()) {
+    auto parsed = ParseIntrinsicsFlag(a.intrinsics, w, h);
+    if (!parsed.ok()) return parsed.status();
+    k = {parsed->fx(), parsed->fy(), parsed->cx(), parsed->cy(), w, h};
+  }
+  if (auto s = k.Validate(); !s.ok()) return s;
+  return k;
+}
 
 int RunSim(const CliContext& ctx, const SimArgs& a) {
   auto conditions = sim::ParseConditions(a.conditions);
@@ -41,6 +65,12 @@ int RunSim(const CliContext& ctx, const SimArgs& a) {
   sim::WriteOptions options;
   options.seed = a.seed;
   options.sensor.noise = !a.no_noise;
+  auto camera = SimCamera(a);
+  if (!camera.ok()) {
+    std::cerr << "lifemap: " << camera.status().message() << "\n";
+    return 2;
+  }
+  options.intrinsics = *camera;
   nlohmann::json manifest = {{"seed", a.seed},
                              {"place_id", place->id},
                              {"shape", a.shape},
@@ -187,6 +217,9 @@ void AddSimCommands(CLI::App* app, CliContext* ctx) {
       ->check(CLI::Range(2, 100000));
   sim->add_option("--out", a->out, "output folder (required)");
   sim->add_flag("--no-noise", a->no_noise, "exact depth and colour (no sensor model)");
+  sim->add_option("--size", a->size, "image size WIDTHxHEIGHT (default 640x480)");
+  sim->add_option("--intrinsics", a->intrinsics,
+                  "FX,FY,CX,CY in pixels (default 525 px focal length, centred)");
   sim->callback([ctx, a, sim] {
     if (sim->get_subcommands().empty()) {
       ctx->run = [ctx, a] {

@@ -417,6 +417,17 @@ TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   }
   EXPECT_EQ(suite["visits"][8]["conditions"], "lighting,dynamic,scenery");
 
+  r = Run({"sim", "--size", "320x240", "--intrinsics", "300,300,160,120", "--frames", "2",
+           "--visits", "1", "--out", tmp_.File("small")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(Slurp(tmp_.File("small/visit_00/intrinsics.txt")),
+            "300.000000 300.000000 160.000000 120.000000 320 240\n");
+  r = Run({"sim", "--size", "320by240", "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("WIDTHxHEIGHT"), std::string::npos);
+  r = Run({"sim", "--intrinsics", "0,300,160,120", "--size", "320x240", "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 2);
+
   r = Run({"sim", "--place-shape", "octagon", "--out", tmp_.File("bad")});
   EXPECT_EQ(r.code, 2);
   r = Run({"sim", "--conditions", "weather", "--out", tmp_.File("bad")});
