@@ -39,15 +39,14 @@ double Radius(const Solid& s) {
 
 // A place for `s` whose footprint lies inside the room `margin` from the walls and clear of the
 // solids standing on the same surface; false after many tries.
-bool PlaceFreely(const Place& place, const std::vector<Solid>& others, Solid* s,
-                 std::mt19937_64* rng, double margin, const Eigen::Vector2d& lo,
-                 const Eigen::Vector2d& hi) {
+bool PlaceFreelyIn(const std::vector<Eigen::Vector2d>& room, const std::vector<Solid>& others,
+                   Solid* s, std::mt19937_64* rng, double margin, const Eigen::Vector2d& lo,
+                   const Eigen::Vector2d& hi) {
   std::uniform_real_distribution<double> ux(lo.x(), hi.x()), uy(lo.y(), hi.y()), yaw(-M_PI, M_PI);
   for (int attempt = 0; attempt < 200; ++attempt) {
     s->center = {ux(*rng), uy(*rng)};
     s->yaw = yaw(*rng);
-    if (!Inside(place.footprint, s->center) ||
-        DistanceToWalls(place.footprint, s->center) < Radius(*s) + margin) {
+    if (!Inside(room, s->center) || DistanceToWalls(room, s->center) < Radius(*s) + margin) {
       continue;
     }
     bool clear = true;
@@ -63,6 +62,13 @@ bool PlaceFreely(const Place& place, const std::vector<Solid>& others, Solid* s,
     if (clear) return true;
   }
   return false;
+}
+
+// The same in the main room.
+bool PlaceFreely(const Place& place, const std::vector<Solid>& others, Solid* s,
+                 std::mt19937_64* rng, double margin, const Eigen::Vector2d& lo,
+                 const Eigen::Vector2d& hi) {
+  return PlaceFreelyIn(place.footprint, others, s, rng, margin, lo, hi);
 }
 
 Eigen::Vector3f RandomColor(std::mt19937_64* rng) {
@@ -215,7 +221,30 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
   door.width_m = 0.9;
   door.offset_m = std::uniform_real_distribution<double>(0.4, wall_length(0) - 1.3)(rng);
   door.open = true;
+  door.connects = true;
   place.openings.push_back(door);
+  {
+    // A second room beyond the first wall (wall 0 runs along +x at y = 0 for every shape),
+    // reached through the door: its shared wall runs the other way and holds the door's twin.
+    const Eigen::Vector2d a = place.footprint[0], b = place.footprint[1];
+    const double depth = std::uniform_real_distribution<double>(2.5, 4.0)(rng);
+    place.adjoining_rooms.push_back({{a.x(), -depth}, {b.x(), -depth}, {b.x(), 0.0}, {a.x(), 0.0}});
+    Opening twin = door;
+    twin.room = 1;
+    twin.wall = 2;
+    twin.offset_m = (b - a).norm() - door.offset_m - door.width_m;
+    place.openings.push_back(twin);
+    if ((b - a).norm() > 2.6) {
+      Opening window;
+      window.type = OpeningType::kWindow;
+      window.room = 1;
+      window.wall = 0;
+      window.width_m = 1.0;
+      window.offset_m = std::uniform_real_distribution<double>(0.4, (b - a).norm() - 1.4)(rng);
+      window.sill_m = 1.2;
+      place.openings.push_back(window);
+    }
+  }
   for (size_t i = 1; i < n; ++i) {
     if (wall_length(i) < 2.2 || (rng() % 3) == 0) continue;
     Opening window;
@@ -377,6 +406,28 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
       place.solids.push_back(bit);
     }
   }
+  // The adjoining room: a cabinet and a few props.
+  for (const auto& room : place.adjoining_rooms) {
+    Eigen::Vector2d rlo(1e9, 1e9), rhi(-1e9, -1e9);
+    for (const auto& p : room) rlo = rlo.cwiseMin(p), rhi = rhi.cwiseMax(p);
+    Solid cabinet;
+    cabinet.cls = SemanticClass::kCabinet;
+    cabinet.instance = instance;
+    cabinet.size = {0.8, 0.5, 1.0};
+    cabinet.texture_seed = static_cast<uint32_t>(rng());
+    cabinet.color = RandomColor(&rng);
+    if (PlaceFreelyIn(room, place.solids, &cabinet, &rng, 0.2, rlo, rhi)) {
+      ++instance;
+      place.solids.push_back(cabinet);
+    }
+    for (int i = 0; i < 3; ++i) {
+      Solid prop = RandomProp(&rng, instance, 0.0);
+      if (PlaceFreelyIn(room, place.solids, &prop, &rng, 0.2, rlo, rhi)) {
+        ++instance;
+        place.solids.push_back(prop);
+      }
+    }
+  }
   return place;
 }
 
@@ -484,11 +535,18 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
             v.solids.push_back(prop);
           }
         }
+        bool toggle_connecting = false;
         for (auto& op : v.openings) {
-          if (op.type == OpeningType::kDoor && p(rng) < 0.5) {
+          if (op.type != OpeningType::kDoor || op.room != 0) continue;
+          if (p(rng) < 0.5) {
             op.open = !op.open;
+            toggle_connecting |= op.connects;
             v.changes.push_back({op.open ? "door_opened" : "door_closed", 0, ""});
           }
+        }
+        // A connecting door's twin (the same door seen from the other room) follows it.
+        for (auto& op : v.openings) {
+          if (toggle_connecting && op.connects && op.room != 0) op.open = !op.open;
         }
       }
       if (conditions.lighting) {

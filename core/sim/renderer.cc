@@ -87,7 +87,11 @@ void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Ve
   const double t = (z - o.z()) / d.z();
   if (t <= 1e-6 || t >= best->t) return;
   const Eigen::Vector3d p = o + t * d;
-  if (!InsidePolygon(place.footprint, p.x(), p.y())) return;
+  bool inside = InsidePolygon(place.footprint, p.x(), p.y());
+  for (size_t r = 0; !inside && r < place.adjoining_rooms.size(); ++r) {
+    inside = InsidePolygon(place.adjoining_rooms[r], p.x(), p.y());
+  }
+  if (!inside) return;
   if (floor) {
     for (const auto& st : place.stairs) {
       if (st.up) continue;
@@ -113,17 +117,22 @@ void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Ve
 struct WallGeometry {
   Eigen::Vector2d a, e, inward;
   double length;
+  int room, index;
 };
 
 std::vector<WallGeometry> Walls(const Place& place) {
   std::vector<WallGeometry> walls;
-  const size_t n = place.footprint.size();
-  for (size_t w = 0; w < n; ++w) {
-    const Eigen::Vector2d a = place.footprint[w];
-    const Eigen::Vector2d b = place.footprint[(w + 1) % n];
-    const double length = (b - a).norm();
-    const Eigen::Vector2d e = (b - a) / length;
-    walls.push_back({a, e, Eigen::Vector2d(-e.y(), e.x()), length});  // counter-clockwise
+  for (int room = 0; room <= static_cast<int>(place.adjoining_rooms.size()); ++room) {
+    const auto& footprint = RoomFootprint(place, room);
+    const size_t n = footprint.size();
+    for (size_t w = 0; w < n; ++w) {
+      const Eigen::Vector2d a = footprint[w];
+      const Eigen::Vector2d b = footprint[(w + 1) % n];
+      const double length = (b - a).norm();
+      const Eigen::Vector2d e = (b - a) / length;
+      walls.push_back({a, e, Eigen::Vector2d(-e.y(), e.x()), length, room,
+                       static_cast<int>(w)});  // counter-clockwise: inward is to the left
+    }
   }
   return walls;
 }
@@ -148,10 +157,11 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
     h.normal = Eigen::Vector3d(inward.x(), inward.y(), 0);
     h.uv = Eigen::Vector2d(u + 10.0 * w, p.z());
     h.texture_seed = place.texture_seed * 5 + static_cast<uint32_t>(w);
+    bool through = false;
     h.albedo = Eigen::Vector3f(0.82f, 0.80f, 0.74f);
     h.texture_scale = 0.5;
     for (const auto& op : place.openings) {
-      if (op.wall != static_cast<int>(w)) continue;
+      if (op.room != walls[w].room || op.wall != walls[w].index) continue;
       if (u < op.offset_m || u > op.offset_m + op.width_m || p.z() < op.sill_m ||
           p.z() > op.top_m) {
         continue;
@@ -162,6 +172,8 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
         h.has_depth = false;
         h.albedo = Eigen::Vector3f(0.85f, 0.92f, 1.0f);
         h.texture_scale = 0.1;
+      } else if (op.open && op.connects) {
+        through = true;  // an open door between rooms: the other room is rendered beyond
       } else if (op.open) {
         // An open door shows the space beyond: a surface 2 m behind the wall, not this room's.
         h.t = t + 2.0 / -facing;
@@ -174,7 +186,7 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
       }
       break;
     }
-    if (h.t < best->t) *best = h;
+    if (!through && h.t < best->t) *best = h;
   }
 }
 
@@ -432,6 +444,10 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
     }
   }
   return out;
+}
+
+const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index) {
+  return index == 0 ? place.footprint : place.adjoining_rooms[static_cast<size_t>(index - 1)];
 }
 
 const char* ClassName(SemanticClass c) {

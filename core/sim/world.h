@@ -45,8 +45,11 @@ enum class OpeningType { kDoor, kWindow };
 // A door or window in a wall segment, in metres along the wall from its start corner.
 struct Opening {
   OpeningType type = OpeningType::kDoor;
-  int wall = 0;         // index of the wall segment (corner i to corner i+1)
-  double offset_m = 0;  // from the wall's start to the opening's near edge
+  int room = 0;           // 0 = the main room (footprint), k = adjoining_rooms[k - 1]
+  int wall = 0;           // index of the wall segment (corner i to corner i+1) in that room
+  bool connects = false;  // a door between two rooms of the place (its twin is in the other
+                          // room's shared wall); open, it shows the other room
+  double offset_m = 0;    // from the wall's start to the opening's near edge
   double width_m = 0.9;
   double sill_m = 0;   // bottom: 0 for doors, ~1.2 for windows
   double top_m = 2.1;  // top: 2.10 m for doors and windows (paper 004's norms)
@@ -80,10 +83,16 @@ struct Stairs {
   int steps = 6;
 };
 
+struct Place;
+// The footprint of room `index` (0 = main).
+const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index);
+
 struct Place {
   std::string id;                          // e.g. "place-7-L"
   std::string shape;                       // rect, square, L, T, U
-  std::vector<Eigen::Vector2d> footprint;  // counter-clockwise corners of the room, metres
+  std::vector<Eigen::Vector2d> footprint;  // counter-clockwise corners of the main room, metres
+  // Further rooms, each sharing a wall (and a connecting door) with the main room.
+  std::vector<std::vector<Eigen::Vector2d>> adjoining_rooms;
   double wall_height_m = 2.7;
   std::vector<Opening> openings;
   std::vector<Solid> solids;  // furniture and props (and the steps of stairs, class kStairs)

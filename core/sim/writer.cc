@@ -33,12 +33,29 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
   json openings = json::array();
   for (const auto& o : visit.openings) {
     openings.push_back({{"type", OpeningName(o.type)},
+                        {"room", o.room},
+                        {"connects", o.connects},
                         {"wall", o.wall},
                         {"offset_m", o.offset_m},
                         {"width_m", o.width_m},
                         {"sill_m", o.sill_m},
                         {"top_m", o.top_m},
                         {"open", o.open}});
+  }
+  json rooms = json::array();
+  for (int r = 0; r <= static_cast<int>(place.adjoining_rooms.size()); ++r) {
+    const auto& footprint = RoomFootprint(place, r);
+    json corners = json::array(), room_walls = json::array();
+    for (size_t i = 0; i < footprint.size(); ++i) {
+      const auto& a = footprint[i];
+      const auto& b = footprint[(i + 1) % footprint.size()];
+      corners.push_back({a.x(), a.y()});
+      room_walls.push_back({{"index", i},
+                            {"start", {a.x(), a.y()}},
+                            {"end", {b.x(), b.y()}},
+                            {"length_m", (b - a).norm()}});
+    }
+    rooms.push_back({{"room", r}, {"footprint", corners}, {"walls", room_walls}});
   }
   json objects = json::array();
   for (const auto& s : visit.solids) {
@@ -105,6 +122,7 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
                return f;
              }()},
             {"wall_height_m", place.wall_height_m},
+            {"rooms", rooms},
             {"walls", walls},
             {"openings", openings},
             {"stairs", stairs}}},

@@ -127,6 +127,32 @@ TEST(Render, LampOnBrightensAndDepthIsUnchanged) {
   EXPECT_EQ(cv::norm(lit.depth_m, dark.depth_m, cv::NORM_INF), 0.0);
 }
 
+// Two connected rooms: through the open door between them the camera sees the next room's far
+// wall; with the door closed, the door panel.
+TEST(Render, SeesTheNextRoomThroughAnOpenConnectingDoor) {
+  Place place = EmptyRoom();                                   // x 0..4, y 0..6
+  place.adjoining_rooms = {{{4, 0}, {7, 0}, {7, 6}, {4, 6}}};  // x 4..7: shares the wall x = 4
+  Opening door;
+  door.type = OpeningType::kDoor;
+  door.connects = true;
+  door.wall = 1;  // main room: (4, 0) -> (4, 6)
+  door.offset_m = 2.5;
+  door.width_m = 1.0;
+  Opening twin = door;
+  twin.room = 1;
+  twin.wall = 3;  // next room: (4, 6) -> (4, 0), so the door is 6 - 3.5 = 2.5 m along it
+  twin.offset_m = 2.5;
+  place.openings = {door, twin};
+  const Pose pose = LookAlongX(1.0, 3.0, 1.5);
+  RenderedFrame f = Render(place, {}, {}, kCamera, pose, Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kWall));
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 6.0f, 1e-4) << "the next room's far wall, x = 7";
+  place.openings[0].open = place.openings[1].open = false;
+  f = Render(place, {}, {}, kCamera, pose, Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kDoor));
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 3.0f, 1e-4);
+}
+
 TEST(Render, IsBitForBitDeterministicForASeed) {
   auto place = GeneratePlace(3, "L");
   ASSERT_TRUE(place.ok());

@@ -395,6 +395,7 @@ TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   EXPECT_GT(manifest["visits"][0]["mean_valid_depth"].get<double>(), 0.5);
   const json scene = json::parse(Slurp(tmp_.File("sim/visit_01/scene.json")));
   EXPECT_EQ(scene["floor_plan"]["walls"].size(), 4u) << "a square room";
+  EXPECT_EQ(scene["floor_plan"]["rooms"].size(), 2u) << "a second room through the door";
   EXPECT_FALSE(scene["objects"].empty());
 
   ASSERT_EQ(Run({"maps", "create", "sim"}).code, 0);
