@@ -16,6 +16,7 @@
 #include "core/eval/metrics.h"
 #include "core/io/labeled_pcd.h"
 #include "core/io/tum_dataset.h"
+#include "core/mapping/point_cloud.h"
 
 namespace lifemap::cli {
 namespace {
@@ -77,34 +78,65 @@ std::vector<int> MovableInstances(const std::string& dir) {
 
 // Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
 // truth as the scenes' moved/labelled masks.
+// One frame of a TUM folder, decoded, with its ground-truth pose when known.
+absl::StatusOr<RgbdFrame> DecodeTumFrame(const std::string& dir, const io::TumSequence& seq,
+                                         const io::TumFrameEntry& e) {
+  auto depth = ReadFileBytes(e.depth_path);
+  auto color = ReadFileBytes(e.rgb_path);
+  if (!depth.ok()) return depth.status();
+  if (!color.ok()) return color.status();
+  auto header = ProbeImage(*color);
+  if (!header.ok()) return header.status();
+  EncodedRgbdFrame encoded;
+  encoded.timestamp_s = e.timestamp_s;
+  encoded.intrinsics = seq.intrinsics
+                           ? *seq.intrinsics
+                           : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
+  encoded.intrinsics.width = header->width;
+  encoded.intrinsics.height = header->height;
+  encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
+  encoded.color = {header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg,
+                   *color, 0, 0};
+  encoded.T_world_camera = e.T_world_camera;
+  auto frame = DecodeRgbdFrame(encoded);
+  if (!frame.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+  }
+  return frame;
+}
+
+// Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
+// truth as the scenes' moved/labelled masks; with `fuse` > 0, each frame's depth fused with
+// its `fuse` neighbours on either side (a multi-frame reconstruction from the ground-truth
+// poses, for the mesh variant).
 absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride,
-                                                              SimTruth truth = SimTruth::kNone) {
+                                                              SimTruth truth = SimTruth::kNone,
+                                                              int fuse = 0) {
   auto seq = io::ReadTumSequence(dir);
   if (!seq.ok()) return seq.status();
+  if (fuse > 0 && seq->frames_with_pose < static_cast<int>(seq->frames.size())) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(dir, ": --fuse needs a pose for every frame (groundtruth.txt)"));
+  }
   const std::vector<int> movable = MovableInstances(dir);
   std::vector<eval::LabeledScene> scenes;
   for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
     const auto& e = seq->frames[i];
-    auto depth = ReadFileBytes(e.depth_path);
-    auto color = ReadFileBytes(e.rgb_path);
-    if (!depth.ok()) return depth.status();
-    if (!color.ok()) return color.status();
-    auto header = ProbeImage(*color);
-    if (!header.ok()) return header.status();
-    EncodedRgbdFrame encoded;
-    encoded.timestamp_s = e.timestamp_s;
-    encoded.intrinsics = seq->intrinsics
-                             ? *seq->intrinsics
-                             : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
-    encoded.intrinsics.width = header->width;
-    encoded.intrinsics.height = header->height;
-    encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
-    encoded.color = {
-        header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg, *color, 0,
-        0};
-    auto frame = DecodeRgbdFrame(encoded);
-    if (!frame.ok()) {
-      return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+    auto frame = DecodeTumFrame(dir, *seq, e);
+    if (!frame.ok()) return frame.status();
+    if (fuse > 0) {
+      std::vector<RgbdFrame> neighbours;
+      for (int j = std::max(0, static_cast<int>(i) - fuse);
+           j <= std::min(static_cast<int>(seq->frames.size()) - 1, static_cast<int>(i) + fuse);
+           ++j) {
+        if (j == static_cast<int>(i)) continue;
+        auto other = DecodeTumFrame(dir, *seq, seq->frames[static_cast<size_t>(j)]);
+        if (!other.ok()) return other.status();
+        neighbours.push_back(*std::move(other));
+      }
+      auto fused = mapping::FuseDepth(*frame, neighbours);
+      if (!fused.ok()) return fused.status();
+      frame->depth_m = *fused;
     }
     eval::LabeledScene s;
     s.name = absl::StrFormat("%s@%.3f", fs::path(dir).filename().string(), e.timestamp_s);
@@ -136,9 +168,9 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
 // A folder of .pcd scenes, or a synthetic visit (TUM folder with moved/): the feature study's
 // input.
 absl::StatusOr<std::vector<eval::LabeledScene>> ReadLabeledFolder(const std::string& dir,
-                                                                  int stride) {
+                                                                  int stride, int fuse) {
   if (fs::exists(fs::path(dir) / "moved") && fs::exists(fs::path(dir) / "rgb.txt")) {
-    return ReadTumScenes(dir, stride, SimTruth::kMovedZones);
+    return ReadTumScenes(dir, stride, SimTruth::kMovedZones, fuse);
   }
   return ReadPcdFolder(dir);
 }
@@ -192,6 +224,7 @@ struct EvalArgs {
   std::string keypoints = "sift";
   std::string tum_a, tum_b;
   int frame_stride = 4;
+  int fuse = 0;
   int min_gap = 8;
   double min_recall = 0.8;
   int iterations = 10000;
@@ -209,7 +242,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   std::vector<eval::LabeledScene> scenes;
   for (const auto& dir : a.data) {
-    auto more = ReadLabeledFolder(dir, a.frame_stride);
+    auto more = ReadLabeledFolder(dir, a.frame_stride, a.fuse);
     if (!more.ok()) return Fail(more.status());
     for (auto& s : *more) scenes.push_back(std::move(s));
   }
@@ -240,6 +273,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
                         {"k", a.k},
                         {"downsample", a.downsample},
                         {"variant", a.mesh ? "mesh" : "image grid"},
+                        {"fused_neighbours", a.fuse},
                         {"auc", AucJson(study->superjut_auc)},
                         {"pixel_auc", AucJson(study->pixel_auc)}};
   const auto& sa = study->superjut_auc;
@@ -247,7 +281,8 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   const std::string report = absl::StrFormat(
       "# Entropy feature study (paper 000, Fig. 6)\n\n"
       "%d scenes from %s; %d superjuts with ground truth, %d of them moved.\n"
-      "Superjuts: %s variant, k = %.2f, working resolution 1/%d.\n\n"
+      "Superjuts: %s variant, k = %.2f, working resolution 1/%d, depth fused with %d "
+      "neighbours per side.\n\n"
       "Area under the ROC curve for telling moved from static, oriented as the paper's "
       "hypothesis (entropy and textureness higher on moved, planarity and horizontality lower); "
       "0.5 is chance.\n\n"
@@ -257,8 +292,9 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
       "Files: `superjuts.csv` (every superjut), `entropy_planarity.png` (the paper's Fig. 6c), "
       "`summary.json`.\n",
       scenes.size(), absl::StrJoin(a.data, ", "), study->superjuts.size(), study->moved_superjuts,
-      a.mesh ? "mesh" : "image-grid", a.k, a.downsample, sa.entropy, pa.entropy, sa.planarity,
-      pa.planarity, sa.horizontality, pa.horizontality, sa.textureness, pa.textureness);
+      a.mesh ? "mesh" : "image-grid", a.k, a.downsample, a.fuse, sa.entropy, pa.entropy,
+      sa.planarity, pa.planarity, sa.horizontality, pa.horizontality, sa.textureness,
+      pa.textureness);
   return FinishStudy(ctx, a.out, {{"superjuts.csv", csv}}, "entropy_planarity.png",
                      eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
                                       "entropy / log M", "planarity"),
@@ -313,7 +349,7 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
                                    fs::exists(fs::path(a.tum_b) / "labels" / "instance")
                                ? SimTruth::kMovable
                                : SimTruth::kNone;
-    auto scenes_a = ReadTumScenes(a.tum_a, a.frame_stride, truth);
+    auto scenes_a = ReadTumScenes(a.tum_a, a.frame_stride, truth, a.fuse);
     if (!scenes_a.ok()) return Fail(scenes_a.status());
     Set set{fs::path(a.tum_a).filename().string(), *std::move(scenes_a), {}};
     const size_t na = set.scenes.size();
@@ -326,7 +362,7 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
         }
       }
     } else {
-      auto scenes_b = ReadTumScenes(a.tum_b, a.frame_stride, truth);
+      auto scenes_b = ReadTumScenes(a.tum_b, a.frame_stride, truth, a.fuse);
       if (!scenes_b.ok()) return Fail(scenes_b.status());
       set.name += "+" + fs::path(a.tum_b).filename().string();
       for (auto& s : *scenes_b) set.scenes.push_back(std::move(s));
@@ -408,6 +444,7 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
   summary["keypoints"] = a.keypoints;
   summary["k"] = a.k;
   summary["variant"] = a.mesh ? "mesh" : "image grid";
+  summary["fused_neighbours"] = a.fuse;
   report +=
       "\nFiles: `pairs.csv` (every pair and threshold), `pr_curve.png` (mean precision "
       "against mean recall as the threshold sweeps), `summary.json`.\n";
@@ -434,6 +471,11 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
     cmd->add_option("--k", a->k, "superjut scale k (paper: 0.6)")->check(CLI::Range(0.01, 100.0));
     cmd->add_option("--downsample", a->downsample, "working resolution 1/N (default 1)")
         ->check(CLI::Range(1, 8));
+    cmd->add_option("--fuse", a->fuse,
+                    "TUM/synthetic folders: fuse each frame's depth with N neighbours on either "
+                    "side using the ground-truth poses (a multi-frame reconstruction; pair "
+                    "with --mesh for the paper's mesh variant)")
+        ->check(CLI::Range(0, 30));
     cmd->add_option("--frame-stride", a->frame_stride,
                     "TUM/synthetic folders: use every N-th frame (default 4)")
         ->check(CLI::Range(1, 1000));

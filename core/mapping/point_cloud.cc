@@ -54,4 +54,57 @@ std::vector<io::ColoredPoint> VoxelDownsample(const std::vector<io::ColoredPoint
   return out;
 }
 
+absl::StatusOr<cv::Mat> FuseDepth(const RgbdFrame& reference, const std::vector<RgbdFrame>& others,
+                                  float tolerance_ratio) {
+  if (!reference.T_world_camera) {
+    return absl::InvalidArgumentError("depth fusion needs the reference frame's pose");
+  }
+  const auto& k = reference.intrinsics;
+  cv::Mat sum(reference.depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
+  cv::Mat count(reference.depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
+  reference.depth_m.copyTo(sum);
+  cv::Mat(reference.depth_m > 0).convertTo(count, CV_32FC1, 1.0 / 255.0);
+  // Readings for pixels the reference did not see: the nearest surface wins (a z-buffer).
+  cv::Mat fill(reference.depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
+  const Eigen::Isometry3f T_ref_world = reference.T_world_camera->ToIsometry().inverse().cast<float>();
+  for (const auto& other : others) {
+    if (!other.T_world_camera) {
+      return absl::InvalidArgumentError("depth fusion needs every frame's pose");
+    }
+    const Eigen::Isometry3f T = T_ref_world * other.T_world_camera->ToIsometry().cast<float>();
+    const auto& ko = other.intrinsics;
+    for (int v = 0; v < other.depth_m.rows; ++v) {
+      const float* depth = other.depth_m.ptr<float>(v);
+      for (int u = 0; u < other.depth_m.cols; ++u) {
+        const float z = depth[u];
+        if (!(z > 0.0f)) continue;
+        const Eigen::Vector3f p = T * Eigen::Vector3f(static_cast<float>((u - ko.cx) / ko.fx) * z,
+                                                      static_cast<float>((v - ko.cy) / ko.fy) * z, z);
+        if (p.z() <= 0.0f) continue;
+        const int ur = static_cast<int>(std::lround(k.fx * p.x() / p.z() + k.cx));
+        const int vr = static_cast<int>(std::lround(k.fy * p.y() / p.z() + k.cy));
+        if (ur < 0 || vr < 0 || ur >= k.width || vr >= k.height) continue;
+        const float zr = reference.depth_m.at<float>(vr, ur);
+        if (zr > 0.0f) {
+          if (std::abs(p.z() - zr) < tolerance_ratio * zr) {
+            sum.at<float>(vr, ur) += p.z();
+            count.at<float>(vr, ur) += 1.0f;
+          }
+        } else {
+          float& f = fill.at<float>(vr, ur);
+          if (f == 0.0f || p.z() < f) f = p.z();
+        }
+      }
+    }
+  }
+  cv::Mat fused(reference.depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
+  for (int v = 0; v < fused.rows; ++v) {
+    for (int u = 0; u < fused.cols; ++u) {
+      const float c = count.at<float>(v, u);
+      fused.at<float>(v, u) = c > 0 ? sum.at<float>(v, u) / c : fill.at<float>(v, u);
+    }
+  }
+  return fused;
+}
+
 }  // namespace lifemap::mapping

@@ -5,6 +5,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/io/tum_dataset.h"
+#include "core/mapping/point_cloud.h"
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
 #include "core/sim/writer.h"
@@ -151,6 +152,43 @@ TEST(Render, SeesTheNextRoomThroughAnOpenConnectingDoor) {
   f = Render(place, {}, {}, kCamera, pose, Exact(), 1);
   EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kDoor));
   EXPECT_NEAR(f.depth_m.at<float>(119, 159), 3.0f, 1e-4);
+}
+
+// Fusing noisy views of the same wall whose poses are known brings the reference view's depth
+// closer to the truth: the multi-frame reconstruction the mesh variant is meant for.
+TEST(FuseDepth, AveragesNoisyViewsWithKnownPoses) {
+  const Place room = EmptyRoom();
+  SensorOptions noisy;
+  noisy.edge_dropout = 0;
+  std::vector<RgbdFrame> others;
+  RgbdFrame reference;
+  cv::Mat truth;
+  for (int i = 0; i < 6; ++i) {
+    const Pose pose = LookAlongX(0.5 + 0.05 * i, 3.0 + 0.03 * i, 1.5);
+    const RenderedFrame r = Render(room, {}, {}, kCamera, pose, noisy, 100 + i);
+    RgbdFrame f;
+    f.intrinsics = kCamera;
+    f.depth_m = r.depth_m;
+    f.color_bgr = r.color_bgr;
+    f.T_world_camera = pose;
+    if (i == 0) {
+      reference = f;
+      truth = r.true_depth_m;
+    } else {
+      others.push_back(f);
+    }
+  }
+  auto fused = mapping::FuseDepth(reference, others);
+  ASSERT_TRUE(fused.ok()) << fused.status();
+  auto rms = [&](const cv::Mat& depth) {
+    cv::Mat diff = depth - truth;
+    cv::Mat valid = (depth > 0) & (truth > 0);
+    return std::sqrt(cv::mean(diff.mul(diff), valid)[0]);
+  };
+  EXPECT_LT(rms(*fused), 0.7 * rms(reference.depth_m));
+  RgbdFrame unposed = reference;
+  unposed.T_world_camera.reset();
+  EXPECT_TRUE(absl::IsInvalidArgument(mapping::FuseDepth(unposed, others).status()));
 }
 
 TEST(Render, IsBitForBitDeterministicForASeed) {

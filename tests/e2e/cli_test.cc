@@ -479,6 +479,14 @@ TEST_F(CliTest, EvalEntropyMatchingOnTumFramesFarApart) {
   const json summary = json::parse(Slurp(tmp_.File("tum/summary.json")));
   EXPECT_GT(summary["pairs"].get<int>(), 5);
   EXPECT_GT(summary["raw_inlier_ratio"].get<double>(), 0.3) << "one static desk, little motion";
+  // The paper's mesh variant on a multi-frame reconstruction (depth fused with neighbours).
+  r = Run({"--json", "eval", "entropy-matching", "--a", dir, "--b", dir, "--frame-stride", "8",
+           "--min-gap", "16", "--fuse", "2", "--mesh", "--ransac-iterations", "1000", "--out",
+           tmp_.File("tum_mesh")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json mesh = json::parse(Slurp(tmp_.File("tum_mesh/summary.json")));
+  EXPECT_EQ(mesh["variant"], "mesh");
+  EXPECT_EQ(mesh["fused_neighbours"], 2);
   r = Run({"eval", "entropy-matching", "--a", dir, "--out", tmp_.File("x")});
   EXPECT_EQ(r.code, 2) << "--a needs --b";
   r = Run({"eval", "entropy-matching", "--out", tmp_.File("x")});
