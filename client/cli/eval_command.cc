@@ -56,7 +56,9 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadPcdFolder(const std::string&
 // Ground truth a synthetic visit folder carries (lifemap sim): which pixels count as "moved".
 enum class SimTruth {
   kNone,        // a real recording, or ignore the labels
-  kMovedZones,  // moved/: what changed since the previous visit (eq. 3's ground truth)
+  kMovedZones,  // moved/: what changed since the previous visit, exactly
+  kEq3,         // eq. 3 of paper 000 on the depth and previous_depth/ (the aligned depth map
+                // of the previous visit at the same pose), as the paper built its ground truth
   kMovable,     // labels/instance of the objects scene.json marks movable (props)
 };
 
@@ -109,9 +111,16 @@ absl::StatusOr<RgbdFrame> DecodeTumFrame(const std::string& dir, const io::TumSe
 // truth as the scenes' moved/labelled masks; with `fuse` > 0, each frame's depth fused with
 // its `fuse` neighbours on either side (a multi-frame reconstruction from the ground-truth
 // poses, for the mesh variant).
+// Agreement of eq. 3's masks with the exact ones, pixels summed over frames.
+struct MaskAgreement {
+  int64_t intersection = 0, union_ = 0;
+  double iou() const { return union_ > 0 ? static_cast<double>(intersection) / union_ : 1.0; }
+};
+
 absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride,
                                                               SimTruth truth = SimTruth::kNone,
-                                                              int fuse = 0) {
+                                                              int fuse = 0,
+                                                              MaskAgreement* agreement = nullptr) {
   auto seq = io::ReadTumSequence(dir);
   if (!seq.ok()) return seq.status();
   if (fuse > 0 && seq->frames_with_pose < static_cast<int>(seq->frames.size())) {
@@ -145,6 +154,22 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
       const std::string file = fs::path(e.rgb_path).filename().string();
       if (truth == SimTruth::kMovedZones) {
         s.moved = cv::imread((fs::path(dir) / "moved" / file).string(), cv::IMREAD_GRAYSCALE);
+      } else if (truth == SimTruth::kEq3) {
+        const cv::Mat previous =
+            cv::imread((fs::path(dir) / "previous_depth" / file).string(), cv::IMREAD_UNCHANGED);
+        if (previous.empty()) {
+          return absl::NotFoundError(absl::StrCat(dir, ": no previous_depth/", file,
+                                                  " (eq. 3 needs a query visit of lifemap sim)"));
+        }
+        cv::Mat previous_m;
+        previous.convertTo(previous_m, CV_32FC1, 1.0 / 5000.0);
+        s.moved = eval::MovedZones(s.frame.depth_m, {previous_m});
+        const cv::Mat exact =
+            cv::imread((fs::path(dir) / "moved" / file).string(), cv::IMREAD_GRAYSCALE);
+        if (agreement && !exact.empty()) {
+          agreement->intersection += cv::countNonZero(s.moved & exact);
+          agreement->union_ += cv::countNonZero(s.moved | exact);
+        }
       } else {
         const cv::Mat instance = cv::imread((fs::path(dir) / "labels" / "instance" / file).string(),
                                             cv::IMREAD_UNCHANGED);
@@ -168,9 +193,15 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
 // A folder of .pcd scenes, or a synthetic visit (TUM folder with moved/): the feature study's
 // input.
 absl::StatusOr<std::vector<eval::LabeledScene>> ReadLabeledFolder(const std::string& dir,
-                                                                  int stride, int fuse) {
+                                                                  int stride, int fuse, bool eq3,
+                                                                  MaskAgreement* agreement) {
   if (fs::exists(fs::path(dir) / "moved") && fs::exists(fs::path(dir) / "rgb.txt")) {
-    return ReadTumScenes(dir, stride, SimTruth::kMovedZones, fuse);
+    return ReadTumScenes(dir, stride, eq3 ? SimTruth::kEq3 : SimTruth::kMovedZones, fuse,
+                         agreement);
+  }
+  if (eq3) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(dir, ": --moved eq3 needs synthetic visits (previous_depth/)"));
   }
   return ReadPcdFolder(dir);
 }
@@ -225,6 +256,7 @@ struct EvalArgs {
   std::string tum_a, tum_b;
   int frame_stride = 4;
   int fuse = 0;
+  std::string moved = "exact";
   int min_gap = 8;
   double min_recall = 0.8;
   int iterations = 10000;
@@ -241,8 +273,9 @@ absl::Status PrepareOut(const std::string& out) {
 int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   std::vector<eval::LabeledScene> scenes;
+  MaskAgreement agreement;
   for (const auto& dir : a.data) {
-    auto more = ReadLabeledFolder(dir, a.frame_stride, a.fuse);
+    auto more = ReadLabeledFolder(dir, a.frame_stride, a.fuse, a.moved == "eq3", &agreement);
     if (!more.ok()) return Fail(more.status());
     for (auto& s : *more) scenes.push_back(std::move(s));
   }
@@ -274,6 +307,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
                         {"downsample", a.downsample},
                         {"variant", a.mesh ? "mesh" : "image grid"},
                         {"fused_neighbours", a.fuse},
+                        {"moved_ground_truth", a.moved},
                         {"auc", AucJson(study->superjut_auc)},
                         {"pixel_auc", AucJson(study->pixel_auc)}};
   const auto& sa = study->superjut_auc;
@@ -282,7 +316,7 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
       "# Entropy feature study (paper 000, Fig. 6)\n\n"
       "%d scenes from %s; %d superjuts with ground truth, %d of them moved.\n"
       "Superjuts: %s variant, k = %.2f, working resolution 1/%d, depth fused with %d "
-      "neighbours per side.\n\n"
+      "neighbours per side.%s\n\n"
       "Area under the ROC curve for telling moved from static, oriented as the paper's "
       "hypothesis (entropy and textureness higher on moved, planarity and horizontality lower); "
       "0.5 is chance.\n\n"
@@ -292,9 +326,14 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
       "Files: `superjuts.csv` (every superjut), `entropy_planarity.png` (the paper's Fig. 6c), "
       "`summary.json`.\n",
       scenes.size(), absl::StrJoin(a.data, ", "), study->superjuts.size(), study->moved_superjuts,
-      a.mesh ? "mesh" : "image-grid", a.k, a.downsample, a.fuse, sa.entropy, pa.entropy,
-      sa.planarity, pa.planarity, sa.horizontality, pa.horizontality, sa.textureness,
-      pa.textureness);
+      a.mesh ? "mesh" : "image-grid", a.k, a.downsample, a.fuse,
+      a.moved == "eq3"
+          ? absl::StrFormat(" Moved zones by eq. 3 (10x10 median, 50 mm) on aligned depth maps; "
+                            "they agree with the exact masks at IoU %.3f.",
+                            agreement.iou())
+          : std::string(),
+      sa.entropy, pa.entropy, sa.planarity, pa.planarity, sa.horizontality, pa.horizontality,
+      sa.textureness, pa.textureness);
   return FinishStudy(ctx, a.out, {{"superjuts.csv", csv}}, "entropy_planarity.png",
                      eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
                                       "entropy / log M", "planarity"),
@@ -486,6 +525,11 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   auto* features = ev->add_subcommand(
       "entropy-features", "Paper 000 Fig. 6: which superjut features tell moved from static");
   common(features, true);
+  features
+      ->add_option("--moved", a->moved,
+                   "synthetic visits: ground truth of what moved, exact (moved/) or eq3 "
+                   "(eq. 3 on the aligned depth maps, as the paper)")
+      ->check(CLI::IsMember({"exact", "eq3"}));
   features->callback([ctx, a] { ctx->run = [ctx, a] { return RunFeatures(*ctx, *a); }; });
   auto* matching = ev->add_subcommand(
       "entropy-matching",

@@ -66,7 +66,8 @@ absl::StatusOr<cv::Mat> FuseDepth(const RgbdFrame& reference, const std::vector<
   cv::Mat(reference.depth_m > 0).convertTo(count, CV_32FC1, 1.0 / 255.0);
   // Readings for pixels the reference did not see: the nearest surface wins (a z-buffer).
   cv::Mat fill(reference.depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
-  const Eigen::Isometry3f T_ref_world = reference.T_world_camera->ToIsometry().inverse().cast<float>();
+  const Eigen::Isometry3f T_ref_world =
+      reference.T_world_camera->ToIsometry().inverse().cast<float>();
   for (const auto& other : others) {
     if (!other.T_world_camera) {
       return absl::InvalidArgumentError("depth fusion needs every frame's pose");
@@ -78,8 +79,9 @@ absl::StatusOr<cv::Mat> FuseDepth(const RgbdFrame& reference, const std::vector<
       for (int u = 0; u < other.depth_m.cols; ++u) {
         const float z = depth[u];
         if (!(z > 0.0f)) continue;
-        const Eigen::Vector3f p = T * Eigen::Vector3f(static_cast<float>((u - ko.cx) / ko.fx) * z,
-                                                      static_cast<float>((v - ko.cy) / ko.fy) * z, z);
+        const Eigen::Vector3f p =
+            T * Eigen::Vector3f(static_cast<float>((u - ko.cx) / ko.fx) * z,
+                                static_cast<float>((v - ko.cy) / ko.fy) * z, z);
         if (p.z() <= 0.0f) continue;
         const int ur = static_cast<int>(std::lround(k.fx * p.x() / p.z() + k.cx));
         const int vr = static_cast<int>(std::lround(k.fy * p.y() / p.z() + k.cy));

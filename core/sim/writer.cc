@@ -169,8 +169,6 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
   seen.openings = visit.openings;
   Place before = place;
   if (previous) before.openings = previous->openings;
-  SensorOptions exact = options.sensor;
-  exact.noise = false;
 
   std::ofstream rgb_list(root / "rgb.txt"), depth_list(root / "depth.txt"),
       associations(root / "associations.txt"), groundtruth(root / "groundtruth.txt");
@@ -187,12 +185,15 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
     RenderedFrame frame = Render(seen, visit.SolidsAt(f), visit.lighting, k, tp.T_world_camera,
                                  options.sensor, frame_seed);
     cv::Mat moved(k.height, k.width, CV_8UC1, cv::Scalar(0));
+    cv::Mat previous_depth;
     if (previous) {
-      // What this pose showed on the previous visit, exactly: changed pixels differ in what
-      // surface they show or where it is.
-      const RenderedFrame then =
-          Render(before, previous->SolidsAt(std::min(f, previous->trajectory.size() - 1)),
-                 previous->lighting, k, tp.T_world_camera, exact, frame_seed);
+      // What this pose showed on the previous visit: exactly (changed pixels differ in what
+      // surface they show or where it is), and as the sensor saw it (previous_depth/, the
+      // aligned depth map that eq. 3 of paper 000 compares against).
+      const RenderedFrame then = Render(
+          before, previous->SolidsAt(std::min(f, previous->trajectory.size() - 1)),
+          previous->lighting, k, tp.T_world_camera, options.sensor, frame_seed ^ 0x5bd1e995U);
+      previous_depth = then.depth_m;
       for (int r = 0; r < k.height; ++r) {
         const uint16_t* a = frame.instance_id.ptr<uint16_t>(r);
         const uint16_t* b = then.instance_id.ptr<uint16_t>(r);
@@ -210,6 +211,13 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
     const std::string name = stamp + ".png";
     cv::Mat depth16;
     frame.depth_m.convertTo(depth16, CV_16UC1, 5000.0);
+    if (previous) {
+      cv::Mat previous16;
+      previous_depth.convertTo(previous16, CV_16UC1, 5000.0);
+      std::error_code dir_error;
+      fs::create_directories(root / "previous_depth", dir_error);
+      if (auto s = Write(root / "previous_depth" / name, previous16); !s.ok()) return s;
+    }
     for (auto s :
          {Write(root / "rgb" / name, frame.color_bgr), Write(root / "depth" / name, depth16),
           Write(root / "labels/class" / name, frame.class_id),

@@ -398,6 +398,13 @@ TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   EXPECT_EQ(scene["floor_plan"]["rooms"].size(), 2u) << "a second room through the door";
   EXPECT_FALSE(scene["objects"].empty());
 
+  // Paper 000's feature study on the query visit, moved zones by eq. 3 on the aligned depth.
+  r = Run({"eval", "entropy-features", "--data", tmp_.File("sim/visit_01"), "--moved", "eq3",
+           "--frame-stride", "4", "--out", tmp_.File("sim_features")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("agree with the exact masks at IoU"), std::string::npos) << r.out;
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("sim/visit_01/previous_depth")));
+
   ASSERT_EQ(Run({"maps", "create", "sim"}).code, 0);
   r = Run({"--json", "stream", "--map", "sim", "--tum", tmp_.File("sim/visit_00"),
            "--use-groundtruth", "--rate", "0"});
