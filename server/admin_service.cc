@@ -15,7 +15,7 @@ double NowSeconds() {
 
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
                         const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis) {
+                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes) {
   auto add = [out](v1::FrameOutput o, bool computed, const std::string& reason) {
     auto* s = out->Add();
     s->set_output(o);
@@ -25,7 +25,8 @@ void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* ou
   const bool pose_from_client = analysis && analysis->frame.T_world_camera.has_value();
   add(v1::FRAME_OUTPUT_POSE, pose_from_client,
       "no odometry in this server yet: send the robot's pose in Frame.pose");
-  add(v1::FRAME_OUTPUT_KEYFRAME, true, "");
+  add(v1::FRAME_OUTPUT_KEYFRAME, stores_keyframes,
+      "no map given: the frame is processed but nothing is stored");
   if (!options.entropy_masks) {
     add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, "disabled in this server's config (entropy.enabled)");
   } else if (analysis && !analysis->entropy) {

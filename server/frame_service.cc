@@ -126,20 +126,12 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   } else {
     r.set_pose_source(v1::POSE_SOURCE_NONE);
   }
-  FillOutputStatuses(r.mutable_outputs(), ctx->pipeline->options(), &*analysis);
+  FillOutputStatuses(r.mutable_outputs(), ctx->pipeline->options(), &*analysis, visit != nullptr);
   if (analysis->entropy) EntropyToProto(*analysis->entropy, r.mutable_entropy());
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
 
-  if (visit == nullptr) {
-    for (auto& o : *r.mutable_outputs()) {
-      if (o.output() == v1::FRAME_OUTPUT_KEYFRAME) {
-        o.set_computed(false);
-        o.set_reason("no map given: the frame is processed but nothing is stored");
-      }
-    }
-    return p;
-  }
+  if (visit == nullptr) return p;
   absl::MutexLock lock(&visit->mu);
   ++visit->frame_count;
   visit->selector.set_options(keyframe_options);

@@ -120,9 +120,10 @@ class AdminServiceImpl final : public v1::AdminService::Service {
 };
 
 // Which per-frame outputs this build computes, and why the others are absent.
-// `analysis` (may be null for the server-wide answer) refines it per frame.
+// `analysis` (may be null for the server-wide answer) refines it per frame; `stores_keyframes`
+// is false for frames sent without a map.
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
                         const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis);
+                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes = true);
 
 }  // namespace lifemap::server
