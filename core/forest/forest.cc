@@ -1,0 +1,513 @@
+#include "core/forest/forest.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <random>
+#include <thread>
+
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::forest {
+namespace {
+
+// A feature whose rectangle leaves the image or holds no valid depth evaluates to this.
+constexpr float kLarge = 1e4f;
+
+// Integral images (rows + 1) x (cols + 1), CV_64F: depth over valid readings, their count, and
+// L*, a*, b*.
+struct Channels {
+  cv::Mat depth_sum, depth_count, lab[3];
+  int rows = 0, cols = 0;
+};
+
+Channels MakeChannels(const cv::Mat& depth_m, const cv::Mat& color_bgr) {
+  Channels ch;
+  ch.rows = depth_m.rows;
+  ch.cols = depth_m.cols;
+  cv::Mat depth = depth_m.clone();
+  depth.setTo(0.0f, ~(depth_m > 0));  // NaN and negative count as missing
+  cv::Mat valid;
+  cv::Mat(depth > 0).convertTo(valid, CV_32FC1, 1.0 / 255.0);
+  cv::integral(depth, ch.depth_sum, CV_64F);
+  cv::integral(valid, ch.depth_count, CV_64F);
+  cv::Mat lab;
+  cv::cvtColor(color_bgr, lab, cv::COLOR_BGR2Lab);
+  std::vector<cv::Mat> planes;
+  cv::split(lab, planes);
+  for (int i = 0; i < 3; ++i) cv::integral(planes[i], ch.lab[i], CV_64F);
+  return ch;
+}
+
+inline double Box(const cv::Mat& integral, int x0, int y0, int x1, int y1) {
+  return integral.at<double>(y1, x1) - integral.at<double>(y0, x1) - integral.at<double>(y1, x0) +
+         integral.at<double>(y0, x0);
+}
+
+// Mean of a channel over the rectangle centred at (cx, cy) of size (w, h), clipped to the
+// image; kLarge when its centre is outside or it holds no valid depth.
+float RectMean(const Channels& ch, int channel, float cx, float cy, float w, float h) {
+  if (cx < 0 || cy < 0 || cx >= ch.cols || cy >= ch.rows) return kLarge;
+  const int x0 = std::max(0, static_cast<int>(cx - w / 2));
+  const int y0 = std::max(0, static_cast<int>(cy - h / 2));
+  const int x1 = std::min(ch.cols, std::max(x0 + 1, static_cast<int>(cx + w / 2) + 1));
+  const int y1 = std::min(ch.rows, std::max(y0 + 1, static_cast<int>(cy + h / 2) + 1));
+  if (channel == 0) {
+    const double n = Box(ch.depth_count, x0, y0, x1, y1);
+    return n > 0 ? static_cast<float>(Box(ch.depth_sum, x0, y0, x1, y1) / n) : kLarge;
+  }
+  const double area = static_cast<double>(x1 - x0) * (y1 - y0);
+  return static_cast<float>(Box(ch.lab[channel - 1], x0, y0, x1, y1) / area);
+}
+
+// Eq. 1 at pixel (x, y) whose depth is `depth` (> 0).
+float Evaluate(const Channels& ch, const Feature& f, int x, int y, float depth) {
+  const float s = 1.0f / depth;
+  const float m1 = RectMean(ch, f.channel1, x + f.offset1_x * s, y + f.offset1_y * s,
+                            std::max(1.0f, f.size1_x * s), std::max(1.0f, f.size1_y * s));
+  const float m2 = RectMean(ch, f.channel2, x + f.offset2_x * s, y + f.offset2_y * s,
+                            std::max(1.0f, f.size2_x * s), std::max(1.0f, f.size2_y * s));
+  if (m1 == kLarge || m2 == kLarge) return kLarge;
+  return m1 - m2;
+}
+
+Feature RandomFeature(std::mt19937_64* rng, const TrainOptions& o) {
+  std::uniform_real_distribution<float> offset(-o.max_offset, o.max_offset);
+  std::uniform_real_distribution<float> size(1.0f, o.max_size);
+  Feature f;
+  f.offset1_x = offset(*rng), f.offset1_y = offset(*rng);
+  f.size1_x = size(*rng), f.size1_y = size(*rng);
+  f.offset2_x = offset(*rng), f.offset2_y = offset(*rng);
+  f.size2_x = size(*rng), f.size2_y = size(*rng);
+  // Depth against depth, or colour against colour (any two of L*, a*, b*).
+  if ((*rng)() % 2 == 0) {
+    f.channel1 = f.channel2 = 0;
+  } else {
+    f.channel1 = static_cast<uint8_t>(1 + (*rng)() % 3);
+    f.channel2 = static_cast<uint8_t>(1 + (*rng)() % 3);
+  }
+  return f;
+}
+
+struct Sample {
+  int image;
+  int x, y;
+  float depth;
+  uint8_t label;
+};
+
+}  // namespace
+
+double HistogramEntropy(const std::vector<double>& counts) {
+  double total = 0;
+  for (double c : counts) total += c;
+  if (total <= 0) return 0;
+  double h = 0;
+  for (double c : counts) {
+    if (c > 0) h -= (c / total) * std::log(c / total);
+  }
+  return h;
+}
+
+double InformationGain(const std::vector<double>& parent, const std::vector<double>& left,
+                       const std::vector<double>& right) {
+  double n = 0, nl = 0, nr = 0;
+  for (double c : parent) n += c;
+  for (double c : left) nl += c;
+  for (double c : right) nr += c;
+  if (n <= 0) return 0;
+  return HistogramEntropy(parent) - nl / n * HistogramEntropy(left) -
+         nr / n * HistogramEntropy(right);
+}
+
+absl::Status TrainOptions::Validate() const {
+  if (trees < 1 || trees > 64 || max_depth < 1 || max_depth > 40 || min_samples < 1 ||
+      pixels_per_image < 1 || candidates < 1 || threads < 1 || !(max_offset >= 0) ||
+      !(max_size >= 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "training options out of range: trees [1, 64] (", trees, "), depth [1, 40] (", max_depth,
+        "), min_samples, pixels_per_image, candidates, threads >= 1, max_size >= 1"));
+  }
+  return absl::OkStatus();
+}
+
+size_t Forest::node_count() const {
+  size_t n = 0;
+  for (const auto& t : trees_) n += t.nodes.size();
+  return n;
+}
+
+absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, int class_count,
+                                     const TrainOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  if (images.empty()) return absl::InvalidArgumentError("training needs at least one image");
+  if (class_count < 2 || class_count > 254) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("class count must be within [2, 254], got ", class_count));
+  }
+  Forest forest;
+  forest.class_count_ = class_count;
+  forest.prior_.assign(static_cast<size_t>(class_count), 0.0);
+  std::vector<Channels> channels;
+  for (size_t i = 0; i < images.size(); ++i) {
+    const auto& im = images[i];
+    if (im.depth_m.type() != CV_32FC1 || im.color_bgr.type() != CV_8UC3 ||
+        im.labels.type() != CV_8UC1 || im.depth_m.size() != im.color_bgr.size() ||
+        im.depth_m.size() != im.labels.size() || im.depth_m.empty()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("training image ", i,
+                       ": needs CV_32FC1 depth, CV_8UC3 colour, CV_8UC1 labels of one size"));
+    }
+    for (int r = 0; r < im.labels.rows; ++r) {
+      const uint8_t* l = im.labels.ptr<uint8_t>(r);
+      const float* d = im.depth_m.ptr<float>(r);
+      for (int c = 0; c < im.labels.cols; ++c) {
+        if (l[c] == kIgnore || !(d[c] > 0)) continue;
+        if (l[c] >= class_count) {
+          return absl::InvalidArgumentError(absl::StrCat(
+              "training image ", i, " has label ", int{l[c]}, " >= class count ", class_count));
+        }
+        forest.prior_[l[c]] += 1;
+      }
+    }
+    channels.push_back(MakeChannels(im.depth_m, im.color_bgr));
+  }
+  double total = 0;
+  for (double p : forest.prior_) total += p;
+  if (total == 0) return absl::InvalidArgumentError("no labelled pixel with depth to train on");
+  for (double& p : forest.prior_) p /= total;
+
+  forest.trees_.resize(static_cast<size_t>(options.trees));
+  auto train_tree = [&](int k) {
+    std::mt19937_64 rng(options.seed * 1000003ULL + static_cast<uint64_t>(k));
+    // Each tree learns from its own share of the images (all of them when there are fewer
+    // images than trees), N pixels per image balanced across the classes present.
+    std::vector<int> subset;
+    for (int i = 0; i < static_cast<int>(images.size()); ++i) {
+      if (images.size() < static_cast<size_t>(options.trees) || i % options.trees == k) {
+        subset.push_back(i);
+      }
+    }
+    std::vector<Sample> samples;
+    for (int i : subset) {
+      std::vector<std::vector<Sample>> by_class(static_cast<size_t>(class_count));
+      const auto& im = images[static_cast<size_t>(i)];
+      for (int r = 0; r < im.labels.rows; ++r) {
+        const uint8_t* l = im.labels.ptr<uint8_t>(r);
+        const float* d = im.depth_m.ptr<float>(r);
+        for (int c = 0; c < im.labels.cols; ++c) {
+          if (l[c] != kIgnore && d[c] > 0) by_class[l[c]].push_back({i, c, r, d[c], l[c]});
+        }
+      }
+      int present = 0;
+      for (const auto& v : by_class) present += !v.empty();
+      if (present == 0) continue;
+      const int per_class = std::max(1, options.pixels_per_image / present);
+      for (const auto& v : by_class) {
+        if (v.empty()) continue;
+        std::uniform_int_distribution<size_t> pick(0, v.size() - 1);
+        for (int n = 0; n < per_class; ++n) samples.push_back(v[pick(rng)]);
+      }
+    }
+    Tree& tree = forest.trees_[static_cast<size_t>(k)];
+    struct Work {
+      int node;
+      size_t begin, end;
+      int depth;
+    };
+    tree.nodes.emplace_back();
+    std::vector<Work> stack = {{0, 0, samples.size(), 0}};
+    std::vector<float> values;
+    while (!stack.empty()) {
+      const Work w = stack.back();
+      stack.pop_back();
+      std::vector<double> hist(static_cast<size_t>(class_count), 0.0);
+      for (size_t i = w.begin; i < w.end; ++i) hist[samples[i].label] += 1;
+      int nonzero = 0;
+      for (double h : hist) nonzero += h > 0;
+      auto make_leaf = [&]() {
+        tree.nodes[static_cast<size_t>(w.node)].leaf =
+            static_cast<int32_t>(tree.leaves.size() / static_cast<size_t>(class_count));
+        const double n = static_cast<double>(w.end - w.begin);
+        for (double h : hist) tree.leaves.push_back(n > 0 ? static_cast<float>(h / n) : 0.0f);
+      };
+      if (w.depth >= options.max_depth ||
+          w.end - w.begin < static_cast<size_t>(options.min_samples) || nonzero <= 1) {
+        make_leaf();
+        continue;
+      }
+      double best_gain = 0;
+      Feature best_feature{};
+      float best_threshold = 0;
+      values.resize(w.end - w.begin);
+      std::uniform_int_distribution<size_t> pick(w.begin, w.end - 1);
+      for (int p = 0; p < options.candidates; ++p) {
+        const Feature f = RandomFeature(&rng, options);
+        for (size_t i = w.begin; i < w.end; ++i) {
+          const Sample& s = samples[i];
+          values[i - w.begin] =
+              Evaluate(channels[static_cast<size_t>(s.image)], f, s.x, s.y, s.depth);
+        }
+        const float threshold = values[pick(rng) - w.begin];
+        std::vector<double> left(hist.size(), 0.0), right(hist.size(), 0.0);
+        for (size_t i = w.begin; i < w.end; ++i) {
+          (values[i - w.begin] < threshold ? left : right)[samples[i].label] += 1;
+        }
+        const double gain = InformationGain(hist, left, right);
+        if (gain > best_gain) {
+          best_gain = gain;
+          best_feature = f;
+          best_threshold = threshold;
+        }
+      }
+      if (best_gain <= 1e-12) {
+        make_leaf();
+        continue;
+      }
+      auto middle = std::partition(
+          samples.begin() + static_cast<std::ptrdiff_t>(w.begin),
+          samples.begin() + static_cast<std::ptrdiff_t>(w.end), [&](const Sample& s) {
+            return Evaluate(channels[static_cast<size_t>(s.image)], best_feature, s.x, s.y,
+                            s.depth) < best_threshold;
+          });
+      const size_t mid = static_cast<size_t>(middle - samples.begin());
+      const int left_node = static_cast<int>(tree.nodes.size());
+      tree.nodes.emplace_back();
+      tree.nodes.emplace_back();
+      Node& node = tree.nodes[static_cast<size_t>(w.node)];
+      node.feature = best_feature;
+      node.threshold = best_threshold;
+      node.left = left_node;
+      node.right = left_node + 1;
+      stack.push_back({left_node, w.begin, mid, w.depth + 1});
+      stack.push_back({left_node + 1, mid, w.end, w.depth + 1});
+    }
+  };
+  std::vector<std::thread> workers;
+  const int threads = std::min(options.threads, options.trees);
+  for (int t = 0; t < threads; ++t) {
+    workers.emplace_back([&, t] {
+      for (int k = t; k < options.trees; k += threads) train_tree(k);
+    });
+  }
+  for (auto& w : workers) w.join();
+  return forest;
+}
+
+absl::StatusOr<Prediction> Forest::Predict(const cv::Mat& depth_m, const cv::Mat& color_bgr,
+                                           Decision decision, int stride) const {
+  if (depth_m.type() != CV_32FC1 || color_bgr.type() != CV_8UC3 ||
+      depth_m.size() != color_bgr.size() || depth_m.empty()) {
+    return absl::InvalidArgumentError(
+        "prediction needs CV_32FC1 depth and CV_8UC3 colour of one size");
+  }
+  if (stride < 1 || stride > 16) {
+    return absl::InvalidArgumentError(absl::StrCat("stride must be within [1, 16], got ", stride));
+  }
+  if (trees_.empty()) return absl::FailedPreconditionError("the forest has no trees");
+  const Channels ch = MakeChannels(depth_m, color_bgr);
+  Prediction out;
+  out.labels = cv::Mat(depth_m.size(), CV_8UC1, cv::Scalar(kIgnore));
+  for (int c = 0; c < class_count_; ++c) {
+    out.probabilities.emplace_back(depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
+  }
+  auto predict_rows = [&](int first_row_block, int step) {
+    std::vector<double> p(static_cast<size_t>(class_count_));
+    for (int y = first_row_block * stride; y < depth_m.rows; y += step * stride) {
+      for (int x = 0; x < depth_m.cols; x += stride) {
+        const float d = depth_m.at<float>(y, x);
+        if (!(d > 0)) continue;
+        std::fill(p.begin(), p.end(), 0.0);
+        for (const auto& tree : trees_) {
+          int n = 0;
+          while (tree.nodes[static_cast<size_t>(n)].left >= 0) {
+            const Node& node = tree.nodes[static_cast<size_t>(n)];
+            n = Evaluate(ch, node.feature, x, y, d) < node.threshold ? node.left : node.right;
+          }
+          const float* leaf =
+              &tree.leaves[static_cast<size_t>(tree.nodes[static_cast<size_t>(n)].leaf) *
+                           static_cast<size_t>(class_count_)];
+          for (int c = 0; c < class_count_; ++c) p[static_cast<size_t>(c)] += leaf[c];
+        }
+        double sum = 0;
+        for (int c = 0; c < class_count_; ++c) {
+          // Eq. 9: balanced training makes p(c|Q) uniform, so re-weighting is by p(c).
+          if (decision == Decision::kPriorWeighted)
+            p[static_cast<size_t>(c)] *= prior_[static_cast<size_t>(c)];
+          sum += p[static_cast<size_t>(c)];
+        }
+        int best = 0;
+        for (int c = 0; c < class_count_; ++c) {
+          p[static_cast<size_t>(c)] = sum > 0 ? p[static_cast<size_t>(c)] / sum : 0.0;
+          if (p[static_cast<size_t>(c)] > p[static_cast<size_t>(best)]) best = c;
+        }
+        const int y1 = std::min(depth_m.rows, y + stride), x1 = std::min(depth_m.cols, x + stride);
+        out.labels(cv::Range(y, y1), cv::Range(x, x1)).setTo(best);
+        for (int c = 0; c < class_count_; ++c) {
+          out.probabilities[static_cast<size_t>(c)](cv::Range(y, y1), cv::Range(x, x1))
+              .setTo(static_cast<float>(p[static_cast<size_t>(c)]));
+        }
+      }
+    }
+  };
+  std::thread second([&] { predict_rows(1, 2); });
+  predict_rows(0, 2);
+  second.join();
+  return out;
+}
+
+namespace {
+
+uint64_t Fnv1a(const std::string& bytes, size_t n) {
+  uint64_t h = 1469598103934665603ULL;
+  for (size_t i = 0; i < n; ++i) {
+    h ^= static_cast<uint8_t>(bytes[i]);
+    h *= 1099511628211ULL;
+  }
+  return h;
+}
+
+template <typename T>
+void Put(std::string* out, const T& v) {
+  out->append(reinterpret_cast<const char*>(&v), sizeof(T));
+}
+
+class Reader {
+ public:
+  Reader(const std::string& bytes, size_t end) : bytes_(bytes), end_(end) {}
+  template <typename T>
+  bool Get(T* v) {
+    if (pos_ + sizeof(T) > end_) return false;
+    std::memcpy(v, bytes_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return true;
+  }
+  bool GetString(std::string* s, uint32_t max) {
+    uint32_t n = 0;
+    if (!Get(&n) || n > max || pos_ + n > end_) return false;
+    s->assign(bytes_.data() + pos_, n);
+    pos_ += n;
+    return true;
+  }
+  bool done() const { return pos_ == end_; }
+
+ private:
+  const std::string& bytes_;
+  size_t end_;
+  size_t pos_ = 0;
+};
+
+constexpr char kMagic[4] = {'L', 'M', 'R', 'F'};
+constexpr uint32_t kVersion = 1;
+
+}  // namespace
+
+std::string Forest::Serialize(const std::vector<std::string>& class_names) const {
+  static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "model files are little-endian");
+  std::string out(kMagic, 4);
+  Put(&out, kVersion);
+  Put(&out, static_cast<uint32_t>(class_count_));
+  for (double p : prior_) Put(&out, p);
+  Put(&out, static_cast<uint32_t>(class_names.size()));
+  for (const auto& n : class_names) {
+    Put(&out, static_cast<uint32_t>(n.size()));
+    out += n;
+  }
+  Put(&out, static_cast<uint32_t>(trees_.size()));
+  for (const auto& t : trees_) {
+    Put(&out, static_cast<uint32_t>(t.nodes.size()));
+    for (const auto& n : t.nodes) {
+      // Field by field: the struct has padding bytes, which must not reach the file.
+      const Feature& f = n.feature;
+      for (float v : {f.offset1_x, f.offset1_y, f.size1_x, f.size1_y, f.offset2_x, f.offset2_y,
+                      f.size2_x, f.size2_y}) {
+        Put(&out, v);
+      }
+      Put(&out, f.channel1);
+      Put(&out, f.channel2);
+      Put(&out, n.threshold);
+      Put(&out, n.left);
+      Put(&out, n.right);
+      Put(&out, n.leaf);
+    }
+    Put(&out, static_cast<uint32_t>(t.leaves.size()));
+    for (float v : t.leaves) Put(&out, v);
+  }
+  Put(&out, Fnv1a(out, out.size()));
+  return out;
+}
+
+absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
+                                           std::vector<std::string>* class_names) {
+  auto corrupt = [](const char* what) {
+    return absl::DataLossError(absl::StrCat("model file is corrupt or truncated: ", what));
+  };
+  if (bytes.size() < 16 || std::memcmp(bytes.data(), kMagic, 4) != 0) {
+    return absl::InvalidArgumentError("not a lifemap forest model (bad magic)");
+  }
+  uint64_t stored = 0;
+  std::memcpy(&stored, bytes.data() + bytes.size() - 8, 8);
+  if (stored != Fnv1a(bytes, bytes.size() - 8)) return corrupt("checksum mismatch");
+  Reader r(bytes, bytes.size() - 8);
+  char magic[4];
+  uint32_t version = 0, classes = 0, names = 0, trees = 0;
+  for (char& c : magic) r.Get(&c);
+  if (!r.Get(&version)) return corrupt("header");
+  if (version != kVersion) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "model file version ", version, " is not supported by this build (", kVersion, ")"));
+  }
+  if (!r.Get(&classes) || classes < 2 || classes > 254) return corrupt("class count");
+  Forest f;
+  f.class_count_ = static_cast<int>(classes);
+  f.prior_.resize(classes);
+  for (double& p : f.prior_) {
+    if (!r.Get(&p)) return corrupt("prior");
+  }
+  if (!r.Get(&names) || names > 1024) return corrupt("class names");
+  std::vector<std::string> read_names(names);
+  for (auto& n : read_names) {
+    if (!r.GetString(&n, 1024)) return corrupt("class name");
+  }
+  if (!r.Get(&trees) || trees < 1 || trees > 64) return corrupt("tree count");
+  f.trees_.resize(trees);
+  for (auto& t : f.trees_) {
+    uint32_t nodes = 0, leaves = 0;
+    if (!r.Get(&nodes) || nodes < 1 || nodes > (1u << 26)) return corrupt("node count");
+    t.nodes.resize(nodes);
+    for (auto& n : t.nodes) {
+      Feature& ft = n.feature;
+      if (!r.Get(&ft.offset1_x) || !r.Get(&ft.offset1_y) || !r.Get(&ft.size1_x) ||
+          !r.Get(&ft.size1_y) || !r.Get(&ft.offset2_x) || !r.Get(&ft.offset2_y) ||
+          !r.Get(&ft.size2_x) || !r.Get(&ft.size2_y) || !r.Get(&ft.channel1) ||
+          !r.Get(&ft.channel2) || !r.Get(&n.threshold) || !r.Get(&n.left) || !r.Get(&n.right) ||
+          !r.Get(&n.leaf)) {
+        return corrupt("node");
+      }
+    }
+    if (!r.Get(&leaves) || leaves % classes != 0 || leaves > (1u << 28)) return corrupt("leaves");
+    t.leaves.resize(leaves);
+    for (float& v : t.leaves) {
+      if (!r.Get(&v)) return corrupt("leaf");
+    }
+    const int32_t leaf_count = static_cast<int32_t>(leaves / classes);
+    for (int32_t i = 0; i < static_cast<int32_t>(nodes); ++i) {
+      const Node& n = t.nodes[static_cast<size_t>(i)];
+      const bool inner = n.left >= 0;
+      // Children always follow their parent: this also rules out cycles.
+      if (inner ? (n.left <= i || n.right <= i || n.left >= static_cast<int32_t>(nodes) ||
+                   n.right >= static_cast<int32_t>(nodes) || n.feature.channel1 > 3 ||
+                   n.feature.channel2 > 3)
+                : (n.leaf < 0 || n.leaf >= leaf_count)) {
+        return corrupt("a node points outside its tree");
+      }
+    }
+  }
+  if (!r.done()) return corrupt("trailing bytes");
+  if (class_names) *class_names = std::move(read_names);
+  return f;
+}
+
+}  // namespace lifemap::forest

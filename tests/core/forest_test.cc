@@ -1,0 +1,182 @@
+#include "core/forest/forest.h"
+
+#include "core/io/labeled_pcd.h"
+#include "tests/testing/test_util.h"
+
+#include <chrono>
+#include <cmath>
+
+#include <gtest/gtest.h>
+
+namespace lifemap::forest {
+namespace {
+
+// Left half class 0, right half class 1, a 12-pixel band between them unlabelled. `by_depth`:
+// the left half is a fronto-parallel plane and the right half a plane tilted away (depth grows
+// 1 cm per pixel), one colour: a depth-depth feature across neighbours tells them apart.
+// Otherwise one depth and two colours (red, blue).
+LabeledImage Halves(bool by_depth, int w = 80, int h = 60) {
+  LabeledImage im;
+  im.depth_m = cv::Mat(h, w, CV_32FC1, cv::Scalar(1.5f));
+  im.color_bgr = cv::Mat(h, w, CV_8UC3, cv::Scalar(128, 128, 128));
+  im.labels = cv::Mat(h, w, CV_8UC1, cv::Scalar(0));
+  im.labels(cv::Rect(w / 2, 0, w / 2, h)).setTo(1);
+  im.labels(cv::Rect(w / 2 - 6, 0, 12, h)).setTo(kIgnore);
+  if (by_depth) {
+    for (int r = 0; r < h; ++r) {
+      for (int c = w / 2; c < w; ++c) im.depth_m.at<float>(r, c) = 1.5f + 0.01f * (c - w / 2);
+    }
+  } else {
+    im.color_bgr(cv::Rect(0, 0, w / 2, h)).setTo(cv::Scalar(0, 0, 220));
+    im.color_bgr(cv::Rect(w / 2, 0, w / 2, h)).setTo(cv::Scalar(220, 0, 0));
+  }
+  return im;
+}
+
+TrainOptions Small() {
+  TrainOptions o;
+  o.trees = 2;
+  o.max_depth = 8;
+  o.pixels_per_image = 4000;
+  o.candidates = 200;
+  o.max_offset = 5;
+  o.max_size = 4;
+  return o;
+}
+
+// Over the labelled pixels.
+double Accuracy(const Forest& f, const LabeledImage& im) {
+  auto p = f.Predict(im.depth_m, im.color_bgr);
+  EXPECT_TRUE(p.ok()) << p.status();
+  const cv::Mat labelled = im.labels != kIgnore;
+  return cv::countNonZero((p->labels == im.labels) & labelled) /
+         static_cast<double>(cv::countNonZero(labelled));
+}
+
+TEST(Forest, LearnsSeparableCasesPerfectly) {
+  for (bool by_depth : {true, false}) {
+    const LabeledImage im = Halves(by_depth);
+    auto forest = Forest::Train({im, im}, 2, Small());
+    ASSERT_TRUE(forest.ok()) << forest.status();
+    EXPECT_DOUBLE_EQ(Accuracy(*forest, im), 1.0) << (by_depth ? "depth" : "colour");
+  }
+}
+
+TEST(Forest, InformationGainMatchesHandComputedValues) {
+  EXPECT_NEAR(HistogramEntropy({2, 2}), std::log(2.0), 1e-12);
+  EXPECT_NEAR(HistogramEntropy({4, 0}), 0.0, 1e-12);
+  EXPECT_NEAR(InformationGain({2, 2}, {2, 0}, {0, 2}), std::log(2.0), 1e-12);
+  EXPECT_NEAR(InformationGain({2, 2}, {1, 1}, {1, 1}), 0.0, 1e-12);
+  // H(3,1) - 2/4 H(2,0) - 2/4 H(1,1) = H(3/4, 1/4) - ln2 / 2.
+  const double h31 = -(0.75 * std::log(0.75) + 0.25 * std::log(0.25));
+  EXPECT_NEAR(InformationGain({3, 1}, {2, 0}, {1, 1}), h31 - std::log(2.0) / 2, 1e-12);
+}
+
+// Pixels that no feature can tell apart: the root is a leaf holding the balanced distribution
+// (1/2, 1/2); eq. 9 re-weights it by the prior of the full training set (9:1).
+TEST(Forest, PriorReweightingFollowsEquationNine) {
+  LabeledImage im;
+  im.depth_m = cv::Mat(10, 10, CV_32FC1, cv::Scalar(1.0f));
+  im.color_bgr = cv::Mat(10, 10, CV_8UC3, cv::Scalar(50, 60, 70));
+  im.labels = cv::Mat(10, 10, CV_8UC1, cv::Scalar(0));
+  im.labels(cv::Rect(0, 0, 10, 1)).setTo(1);  // 10 of 100 pixels
+  TrainOptions root_only = Small();
+  root_only.min_samples = 1000000;  // no split: the root is the leaf
+  auto forest = Forest::Train({im}, 2, root_only);
+  ASSERT_TRUE(forest.ok());
+  EXPECT_NEAR(forest->class_prior()[0], 0.9, 1e-12);
+  auto balanced = forest->Predict(im.depth_m, im.color_bgr, Decision::kBalanced);
+  auto weighted = forest->Predict(im.depth_m, im.color_bgr, Decision::kPriorWeighted);
+  ASSERT_TRUE(balanced.ok() && weighted.ok());
+  EXPECT_NEAR(balanced->probabilities[1].at<float>(5, 5), 0.5f, 1e-6);
+  EXPECT_NEAR(weighted->probabilities[0].at<float>(5, 5), 0.9f, 1e-6);
+  EXPECT_NEAR(weighted->probabilities[1].at<float>(5, 5), 0.1f, 1e-6);
+}
+
+TEST(Forest, IsDeterministicAndRoundTripsBitExact) {
+  const LabeledImage im = Halves(true);
+  auto a = Forest::Train({im}, 2, Small());
+  auto b = Forest::Train({im}, 2, Small());
+  ASSERT_TRUE(a.ok() && b.ok());
+  const std::string bytes = a->Serialize({"left", "right"});
+  EXPECT_TRUE(bytes == b->Serialize({"left", "right"})) << "same seed, same forest";
+  std::vector<std::string> names;
+  auto loaded = Forest::Deserialize(bytes, &names);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(names, (std::vector<std::string>{"left", "right"}));
+  EXPECT_TRUE(loaded->Serialize(names) == bytes) << "bit-exact round trip";
+  auto p1 = a->Predict(im.depth_m, im.color_bgr);
+  auto p2 = loaded->Predict(im.depth_m, im.color_bgr);
+  EXPECT_EQ(cv::countNonZero(p1->labels != p2->labels), 0);
+}
+
+TEST(Forest, CorruptAndTruncatedModelsGiveClearErrors) {
+  auto forest = Forest::Train({Halves(true)}, 2, Small());
+  ASSERT_TRUE(forest.ok());
+  const std::string bytes = forest->Serialize({"a", "b"});
+  std::string flipped = bytes;
+  flipped[bytes.size() / 2] ^= 0x40;
+  EXPECT_TRUE(absl::IsDataLoss(Forest::Deserialize(flipped, nullptr).status()));
+  EXPECT_FALSE(Forest::Deserialize(bytes.substr(0, bytes.size() - 20), nullptr).ok());
+  EXPECT_TRUE(absl::IsInvalidArgument(Forest::Deserialize("not a model at all", nullptr).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(Forest::Deserialize("", nullptr).status()));
+}
+
+TEST(Forest, RejectsBadTrainingData) {
+  LabeledImage im = Halves(true);
+  EXPECT_TRUE(absl::IsInvalidArgument(Forest::Train({}, 2, Small()).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(Forest::Train({im}, 1, Small()).status()));
+  im.labels.at<uint8_t>(0, 0) = 7;
+  auto s = Forest::Train({im}, 2, Small()).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(s));
+  EXPECT_NE(s.message().find("label 7"), std::string::npos) << s;
+  TrainOptions bad = Small();
+  bad.trees = 0;
+  EXPECT_TRUE(absl::IsInvalidArgument(Forest::Train({Halves(true)}, 2, bad).status()));
+  auto forest = Forest::Train({Halves(true)}, 2, Small());
+  EXPECT_TRUE(absl::IsInvalidArgument(
+      forest->Predict(cv::Mat(10, 10, CV_16UC1), cv::Mat(10, 10, CV_8UC3)).status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(
+      forest->Predict(Halves(true).depth_m, Halves(true).color_bgr, Decision::kBalanced, 0)
+          .status()));
+}
+
+// Real data: mOSD table-top scenes, table (labels 1-9) against objects (20 and above).
+LabeledImage MosdImage(const std::string& path) {
+  auto f = io::ReadLabeledPcd(path);
+  EXPECT_TRUE(f.ok()) << f.status();
+  LabeledImage im;
+  im.depth_m = f->frame.depth_m;
+  im.color_bgr = f->frame.color_bgr;
+  im.labels = cv::Mat(f->labels.size(), CV_8UC1, cv::Scalar(kIgnore));
+  im.labels.setTo(0, (f->labels >= 1) & (f->labels < 10));
+  im.labels.setTo(1, f->labels >= 20);
+  return im;
+}
+
+TEST(Forest, SeparatesObjectsFromTheTableOnRealScenes) {
+  LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
+  std::vector<LabeledImage> train;
+  for (const char* name : {"learn0", "learn8", "learn17", "learn25", "learn33", "learn44"}) {
+    train.push_back(MosdImage(dir + "/learn/" + name + ".pcd"));
+  }
+  TrainOptions o;
+  o.trees = 2;
+  o.max_depth = 12;
+  o.pixels_per_image = 1000;
+  o.candidates = 200;
+  auto forest = Forest::Train(train, 2, o);
+  ASSERT_TRUE(forest.ok()) << forest.status();
+  for (const char* name : {"test5", "test31"}) {
+    const LabeledImage test = MosdImage(dir + "/test/" + name + ".pcd");
+    const cv::Mat scored = (test.labels != kIgnore) & (test.depth_m > 0);
+    auto p = forest->Predict(test.depth_m, test.color_bgr, Decision::kBalanced, 2);
+    ASSERT_TRUE(p.ok());
+    const double accuracy = cv::countNonZero((p->labels == test.labels) & scored) /
+                            static_cast<double>(cv::countNonZero(scored));
+    EXPECT_GT(accuracy, 0.8) << name;
+  }
+}
+
+}  // namespace
+}  // namespace lifemap::forest
