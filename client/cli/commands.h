@@ -36,5 +36,7 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);
 void AddSimCommands(CLI::App* app, CliContext* ctx);
+// `lifemap train` on `app` and `lifemap eval segmentation` on `eval`.
+void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx);
 
 }  // namespace lifemap::cli

@@ -557,6 +557,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   matching->add_option("--ransac-iterations", a->iterations, "RANSAC iterations for F")
       ->check(CLI::Range(100, 1000000));
   matching->callback([ctx, a] { ctx->run = [ctx, a] { return RunMatching(*ctx, *a); }; });
+  AddForestCommands(app, ev, ctx);
 }
 
 }  // namespace lifemap::cli

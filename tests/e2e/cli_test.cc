@@ -500,6 +500,28 @@ TEST_F(CliTest, EvalEntropyMatchingOnTumFramesFarApart) {
   EXPECT_EQ(r.code, 2) << "no data at all";
 }
 
+TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
+  LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
+  auto r = Run({"--json", "train", "--data", dir + "/learn", "--trees", "2", "--depth", "12",
+                "--pixels", "800", "--candidates", "150", "--out", tmp_.File("m.model")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "eval", "segmentation", "--model", tmp_.File("m.model"), "--data",
+           dir + "/test", "--stride", "4", "--out", tmp_.File("seg")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json s = json::parse(Slurp(tmp_.File("seg/summary.json")));
+  for (const char* key : {"accuracy", "precision", "recall", "accuracy_no_bg", "precision_no_bg",
+                          "recall_no_bg", "per_class", "prior_weighted"}) {
+    EXPECT_TRUE(s.contains(key)) << key;
+  }
+  EXPECT_GT(s["accuracy"].get<double>(), 0.85) << "table vs objects";
+  EXPECT_TRUE(s["per_class"].contains("object"));
+
+  std::ofstream(tmp_.File("bad.model")) << "LMRF garbage";
+  r = Run({"eval", "segmentation", "--model", tmp_.File("bad.model"), "--data", dir + "/test"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("model"), std::string::npos) << r.err;
+}
+
 // A robot that sends as fast as it can, 420 MB of raw frames, cannot make the server buffer
 // them: the server reads a stream's next frame only when fewer than max_inflight_frames are
 // waiting, and gRPC's flow control holds the sender meanwhile.

@@ -1,0 +1,292 @@
+// `lifemap train` and `lifemap eval segmentation`: the random-forest labeller of paper 002,
+// trained and evaluated locally on labelled data (mOSD .pcd folders or synthetic visits).
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/cli/commands.h"
+#include "client/cli/output.h"
+#include "core/common/image_codec.h"
+#include "core/forest/forest.h"
+#include "core/io/labeled_pcd.h"
+#include "core/io/tum_dataset.h"
+
+namespace lifemap::cli {
+namespace {
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+struct Dataset {
+  std::vector<forest::LabeledImage> images;
+  std::vector<std::string> class_names;
+};
+
+// mOSD: table (labels 1-9) = class 0 "table", objects (20 and above) = class 1 "object".
+absl::Status ReadMosd(const std::string& dir, Dataset* out) {
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(dir)) {
+    if (e.path().extension() == ".pcd") files.push_back(e.path().string());
+  }
+  std::sort(files.begin(), files.end());
+  for (const auto& f : files) {
+    auto frame = io::ReadLabeledPcd(f);
+    if (!frame.ok()) return frame.status();
+    forest::LabeledImage im;
+    im.depth_m = frame->frame.depth_m;
+    im.color_bgr = frame->frame.color_bgr;
+    im.labels = cv::Mat(frame->labels.size(), CV_8UC1, cv::Scalar(forest::kIgnore));
+    im.labels.setTo(0, (frame->labels >= 1) & (frame->labels < 10));
+    im.labels.setTo(1, frame->labels >= 20);
+    out->images.push_back(im);
+  }
+  if (out->class_names.empty()) out->class_names = {"table", "object"};
+  return absl::OkStatus();
+}
+
+// A synthetic visit (lifemap sim): labels/class as they are (structure, furniture, props).
+absl::Status ReadSimVisit(const std::string& dir, int stride, Dataset* out) {
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return seq.status();
+  for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
+    const auto& e = seq->frames[i];
+    const std::string name = fs::path(e.rgb_path).filename().string();
+    forest::LabeledImage im;
+    const cv::Mat depth = cv::imread(e.depth_path, cv::IMREAD_ANYDEPTH);
+    im.color_bgr = cv::imread(e.rgb_path, cv::IMREAD_COLOR);
+    im.labels =
+        cv::imread((fs::path(dir) / "labels" / "class" / name).string(), cv::IMREAD_GRAYSCALE);
+    if (depth.empty() || im.color_bgr.empty() || im.labels.empty()) {
+      return absl::NotFoundError(absl::StrCat(dir, ": cannot read ", name, " with its labels"));
+    }
+    depth.convertTo(im.depth_m, CV_32FC1, 1.0 / 5000.0);
+    im.labels.setTo(forest::kIgnore, im.labels == 0);  // no surface
+    out->images.push_back(im);
+  }
+  if (out->class_names.empty()) {
+    for (int c = 0; c < 19; ++c) out->class_names.push_back(absl::StrCat("class", c));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<Dataset> ReadData(const std::vector<std::string>& dirs, int stride) {
+  Dataset data;
+  for (const auto& dir : dirs) {
+    if (!fs::is_directory(dir)) return absl::NotFoundError(absl::StrCat(dir, ": not a directory"));
+    const bool sim = fs::exists(fs::path(dir) / "labels" / "class");
+    if (auto s = sim ? ReadSimVisit(dir, stride, &data) : ReadMosd(dir, &data); !s.ok()) return s;
+  }
+  if (data.images.empty()) {
+    return absl::NotFoundError(
+        "no labelled images found (mOSD .pcd folders or lifemap sim visits)");
+  }
+  return data;
+}
+
+struct TrainArgs {
+  std::vector<std::string> data;
+  std::string out;
+  int trees = 3, depth = 20, pixels = 2000, candidates = 2000, stride = 10;
+  uint64_t seed = 1;
+};
+
+int RunTrain(const CliContext& ctx, const TrainArgs& a) {
+  auto data = ReadData(a.data, a.stride);
+  if (!data.ok()) return Fail(data.status());
+  forest::TrainOptions o;
+  o.trees = a.trees;
+  o.max_depth = a.depth;
+  o.pixels_per_image = a.pixels;
+  o.candidates = a.candidates;
+  o.seed = a.seed;
+  const auto start = std::chrono::steady_clock::now();
+  if (!ctx.json) {
+    std::cerr << absl::StrFormat("training %d trees of depth <= %d on %d images...\n", a.trees,
+                                 a.depth, data->images.size());
+  }
+  auto model = forest::Forest::Train(data->images, static_cast<int>(data->class_names.size()), o);
+  if (!model.ok()) return Fail(model.status());
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::ofstream out(a.out, std::ios::binary);
+  out << model->Serialize(data->class_names);
+  if (!out) return Fail(absl::PermissionDeniedError(absl::StrCat("cannot write ", a.out)));
+  json summary = {{"model", a.out},
+                  {"images", data->images.size()},
+                  {"classes", data->class_names},
+                  {"nodes", model->node_count()},
+                  {"seconds", seconds}};
+  if (ctx.json) {
+    std::cout << summary.dump() << "\n";
+  } else {
+    std::cout << absl::StrFormat("wrote %s: %d trees, %d nodes, %d classes, %.1f s\n", a.out,
+                                 model->tree_count(), model->node_count(), data->class_names.size(),
+                                 seconds);
+  }
+  return 0;
+}
+
+struct EvalArgs {
+  std::string model;
+  std::vector<std::string> data;
+  std::string out;
+  int stride = 2;
+  int frame_stride = 10;
+};
+
+// The paper's tables: pixel accuracy, and precision and recall averaged over classes, with
+// and without the background class (class 0), and per class.
+json Scores(const std::vector<std::vector<int64_t>>& confusion,
+            const std::vector<std::string>& names) {
+  const size_t n = confusion.size();
+  auto table = [&](size_t first) {
+    int64_t correct = 0, total = 0;
+    double precision = 0, recall = 0;
+    int counted = 0;
+    for (size_t c = first; c < n; ++c) {
+      int64_t tp = confusion[c][c], predicted = 0, actual = 0;
+      for (size_t o = 0; o < n; ++o) {
+        predicted += confusion[o][c];
+        actual += confusion[c][o];
+      }
+      correct += tp;
+      total += actual;
+      if (actual == 0) continue;
+      precision += predicted > 0 ? static_cast<double>(tp) / predicted : 0.0;
+      recall += static_cast<double>(tp) / actual;
+      ++counted;
+    }
+    return std::make_tuple(total > 0 ? static_cast<double>(correct) / total : 0.0,
+                           counted ? precision / counted : 0.0, counted ? recall / counted : 0.0);
+  };
+  const auto [accuracy, precision, recall] = table(0);
+  const auto [accuracy_nb, precision_nb, recall_nb] = table(1);
+  json per_class = json::object();
+  for (size_t c = 0; c < n; ++c) {
+    int64_t tp = confusion[c][c], predicted = 0, actual = 0;
+    for (size_t o = 0; o < n; ++o) predicted += confusion[o][c], actual += confusion[c][o];
+    if (actual == 0 && predicted == 0) continue;
+    per_class[names[c]] = {{"precision", predicted ? static_cast<double>(tp) / predicted : 0.0},
+                           {"recall", actual ? static_cast<double>(tp) / actual : 0.0},
+                           {"pixels", actual}};
+  }
+  return {{"accuracy", accuracy},
+          {"precision", precision},
+          {"recall", recall},
+          {"accuracy_no_bg", accuracy_nb},
+          {"precision_no_bg", precision_nb},
+          {"recall_no_bg", recall_nb},
+          {"per_class", per_class}};
+}
+
+int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
+  auto bytes = ReadFileBytes(a.model);
+  if (!bytes.ok()) return Fail(bytes.status());
+  std::vector<std::string> names;
+  auto model = forest::Forest::Deserialize(*bytes, &names);
+  if (!model.ok()) return Fail(model.status());
+  auto data = ReadData(a.data, a.frame_stride);
+  if (!data.ok()) return Fail(data.status());
+  if (data->class_names.size() != static_cast<size_t>(model->class_count())) {
+    return Fail(absl::FailedPreconditionError(
+        absl::StrCat("the model knows ", model->class_count(), " classes but the data has ",
+                     data->class_names.size(), ": train on data of the same kind")));
+  }
+  json result = json::object();
+  for (auto decision : {forest::Decision::kBalanced, forest::Decision::kPriorWeighted}) {
+    const size_t n = names.size();
+    std::vector<std::vector<int64_t>> confusion(n, std::vector<int64_t>(n, 0));
+    for (const auto& im : data->images) {
+      auto p = model->Predict(im.depth_m, im.color_bgr, decision, a.stride);
+      if (!p.ok()) return Fail(p.status());
+      // Pixels with a label and a depth reading are scored.
+      for (int r = 0; r < im.labels.rows; ++r) {
+        for (int c = 0; c < im.labels.cols; ++c) {
+          const uint8_t truth = im.labels.at<uint8_t>(r, c);
+          const uint8_t guess = p->labels.at<uint8_t>(r, c);
+          if (truth == forest::kIgnore || guess == forest::kIgnore || truth >= n) continue;
+          ++confusion[truth][guess];
+        }
+      }
+    }
+    result[decision == forest::Decision::kBalanced ? "balanced" : "prior_weighted"] =
+        Scores(confusion, names);
+  }
+  json summary = result["balanced"];
+  summary["prior_weighted"] = result["prior_weighted"];
+  summary["model"] = a.model;
+  summary["images"] = data->images.size();
+  summary["stride"] = a.stride;
+  if (!a.out.empty()) {
+    std::error_code ec;
+    fs::create_directories(a.out, ec);
+    std::ofstream(fs::path(a.out) / "summary.json") << summary.dump(2) << "\n";
+  }
+  if (ctx.json) {
+    std::cout << summary.dump() << "\n";
+    return 0;
+  }
+  std::cout << absl::StrFormat("%d images, every %d-th pixel, background = %s\n",
+                               data->images.size(), a.stride, names[0]);
+  std::cout << absl::StrFormat("%-16s %9s %9s %9s   %s\n", "decision", "accuracy", "precision",
+                               "recall", "(without background: accuracy precision recall)");
+  for (const char* d : {"balanced", "prior_weighted"}) {
+    const json& s = result[d];
+    std::cout << absl::StrFormat(
+        "%-16s %9.3f %9.3f %9.3f   %.3f %.3f %.3f\n", d, s["accuracy"].get<double>(),
+        s["precision"].get<double>(), s["recall"].get<double>(), s["accuracy_no_bg"].get<double>(),
+        s["precision_no_bg"].get<double>(), s["recall_no_bg"].get<double>());
+  }
+  for (const auto& [name, c] : result["balanced"]["per_class"].items()) {
+    std::cout << absl::StrFormat("  %-14s precision %.3f recall %.3f (%d px)\n", name,
+                                 c["precision"].get<double>(), c["recall"].get<double>(),
+                                 c["pixels"].get<int64_t>());
+  }
+  return 0;
+}
+
+}  // namespace
+
+void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
+  auto* train = app->add_subcommand(
+      "train", "Train the random-forest labeller (paper 002) on labelled data, locally");
+  auto t = std::make_shared<TrainArgs>();
+  train->add_option("--data", t->data, "mOSD .pcd folders or lifemap sim visit folders")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  train->add_option("--out", t->out, "model file to write")->required();
+  train->add_option("--trees", t->trees, "trees (default 3)")->check(CLI::Range(1, 64));
+  train->add_option("--depth", t->depth, "maximum depth (default 20)")->check(CLI::Range(1, 40));
+  train->add_option("--pixels", t->pixels, "training pixels per image, N (default 2000)")
+      ->check(CLI::Range(10, 1000000));
+  train->add_option("--candidates", t->candidates, "features tried per node, P (default 2000)")
+      ->check(CLI::Range(1, 100000));
+  train->add_option("--frame-stride", t->stride, "synthetic visits: every N-th frame (default 10)")
+      ->check(CLI::Range(1, 1000));
+  train->add_option("--seed", t->seed, "seed");
+  train->callback([ctx, t] { ctx->run = [ctx, t] { return RunTrain(*ctx, *t); }; });
+
+  auto* seg = eval->add_subcommand(
+      "segmentation", "Paper 002's tables: accuracy, precision, recall of a model on data");
+  auto e = std::make_shared<EvalArgs>();
+  seg->add_option("--model", e->model, "model file (lifemap train)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  seg->add_option("--data", e->data, "mOSD .pcd folders or lifemap sim visit folders")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  seg->add_option("--out", e->out, "folder for summary.json");
+  seg->add_option("--stride", e->stride, "predict every N-th pixel (default 2)")
+      ->check(CLI::Range(1, 16));
+  seg->add_option("--frame-stride", e->frame_stride, "synthetic visits: every N-th frame")
+      ->check(CLI::Range(1, 1000));
+  seg->callback([ctx, e] { ctx->run = [ctx, e] { return RunEvalSegmentation(*ctx, *e); }; });
+}
+
+}  // namespace lifemap::cli
