@@ -26,9 +26,7 @@ std::vector<forest::LabeledImage> Learn() {
       forest::LabeledImage im;
       im.depth_m = f->frame.depth_m;
       im.color_bgr = f->frame.color_bgr;
-      im.labels = cv::Mat(f->labels.size(), CV_8UC1, cv::Scalar(forest::kIgnore));
-      im.labels.setTo(0, (f->labels >= 1) & (f->labels < 10));
-      im.labels.setTo(1, f->labels >= 20);
+      im.labels = io::MosdTableObjectClasses(f->labels);
       out.push_back(im);
     }
     return out;

@@ -41,9 +41,7 @@ absl::Status ReadMosd(const std::string& dir, Dataset* out) {
     forest::LabeledImage im;
     im.depth_m = frame->frame.depth_m;
     im.color_bgr = frame->frame.color_bgr;
-    im.labels = cv::Mat(frame->labels.size(), CV_8UC1, cv::Scalar(forest::kIgnore));
-    im.labels.setTo(0, (frame->labels >= 1) & (frame->labels < 10));
-    im.labels.setTo(1, frame->labels >= 20);
+    im.labels = io::MosdTableObjectClasses(frame->labels);
     out->images.push_back(im);
   }
   if (out->class_names.empty()) out->class_names = {"table", "object"};

@@ -65,4 +65,11 @@ absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
   return out;
 }
 
+cv::Mat MosdTableObjectClasses(const cv::Mat& labels) {
+  cv::Mat classes(labels.size(), CV_8UC1, cv::Scalar(255));
+  classes.setTo(0, (labels >= 1) & (labels < 10));
+  classes.setTo(1, labels >= 20);
+  return classes;
+}
+
 }  // namespace lifemap::io

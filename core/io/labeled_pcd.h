@@ -25,4 +25,8 @@ CameraIntrinsics KinectDefaultIntrinsics(int width, int height);
 // organized or lacks a field.
 absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path);
 
+// mOSD's labels as two classes: 0 = the supporting table (labels 1-9), 1 = objects (20 and
+// above, object id = label / 10), 255 = unlabelled (0). CV_8UC1.
+cv::Mat MosdTableObjectClasses(const cv::Mat& labels);
+
 }  // namespace lifemap::io

@@ -148,9 +148,7 @@ LabeledImage MosdImage(const std::string& path) {
   LabeledImage im;
   im.depth_m = f->frame.depth_m;
   im.color_bgr = f->frame.color_bgr;
-  im.labels = cv::Mat(f->labels.size(), CV_8UC1, cv::Scalar(kIgnore));
-  im.labels.setTo(0, (f->labels >= 1) & (f->labels < 10));
-  im.labels.setTo(1, f->labels >= 20);
+  im.labels = io::MosdTableObjectClasses(f->labels);
   return im;
 }
 
