@@ -3,6 +3,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 
 #include <nlohmann/json.hpp>
@@ -13,6 +14,7 @@
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
 #include "core/common/image_codec.h"
+#include "core/forest/baselines.h"
 #include "core/forest/forest.h"
 #include "core/io/labeled_pcd.h"
 #include "core/io/tum_dataset.h"
@@ -133,6 +135,7 @@ int RunTrain(const CliContext& ctx, const TrainArgs& a) {
 struct EvalArgs {
   std::string model;
   std::vector<std::string> data;
+  std::vector<std::string> baseline_train;  // with it, the baselines run in the same evaluation
   std::string out;
   int stride = 2;
   int frame_stride = 10;
@@ -196,28 +199,61 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
         absl::StrCat("the model knows ", model->class_count(), " classes but the data has ",
                      data->class_names.size(), ": train on data of the same kind")));
   }
-  json result = json::object();
-  for (auto decision : {forest::Decision::kBalanced, forest::Decision::kPriorWeighted}) {
-    const size_t n = names.size();
+  // Scores a labeller over the data: pixels with a label and a depth reading count.
+  const size_t n = names.size();
+  auto score = [&](const std::function<absl::StatusOr<cv::Mat>(const forest::LabeledImage&)>& label)
+      -> absl::StatusOr<json> {
     std::vector<std::vector<int64_t>> confusion(n, std::vector<int64_t>(n, 0));
     for (const auto& im : data->images) {
-      auto p = model->Predict(im.depth_m, im.color_bgr, decision, a.stride);
-      if (!p.ok()) return Fail(p.status());
-      // Pixels with a label and a depth reading are scored.
+      auto predicted = label(im);
+      if (!predicted.ok()) return predicted.status();
       for (int r = 0; r < im.labels.rows; ++r) {
         for (int c = 0; c < im.labels.cols; ++c) {
           const uint8_t truth = im.labels.at<uint8_t>(r, c);
-          const uint8_t guess = p->labels.at<uint8_t>(r, c);
-          if (truth == forest::kIgnore || guess == forest::kIgnore || truth >= n) continue;
+          const uint8_t guess = predicted->at<uint8_t>(r, c);
+          if (truth == forest::kIgnore || guess == forest::kIgnore || truth >= n || guess >= n) {
+            continue;
+          }
           ++confusion[truth][guess];
         }
       }
     }
-    result[decision == forest::Decision::kBalanced ? "balanced" : "prior_weighted"] =
-        Scores(confusion, names);
+    return Scores(confusion, names);
+  };
+  json result = json::object();
+  for (auto decision : {forest::Decision::kBalanced, forest::Decision::kPriorWeighted}) {
+    auto s = score([&](const forest::LabeledImage& im) -> absl::StatusOr<cv::Mat> {
+      auto p = model->Predict(im.depth_m, im.color_bgr, decision, a.stride);
+      if (!p.ok()) return p.status();
+      return p->labels;
+    });
+    if (!s.ok()) return Fail(s.status());
+    result[decision == forest::Decision::kBalanced ? "balanced" : "prior_weighted"] = *s;
+  }
+  json baselines = json::object();
+  if (!a.baseline_train.empty()) {
+    auto train = ReadData(a.baseline_train, a.frame_stride);
+    if (!train.ok()) return Fail(train.status());
+    auto trees = forest::PixelTreesBaseline::Train(train->images, static_cast<int>(n));
+    if (!trees.ok()) return Fail(trees.status());
+    auto s = score([&](const forest::LabeledImage& im) -> absl::StatusOr<cv::Mat> {
+      return trees->Predict(im.depth_m, im.color_bgr, a.stride);
+    });
+    if (!s.ok()) return Fail(s.status());
+    baselines["pixel_rtrees"] = *s;
+    if (n == 2 && names[0] == "table") {
+      // Table vs objects: a RANSAC plane and everything 1.5 cm above it.
+      auto plane = score([&](const forest::LabeledImage& im) -> absl::StatusOr<cv::Mat> {
+        return forest::PlaneBaseline(im.depth_m,
+                                     io::KinectDefaultIntrinsics(im.depth_m.cols, im.depth_m.rows));
+      });
+      if (!plane.ok()) return Fail(plane.status());
+      baselines["ransac_plane"] = *plane;
+    }
   }
   json summary = result["balanced"];
   summary["prior_weighted"] = result["prior_weighted"];
+  if (!baselines.empty()) summary["baselines"] = baselines;
   summary["model"] = a.model;
   summary["images"] = data->images.size();
   summary["stride"] = a.stride;
@@ -234,10 +270,11 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
                                data->images.size(), a.stride, names[0]);
   std::cout << absl::StrFormat("%-16s %9s %9s %9s   %s\n", "decision", "accuracy", "precision",
                                "recall", "(without background: accuracy precision recall)");
-  for (const char* d : {"balanced", "prior_weighted"}) {
-    const json& s = result[d];
+  json rows = result;
+  for (const auto& [name, b] : baselines.items()) rows[name] = b;
+  for (const auto& [d, s] : rows.items()) {
     std::cout << absl::StrFormat(
-        "%-16s %9.3f %9.3f %9.3f   %.3f %.3f %.3f\n", d, s["accuracy"].get<double>(),
+        "%-16s %9.3f %9.3f %9.3f   %.3f %.3f %.3f\n", d.c_str(), s["accuracy"].get<double>(),
         s["precision"].get<double>(), s["recall"].get<double>(), s["accuracy_no_bg"].get<double>(),
         s["precision_no_bg"].get<double>(), s["recall_no_bg"].get<double>());
   }
@@ -280,6 +317,10 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
       ->required()
       ->check(CLI::ExistingDirectory);
   seg->add_option("--out", e->out, "folder for summary.json");
+  seg->add_option("--baseline-train", e->baseline_train,
+                  "training data for the baselines run in the same evaluation (OpenCV RTrees on "
+                  "per-pixel depth and L*a*b*; and, for table vs objects, a RANSAC plane)")
+      ->check(CLI::ExistingDirectory);
   seg->add_option("--stride", e->stride, "predict every N-th pixel (default 2)")
       ->check(CLI::Range(1, 16));
   seg->add_option("--frame-stride", e->frame_stride, "synthetic visits: every N-th frame")

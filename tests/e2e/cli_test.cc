@@ -506,7 +506,8 @@ TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
                 "--pixels", "800", "--candidates", "150", "--out", tmp_.File("m.model")});
   ASSERT_EQ(r.code, 0) << r.err;
   r = Run({"--json", "eval", "segmentation", "--model", tmp_.File("m.model"), "--data",
-           dir + "/test", "--stride", "4", "--out", tmp_.File("seg")});
+           dir + "/test", "--stride", "4", "--baseline-train", dir + "/learn", "--out",
+           tmp_.File("seg")});
   ASSERT_EQ(r.code, 0) << r.err;
   const json s = json::parse(Slurp(tmp_.File("seg/summary.json")));
   for (const char* key : {"accuracy", "precision", "recall", "accuracy_no_bg", "precision_no_bg",
@@ -515,6 +516,9 @@ TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
   }
   EXPECT_GT(s["accuracy"].get<double>(), 0.85) << "table vs objects";
   EXPECT_TRUE(s["per_class"].contains("object"));
+  EXPECT_GT(s["baselines"]["ransac_plane"]["accuracy"].get<double>(), 0.9)
+      << "a plane and 1.5 cm above it nearly solves table vs objects";
+  EXPECT_TRUE(s["baselines"].contains("pixel_rtrees"));
 
   std::ofstream(tmp_.File("bad.model")) << "LMRF garbage";
   r = Run({"eval", "segmentation", "--model", tmp_.File("bad.model"), "--data", dir + "/test"});
