@@ -10,33 +10,6 @@
 namespace lifemap::sim {
 namespace {
 
-bool Inside(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
-  bool inside = false;
-  for (size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
-    const auto& a = poly[i];
-    const auto& b = poly[j];
-    if (((a.y() > p.y()) != (b.y() > p.y())) &&
-        (p.x() < (b.x() - a.x()) * (p.y() - a.y()) / (b.y() - a.y()) + a.x())) {
-      inside = !inside;
-    }
-  }
-  return inside;
-}
-
-double DistanceToWalls(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
-  double best = 1e9;
-  for (size_t i = 0; i < poly.size(); ++i) {
-    const Eigen::Vector2d a = poly[i], b = poly[(i + 1) % poly.size()];
-    const double t = std::clamp((p - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
-    best = std::min(best, (a + t * (b - a) - p).norm());
-  }
-  return best;
-}
-
-double Radius(const Solid& s) {
-  return s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
-}
-
 // A place for `s` whose footprint lies inside the room `margin` from the walls and clear of the
 // solids standing on the same surface; false after many tries.
 bool PlaceFreelyIn(const std::vector<Eigen::Vector2d>& room, const std::vector<Solid>& others,
@@ -46,7 +19,8 @@ bool PlaceFreelyIn(const std::vector<Eigen::Vector2d>& room, const std::vector<S
   for (int attempt = 0; attempt < 200; ++attempt) {
     s->center = {ux(*rng), uy(*rng)};
     s->yaw = yaw(*rng);
-    if (!Inside(room, s->center) || DistanceToWalls(room, s->center) < Radius(*s) + margin) {
+    if (!InsidePolygon(room, s->center.x(), s->center.y()) ||
+        DistanceToEdges(room, s->center) < FootprintRadius(*s) + margin) {
       continue;
     }
     bool clear = true;
@@ -54,7 +28,8 @@ bool PlaceFreelyIn(const std::vector<Eigen::Vector2d>& room, const std::vector<S
       // Stairs block every surface (a flight down leaves a hole in the floor).
       const bool same_surface =
           o.cls == SemanticClass::kStairs || std::abs(o.base_z - s->base_z) < 0.05;
-      if (same_surface && (o.center - s->center).norm() < Radius(o) + Radius(*s) + 0.05) {
+      if (same_surface &&
+          (o.center - s->center).norm() < FootprintRadius(o) + FootprintRadius(*s) + 0.05) {
         clear = false;
         break;
       }
@@ -62,6 +37,13 @@ bool PlaceFreelyIn(const std::vector<Eigen::Vector2d>& room, const std::vector<S
     if (clear) return true;
   }
   return false;
+}
+
+// The axis-aligned bounds of a footprint.
+std::pair<Eigen::Vector2d, Eigen::Vector2d> Bounds(const std::vector<Eigen::Vector2d>& poly) {
+  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
+  for (const auto& p : poly) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  return {lo, hi};
 }
 
 // The same in the main room.
@@ -259,8 +241,7 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
   }
 
   // Furniture: a table in the open, a shelf and a cabinet against walls.
-  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
-  for (const auto& p : place.footprint) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  const auto [lo, hi] = Bounds(place.footprint);
   int instance = 1;
   Solid table;
   table.cls = SemanticClass::kTable;
@@ -290,7 +271,7 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
     s.color = RandomColor(&rng);
     bool clear = true;
     for (const auto& o : place.solids) {
-      if ((o.center - s.center).norm() < Radius(o) + Radius(s)) clear = false;
+      if ((o.center - s.center).norm() < FootprintRadius(o) + FootprintRadius(s)) clear = false;
     }
     // Keep clear of the wall's openings.
     for (const auto& op : place.openings) {
@@ -331,7 +312,7 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
       st.origin = a + e * u + inward * (st.width_m / 2 + 0.02);
       const Eigen::Vector2d mid = st.origin + e * (flight / 2);
       for (const auto& o : place.solids) {
-        if ((o.center - mid).norm() < Radius(o) + flight / 2 + 0.3) clear = false;
+        if ((o.center - mid).norm() < FootprintRadius(o) + flight / 2 + 0.3) clear = false;
       }
       if (!clear) continue;
       place.stairs.push_back(st);
@@ -408,8 +389,7 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
   }
   // The adjoining room: a cabinet and a few props.
   for (const auto& room : place.adjoining_rooms) {
-    Eigen::Vector2d rlo(1e9, 1e9), rhi(-1e9, -1e9);
-    for (const auto& p : room) rlo = rlo.cwiseMin(p), rhi = rhi.cwiseMax(p);
+    const auto [rlo, rhi] = Bounds(room);
     Solid cabinet;
     cabinet.cls = SemanticClass::kCabinet;
     cabinet.instance = instance;
@@ -458,15 +438,14 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
   }
   std::mt19937_64 rng(seed * 0xD1B54A32D192ED03ULL + 7);
   // The trajectory circles the point farthest from the walls.
-  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
-  for (const auto& p : place.footprint) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  const auto [lo, hi] = Bounds(place.footprint);
   Eigen::Vector2d centre = (lo + hi) / 2;
   double clearance = 0;
   for (double x = lo.x(); x <= hi.x(); x += 0.1) {
     for (double y = lo.y(); y <= hi.y(); y += 0.1) {
       const Eigen::Vector2d p(x, y);
-      if (!Inside(place.footprint, p)) continue;
-      const double dist = DistanceToWalls(place.footprint, p);
+      if (!InsidePolygon(place.footprint, p.x(), p.y())) continue;
+      const double dist = DistanceToEdges(place.footprint, p);
       if (dist > clearance) clearance = dist, centre = p;
     }
   }
@@ -582,7 +561,8 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
           for (int attempt = 0; attempt < 200; ++attempt) {
             const Eigen::Vector2d p(std::uniform_real_distribution<double>(lo.x(), hi.x())(rng),
                                     std::uniform_real_distribution<double>(lo.y(), hi.y())(rng));
-            if (Inside(place.footprint, p) && DistanceToWalls(place.footprint, p) > 0.5) {
+            if (InsidePolygon(place.footprint, p.x(), p.y()) &&
+                DistanceToEdges(place.footprint, p) > 0.5) {
               *end = p;
               break;
             }

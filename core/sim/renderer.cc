@@ -68,19 +68,6 @@ Eigen::Vector3f Texture(const Hit& h) {
   return h.albedo * shade;
 }
 
-bool InsidePolygon(const std::vector<Eigen::Vector2d>& poly, double x, double y) {
-  bool inside = false;
-  for (size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
-    const auto& a = poly[i];
-    const auto& b = poly[j];
-    if (((a.y() > y) != (b.y() > y)) &&
-        (x < (b.x() - a.x()) * (y - a.y()) / (b.y() - a.y()) + a.x())) {
-      inside = !inside;
-    }
-  }
-  return inside;
-}
-
 void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Vector3d& d, double z,
                    bool floor, Hit* best) {
   if (std::abs(d.z()) < 1e-12) return;
@@ -298,8 +285,7 @@ void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vecto
 // The image rectangle a solid can cover (its bounding box's corners projected), or the whole
 // image when a corner is behind the camera.
 cv::Rect ScreenRect(const Solid& s, const CameraIntrinsics& k, const Eigen::Isometry3d& T_cw) {
-  const double r =
-      s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+  const double r = FootprintRadius(s);
   double u0 = kInf, v0 = kInf, u1 = -kInf, v1 = -kInf;
   for (int i = 0; i < 8; ++i) {
     const Eigen::Vector3d corner(s.center.x() + ((i & 1) ? r : -r),
@@ -444,19 +430,6 @@ RenderedFrame Render(const Place& place, const std::vector<Solid>& solids, const
     }
   }
   return out;
-}
-
-const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index) {
-  return index == 0 ? place.footprint : place.adjoining_rooms[static_cast<size_t>(index - 1)];
-}
-
-const char* ClassName(SemanticClass c) {
-  static const char* const kNames[] = {
-      "none", "floor", "wall", "ceiling",  "door", "window", "table",   "shelf",  "cabinet", "bed",
-      "sofa", "chair", "box",  "cylinder", "book", "mug",    "clutter", "person", "stairs"};
-  static_assert(sizeof(kNames) / sizeof(kNames[0]) == kClassCount, "a name for every class");
-  const int i = static_cast<int>(c);
-  return i >= 0 && i < kClassCount ? kNames[i] : "unknown";
 }
 
 }  // namespace lifemap::sim

@@ -87,6 +87,14 @@ struct Place;
 // The footprint of room `index` (0 = main).
 const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index);
 
+// Plane geometry of footprints (metres, world x-y).
+bool InsidePolygon(const std::vector<Eigen::Vector2d>& polygon, double x, double y);
+// Distance from p to the nearest edge of the (closed) polygon.
+double DistanceToEdges(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector2d& p);
+
+// The radius of a circle around a solid's footprint (boxes: half the diagonal).
+double FootprintRadius(const Solid& s);
+
 struct Place {
   std::string id;                          // e.g. "place-7-L"
   std::string shape;                       // rect, square, L, T, U

@@ -73,13 +73,7 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
   for (const auto& st : place.stairs) {
     const Eigen::Vector2d dir(std::cos(st.yaw), std::sin(st.yaw));
     const Eigen::Vector2d centre = st.origin + dir * (st.run_m * st.steps / 2);
-    double nearest_wall = 1e9;
-    for (size_t i = 0; i < n; ++i) {
-      const auto& a = place.footprint[i];
-      const auto& b = place.footprint[(i + 1) % n];
-      const double t = std::clamp((centre - a).dot(b - a) / (b - a).squaredNorm(), 0.0, 1.0);
-      nearest_wall = std::min(nearest_wall, (a + t * (b - a) - centre).norm());
-    }
+    const double nearest_wall = DistanceToEdges(place.footprint, centre);
     stairs.push_back({{"type", st.up ? "up" : "down"},
                       {"origin", {st.origin.x(), st.origin.y()}},
                       {"yaw_rad", st.yaw},

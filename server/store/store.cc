@@ -164,6 +164,13 @@ KeyframeRecord ReadKeyframe(const Statement& s) {
   return k;
 }
 
+// The five feature-count columns starting at `c`: superjut_count, entropy_threshold,
+// keypoint_type, keypoints_stored, keypoints_masked.
+KeyframeFeatureCounts ReadFeatureCounts(const Statement& s, int c) {
+  return {static_cast<int>(s.ColumnInt(c)), s.ColumnDouble(c + 1), s.ColumnText(c + 2),
+          static_cast<int>(s.ColumnInt(c + 3)), static_cast<int>(s.ColumnInt(c + 4))};
+}
+
 VisitRecord ReadVisit(const Statement& s) {
   VisitRecord v;
   v.id = s.ColumnInt(0);
@@ -670,9 +677,7 @@ absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
     out.push_back(ReadKeyframe(*s));
     constexpr int c = kKeyframeColumnCount;
     if (!s->ColumnIsNull(c)) {
-      out.back().feature_counts = KeyframeFeatureCounts{
-          static_cast<int>(s->ColumnInt(c)), s->ColumnDouble(c + 1), s->ColumnText(c + 2),
-          static_cast<int>(s->ColumnInt(c + 3)), static_cast<int>(s->ColumnInt(c + 4))};
+      out.back().feature_counts = ReadFeatureCounts(*s, c);
     }
   }
   return out;
@@ -719,9 +724,7 @@ absl::StatusOr<KeyframeRecord> Store::GetKeyframe(int64_t map_id, int64_t keyfra
   auto frow = f->Step();
   if (!frow.ok()) return frow.status();
   if (*frow) {
-    k.feature_counts = KeyframeFeatureCounts{static_cast<int>(f->ColumnInt(0)), f->ColumnDouble(1),
-                                             f->ColumnText(2), static_cast<int>(f->ColumnInt(3)),
-                                             static_cast<int>(f->ColumnInt(4))};
+    k.feature_counts = ReadFeatureCounts(*f, 0);
     auto superjuts = DecodeSuperjuts(f->ColumnBlob(5));
     if (!superjuts.ok()) return superjuts.status();
     k.features = KeyframeFeatures{f->ColumnDouble(1), *std::move(superjuts), {}};
