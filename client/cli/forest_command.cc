@@ -11,13 +11,14 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
 #include "core/common/image_codec.h"
 #include "core/forest/baselines.h"
 #include "core/forest/forest.h"
+#include "core/forest/labeled_data.h"
 #include "core/io/labeled_pcd.h"
-#include "core/io/tum_dataset.h"
 
 namespace lifemap::cli {
 namespace {
@@ -25,68 +26,12 @@ namespace {
 namespace fs = std::filesystem;
 using nlohmann::json;
 
-struct Dataset {
-  std::vector<forest::LabeledImage> images;
-  std::vector<std::string> class_names;
-};
-
-// mOSD: table (labels 1-9) = class 0 "table", objects (20 and above) = class 1 "object".
-absl::Status ReadMosd(const std::string& dir, Dataset* out) {
-  std::vector<std::string> files;
-  for (const auto& e : fs::directory_iterator(dir)) {
-    if (e.path().extension() == ".pcd") files.push_back(e.path().string());
-  }
-  std::sort(files.begin(), files.end());
-  for (const auto& f : files) {
-    auto frame = io::ReadLabeledPcd(f);
-    if (!frame.ok()) return frame.status();
-    forest::LabeledImage im;
-    im.depth_m = frame->frame.depth_m;
-    im.color_bgr = frame->frame.color_bgr;
-    im.labels = io::MosdTableObjectClasses(frame->labels);
-    out->images.push_back(im);
-  }
-  if (out->class_names.empty()) out->class_names = {"table", "object"};
-  return absl::OkStatus();
-}
-
-// A synthetic visit (lifemap sim): labels/class as they are (structure, furniture, props).
-absl::Status ReadSimVisit(const std::string& dir, int stride, Dataset* out) {
-  auto seq = io::ReadTumSequence(dir);
-  if (!seq.ok()) return seq.status();
-  for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
-    const auto& e = seq->frames[i];
-    const std::string name = fs::path(e.rgb_path).filename().string();
-    forest::LabeledImage im;
-    const cv::Mat depth = cv::imread(e.depth_path, cv::IMREAD_ANYDEPTH);
-    im.color_bgr = cv::imread(e.rgb_path, cv::IMREAD_COLOR);
-    im.labels =
-        cv::imread((fs::path(dir) / "labels" / "class" / name).string(), cv::IMREAD_GRAYSCALE);
-    if (depth.empty() || im.color_bgr.empty() || im.labels.empty()) {
-      return absl::NotFoundError(absl::StrCat(dir, ": cannot read ", name, " with its labels"));
-    }
-    depth.convertTo(im.depth_m, CV_32FC1, 1.0 / 5000.0);
-    im.labels.setTo(forest::kIgnore, im.labels == 0);  // no surface
-    out->images.push_back(im);
-  }
-  if (out->class_names.empty()) {
-    for (int c = 0; c < 19; ++c) out->class_names.push_back(absl::StrCat("class", c));
-  }
-  return absl::OkStatus();
-}
-
-absl::StatusOr<Dataset> ReadData(const std::vector<std::string>& dirs, int stride) {
-  Dataset data;
-  for (const auto& dir : dirs) {
-    if (!fs::is_directory(dir)) return absl::NotFoundError(absl::StrCat(dir, ": not a directory"));
-    const bool sim = fs::exists(fs::path(dir) / "labels" / "class");
-    if (auto s = sim ? ReadSimVisit(dir, stride, &data) : ReadMosd(dir, &data); !s.ok()) return s;
-  }
-  if (data.images.empty()) {
-    return absl::NotFoundError(
-        "no labelled images found (mOSD .pcd folders or lifemap sim visits)");
-  }
-  return data;
+absl::StatusOr<forest::LabeledDataset> ReadData(const std::vector<std::string>& dirs,
+                                                int frame_stride, const std::string& sim_classes) {
+  forest::LabeledDataOptions o;
+  o.frame_stride = frame_stride;
+  o.sim_classes = sim_classes == "all" ? forest::SimClasses::kAll : forest::SimClasses::kGrouped;
+  return forest::ReadLabeledData(dirs, o);
 }
 
 struct TrainArgs {
@@ -94,10 +39,11 @@ struct TrainArgs {
   std::string out;
   int trees = 3, depth = 20, pixels = 2000, candidates = 2000, stride = 10;
   uint64_t seed = 1;
+  std::string sim_classes = "grouped";
 };
 
 int RunTrain(const CliContext& ctx, const TrainArgs& a) {
-  auto data = ReadData(a.data, a.stride);
+  auto data = ReadData(a.data, a.stride, a.sim_classes);
   if (!data.ok()) return Fail(data.status());
   forest::TrainOptions o;
   o.trees = a.trees;
@@ -114,8 +60,37 @@ int RunTrain(const CliContext& ctx, const TrainArgs& a) {
   if (!model.ok()) return Fail(model.status());
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  // The training summary travels in the model file: what it learned from and how.
+  std::vector<int64_t> class_pixels(data->class_names.size(), 0);
+  for (const auto& im : data->images) {
+    for (size_t c = 0; c < class_pixels.size(); ++c) {
+      class_pixels[c] += cv::countNonZero(im.labels == static_cast<int>(c));
+    }
+  }
+  forest::ModelDescription description;
+  description.class_names = data->class_names;
+  description.class_colors = data->class_colors;
+  description.training_json = json{{"data",
+                                    {{"kind", data->kind},
+                                     {"folders", data->sources},
+                                     {"images", data->images.size()},
+                                     {"frame_stride", a.stride},
+                                     {"class_pixels", class_pixels}}},
+                                   {"options",
+                                    {{"trees", o.trees},
+                                     {"max_depth", o.max_depth},
+                                     {"min_samples", o.min_samples},
+                                     {"pixels_per_image", o.pixels_per_image},
+                                     {"candidates", o.candidates},
+                                     {"max_offset", o.max_offset},
+                                     {"max_size", o.max_size},
+                                     {"seed", o.seed}}},
+                                   {"nodes", model->node_count()},
+                                   {"seconds", seconds},
+                                   {"trained_by", "lifemap train " LIFEMAP_VERSION}}
+                                  .dump();
   std::ofstream out(a.out, std::ios::binary);
-  out << model->Serialize(data->class_names);
+  out << model->Serialize(description);
   if (!out) return Fail(absl::PermissionDeniedError(absl::StrCat("cannot write ", a.out)));
   json summary = {{"model", a.out},
                   {"images", data->images.size()},
@@ -139,6 +114,7 @@ struct EvalArgs {
   std::string out;
   int stride = 2;
   int frame_stride = 10;
+  std::string sim_classes = "grouped";
 };
 
 // The paper's tables: pixel accuracy, and precision and recall averaged over classes, with
@@ -189,15 +165,17 @@ json Scores(const std::vector<std::vector<int64_t>>& confusion,
 int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
   auto bytes = ReadFileBytes(a.model);
   if (!bytes.ok()) return Fail(bytes.status());
-  std::vector<std::string> names;
-  auto model = forest::Forest::Deserialize(*bytes, &names);
+  forest::ModelDescription description;
+  auto model = forest::Forest::Deserialize(*bytes, &description);
   if (!model.ok()) return Fail(model.status());
-  auto data = ReadData(a.data, a.frame_stride);
+  const std::vector<std::string>& names = description.class_names;
+  auto data = ReadData(a.data, a.frame_stride, a.sim_classes);
   if (!data.ok()) return Fail(data.status());
-  if (data->class_names.size() != static_cast<size_t>(model->class_count())) {
+  if (data->class_names != names) {
     return Fail(absl::FailedPreconditionError(
-        absl::StrCat("the model knows ", model->class_count(), " classes but the data has ",
-                     data->class_names.size(), ": train on data of the same kind")));
+        absl::StrCat("the model's classes [", absl::StrJoin(names, ", "), "] are not the data's [",
+                     absl::StrJoin(data->class_names, ", "),
+                     "]: evaluate on data of the kind it was trained on (or retrain)")));
   }
   // Scores a labeller over the data: pixels with a label and a depth reading count.
   const size_t n = names.size();
@@ -232,7 +210,7 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
   }
   json baselines = json::object();
   if (!a.baseline_train.empty()) {
-    auto train = ReadData(a.baseline_train, a.frame_stride);
+    auto train = ReadData(a.baseline_train, a.frame_stride, a.sim_classes);
     if (!train.ok()) return Fail(train.status());
     auto trees = forest::PixelTreesBaseline::Train(train->images, static_cast<int>(n));
     if (!trees.ok()) return Fail(trees.status());
@@ -305,6 +283,11 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
   train->add_option("--frame-stride", t->stride, "synthetic visits: every N-th frame (default 10)")
       ->check(CLI::Range(1, 1000));
   train->add_option("--seed", t->seed, "seed");
+  train
+      ->add_option("--sim-classes", t->sim_classes,
+                   "synthetic visits: 'grouped' (structure, furniture, prop, person; default) or "
+                   "'all' 18 classes")
+      ->check(CLI::IsMember({"grouped", "all"}));
   train->callback([ctx, t] { ctx->run = [ctx, t] { return RunTrain(*ctx, *t); }; });
 
   auto* seg = eval->add_subcommand(
@@ -325,6 +308,9 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
       ->check(CLI::Range(1, 16));
   seg->add_option("--frame-stride", e->frame_stride, "synthetic visits: every N-th frame")
       ->check(CLI::Range(1, 1000));
+  seg->add_option("--sim-classes", e->sim_classes,
+                  "synthetic visits: 'grouped' (default) or 'all'; as the model was trained")
+      ->check(CLI::IsMember({"grouped", "all"}));
   seg->callback([ctx, e] { ctx->run = [ctx, e] { return RunEvalSegmentation(*ctx, *e); }; });
 }
 

@@ -399,22 +399,52 @@ class Reader {
   size_t pos_ = 0;
 };
 
+// Model file layout (little-endian):
+//   "LMRF", u32 version, u32 classes, f64 prior[classes],
+//   u32 names, {u32 length, bytes}[names],
+//   version >= 2: u32 colours[classes] (0xRRGGBB), u32 length + training JSON,
+//   u32 trees, per tree: u32 nodes, node records, u32 leaf values, f32 leaves[],
+//   u64 FNV-1a of everything before it.
 constexpr char kMagic[4] = {'L', 'M', 'R', 'F'};
-constexpr uint32_t kVersion = 1;
+constexpr uint32_t kVersion = 2;
+constexpr uint32_t kMaxTrainingJson = 1u << 20;
 
 }  // namespace
 
-std::string Forest::Serialize(const std::vector<std::string>& class_names) const {
+uint32_t DefaultClassColor(int class_id) {
+  // Class 0 (background) grey; the others a fixed, well-separated palette, then hashed.
+  static constexpr uint32_t kPalette[] = {0x808080, 0xE6194B, 0x3CB44B, 0x4363D8, 0xF58231,
+                                          0x911EB4, 0x42D4F4, 0xF032E6, 0xBFEF45, 0xFABED4,
+                                          0x469990, 0xDCBEFF, 0x9A6324, 0xFFFAC8, 0x800000,
+                                          0xAAFFC3, 0x808000, 0xFFD8B1, 0x000075, 0xFFE119};
+  constexpr int n = sizeof(kPalette) / sizeof(kPalette[0]);
+  if (class_id >= 0 && class_id < n) return kPalette[class_id];
+  return (static_cast<uint32_t>(class_id) * 2654435761u) & 0xFFFFFFu;
+}
+
+std::string Forest::Serialize(const ModelDescription& description) const {
   static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "model files are little-endian");
   std::string out(kMagic, 4);
   Put(&out, kVersion);
   Put(&out, static_cast<uint32_t>(class_count_));
   for (double p : prior_) Put(&out, p);
-  Put(&out, static_cast<uint32_t>(class_names.size()));
-  for (const auto& n : class_names) {
+  // Names and colours are written for every class: missing ones get defaults.
+  Put(&out, static_cast<uint32_t>(class_count_));
+  for (int c = 0; c < class_count_; ++c) {
+    const std::string n = static_cast<size_t>(c) < description.class_names.size()
+                              ? description.class_names[static_cast<size_t>(c)]
+                              : absl::StrCat("class", c);
     Put(&out, static_cast<uint32_t>(n.size()));
     out += n;
   }
+  for (int c = 0; c < class_count_; ++c) {
+    const uint32_t color = static_cast<size_t>(c) < description.class_colors.size()
+                               ? description.class_colors[static_cast<size_t>(c)] & 0xFFFFFFu
+                               : DefaultClassColor(c);
+    Put(&out, color);
+  }
+  Put(&out, static_cast<uint32_t>(description.training_json.size()));
+  out += description.training_json;
   Put(&out, static_cast<uint32_t>(trees_.size()));
   for (const auto& t : trees_) {
     Put(&out, static_cast<uint32_t>(t.nodes.size()));
@@ -440,7 +470,7 @@ std::string Forest::Serialize(const std::vector<std::string>& class_names) const
 }
 
 absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
-                                           std::vector<std::string>* class_names) {
+                                           ModelDescription* description) {
   auto corrupt = [](const char* what) {
     return absl::DataLossError(absl::StrCat("model file is corrupt or truncated: ", what));
   };
@@ -455,7 +485,7 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
   uint32_t version = 0, classes = 0, names = 0, trees = 0;
   for (char& c : magic) r.Get(&c);
   if (!r.Get(&version)) return corrupt("header");
-  if (version != kVersion) {
+  if (version < 1 || version > kVersion) {
     return absl::FailedPreconditionError(absl::StrCat(
         "model file version ", version, " is not supported by this build (", kVersion, ")"));
   }
@@ -470,6 +500,22 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
   std::vector<std::string> read_names(names);
   for (auto& n : read_names) {
     if (!r.GetString(&n, 1024)) return corrupt("class name");
+  }
+  ModelDescription read;
+  read.class_names = std::move(read_names);
+  if (version >= 2) {
+    if (read.class_names.size() != classes) return corrupt("class names");
+    read.class_colors.resize(classes);
+    for (uint32_t& c : read.class_colors) {
+      if (!r.Get(&c) || c > 0xFFFFFFu) return corrupt("class colours");
+    }
+    if (!r.GetString(&read.training_json, kMaxTrainingJson)) return corrupt("training summary");
+  } else {
+    for (uint32_t c = 0; c < classes; ++c) {
+      if (c >= read.class_names.size()) read.class_names.push_back(absl::StrCat("class", c));
+      read.class_colors.push_back(DefaultClassColor(static_cast<int>(c)));
+    }
+    read.class_names.resize(classes);
   }
   if (!r.Get(&trees) || trees < 1 || trees > 64) return corrupt("tree count");
   f.trees_.resize(trees);
@@ -506,7 +552,7 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
     }
   }
   if (!r.done()) return corrupt("trailing bytes");
-  if (class_names) *class_names = std::move(read_names);
+  if (description) *description = std::move(read);
   return f;
 }
 

@@ -55,6 +55,17 @@ struct Prediction {
   std::vector<cv::Mat> probabilities;  // one CV_32FC1 per class (0 where not predicted)
 };
 
+// What a model file says about itself besides the trees.
+struct ModelDescription {
+  std::vector<std::string> class_names;  // one per class; class 0 is the background
+  std::vector<uint32_t> class_colors;    // 0xRRGGBB per class, for label images
+  // How it was trained: options and a data summary, as a JSON object (free-form for readers).
+  std::string training_json = "{}";
+};
+
+// A distinct colour per class (class 0 grey), for models that do not name their own.
+uint32_t DefaultClassColor(int class_id);
+
 class Forest {
  public:
   // Trains on `images` with `class_count` classes (ids 0..class_count-1). Deterministic for a
@@ -72,10 +83,15 @@ class Forest {
   int tree_count() const { return static_cast<int>(trees_.size()); }
   size_t node_count() const;
 
-  // Versioned binary model file with a checksum; class names travel with it.
-  std::string Serialize(const std::vector<std::string>& class_names) const;
+  // Versioned, little-endian binary model file with a checksum; the description travels
+  // with it. InvalidArgument from Serialize's callers is not possible: a description whose
+  // class count differs from the forest's is written with default names (see Describe).
+  std::string Serialize(const ModelDescription& description) const;
+  // Reads version 1 (class names only; colours get the default palette) and version 2.
+  // InvalidArgument: not a model; DataLoss: corrupt or truncated; FailedPrecondition: a newer
+  // version than this build reads.
   static absl::StatusOr<Forest> Deserialize(const std::string& bytes,
-                                            std::vector<std::string>* class_names);
+                                            ModelDescription* description);
 
   struct Node {
     Feature feature{};

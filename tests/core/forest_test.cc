@@ -5,6 +5,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstring>
 
 #include <gtest/gtest.h>
 
@@ -93,33 +94,83 @@ TEST(Forest, PriorReweightingFollowsEquationNine) {
   EXPECT_NEAR(weighted->probabilities[1].at<float>(5, 5), 0.1f, 1e-6);
 }
 
+ModelDescription Described(std::vector<std::string> names) {
+  ModelDescription d;
+  d.class_names = std::move(names);
+  d.class_colors = {0x102030, 0xA0B0C0};
+  d.training_json = R"({"data":{"images":1}})";
+  return d;
+}
+
 TEST(Forest, IsDeterministicAndRoundTripsBitExact) {
   const LabeledImage im = Halves(true);
   auto a = Forest::Train({im}, 2, Small());
   auto b = Forest::Train({im}, 2, Small());
   ASSERT_TRUE(a.ok() && b.ok());
-  const std::string bytes = a->Serialize({"left", "right"});
-  EXPECT_TRUE(bytes == b->Serialize({"left", "right"})) << "same seed, same forest";
-  std::vector<std::string> names;
-  auto loaded = Forest::Deserialize(bytes, &names);
+  const std::string bytes = a->Serialize(Described({"left", "right"}));
+  EXPECT_TRUE(bytes == b->Serialize(Described({"left", "right"}))) << "same seed, same forest";
+  ModelDescription read;
+  auto loaded = Forest::Deserialize(bytes, &read);
   ASSERT_TRUE(loaded.ok()) << loaded.status();
-  EXPECT_EQ(names, (std::vector<std::string>{"left", "right"}));
-  EXPECT_TRUE(loaded->Serialize(names) == bytes) << "bit-exact round trip";
+  EXPECT_EQ(read.class_names, (std::vector<std::string>{"left", "right"}));
+  EXPECT_EQ(read.class_colors, (std::vector<uint32_t>{0x102030, 0xA0B0C0}));
+  EXPECT_EQ(read.training_json, R"({"data":{"images":1}})");
+  EXPECT_TRUE(loaded->Serialize(read) == bytes) << "bit-exact round trip";
   auto p1 = a->Predict(im.depth_m, im.color_bgr);
   auto p2 = loaded->Predict(im.depth_m, im.color_bgr);
   EXPECT_EQ(cv::countNonZero(p1->labels != p2->labels), 0);
 }
 
+uint64_t Fnv1a(const std::string& bytes) {
+  uint64_t h = 1469598103934665603ULL;
+  for (char c : bytes) {
+    h ^= static_cast<uint8_t>(c);
+    h *= 1099511628211ULL;
+  }
+  return h;
+}
+
+TEST(Forest, ReadsVersionOneModelFiles) {
+  // A version-1 file is a version-2 file without colours and training summary.
+  auto forest = Forest::Train({Halves(true)}, 2, Small());
+  ASSERT_TRUE(forest.ok());
+  ModelDescription d = Described({"a", "b"});
+  d.training_json.clear();
+  std::string v2 = forest->Serialize(d);
+  const size_t names_end = 4 + 4 + 4 + 2 * 8 + 4 + (4 + 1) * 2;
+  std::string v1 = v2.substr(0, names_end) + v2.substr(names_end + 2 * 4 + 4);
+  v1 = v1.substr(0, v1.size() - 8);
+  const uint32_t one = 1;
+  std::memcpy(v1.data() + 4, &one, 4);
+  const uint64_t sum = Fnv1a(v1);
+  v1.append(reinterpret_cast<const char*>(&sum), 8);
+  ModelDescription read;
+  auto loaded = Forest::Deserialize(v1, &read);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(read.class_names, (std::vector<std::string>{"a", "b"}));
+  EXPECT_EQ(read.class_colors, (std::vector<uint32_t>{DefaultClassColor(0), DefaultClassColor(1)}));
+  EXPECT_EQ(loaded->node_count(), forest->node_count());
+}
+
 TEST(Forest, CorruptAndTruncatedModelsGiveClearErrors) {
   auto forest = Forest::Train({Halves(true)}, 2, Small());
   ASSERT_TRUE(forest.ok());
-  const std::string bytes = forest->Serialize({"a", "b"});
+  const std::string bytes = forest->Serialize(Described({"a", "b"}));
   std::string flipped = bytes;
   flipped[bytes.size() / 2] ^= 0x40;
   EXPECT_TRUE(absl::IsDataLoss(Forest::Deserialize(flipped, nullptr).status()));
   EXPECT_FALSE(Forest::Deserialize(bytes.substr(0, bytes.size() - 20), nullptr).ok());
   EXPECT_TRUE(absl::IsInvalidArgument(Forest::Deserialize("not a model at all", nullptr).status()));
   EXPECT_TRUE(absl::IsInvalidArgument(Forest::Deserialize("", nullptr).status()));
+  // A version from the future: a clear "upgrade" message, not "corrupt".
+  std::string future = bytes.substr(0, bytes.size() - 8);
+  const uint32_t v99 = 99;
+  std::memcpy(future.data() + 4, &v99, 4);
+  const uint64_t sum = Fnv1a(future);
+  future.append(reinterpret_cast<const char*>(&sum), 8);
+  const auto status = Forest::Deserialize(future, nullptr).status();
+  EXPECT_TRUE(absl::IsFailedPrecondition(status)) << status;
+  EXPECT_NE(status.message().find("version 99"), std::string::npos) << status;
 }
 
 TEST(Forest, RejectsBadTrainingData) {
