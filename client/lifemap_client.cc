@@ -9,6 +9,7 @@
 #include "lifemap/v1/admin_service.grpc.pb.h"
 #include "lifemap/v1/frame_service.grpc.pb.h"
 #include "lifemap/v1/map_service.grpc.pb.h"
+#include "lifemap/v1/model_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
 
 namespace lifemap::client {
@@ -81,7 +82,50 @@ class GrpcClient final : public Client {
         maps_(v1::MapService::NewStub(channel)),
         visits_(v1::VisitService::NewStub(channel)),
         frames_(v1::FrameService::NewStub(channel)),
+        models_(v1::ModelService::NewStub(channel)),
         admin_(v1::AdminService::NewStub(channel)) {}
+
+  absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,
+                                            const std::string& bytes) override {
+    constexpr size_t kChunk = 1 << 20;
+    grpc::ClientContext context;
+    // The unary deadline plus a second per MiB: large models on slow links still make it.
+    context.set_deadline(
+        std::chrono::system_clock::now() +
+        std::chrono::milliseconds(static_cast<int64_t>(
+            (options_.call_timeout_s + static_cast<double>(bytes.size() >> 20)) * 1000)));
+    v1::ModelInfo info;
+    auto writer = models_->UploadModel(&context, &info);
+    for (size_t offset = 0; offset == 0 || offset < bytes.size(); offset += kChunk) {
+      v1::UploadModelChunk chunk;
+      if (offset == 0) chunk.set_name(name);
+      chunk.set_data(bytes.substr(offset, kChunk));
+      if (!writer->Write(chunk)) break;  // the server answered early; Finish() says why
+    }
+    writer->WritesDone();
+    if (auto s = FromGrpc(writer->Finish()); !s.ok()) return s;
+    return info;
+  }
+  absl::StatusOr<v1::ListModelsResponse> ListModels() override {
+    return Unary(&v1::ModelService::Stub::ListModels, models_.get(), v1::ListModelsRequest());
+  }
+  absl::StatusOr<v1::ActivateModelResponse> ActivateModel(const std::string& name,
+                                                          const std::string& map) override {
+    v1::ActivateModelRequest req;
+    req.set_name(name);
+    req.set_map(map);
+    return Unary(&v1::ModelService::Stub::ActivateModel, models_.get(), req);
+  }
+  absl::StatusOr<v1::DeleteModelResponse> DeleteModel(const std::string& name) override {
+    v1::DeleteModelRequest req;
+    req.set_name(name);
+    return Unary(&v1::ModelService::Stub::DeleteModel, models_.get(), req);
+  }
+  absl::StatusOr<v1::ListClassesResponse> ListClasses(const std::string& map) override {
+    v1::ListClassesRequest req;
+    req.set_map(map);
+    return Unary(&v1::ModelService::Stub::ListClasses, models_.get(), req);
+  }
 
   absl::StatusOr<v1::ServerInfo> GetServerInfo() override {
     return Unary(&v1::AdminService::Stub::GetServerInfo, admin_.get(), v1::GetServerInfoRequest());
@@ -216,6 +260,7 @@ class GrpcClient final : public Client {
   std::unique_ptr<v1::MapService::Stub> maps_;
   std::unique_ptr<v1::VisitService::Stub> visits_;
   std::unique_ptr<v1::FrameService::Stub> frames_;
+  std::unique_ptr<v1::ModelService::Stub> models_;
   std::unique_ptr<v1::AdminService::Stub> admin_;
 };
 

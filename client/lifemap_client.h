@@ -17,6 +17,7 @@
 #include "lifemap/v1/admin_service.pb.h"
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
+#include "lifemap/v1/model_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
 
 namespace lifemap::client {
@@ -80,6 +81,16 @@ class Client {
   virtual absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) = 0;
   virtual absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) = 0;
   virtual absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) = 0;
+
+  // Models (random forests from `lifemap train`). UploadModel sends the file in 1 MiB chunks.
+  virtual absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,
+                                                    const std::string& bytes) = 0;
+  virtual absl::StatusOr<v1::ListModelsResponse> ListModels() = 0;
+  // map "" = the server default; name "" deactivates.
+  virtual absl::StatusOr<v1::ActivateModelResponse> ActivateModel(const std::string& name,
+                                                                  const std::string& map) = 0;
+  virtual absl::StatusOr<v1::DeleteModelResponse> DeleteModel(const std::string& name) = 0;
+  virtual absl::StatusOr<v1::ListClassesResponse> ListClasses(const std::string& map) = 0;
 
   virtual absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) = 0;
   // Opens a stream and waits for the server's StreamStarted; the error if it refuses.

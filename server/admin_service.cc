@@ -15,7 +15,8 @@ double NowSeconds() {
 
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
                         const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes) {
+                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes,
+                        bool labels_available, const std::string& labels_reason) {
   auto add = [out](v1::FrameOutput o, bool computed, const std::string& reason) {
     auto* s = out->Add();
     s->set_output(o);
@@ -35,8 +36,12 @@ void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* ou
   } else {
     add(v1::FRAME_OUTPUT_ENTROPY_MASK, true, "");
   }
-  add(v1::FRAME_OUTPUT_CLASS_LABELS, false,
-      "not implemented in this server yet (random-forest labels, paper 002)");
+  if (analysis) {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, analysis->labels.has_value(),
+        std::string(analysis->labels_status.message()));
+  } else {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, labels_available, labels_reason);
+  }
   add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
       "not implemented in this server yet (place recognition, papers 000 and 004)");
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
@@ -48,7 +53,20 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
   resp->set_version(LIFEMAP_VERSION);
   resp->set_api_version("lifemap.v1");
   // A server-level answer: poses count as computed only when the client sends them.
-  FillOutputStatuses(resp->mutable_outputs(), ctx_->config.pipeline, nullptr);
+  // Labels: computed for frames of maps with an active model (or with a server default).
+  bool labels = false;
+  std::string reason;
+  if (!ctx_->config.labels_enabled) {
+    reason = "disabled in this server's config (labels.enabled)";
+  } else if (auto models = ctx_->store->ListModels(); !models.ok()) {
+    reason = absl::StrCat("models unreadable: ", models.status().message());
+  } else {
+    for (const auto& m : *models) labels = labels || m.is_default || !m.active_maps.empty();
+    if (!labels) {
+      reason = "no model is active: lifemap models upload FILE NAME; lifemap models activate NAME";
+    }
+  }
+  FillOutputStatuses(resp->mutable_outputs(), ctx_->config.pipeline, nullptr, true, labels, reason);
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));
   resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));
@@ -127,27 +145,6 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
   return NotBuilt(
       "QueryPlace (place recognition by appearance with entropy masks, paper 000, and by "
       "architecture, paper 004)");
-}
-
-grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext*,
-                                           grpc::ServerReader<v1::UploadModelChunk>*,
-                                           v1::ModelInfo*) {
-  return NotBuilt("UploadModel (random-forest object-class models, paper 002)");
-}
-
-grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext*, const v1::ListModelsRequest*,
-                                          v1::ListModelsResponse*) {
-  return NotBuilt("ListModels (random-forest object-class models, paper 002)");
-}
-
-grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*, const v1::ActivateModelRequest*,
-                                             v1::ModelInfo*) {
-  return NotBuilt("ActivateModel (random-forest object-class models, paper 002)");
-}
-
-grpc::Status ModelServiceImpl::ListClasses(grpc::ServerContext*, const v1::ListClassesRequest*,
-                                           v1::ListClassesResponse*) {
-  return NotBuilt("ListClasses (random-forest object-class models, paper 002)");
 }
 
 }  // namespace lifemap::server

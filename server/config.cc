@@ -42,6 +42,10 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "log level '", log_level, "' is not one of trace, debug, info, warn, error, off"));
   }
+  if (max_model_mb < 1 || max_model_mb > 1024) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("labels.max_model_mb must be within [1, 1024], got ", max_model_mb));
+  }
   if (auto s = pipeline.Validate(); !s.ok()) return s;
   return keyframe.Validate();
 }
@@ -115,6 +119,29 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key entropy.", k));
+          }
+        }
+      } else if (key == "labels") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "enabled") {
+            c.labels_enabled = v.get<bool>();
+          } else if (k == "stride") {
+            c.pipeline.label_stride = v.get<int>();
+          } else if (k == "max_model_mb") {
+            c.max_model_mb = v.get<int>();
+          } else if (k == "decision") {
+            const auto d = v.get<std::string>();
+            if (d != "balanced" && d != "prior_weighted") {
+              return absl::InvalidArgumentError(
+                  absl::StrCat("config file ", path,
+                               ": labels.decision must be \"balanced\" or "
+                               "\"prior_weighted\""));
+            }
+            c.pipeline.label_decision =
+                d == "balanced" ? forest::Decision::kBalanced : forest::Decision::kPriorWeighted;
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key labels.", k));
           }
         }
       } else {

@@ -20,8 +20,10 @@ struct ServerConfig {
   double shutdown_grace_s = 10.0;    // on SIGTERM, time streams get to finish
   bool synchronous_full = true;      // SQLite synchronous=FULL (power-loss safe) or NORMAL
   std::string log_level = "info";    // trace, debug, info, warn, error, off
+  int max_model_mb = 256;            // largest model file UploadModel accepts
+  bool labels_enabled = true;        // label frames when a model is active
   tracking::KeyframeOptions keyframe;
-  pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, ...)
+  pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
 
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
@@ -31,7 +33,8 @@ struct ServerConfig {
 // Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
 // keyframe {min_translation_m, min_rotation_deg, max_interval_s},
-// entropy {enabled, threshold, downsample, k, min_size_px, mesh}.
+// entropy {enabled, threshold, downsample, k, min_size_px, mesh},
+// labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

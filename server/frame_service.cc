@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <chrono>
 #include <deque>
 #include <future>
@@ -86,6 +87,29 @@ void EntropyToProto(const entropy::EntropyMaskResult& e, v1::EntropyOutput* out)
   for (const auto& s : e.superjuts) SuperjutToProto(s, e.threshold, out->add_superjuts());
 }
 
+// Fills the label output: label and confidence PNGs, classes present by pixel share.
+void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model, v1::LabelOutput* out) {
+  out->set_model(model.name);
+  out->set_stride(static_cast<uint32_t>(l.stride));
+  out->set_mean_confidence(static_cast<float>(l.mean_confidence));
+  if (auto png = EncodePng(l.labels); png.ok()) out->set_label_png(*std::move(png));
+  if (auto png = EncodePng(l.confidence); png.ok()) out->set_confidence_png(*std::move(png));
+  std::vector<size_t> order;
+  for (size_t c = 0; c < l.class_pixels.size(); ++c) {
+    if (l.class_pixels[c] > 0) order.push_back(c);
+  }
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return l.class_pixels[a] > l.class_pixels[b]; });
+  for (size_t c : order) {
+    auto* f = out->add_classes();
+    f->set_class_id(static_cast<uint32_t>(c));
+    if (c < model.description.class_names.size()) f->set_name(model.description.class_names[c]);
+    f->set_pixel_fraction(static_cast<float>(static_cast<double>(l.class_pixels[c]) /
+                                             static_cast<double>(l.labelled_pixels)));
+    f->set_mean_confidence(static_cast<float>(l.class_mean_confidence[c]));
+  }
+}
+
 PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
                           const tracking::KeyframeOptions& keyframe_options,
                           const pipeline::FrameRequest& frame_request) {
@@ -111,6 +135,22 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
       effective.entropy_threshold = static_cast<float>(**map_threshold);
     }
   }
+  // The model for the visit's map (else the server default) labels the frame; the reference
+  // keeps it alive even if it is deactivated meanwhile.
+  std::shared_ptr<const LoadedModel> model;
+  if (!ctx->config.labels_enabled) {
+    effective.no_labeller_reason = "disabled in this server's config (labels.enabled)";
+  } else if (auto m = ctx->models->ForMap(visit != nullptr ? visit->map_id : 0); !m.ok()) {
+    effective.no_labeller_reason = absl::StrCat("the active model failed: ", m.status().message());
+  } else if (!*m) {
+    effective.no_labeller_reason = absl::StrCat(
+        "no model is active for ",
+        visit != nullptr ? "map '" + visit->map_name + "'" : std::string("frames without a map"),
+        " or as the server default: lifemap models upload FILE NAME; lifemap models activate NAME");
+  } else {
+    model = *std::move(m);
+    effective.labeller = &model->forest;
+  }
   auto analysis = ctx->pipeline->Process(*encoded, effective);
   if (!analysis.ok()) return reject(analysis.status());
   ctx->frames_processed.fetch_add(1);
@@ -128,6 +168,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   }
   FillOutputStatuses(r.mutable_outputs(), ctx->pipeline->options(), &*analysis, visit != nullptr);
   if (analysis->entropy) EntropyToProto(*analysis->entropy, r.mutable_entropy());
+  if (analysis->labels) LabelsToProto(*analysis->labels, *model, r.mutable_labels());
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
 

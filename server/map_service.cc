@@ -83,6 +83,7 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMap
   auto deleted = ctx_->store->DeleteMap(req->name());
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
   ctx_->visits->ForgetMap(map->id);
+  ctx_->models->InvalidateActivations();  // its id may be reused
   spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
                deleted->second);
   resp->set_deleted_visits(static_cast<uint32_t>(deleted->first));

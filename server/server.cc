@@ -19,6 +19,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<store::Store> store;
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<VisitRegistry> visits;
+  std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<MapServiceImpl> map_service;
   std::unique_ptr<VisitServiceImpl> visit_service;
@@ -48,12 +49,14 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->committer =
       std::make_unique<KeyframeCommitter>(impl->store.get(), config.keyframe_batch_max);
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get());
+  impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
   ServiceContext& ctx = impl->ctx;
   ctx.config = config;
   ctx.store = impl->store.get();
   ctx.committer = impl->committer.get();
   ctx.visits = impl->visits.get();
+  ctx.models = impl->models.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
   ctx.started_time_s = NowSeconds();
@@ -62,7 +65,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->visit_service = std::make_unique<VisitServiceImpl>(&ctx);
   impl->frame_service = std::make_unique<FrameServiceImpl>(&ctx);
   impl->place_service = std::make_unique<PlaceServiceImpl>();
-  impl->model_service = std::make_unique<ModelServiceImpl>();
+  impl->model_service = std::make_unique<ModelServiceImpl>(&ctx);
   impl->admin_service = std::make_unique<AdminServiceImpl>(&ctx);
 
   grpc::EnableDefaultHealthCheckService(true);

@@ -14,6 +14,7 @@
 #include "lifemap/v1/visit_service.grpc.pb.h"
 #include "server/config.h"
 #include "server/keyframe_committer.h"
+#include "server/model_registry.h"
 #include "server/store/store.h"
 #include "server/visit_registry.h"
 
@@ -25,6 +26,7 @@ struct ServiceContext {
   store::Store* store = nullptr;
   KeyframeCommitter* committer = nullptr;
   VisitRegistry* visits = nullptr;
+  ModelRegistry* models = nullptr;
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};
@@ -92,14 +94,20 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
 
 class ModelServiceImpl final : public v1::ModelService::Service {
  public:
+  explicit ModelServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
   grpc::Status UploadModel(grpc::ServerContext*, grpc::ServerReader<v1::UploadModelChunk>*,
                            v1::ModelInfo*) override;
   grpc::Status ListModels(grpc::ServerContext*, const v1::ListModelsRequest*,
                           v1::ListModelsResponse*) override;
   grpc::Status ActivateModel(grpc::ServerContext*, const v1::ActivateModelRequest*,
-                             v1::ModelInfo*) override;
+                             v1::ActivateModelResponse*) override;
+  grpc::Status DeleteModel(grpc::ServerContext*, const v1::DeleteModelRequest*,
+                           v1::DeleteModelResponse*) override;
   grpc::Status ListClasses(grpc::ServerContext*, const v1::ListClassesRequest*,
                            v1::ListClassesResponse*) override;
+
+ private:
+  ServiceContext* ctx_;
 };
 
 class AdminServiceImpl final : public v1::AdminService::Service {
@@ -121,9 +129,11 @@ class AdminServiceImpl final : public v1::AdminService::Service {
 
 // Which per-frame outputs this build computes, and why the others are absent.
 // `analysis` (may be null for the server-wide answer) refines it per frame; `stores_keyframes`
-// is false for frames sent without a map.
+// is false for frames sent without a map. Without an analysis, `labels_available` and
+// `labels_reason` give the server-wide answer for class labels.
 void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
                         const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes = true);
+                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes = true,
+                        bool labels_available = false, const std::string& labels_reason = "");
 
 }  // namespace lifemap::server

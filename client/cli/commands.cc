@@ -5,6 +5,9 @@
 #include <fstream>
 #include <iostream>
 
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
@@ -13,6 +16,27 @@
 
 namespace lifemap::cli {
 namespace {
+
+// The label PNG (class id per pixel, 255 = none) in the model's class colours (none: black).
+absl::StatusOr<std::string> ColorizeLabels(const std::string& label_png,
+                                           const v1::ListClassesResponse& classes) {
+  const cv::Mat labels =
+      cv::imdecode(cv::Mat(1, static_cast<int>(label_png.size()), CV_8UC1,
+                           const_cast<char*>(label_png.data())),  // imdecode only reads
+                   cv::IMREAD_UNCHANGED);
+  if (labels.empty() || labels.type() != CV_8UC1) {
+    return absl::InvalidArgumentError("label image is not an 8-bit PNG");
+  }
+  cv::Mat lut(1, 256, CV_8UC3, cv::Scalar(0, 0, 0));
+  for (int c = 0; c < classes.class_colors_size() && c < 255; ++c) {
+    const uint32_t rgb = classes.class_colors(c);
+    lut.at<cv::Vec3b>(c) = cv::Vec3b(rgb & 0xFF, (rgb >> 8) & 0xFF, (rgb >> 16) & 0xFF);
+  }
+  cv::Mat bgr;
+  cv::cvtColor(labels, bgr, cv::COLOR_GRAY2BGR);
+  cv::LUT(bgr, lut, bgr);
+  return EncodePng(bgr);
+}
 
 namespace fs = std::filesystem;
 
@@ -74,23 +98,6 @@ const char* OutputName(v1::FrameOutput o) {
 // The shape of most commands: connect, make one call, print the response as JSON (--json) or
 // for a person with `print`. Returns the exit code; `exit_code` lets a command fail on an
 // answer (e.g. an integrity check that found problems).
-template <typename Response>
-int RunCall(const CliContext& ctx,
-            const std::function<absl::StatusOr<Response>(client::Client&)>& call,
-            const std::function<void(const Response&)>& print,
-            const std::function<int(const Response&)>& exit_code = nullptr) {
-  auto c = ctx.Connect();
-  if (!c.ok()) return Fail(c.status());
-  auto response = call(**c);
-  if (!response.ok()) return Fail(response.status());
-  if (ctx.json) {
-    std::cout << ToJson(*response) << "\n";
-  } else {
-    print(*response);
-  }
-  return exit_code ? exit_code(*response) : 0;
-}
-
 }  // namespace
 
 absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,
@@ -446,10 +453,21 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
         std::string* bytes;
       };
       v1::FrameResult json_copy = *result;
+      // A view for people: each class in its model's colour.
+      std::string label_colors;
+      if (!result->labels().label_png().empty()) {
+        auto colors = (*c)->ListClasses(a->map);
+        if (colors.ok() && colors->model() == result->labels().model()) {
+          auto view = ColorizeLabels(result->labels().label_png(), *colors);
+          if (view.ok()) label_colors = *std::move(view);
+        }
+      }
       const Image images[] = {
           {"entropy_score.png", json_copy.mutable_entropy()->mutable_score_png()},
           {"entropy_mask.png", json_copy.mutable_entropy()->mutable_mask_png()},
           {"labels.png", json_copy.mutable_labels()->mutable_label_png()},
+          {"labels_confidence.png", json_copy.mutable_labels()->mutable_confidence_png()},
+          {"labels_color.png", &label_colors},
       };
       std::vector<std::string> written;
       for (const auto& img : images) {
@@ -483,6 +501,14 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
         }
         for (const auto& o : result->outputs()) {
           if (!o.computed()) std::cout << "not computed: " << o.reason() << "\n";
+        }
+        if (result->has_labels()) {
+          std::cout << "labels by '" << result->labels().model() << "' (mean confidence "
+                    << absl::StrFormat("%.2f", result->labels().mean_confidence()) << "):";
+          for (const auto& cl : result->labels().classes()) {
+            std::cout << absl::StrFormat(" %s %.1f%%", cl.name(), 100.0 * cl.pixel_fraction());
+          }
+          std::cout << "\n";
         }
         for (const auto& w : written) std::cout << "wrote " << w << "\n";
       }

@@ -3,12 +3,14 @@
 #pragma once
 
 #include <functional>
+#include <iostream>
 #include <memory>
 #include <string>
 
 #include <CLI/CLI.hpp>
 
 #include "absl/status/statusor.h"
+#include "client/cli/output.h"
 #include "client/lifemap_client.h"
 
 namespace lifemap::cli {
@@ -26,6 +28,25 @@ struct CliContext {
 absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,
                                                          int height);
 
+// Connects, makes one call, prints its response (JSON with --json, else `print`); returns the
+// exit code (`exit_code` of the response, else 0; Fail's code for errors).
+template <typename Response>
+int RunCall(const CliContext& ctx,
+            const std::function<absl::StatusOr<Response>(client::Client&)>& call,
+            const std::function<void(const Response&)>& print,
+            const std::function<int(const Response&)>& exit_code = nullptr) {
+  auto c = ctx.Connect();
+  if (!c.ok()) return Fail(c.status());
+  auto response = call(**c);
+  if (!response.ok()) return Fail(response.status());
+  if (ctx.json) {
+    std::cout << ToJson(*response) << "\n";
+  } else {
+    print(*response);
+  }
+  return exit_code ? exit_code(*response) : 0;
+}
+
 void AddServerCommands(CLI::App* app, CliContext* ctx);
 void AddMapCommands(CLI::App* app, CliContext* ctx);
 void AddVisitCommands(CLI::App* app, CliContext* ctx);
@@ -36,6 +57,8 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);
 void AddSimCommands(CLI::App* app, CliContext* ctx);
+// `lifemap models upload|list|activate|delete|classes`.
+void AddModelCommands(CLI::App* app, CliContext* ctx);
 // `lifemap train` on `app` and `lifemap eval segmentation` on `eval`.
 void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx);
 

@@ -24,6 +24,7 @@ int main(int argc, char** argv) {
   lifemap::cli::AddStreamCommand(&app, &ctx);
   lifemap::cli::AddExportCommand(&app, &ctx);
   lifemap::cli::AddProcessCommand(&app, &ctx);
+  lifemap::cli::AddModelCommands(&app, &ctx);
   lifemap::cli::AddAdminCommands(&app, &ctx);
   lifemap::cli::AddEvalCommands(&app, &ctx);
   lifemap::cli::AddSimCommands(&app, &ctx);

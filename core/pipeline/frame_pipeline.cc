@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <future>
 
 #include "absl/strings/str_cat.h"
 
@@ -13,11 +14,56 @@ double MsSince(std::chrono::steady_clock::time_point start) {
       .count();
 }
 
+// Labels with a depth reading only (the forest's features are depth-normalised), the winning
+// probability, and per-class tallies.
+absl::StatusOr<FrameLabels> LabelFrame(const forest::Forest& forest, const RgbdFrame& frame,
+                                       forest::Decision decision, int stride) {
+  auto p = forest.Predict(frame.depth_m, frame.color_bgr, decision, stride);
+  if (!p.ok()) return p.status();
+  FrameLabels out;
+  out.stride = stride;
+  out.labels = p->labels;
+  out.confidence = cv::Mat(out.labels.size(), CV_8UC1, cv::Scalar(0));
+  const int classes = forest.class_count();
+  out.class_pixels.assign(static_cast<size_t>(classes), 0);
+  std::vector<double> sums(static_cast<size_t>(classes), 0.0);
+  double total = 0.0;
+  for (int r = 0; r < out.labels.rows; ++r) {
+    const float* depth = frame.depth_m.ptr<float>(r);
+    uint8_t* label = out.labels.ptr<uint8_t>(r);
+    uint8_t* confidence = out.confidence.ptr<uint8_t>(r);
+    for (int c = 0; c < out.labels.cols; ++c) {
+      if (!(depth[c] > 0.0f) || label[c] >= classes) {
+        label[c] = forest::kIgnore;
+        continue;
+      }
+      const float prob = p->probabilities[label[c]].ptr<float>(r)[c];
+      confidence[c] = cv::saturate_cast<uint8_t>(prob * 255.0f);
+      ++out.class_pixels[label[c]];
+      sums[label[c]] += prob;
+      total += prob;
+      ++out.labelled_pixels;
+    }
+  }
+  out.class_mean_confidence.resize(static_cast<size_t>(classes));
+  for (size_t c = 0; c < sums.size(); ++c) {
+    out.class_mean_confidence[c] =
+        out.class_pixels[c] > 0 ? sums[c] / static_cast<double>(out.class_pixels[c]) : 0.0;
+  }
+  out.mean_confidence = out.labelled_pixels > 0 ? total / out.labelled_pixels : 0.0;
+  out.probabilities = std::move(p->probabilities);
+  return out;
+}
+
 }  // namespace
 
 absl::Status PipelineOptions::Validate() const {
   if (!(std::abs(world_up.norm() - 1.0f) < 1e-3f)) {
     return absl::InvalidArgumentError("world_up must be a unit vector");
+  }
+  if (label_stride < 1 || label_stride > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("label stride must be within [1, 16], got ", label_stride));
   }
   return entropy.Validate();
 }
@@ -44,6 +90,17 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
   out.decode_ms = MsSince(start);
   const auto process_start = std::chrono::steady_clock::now();
   out.depth_stats = ComputeDepthStats(out.frame.depth_m);
+  // Labels run beside the entropy masks (the forest splits its rows over two threads of its
+  // own); both read the decoded frame only.
+  std::future<absl::StatusOr<FrameLabels>> labels;
+  if (request.labeller != nullptr) {
+    labels = std::async(std::launch::async, [&] {
+      return LabelFrame(*request.labeller, out.frame, options_.label_decision,
+                        options_.label_stride);
+    });
+  } else {
+    out.labels_status = absl::FailedPreconditionError(request.no_labeller_reason);
+  }
   if (options_.entropy_masks) {
     entropy::EntropyMaskOptions options = options_.entropy;
     if (request.entropy_threshold) options.threshold = *request.entropy_threshold;
@@ -57,6 +114,14 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
     }
   } else {
     out.entropy_status = absl::FailedPreconditionError("entropy masks are disabled");
+  }
+  if (labels.valid()) {
+    auto result = labels.get();
+    if (result.ok()) {
+      out.labels = *std::move(result);
+    } else {
+      out.labels_status = result.status();
+    }
   }
   out.process_ms = MsSince(process_start);
   return out;

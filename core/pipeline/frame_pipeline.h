@@ -1,14 +1,18 @@
 // FramePipeline composes the core modules for one frame: decode and validate, depth statistics,
-// entropy masks (paper 000). Class labels and place matches plug in here as they are built.
+// entropy masks (paper 000) and random-forest class labels (paper 002), the two concurrently.
+// Place matches plug in here as they are built.
 #pragma once
 
 #include <optional>
+#include <string>
+#include <vector>
 
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
 #include "core/common/rgbd_frame.h"
 #include "core/entropy/entropy_mask.h"
+#include "core/forest/forest.h"
 
 namespace lifemap::pipeline {
 
@@ -17,6 +21,9 @@ struct PipelineOptions {
   entropy::EntropyMaskOptions entropy;
   // "Up" (against gravity) in the world frame of client poses; TUM's mocap frame is z-up.
   Eigen::Vector3f world_up = Eigen::Vector3f::UnitZ();
+  // Class labels: every label_stride-th pixel is classified and its cell copies the result.
+  int label_stride = 4;
+  forest::Decision label_decision = forest::Decision::kBalanced;
 
   absl::Status Validate() const;
 };
@@ -24,6 +31,23 @@ struct PipelineOptions {
 // Per-frame settings a request may override.
 struct FrameRequest {
   std::optional<float> entropy_threshold;  // [0, 1]
+  // The model that labels this frame (the caller keeps it alive during Process); null = no
+  // labels, and labels_status says why (`no_labeller_reason`).
+  const forest::Forest* labeller = nullptr;
+  std::string no_labeller_reason = "no model";
+};
+
+// A frame's class labels and what the server reports of them. The per-class probabilities
+// are kept for 3D semantic fusion, which accumulates them per voxel.
+struct FrameLabels {
+  cv::Mat labels;      // CV_8UC1 class id; forest::kIgnore where there is no depth reading
+  cv::Mat confidence;  // CV_8UC1, the winning class's probability × 255 (0 without depth)
+  std::vector<cv::Mat> probabilities;         // CV_32FC1 per class, as the forest predicted them
+  std::vector<int64_t> class_pixels;          // labelled pixels per class
+  std::vector<double> class_mean_confidence;  // mean winning probability per class
+  int64_t labelled_pixels = 0;
+  double mean_confidence = 0.0;
+  int stride = 1;
 };
 
 struct FrameAnalysis {
@@ -32,6 +56,9 @@ struct FrameAnalysis {
   // Set when entropy masks are enabled and could be computed; otherwise entropy_status says why.
   std::optional<entropy::EntropyMaskResult> entropy;
   absl::Status entropy_status;
+  // Set when the request had a labeller and the frame could be labelled.
+  std::optional<FrameLabels> labels;
+  absl::Status labels_status;
   double decode_ms = 0.0;
   double process_ms = 0.0;  // everything after decoding
 };

@@ -98,4 +98,23 @@ class Database {
 // Maps an SQLite result code (and the connection's message) to a Status.
 absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what);
 
+// BEGIN IMMEDIATE ... COMMIT; rolls back unless committed (early returns on error).
+class Transaction {
+ public:
+  explicit Transaction(Database* db) : db_(db) {}
+  absl::Status Begin() { return db_->Exec("BEGIN IMMEDIATE"); }
+  absl::Status Commit() {
+    auto s = db_->Exec("COMMIT");
+    if (s.ok()) done_ = true;
+    return s;
+  }
+  ~Transaction() {
+    if (!done_) db_->Exec("ROLLBACK").IgnoreError();
+  }
+
+ private:
+  Database* db_;
+  bool done_ = false;
+};
+
 }  // namespace lifemap::store

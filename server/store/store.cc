@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "server/store/sqlite.h"
+#include "server/store/store_impl.h"
 
 namespace lifemap::store {
 namespace {
@@ -73,6 +74,27 @@ CREATE TABLE keyframe_features (
   keypoints BLOB NOT NULL,
   descriptor_bytes INTEGER NOT NULL,
   descriptors BLOB NOT NULL
+);
+)sql",
+    // 2 -> 3: random-forest models (the file as uploaded, plus what listing needs without
+    // reading it), each map's model, and server-wide settings (the default model).
+    R"sql(
+CREATE TABLE models (
+  id INTEGER PRIMARY KEY,
+  name TEXT NOT NULL UNIQUE,
+  uploaded_time_s REAL NOT NULL,
+  size_bytes INTEGER NOT NULL,
+  class_names TEXT NOT NULL,
+  class_colors TEXT NOT NULL,
+  training_json TEXT NOT NULL,
+  trees INTEGER NOT NULL,
+  nodes INTEGER NOT NULL,
+  data BLOB NOT NULL
+);
+ALTER TABLE maps ADD COLUMN model_id INTEGER REFERENCES models(id);
+CREATE TABLE settings (
+  key TEXT PRIMARY KEY,
+  value TEXT NOT NULL
 );
 )sql",
 };
@@ -212,72 +234,50 @@ MapRecord ReadMap(const Statement& s) {
   return m;
 }
 
-// Commits on success, rolls back when destroyed uncommitted.
-class Transaction {
- public:
-  explicit Transaction(Database* db) : db_(db) {}
-  absl::Status Begin() { return db_->Exec("BEGIN IMMEDIATE"); }
-  absl::Status Commit() {
-    auto s = db_->Exec("COMMIT");
-    if (s.ok()) done_ = true;
-    return s;
-  }
-  ~Transaction() {
-    if (!done_) db_->Exec("ROLLBACK").IgnoreError();
-  }
-
- private:
-  Database* db_;
-  bool done_ = false;
-};
-
 }  // namespace
 
-absl::Status ValidateMapName(const std::string& name) {
+absl::Status ValidateName(const std::string& name, absl::string_view kind) {
   if (name.empty() || name.size() > 64) {
     return absl::InvalidArgumentError(
-        absl::StrCat("map name must be 1 to 64 characters, got ", name.size()));
+        absl::StrCat(kind, " name must be 1 to 64 characters, got ", name.size()));
   }
-  if (name[0] == '.') return absl::InvalidArgumentError("map name must not start with '.'");
+  if (name[0] == '.') {
+    return absl::InvalidArgumentError(absl::StrCat(kind, " name must not start with '.'"));
+  }
   for (char c : name) {
     const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') ||
                     c == '.' || c == '_' || c == '-';
     if (!ok) {
       return absl::InvalidArgumentError(
-          absl::StrCat("map name '", name, "' may only use letters, digits, '.', '_' and '-'"));
+          absl::StrCat(kind, " name '", name, "' may only use letters, digits, '.', '_' and '-'"));
     }
   }
   return absl::OkStatus();
 }
 
-struct Store::Impl {
-  absl::Mutex write_mu;
-  std::unique_ptr<Database> write_db ABSL_GUARDED_BY(write_mu);
-  absl::Mutex read_mu;
-  std::unique_ptr<Database> read_db ABSL_GUARDED_BY(read_mu);
+absl::Status ValidateMapName(const std::string& name) { return ValidateName(name, "map"); }
 
-  absl::StatusOr<MapRecord> GetMapLocked(Database* db, const std::string& name) {
-    auto stmt = db->Prepare(absl::StrCat(kMapSelect, "WHERE m.name = ?1"));
-    if (!stmt.ok()) return stmt.status();
-    StatementScope s(*stmt);
-    s->Bind(1, name);
-    auto row = s->Step();
-    if (!row.ok()) return row.status();
-    if (!*row) return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
-    return ReadMap(*s);
-  }
+absl::StatusOr<MapRecord> Store::Impl::GetMapLocked(Database* db, const std::string& name) {
+  auto stmt = db->Prepare(absl::StrCat(kMapSelect, "WHERE m.name = ?1"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, name);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::NotFoundError(absl::StrCat("map '", name, "' does not exist"));
+  return ReadMap(*s);
+}
 
-  absl::StatusOr<VisitRecord> GetVisitLocked(Database* db, int64_t visit_id) {
-    auto stmt = db->Prepare(absl::StrCat(kVisitSelect, "WHERE v.id = ?1"));
-    if (!stmt.ok()) return stmt.status();
-    StatementScope s(*stmt);
-    s->Bind(1, visit_id);
-    auto row = s->Step();
-    if (!row.ok()) return row.status();
-    if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
-    return ReadVisit(*s);
-  }
-};
+absl::StatusOr<VisitRecord> Store::Impl::GetVisitLocked(Database* db, int64_t visit_id) {
+  auto stmt = db->Prepare(absl::StrCat(kVisitSelect, "WHERE v.id = ?1"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, visit_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+  return ReadVisit(*s);
+}
 
 Store::Store(std::unique_ptr<Impl> impl, std::string path)
     : impl_(std::move(impl)), path_(std::move(path)) {}

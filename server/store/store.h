@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "core/common/types.h"
 #include "core/entropy/superjut_scores.h"
 #include "core/features/keypoints.h"
@@ -113,6 +114,21 @@ struct StoreStats {
   int64_t wal_bytes = 0;
 };
 
+// A stored random-forest model (the file itself is read with GetModelData).
+struct ModelRecord {
+  int64_t id = 0;
+  std::string name;
+  double uploaded_time_s = 0.0;
+  int64_t size_bytes = 0;
+  std::vector<std::string> class_names;
+  std::vector<uint32_t> class_colors;  // 0xRRGGBB
+  std::string training_json;
+  int trees = 0;
+  int64_t nodes = 0;
+  bool is_default = false;               // the server default
+  std::vector<std::string> active_maps;  // maps whose own model this is
+};
+
 class Store {
  public:
   // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
@@ -123,7 +139,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 2;
+  static constexpr int kSchemaVersion = 3;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -168,6 +184,24 @@ class Store {
   // The visit's latest keyframe (without images), to resume keyframe selection.
   absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
 
+  // Models. Names are validated by the caller (ValidateMapName's rules); the file is
+  // validated by the caller too (the store keeps bytes). `data` and metadata of `record`
+  // (class names/colours, training JSON, trees, nodes) are stored; ALREADY_EXISTS for a name
+  // in use.
+  absl::StatusOr<ModelRecord> InsertModel(const ModelRecord& record, const std::string& data);
+  absl::StatusOr<std::vector<ModelRecord>> ListModels();
+  absl::StatusOr<ModelRecord> GetModel(const std::string& name);  // NOT_FOUND
+  absl::StatusOr<std::string> GetModelData(const std::string& name);
+  // Makes `model` the model of `map` (empty map: the server default); an empty `model`
+  // deactivates. Returns the model active there before ("" = none). NOT_FOUND for an unknown
+  // map or model.
+  absl::StatusOr<std::string> ActivateModel(const std::string& map, const std::string& model);
+  // The name of the model that labels frames of `map_id`: the map's own, else the server
+  // default; "" when neither (map_id 0: the default only).
+  absl::StatusOr<std::string> ActiveModelName(int64_t map_id);
+  // FAILED_PRECONDITION while it is active anywhere; NOT_FOUND for an unknown name.
+  absl::Status DeleteModel(const std::string& name);
+
   // Administration.
   absl::StatusOr<StoreStats> Stats();
   // Online backup to a new file (sqlite3 backup API); FailedPrecondition if `path` exists.
@@ -185,7 +219,9 @@ class Store {
   std::string path_;
 };
 
-// InvalidArgument unless the name is 1–64 characters of [A-Za-z0-9._-] not starting with '.'.
+// InvalidArgument unless the name is 1–64 characters of [A-Za-z0-9._-] not starting with '.';
+// the message calls it a `kind` name ("map", "model").
+absl::Status ValidateName(const std::string& name, absl::string_view kind);
 absl::Status ValidateMapName(const std::string& name);
 
 }  // namespace lifemap::store

@@ -524,6 +524,40 @@ TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
   r = Run({"eval", "segmentation", "--model", tmp_.File("bad.model"), "--data", dir + "/test"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("model"), std::string::npos) << r.err;
+
+  // Served: upload, activate for a map, and a processed frame comes back labelled.
+  r = Run({"models", "upload", tmp_.File("bad.model"), "junk"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("INVALID_ARGUMENT"), std::string::npos) << r.err;
+  ASSERT_EQ(Run({"models", "upload", tmp_.File("m.model"), "mosd"}).code, 0);
+  ASSERT_EQ(Run({"maps", "create", "table"}).code, 0);
+  r = Run({"models", "activate", "mosd", "--map", "table"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "models", "list"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json models = json::parse(r.out);
+  ASSERT_EQ(models["models"].size(), 1u);
+  EXPECT_EQ(models["models"][0]["active_maps"][0], "table");
+  EXPECT_NE(models["models"][0]["training_json"].get<std::string>().find("\"images\":14"),
+            std::string::npos)
+      << "the training summary travels with the model";
+  const std::string tum = testing::SharedDataset("tum_fr1_xyz_subset");
+  if (!tum.empty()) {
+    r = Run({"process", "--map", "table", "--rgb", tum + "/rgb/1305031102.175304.png", "--depth",
+             tum + "/depth/1305031102.160407.png", "--out", tmp_.File("proc")});
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_NE(r.out.find("labels by 'mosd'"), std::string::npos) << r.out;
+    for (const char* f : {"labels.png", "labels_confidence.png", "labels_color.png"}) {
+      EXPECT_TRUE(std::filesystem::exists(tmp_.File(std::string("proc/") + f))) << f;
+    }
+    const json result = json::parse(Slurp(tmp_.File("proc/result.json")));
+    EXPECT_FALSE(result["labels"]["classes"].empty());
+  }
+  r = Run({"models", "delete", "mosd"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("--none"), std::string::npos) << "says how to deactivate: " << r.err;
+  ASSERT_EQ(Run({"models", "activate", "--none", "--map", "table"}).code, 0);
+  EXPECT_EQ(Run({"models", "delete", "mosd"}).code, 0);
 }
 
 // A robot that sends as fast as it can, 420 MB of raw frames, cannot make the server buffer

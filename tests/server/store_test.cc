@@ -302,6 +302,55 @@ PRAGMA user_version = 1;
   EXPECT_TRUE(problems.ok() && problems->empty());
 }
 
+TEST_F(StoreTest, ModelsAreStoredActivatedPerMapOrAsDefaultAndGuardedOnDelete) {
+  ModelRecord m;
+  m.name = "forest-a";
+  m.uploaded_time_s = 5;
+  m.class_names = {"table", "object"};
+  m.class_colors = {0x808080, 0xE6194B};
+  m.training_json = R"({"images":14})";
+  m.trees = 3;
+  m.nodes = 457;
+  auto a = store_->InsertModel(m, "model-bytes");
+  ASSERT_TRUE(a.ok()) << a.status();
+  EXPECT_EQ(a->class_names, m.class_names);
+  EXPECT_EQ(a->class_colors, m.class_colors);
+  EXPECT_EQ(a->size_bytes, 11);
+  EXPECT_TRUE(absl::IsAlreadyExists(store_->InsertModel(m, "again").status()));
+  m.name = "forest-b";
+  ASSERT_TRUE(store_->InsertModel(m, "other-bytes").ok());
+  EXPECT_EQ(*store_->GetModelData("forest-a"), "model-bytes");
+
+  auto lab = store_->CreateMap("lab", "", 1);
+  auto hall = store_->CreateMap("hall", "", 1);
+  ASSERT_TRUE(lab.ok() && hall.ok());
+  EXPECT_EQ(*store_->ActiveModelName(lab->id), "") << "nothing active yet";
+  EXPECT_EQ(*store_->ActivateModel("", "forest-a"), "");
+  EXPECT_EQ(*store_->ActiveModelName(lab->id), "forest-a") << "the default applies";
+  EXPECT_EQ(*store_->ActiveModelName(0), "forest-a");
+  EXPECT_EQ(*store_->ActivateModel("lab", "forest-b"), "");
+  EXPECT_EQ(*store_->ActiveModelName(lab->id), "forest-b") << "the map's own comes first";
+  EXPECT_EQ(*store_->ActiveModelName(hall->id), "forest-a");
+  EXPECT_EQ(*store_->ActivateModel("", "forest-b"), "forest-a") << "returns the previous";
+
+  auto b = store_->GetModel("forest-b");
+  ASSERT_TRUE(b.ok());
+  EXPECT_TRUE(b->is_default);
+  EXPECT_EQ(b->active_maps, std::vector<std::string>{"lab"});
+  EXPECT_TRUE(absl::IsFailedPrecondition(store_->DeleteModel("forest-b")));
+  EXPECT_TRUE(absl::IsNotFound(store_->ActivateModel("nowhere", "forest-a").status()));
+  EXPECT_TRUE(absl::IsNotFound(store_->ActivateModel("lab", "missing").status()));
+
+  // Deactivating and deleting the map both release it.
+  EXPECT_EQ(*store_->ActivateModel("", ""), "forest-b");
+  ASSERT_TRUE(store_->DeleteMap("lab").ok());
+  ASSERT_TRUE(store_->DeleteModel("forest-b").ok());
+  EXPECT_TRUE(absl::IsNotFound(store_->GetModel("forest-b").status()));
+  EXPECT_EQ(*store_->ActiveModelName(hall->id), "");
+  EXPECT_EQ(store_->ListModels()->size(), 1u);
+  EXPECT_TRUE(store_->CheckIntegrity()->empty());
+}
+
 TEST(MapName, ValidatesCharactersAndLength) {
   EXPECT_TRUE(ValidateMapName("office_2-b.v1").ok());
   EXPECT_FALSE(ValidateMapName("").ok());

@@ -1,0 +1,28 @@
+// Internal to server/store: the state behind Store, shared by its translation units
+// (store.cc: maps, visits, keyframes, administration; model_store.cc: models).
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "server/store/sqlite.h"
+#include "server/store/store.h"
+
+namespace lifemap::store {
+
+struct Store::Impl {
+  // One connection writes (serialised by write_mu), one reads: WAL lets reads run during a
+  // write transaction.
+  absl::Mutex write_mu;
+  std::unique_ptr<Database> write_db ABSL_GUARDED_BY(write_mu);
+  absl::Mutex read_mu;
+  std::unique_ptr<Database> read_db ABSL_GUARDED_BY(read_mu);
+
+  // NOT_FOUND naming the map / visit. `db` is the connection whose mutex the caller holds.
+  absl::StatusOr<MapRecord> GetMapLocked(Database* db, const std::string& name);
+  absl::StatusOr<VisitRecord> GetVisitLocked(Database* db, int64_t visit_id);
+};
+
+}  // namespace lifemap::store

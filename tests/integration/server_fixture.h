@@ -1,0 +1,65 @@
+// The in-process server fixture of the integration tests: a real lifemapd on loopback and a
+// client connected to it.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include <gtest/gtest.h>
+
+#include "client/lifemap_client.h"
+#include "core/io/tum_dataset.h"
+#include "server/server.h"
+#include "tests/testing/test_util.h"
+
+namespace lifemap::testing {
+
+// The first frame of a TUM fr1 folder as a Frame (fr1 calibration, PNG bytes as on disk).
+inline absl::StatusOr<v1::Frame> FirstTumFrame(const std::string& dir) {
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return seq.status();
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  return client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+}
+
+class ServerTest : public ::testing::Test {
+ protected:
+  void StartServer(server::ServerConfig config = {}) {
+    config.listen = "127.0.0.1:0";
+    config.db_path = tmp_.File("lifemap.db");
+    config.shutdown_grace_s = 2;
+    config_ = config;
+    auto s = server::LifemapServer::Start(config);
+    ASSERT_TRUE(s.ok()) << s.status();
+    server_ = *std::move(s);
+    target_ = "127.0.0.1:" + std::to_string(server_->port());
+    auto c = client::Client::Connect({target_});
+    ASSERT_TRUE(c.ok()) << c.status();
+    client_ = *std::move(c);
+  }
+  void SetUp() override { StartServer(); }
+  // Stops the server and starts it again on the same database with the last config.
+  void RestartServer() {
+    client_.reset();
+    server_.reset();
+    StartServer(config_);
+  }
+
+  // ProcessFrame's status for a frame, against map "m" (created on demand).
+  absl::Status Process(const v1::Frame& frame, const std::string& map = "") {
+    v1::ProcessFrameRequest req;
+    req.set_map(map);
+    *req.mutable_frame() = frame;
+    return client_->ProcessFrame(req).status();
+  }
+
+  testing::TempDir tmp_;
+  server::ServerConfig config_;
+  std::unique_ptr<server::LifemapServer> server_;
+  std::string target_;
+  std::unique_ptr<client::Client> client_;
+};
+
+}  // namespace lifemap::testing
