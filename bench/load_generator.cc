@@ -10,6 +10,7 @@
 // replayed cyclically with fresh timestamps, so disk reads are not measured.
 #include <algorithm>
 #include <chrono>
+#include <ctime>
 #include <filesystem>
 #include <iostream>
 #include <mutex>
@@ -20,6 +21,7 @@
 
 #include "absl/strings/str_format.h"
 #include "client/lifemap_client.h"
+#include "core/common/image_codec.h"
 #include "core/io/tum_dataset.h"
 #include "server/server.h"
 
@@ -185,6 +187,11 @@ int main(int argc, char** argv) {
   app.add_option("--rate", rate, "frames/s per stream; 0 = as fast as possible")
       ->check(CLI::Range(0.0, 1000.0));
   app.add_flag("--json", json, "print the report as JSON");
+  std::string model;
+  app.add_option("--model", model,
+                 "model file (lifemap train): one stream runs without labels, then the model is "
+                 "uploaded and activated as the server default and the runs repeat with labels")
+      ->check(CLI::ExistingFile);
   CLI11_PARSE(app, argc, argv);
 
   auto seq = lifemap::io::ReadTumSequence(tum);
@@ -247,21 +254,42 @@ int main(int argc, char** argv) {
     }
   }
 
-  const RunReport baseline = RunBaseline(target, loaded, std::min(frames, 200));
-  const RunReport one = RunStreams(target, loaded, 1, frames, rate);
-  const RunReport many = RunStreams(target, loaded, streams, frames, rate);
+  std::vector<RunReport> runs;
+  if (!model.empty()) {
+    // The same-run baseline for labels: one stream before any model is active.
+    runs.push_back(RunStreams(target, loaded, 1, frames, rate));
+    runs.back().name += ", no labels";
+    auto bytes = lifemap::ReadFileBytes(model);
+    auto client = lifemap::client::Client::Connect({target});
+    absl::Status s = bytes.status();
+    if (bytes.ok() && client.ok()) {
+      const std::string name = "load-" + std::to_string(std::time(nullptr));
+      s = (*client)->UploadModel(name, *bytes).status();
+      if (s.ok()) s = (*client)->ActivateModel(name, "").status();
+    }
+    if (!s.ok()) {
+      std::cerr << "load_generator: --model: " << s.message() << "\n";
+      return 1;
+    }
+  }
+  runs.push_back(RunBaseline(target, loaded, std::min(frames, 200)));
+  runs.push_back(RunStreams(target, loaded, 1, frames, rate));
+  runs.push_back(RunStreams(target, loaded, streams, frames, rate));
+  if (!model.empty()) {
+    for (size_t i = 1; i < runs.size(); ++i) runs[i].name += ", labels";
+  }
   if (json) {
+    nlohmann::json reports = nlohmann::json::array();
+    for (const auto& r : runs) reports.push_back(r.ToJson());
     std::cout << nlohmann::json{{"target", target},
                                 {"frame", "640x480 PNG-16 depth + PNG colour (TUM)"},
-                                {"runs", {baseline.ToJson(), one.ToJson(), many.ToJson()}}}
+                                {"runs", reports}}
                      .dump(2)
               << "\n";
   } else {
     std::cout << "target " << target << ", " << loaded.size()
               << " distinct 640x480 TUM frames (PNG-16 depth + PNG colour)\n";
-    baseline.Print();
-    one.Print();
-    many.Print();
+    for (const auto& r : runs) r.Print();
   }
   server.reset();
   if (server_address.empty()) fs::remove_all(dir);

@@ -343,11 +343,16 @@ absl::StatusOr<Prediction> Forest::Predict(const cv::Mat& depth_m, const cv::Mat
           p[static_cast<size_t>(c)] = sum > 0 ? p[static_cast<size_t>(c)] / sum : 0.0;
           if (p[static_cast<size_t>(c)] > p[static_cast<size_t>(best)]) best = c;
         }
+        // The stride cell copies the prediction; plain loops (cv::Mat ROI + setTo per cell cost
+        // more than the trees at stride 4).
         const int y1 = std::min(depth_m.rows, y + stride), x1 = std::min(depth_m.cols, x + stride);
-        out.labels(cv::Range(y, y1), cv::Range(x, x1)).setTo(best);
-        for (int c = 0; c < class_count_; ++c) {
-          out.probabilities[static_cast<size_t>(c)](cv::Range(y, y1), cv::Range(x, x1))
-              .setTo(static_cast<float>(p[static_cast<size_t>(c)]));
+        for (int yy = y; yy < y1; ++yy) {
+          std::fill(out.labels.ptr<uint8_t>(yy) + x, out.labels.ptr<uint8_t>(yy) + x1,
+                    static_cast<uint8_t>(best));
+          for (int c = 0; c < class_count_; ++c) {
+            float* row = out.probabilities[static_cast<size_t>(c)].ptr<float>(yy);
+            std::fill(row + x, row + x1, static_cast<float>(p[static_cast<size_t>(c)]));
+          }
         }
       }
     }
