@@ -1,0 +1,473 @@
+#include "core/place/floor_plan.h"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <unordered_map>
+
+#include <Eigen/Geometry>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::place {
+namespace {
+
+double Deg(double d) { return d * M_PI / 180.0; }
+
+// Evidence about one cell of a wall (along × height).
+struct Cell {
+  float covered = 0;   // a planar region or a reading lies on the wall here
+  float free = 0;      // a ray passed here: a reading beyond the wall, or none
+  float occluded = 0;  // a ray stopped in front of the wall here
+};
+
+int64_t Key(int s, int h) {
+  return (static_cast<int64_t>(s) << 32) ^ static_cast<int64_t>(static_cast<uint32_t>(h));
+}
+int KeyS(int64_t k) { return static_cast<int>(k >> 32); }
+int KeyH(int64_t k) { return static_cast<int>(static_cast<int32_t>(k & 0xffffffff)); }
+
+// A vertical plane's line on the ground, accumulated over key frames.
+struct WallAcc {
+  Eigen::Vector2d n;  // unit normal towards the side the cameras saw it from
+  double offset = 0;  // n·q = offset on the line
+  double area = 0;    // planar area seen (m²)
+  std::unordered_map<int64_t, Cell> cells;
+  Eigen::Vector2d tangent() const { return {n.y(), -n.x()}; }  // the seen side on its left
+};
+
+// A horizontal planar patch of one key frame.
+struct Patch {
+  double height = 0;  // along up
+  Eigen::Vector2d centroid{0, 0};
+  Eigen::Vector2d lo{0, 0}, hi{0, 0};
+  double area = 0;
+  bool faces_up = true;
+};
+
+// Where two 2D lines p + s·d meet; false when (nearly) parallel.
+bool Intersect(const Eigen::Vector2d& p1, const Eigen::Vector2d& d1, const Eigen::Vector2d& p2,
+               const Eigen::Vector2d& d2, Eigen::Vector2d* x) {
+  const double den = d1.x() * d2.y() - d1.y() * d2.x();
+  if (std::abs(den) < std::sin(Deg(20))) return false;
+  const Eigen::Vector2d w = p2 - p1;
+  const double s = (w.x() * d2.y() - w.y() * d2.x()) / den;
+  *x = p1 + s * d1;
+  return true;
+}
+
+// Whether segments ab and cd cross strictly inside both.
+bool SegmentsCross(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& c,
+                   const Eigen::Vector2d& d) {
+  auto cross = [](const Eigen::Vector2d& u, const Eigen::Vector2d& v) {
+    return u.x() * v.y() - u.y() * v.x();
+  };
+  const double d1 = cross(b - a, c - a), d2 = cross(b - a, d - a);
+  const double d3 = cross(d - c, a - c), d4 = cross(d - c, b - c);
+  return d1 * d2 < 0 && d3 * d4 < 0;
+}
+
+double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
+                         const Eigen::Vector2d& b) {
+  const Eigen::Vector2d ab = b - a;
+  const double len2 = ab.squaredNorm();
+  const double t = len2 > 0 ? std::clamp((p - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
+  return (a + t * ab - p).norm();
+}
+
+}  // namespace
+
+struct FloorPlanBuilder::State {
+  FloorPlanOptions o;
+  Eigen::Vector3d up, e1, e2;
+  int keyframes = 0;
+  std::vector<Eigen::Vector3d> cameras;  // world positions
+  std::vector<WallAcc> walls;
+  std::vector<Patch> patches;
+
+  Eigen::Vector2d Ground(const Eigen::Vector3d& p) const { return {e1.dot(p), e2.dot(p)}; }
+};
+
+FloorPlanBuilder::FloorPlanBuilder(FloorPlanOptions options) : s_(std::make_unique<State>()) {
+  s_->o = options;
+  s_->up = options.world_up.normalized();
+  const Eigen::Vector3d any =
+      std::abs(s_->up.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+  s_->e1 = (any - any.dot(s_->up) * s_->up).normalized();
+  s_->e2 = s_->up.cross(s_->e1);
+}
+FloorPlanBuilder::~FloorPlanBuilder() = default;
+FloorPlanBuilder::FloorPlanBuilder(FloorPlanBuilder&&) noexcept = default;
+FloorPlanBuilder& FloorPlanBuilder::operator=(FloorPlanBuilder&&) noexcept = default;
+int FloorPlanBuilder::keyframes() const { return s_->keyframes; }
+
+absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
+                                           const CameraIntrinsics& k, const Pose& T_world_camera) {
+  State& s = *s_;
+  const Pose& pose = T_world_camera;
+  if (!pose.translation.allFinite() || !pose.rotation.coeffs().allFinite() ||
+      std::abs(pose.rotation.norm() - 1.0) > 1e-3) {
+    return absl::InvalidArgumentError(
+        "key frame pose must be finite with a unit quaternion (T_world_camera)");
+  }
+  const cv::Mat& depth = planes.smoothed_depth_m;
+  if (!depth.empty() && (depth.cols != k.width || depth.rows != k.height || !(k.fx > 0))) {
+    return absl::InvalidArgumentError("intrinsics do not match the key frame's depth image");
+  }
+  const Eigen::Matrix3d R = pose.rotation.toRotationMatrix();
+  const Eigen::Vector3d& origin = pose.translation;
+  const double cos_vertical = std::sin(Deg(s.o.vertical_tolerance_deg));
+  const double cos_horizontal = std::cos(Deg(s.o.horizontal_tolerance_deg));
+  const double cell = s.o.cell_m;
+
+  for (const auto& p : planes.planes) {
+    const Eigen::Vector3d n = R * p.normal.cast<double>();
+    const Eigen::Vector3d c = R * p.centroid.cast<double>() + origin;
+    const double cos_up = n.dot(s.up);
+    if (std::abs(cos_up) > cos_horizontal) {
+      Patch patch;
+      patch.height = c.dot(s.up);
+      patch.centroid = s.Ground(c);
+      patch.lo = patch.hi = patch.centroid;
+      for (const auto& q : p.quads) {
+        const Eigen::Vector2d g = s.Ground(R * q.cast<double>() + origin);
+        patch.lo = patch.lo.cwiseMin(g);
+        patch.hi = patch.hi.cwiseMax(g);
+      }
+      patch.area = p.area_m2;
+      patch.faces_up = cos_up > 0;
+      s.patches.push_back(patch);
+      continue;
+    }
+    if (std::abs(cos_up) > cos_vertical) continue;  // slanted: neither wall nor floor
+    const Eigen::Vector2d n2 = s.Ground(n).normalized();
+    const double offset = n2.dot(s.Ground(c));
+    WallAcc* acc = nullptr;
+    for (auto& w : s.walls) {
+      if (w.n.dot(n2) > std::cos(Deg(s.o.merge_angle_deg)) &&
+          std::abs(w.offset - offset) < s.o.merge_offset_m) {
+        acc = &w;
+        break;
+      }
+    }
+    if (acc == nullptr) {
+      s.walls.emplace_back();
+      acc = &s.walls.back();
+      acc->n = n2;
+      acc->offset = offset;
+    } else {
+      // The line settles on the area-weighted mean of what was seen.
+      const double a = acc->area, b = p.area_m2;
+      acc->n = (acc->n * a + n2 * b).normalized();
+      acc->offset = (acc->offset * a + offset * b) / std::max(a + b, 1e-9);
+    }
+    acc->area += p.area_m2;
+    const Eigen::Vector2d t = acc->tangent();
+    // Rasterise each region's quad into covered cells by sampling it finely enough.
+    for (size_t q = 0; q + 3 < p.quads.size(); q += 4) {
+      Eigen::Vector3d w[4];
+      for (int i = 0; i < 4; ++i) w[i] = R * p.quads[q + i].cast<double>() + origin;
+      const double edge = std::max((w[1] - w[0]).norm(), (w[3] - w[0]).norm());
+      const int steps = std::clamp(static_cast<int>(std::ceil(2 * edge / cell)), 1, 64);
+      for (int i = 0; i <= steps; ++i) {
+        const double a = static_cast<double>(i) / steps;
+        const Eigen::Vector3d top = w[0] + a * (w[1] - w[0]), bottom = w[3] + a * (w[2] - w[3]);
+        for (int j = 0; j <= steps; ++j) {
+          const Eigen::Vector3d x = top + (static_cast<double>(j) / steps) * (bottom - top);
+          const int si = static_cast<int>(std::floor(t.dot(s.Ground(x)) / cell));
+          const int hi = static_cast<int>(std::floor(x.dot(s.up) / cell));
+          acc->cells[Key(si, hi)].covered += 1;
+        }
+      }
+    }
+  }
+
+  // Evidence rays: through each wall the camera faces, where does the reading lie?
+  if (!depth.empty()) {
+    const Eigen::Vector2d o2 = s.Ground(origin);
+    const double oh = origin.dot(s.up);
+    for (auto& w : s.walls) {
+      const double side = w.n.dot(o2) - w.offset;
+      if (side <= 0.05) continue;  // the camera is behind (or on) this wall's line
+      const Eigen::Vector2d t = w.tangent();
+      for (int v = s.o.ray_stride_px / 2; v < depth.rows; v += s.o.ray_stride_px) {
+        const float* row = depth.ptr<float>(v);
+        for (int u = s.o.ray_stride_px / 2; u < depth.cols; u += s.o.ray_stride_px) {
+          // Camera ray with unit z, so the parameter along it is the depth.
+          const Eigen::Vector3d d = R * Eigen::Vector3d((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+          const Eigen::Vector2d d2 = s.Ground(d);
+          const double den = w.n.dot(d2);
+          if (den > -1e-6) continue;  // parallel to or away from the wall
+          const double lambda = (w.offset - w.n.dot(o2)) / den;
+          if (lambda <= 0 || lambda > 8.0) continue;
+          const Eigen::Vector2d hit2 = o2 + lambda * d2;
+          const double hit_h = oh + lambda * d.dot(s.up);
+          Cell& c = w.cells[Key(static_cast<int>(std::floor(t.dot(hit2) / cell)),
+                                static_cast<int>(std::floor(hit_h / cell)))];
+          const float z = row[u];
+          const double margin = 0.08 + 0.02 * lambda;
+          // A reading on the wall adds nothing: coverage comes from planar regions only (a
+          // floor point near the line would otherwise pass for wall).
+          if (!(z > 0) || z > lambda + margin) {
+            c.free += 1;
+          } else if (z < lambda - margin) {
+            c.occluded += 1;
+          }
+        }
+      }
+    }
+  }
+  s.cameras.push_back(origin);
+  ++s.keyframes;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
+  const State& s = *s_;
+  if (s.keyframes < 2) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("a floor plan needs several key frames around the place; have ", s.keyframes));
+  }
+  FloorPlan plan;
+  plan.keyframes = s.keyframes;
+  plan.up = s.up, plan.e1 = s.e1, plan.e2 = s.e2;
+  double camera_h = 0;
+  Eigen::Vector2d centre(0, 0);
+  for (const auto& c : s.cameras) camera_h += c.dot(s.up), centre += s.Ground(c);
+  camera_h /= static_cast<double>(s.cameras.size());
+  centre /= static_cast<double>(s.cameras.size());
+
+  // The ground: the height (2 cm bins) with the most upward-facing area below the cameras.
+  std::map<int, double> floor_area;
+  for (const auto& p : s.patches) {
+    if (p.faces_up && p.height < camera_h - 0.5) {
+      floor_area[static_cast<int>(std::floor(p.height / 0.02))] += p.area;
+    }
+  }
+  int best_bin = 0;
+  double best_area = 0;
+  for (const auto& [bin, area] : floor_area) {
+    const double a = area + (floor_area.count(bin - 1) ? floor_area.at(bin - 1) : 0) +
+                     (floor_area.count(bin + 1) ? floor_area.at(bin + 1) : 0);
+    if (a > best_area) best_area = a, best_bin = bin;
+  }
+  if (best_area < 1.0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("no floor seen (largest upward plane below the cameras: ", best_area,
+                     " m²); the key frames must see the ground"));
+  }
+  double sum_h = 0, sum_a = 0;
+  for (const auto& p : s.patches) {
+    if (p.faces_up && std::abs(p.height / 0.02 - (best_bin + 0.5)) <= 1.5) {
+      sum_h += p.height * p.area, sum_a += p.area;
+    }
+  }
+  plan.floor_height_m = sum_h / sum_a;
+  const double floor = plan.floor_height_m, cell = s.o.cell_m;
+
+  // Candidate walls with their extent (covered cells between the floor and 3.5 m above it).
+  struct Candidate {
+    const WallAcc* acc;
+    double s0, s1, top;
+    Eigen::Vector2d a, b;  // endpoints of the seen extent
+  };
+  std::vector<Candidate> cands;
+  for (const auto& w : s.walls) {
+    if (w.area < s.o.min_wall_m2) continue;
+    std::vector<double> ss;
+    double top = 0;
+    for (const auto& [key, c] : w.cells) {
+      if (c.covered <= 0) continue;
+      const double h = (KeyH(key) + 0.5) * cell - floor;
+      if (h < 0 || h > 3.5) continue;
+      ss.push_back((KeyS(key) + 0.5) * cell);
+      top = std::max(top, h);
+    }
+    if (ss.size() < 20 || top < s.o.min_wall_top_m) continue;
+    std::sort(ss.begin(), ss.end());
+    Candidate cand{&w, ss[ss.size() / 100], ss[ss.size() - 1 - ss.size() / 100], top, {}, {}};
+    const Eigen::Vector2d t = w.tangent(), base = w.n * w.offset;
+    cand.a = base + cand.s0 * t;
+    cand.b = base + cand.s1 * t;
+    if (w.n.dot(centre - 0.5 * (cand.a + cand.b)) <= 0) continue;  // seen from outside
+    cands.push_back(cand);
+  }
+  // Walls rise above furniture (paper 004 keeps the highest large vertical polygons; how high
+  // a wall is seen depends on the camera's tilt, so relative to the highest one).
+  double highest = 0;
+  for (const auto& c : cands) highest = std::max(highest, c.top);
+  std::vector<Candidate> tall;
+  for (const auto& c : cands) {
+    if (c.top >= s.o.wall_top_share * highest) tall.push_back(c);
+  }
+  // Not the outline: a face with a parallel one farther out behind it (furniture against a
+  // wall), or one seen behind another wall from the centre (through a door).
+  std::vector<Candidate> outline;
+  for (size_t i = 0; i < tall.size(); ++i) {
+    const Candidate& c = tall[i];
+    const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
+    bool hidden = false;
+    for (size_t j = 0; j < tall.size() && !hidden; ++j) {
+      if (j == i) continue;
+      const Candidate& o = tall[j];
+      hidden = SegmentsCross(centre, mid, o.a, o.b);
+      const double farther = c.acc->offset - o.acc->offset;  // o beyond c along −n
+      if (!hidden && o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg)) && farther > 0) {
+        const Eigen::Vector2d t = c.acc->tangent();
+        const double lo = std::max(std::min(t.dot(o.a), t.dot(o.b)), c.s0);
+        const double hi = std::min(std::max(t.dot(o.a), t.dot(o.b)), c.s1);
+        hidden = hi - lo > 0.5 * (c.s1 - c.s0);
+      }
+    }
+    if (!hidden) outline.push_back(c);
+  }
+  if (outline.size() < 3) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("only ", outline.size(), " walls seen (need 3 or more around the place)"));
+  }
+  auto angle = [&](const Candidate& c) {
+    const Eigen::Vector2d m = 0.5 * (c.a + c.b) - centre;
+    return std::atan2(m.y(), m.x());
+  };
+  std::sort(outline.begin(), outline.end(),
+            [&](const Candidate& x, const Candidate& y) { return angle(x) < angle(y); });
+
+  // Corners: where consecutive walls meet, or midway across a gap between parallel ones.
+  const size_t n = outline.size();
+  std::vector<Eigen::Vector2d> corners(n);
+  for (size_t i = 0; i < n; ++i) {
+    const Candidate& prev = outline[(i + n - 1) % n];
+    const Candidate& next = outline[i];
+    Eigen::Vector2d x;
+    const bool meet = Intersect(prev.a, prev.acc->tangent(), next.a, next.acc->tangent(), &x) &&
+                      (x - prev.b).norm() < 3.0 && (x - next.a).norm() < 3.0;
+    corners[i] = meet ? x : 0.5 * (prev.b + next.a);
+  }
+  for (size_t i = 0; i < n; ++i) {
+    const Candidate& c = outline[i];
+    Wall wall;
+    wall.start = corners[i];
+    wall.end = corners[(i + 1) % n];
+    wall.observed_m2 = c.acc->area;
+    // Openings: columns (cells along the wall) whose opening band is open, runs of them.
+    const Eigen::Vector2d t = c.acc->tangent();
+    const double sa = t.dot(wall.start), sb = t.dot(wall.end);
+    const int first = static_cast<int>(std::floor(std::min(sa, sb) / cell));
+    const int last = static_cast<int>(std::floor(std::max(sa, sb) / cell));
+    auto band = [&](int col, double lo, double hi, double* covered_share, bool* open) {
+      int cells = 0, covered = 0;
+      double free = 0, occluded = 0;
+      for (int h = static_cast<int>(std::floor((floor + lo) / cell));
+           h < static_cast<int>(std::floor((floor + hi) / cell)); ++h) {
+        ++cells;
+        auto it = c.acc->cells.find(Key(col, h));
+        if (it == c.acc->cells.end()) continue;
+        covered += it->second.covered > 0;
+        free += it->second.free;
+        occluded += it->second.occluded;
+      }
+      *covered_share = cells ? static_cast<double>(covered) / cells : 0;
+      *open = *covered_share < 0.15 && free > 0 && free > occluded;
+    };
+    std::vector<int> kind(static_cast<size_t>(std::max(0, last - first + 1)), -1);
+    for (int col = first; col <= last; ++col) {
+      double door_cov, sill_cov, win_cov;
+      bool door_open, sill_open, win_open;
+      band(col, 0.15, s.o.door_top_m - 0.2, &door_cov, &door_open);
+      band(col, s.o.window_sill_m + 0.1, s.o.door_top_m - 0.15, &win_cov, &win_open);
+      band(col, 0.3, s.o.window_sill_m - 0.3, &sill_cov, &sill_open);
+      int k = -1;
+      if (door_open) {
+        k = static_cast<int>(OpeningType::kDoor);
+      } else if (win_open && sill_cov > 0.4) {
+        k = static_cast<int>(OpeningType::kWindow);
+      }
+      kind[static_cast<size_t>(col - first)] = k;
+    }
+    for (size_t i0 = 0; i0 < kind.size();) {
+      if (kind[i0] < 0) {
+        ++i0;
+        continue;
+      }
+      size_t i1 = i0;
+      while (i1 + 1 < kind.size() && kind[i1 + 1] == kind[i0]) ++i1;
+      const double len = static_cast<double>(i1 - i0 + 1) * cell;
+      if (len >= s.o.min_opening_m) {
+        WallOpening o;
+        o.type = static_cast<OpeningType>(kind[i0]);
+        // Along the wall from its start corner (s grows from start to end).
+        const double from = (first + static_cast<int>(i0)) * cell - sa;
+        o.from_m = std::max(0.0, sb >= sa ? from : -from - len);
+        o.to_m = o.from_m + len;
+        o.bottom_m = o.type == OpeningType::kDoor ? 0.0 : s.o.window_sill_m;
+        o.top_m = s.o.door_top_m;
+        wall.openings.push_back(o);
+      }
+      i0 = i1 + 1;
+    }
+    plan.walls.push_back(std::move(wall));
+  }
+
+  // Stairs: horizontal patches off the floor, grouped by tread (height, place), chained where
+  // heights step by a riser and positions by a tread.
+  struct Tread {
+    double height, area;
+    Eigen::Vector2d centroid;
+  };
+  std::vector<Tread> treads;
+  for (const auto& p : s.patches) {
+    const double h = p.height - floor;
+    if (!p.faces_up || std::abs(h) < 0.08 || std::abs(h) > 2.0 || p.area > 3.0) continue;
+    bool merged = false;
+    for (auto& t : treads) {
+      if (std::abs(t.height - h) < 0.04 && (t.centroid - p.centroid).norm() < 0.3) {
+        t.centroid = (t.centroid * t.area + p.centroid * p.area) / (t.area + p.area);
+        t.area = std::max(t.area, p.area);
+        merged = true;
+        break;
+      }
+    }
+    if (!merged) treads.push_back({h, p.area, p.centroid});
+  }
+  for (int dir : {1, -1}) {
+    std::vector<Tread> side;
+    for (const auto& t : treads) {
+      if (t.height * dir > 0) side.push_back(t);
+    }
+    std::sort(side.begin(), side.end(), [&](const Tread& a, const Tread& b) {
+      return std::abs(a.height) < std::abs(b.height);
+    });
+    std::vector<Tread> chain;
+    for (const auto& t : side) {
+      if (chain.empty()) {
+        if (std::abs(t.height) < 0.3) chain.push_back(t);
+        continue;
+      }
+      const double rise = std::abs(t.height) - std::abs(chain.back().height);
+      const double run = (t.centroid - chain.back().centroid).norm();
+      if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) chain.push_back(t);
+    }
+    if (chain.size() < 3) continue;
+    StairFlight f;
+    f.ascending = dir > 0;
+    f.steps = static_cast<int>(chain.size());
+    f.rise_m = (std::abs(chain.back().height) - std::abs(chain.front().height)) /
+               static_cast<double>(chain.size() - 1);
+    const double run = (chain.back().centroid - chain.front().centroid).norm() /
+                       static_cast<double>(chain.size() - 1);
+    f.length_m = run * static_cast<double>(chain.size());
+    double area = 0;
+    for (const auto& t : chain) area += t.area;
+    f.width_m = run > 0 ? area / static_cast<double>(chain.size()) / run : 0;
+    f.center = 0.5 * (chain.front().centroid + chain.back().centroid);
+    f.distance_to_wall_m = 1e9;
+    for (const auto& w : plan.walls) {
+      f.distance_to_wall_m =
+          std::min(f.distance_to_wall_m, DistanceToSegment(f.center, w.start, w.end));
+    }
+    plan.stairs.push_back(f);
+  }
+  return plan;
+}
+
+}  // namespace lifemap::place

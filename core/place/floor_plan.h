@@ -1,0 +1,105 @@
+// A place's architecture from posed key frames (paper 004, section 3.3): planes of every key
+// frame brought into the world frame, the ground found, large vertical planes become walls
+// (line segments ordered around the place) with their openings — doors (reaching the floor, up
+// to 2.10 m) and windows (between about 1.2 and 2.10 m) — and stairs (regularly spaced
+// parallel horizontal planes, ascending or descending).
+//
+// Built incrementally: AddKeyframe folds one key frame in (cheap), Build derives the plan.
+// Openings need evidence that the wall is open there, not merely unseen: every key frame casts
+// a grid of its pixels' rays through the walls, and a wall cell counts as open where rays pass
+// it (a reading beyond the wall, or none: glass and far space give none) more often than they
+// stop in front of it (furniture occluding the wall).
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
+
+#include "absl/status/statusor.h"
+#include "core/common/types.h"
+#include "core/planes/planes.h"
+
+namespace lifemap::place {
+
+enum class OpeningType { kDoor = 0, kWindow = 1 };
+
+struct WallOpening {
+  OpeningType type = OpeningType::kDoor;
+  double from_m = 0;  // along the wall from its start corner
+  double to_m = 0;
+  double bottom_m = 0;  // above the floor
+  double top_m = 0;
+  double length() const { return to_m - from_m; }
+};
+
+struct Wall {
+  Eigen::Vector2d start, end;  // ground-plane coordinates (metres); the place is on the left
+  double observed_m2 = 0;      // wall area seen
+  std::vector<WallOpening> openings;
+  double length() const { return (end - start).norm(); }
+};
+
+struct StairFlight {
+  bool ascending = true;
+  int steps = 0;
+  double rise_m = 0;    // mean height between treads
+  double length_m = 0;  // along the flight
+  double width_m = 0;   // across it
+  Eigen::Vector2d center{0, 0};
+  double distance_to_wall_m = 0;  // from its centre to the nearest wall
+};
+
+struct FloorPlan {
+  double floor_height_m = 0;  // along world_up
+  std::vector<Wall> walls;    // counter-clockwise around the place; wall i ends at corner i+1
+  std::vector<StairFlight> stairs;
+  int keyframes = 0;
+  // Ground-plane basis: world point p ↦ (e1·p, e2·p).
+  Eigen::Vector3d e1, e2, up;
+};
+
+struct FloorPlanOptions {
+  Eigen::Vector3d world_up = Eigen::Vector3d::UnitZ();  // TUM's mocap and lifemap sim: z up
+  double vertical_tolerance_deg = 10;    // a plane within this of vertical is a wall candidate
+  double horizontal_tolerance_deg = 10;  // ... of horizontal: floor, stairs, tops
+  double merge_angle_deg = 10;           // walls of several key frames on one line
+  double merge_offset_m = 0.15;
+  double min_wall_m2 = 0.6;     // observed area for a wall to enter the plan
+  double min_wall_top_m = 1.5;  // ... the height above the floor it must be seen up to,
+  double wall_top_share = 0.8;  // ... and at least this share of the highest wall's
+  double cell_m = 0.05;         // along-wall and height resolution of the evidence grids
+  double min_opening_m = 0.4;   // narrower gaps are not openings
+  double door_top_m = 2.10;     // paper 004's norms (ISO)
+  double window_sill_m = 1.20;
+  int ray_stride_px = 8;  // every N-th pixel casts an evidence ray
+};
+
+class FloorPlanBuilder {
+ public:
+  explicit FloorPlanBuilder(FloorPlanOptions options = {});
+  ~FloorPlanBuilder();
+  FloorPlanBuilder(FloorPlanBuilder&&) noexcept;
+  FloorPlanBuilder& operator=(FloorPlanBuilder&&) noexcept;
+
+  // Folds in one key frame: its planes (camera frame), smoothed depth and intrinsics (for the
+  // evidence rays), and T_world_camera. InvalidArgument for a non-finite or non-unit pose.
+  absl::Status AddKeyframe(const planes::PlaneSet& planes, const CameraIntrinsics& k,
+                           const Pose& T_world_camera);
+
+  // FailedPrecondition when the plan cannot be derived yet, saying why: fewer than 2 key
+  // frames, no floor seen (no large horizontal plane facing up below the cameras), or fewer
+  // than 3 walls.
+  absl::StatusOr<FloorPlan> Build() const;
+
+  int keyframes() const;
+
+ private:
+  struct State;
+  std::unique_ptr<State> s_;
+};
+
+}  // namespace lifemap::place

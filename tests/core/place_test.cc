@@ -1,0 +1,150 @@
+#include <algorithm>
+#include <cmath>
+
+#include <gtest/gtest.h>
+
+#include "core/place/descriptor.h"
+#include "core/place/floor_plan.h"
+#include "core/planes/planes.h"
+#include "core/sim/generator.h"
+#include "core/sim/renderer.h"
+
+namespace lifemap::place {
+namespace {
+
+CameraIntrinsics Kinect() { return {525, 525, 319.5, 239.5, 640, 480}; }
+
+// A visit of a synthetic place rendered and folded into a floor plan, every `stride`-th frame.
+struct Built {
+  sim::Place place;
+  absl::StatusOr<FloorPlan> plan = absl::UnknownError("not built");
+};
+
+Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int stride = 3) {
+  Built b;
+  b.place = *sim::GeneratePlace(seed, shape);
+  auto visits = sim::GenerateVisits(b.place, seed, 1, 0, sim::Conditions{}, frames);
+  EXPECT_TRUE(visits.ok());
+  FloorPlanBuilder builder;
+  const auto& v = (*visits)[0];
+  for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
+    const auto frame = sim::Render(b.place, v.SolidsAt(f), v.lighting, Kinect(),
+                                   v.trajectory[f].T_world_camera, sim::SensorOptions{}, f + 1);
+    auto planes = planes::ExtractPlanes(frame.depth_m, Kinect());
+    EXPECT_TRUE(planes.ok());
+    EXPECT_TRUE(builder.AddKeyframe(*planes, Kinect(), v.trajectory[f].T_world_camera).ok());
+  }
+  b.plan = builder.Build();
+  return b;
+}
+
+TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
+  const Built b = BuildVisit(3, "rect");
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  const auto d = Describe(*b.plan);
+  std::cerr << DescriptorText(d);
+  ASSERT_EQ(b.plan->walls.size(), 4u);
+  EXPECT_NEAR(b.plan->floor_height_m, 0.0, 0.03);
+  // The footprint's edge lengths, in some rotation.
+  std::vector<double> truth;
+  const auto& fp = b.place.footprint;
+  for (size_t i = 0; i < fp.size(); ++i) truth.push_back((fp[(i + 1) % fp.size()] - fp[i]).norm());
+  std::vector<double> got;
+  for (const auto& c : d.corners) {
+    got.push_back(c.length_m);
+    EXPECT_NEAR(c.angle_deg, 90.0, 3.0);
+  }
+  std::sort(truth.begin(), truth.end());
+  std::sort(got.begin(), got.end());
+  for (size_t i = 0; i < 4; ++i) EXPECT_NEAR(got[i], truth[i], 0.15) << i;
+
+  // Every door and window of the room is found on its wall, of its type, where it is. (The
+  // connecting door is open: through it the next room shows.)
+  int found = 0, expected = 0;
+  for (const auto& o : b.place.openings) {
+    if (o.room != 0) continue;
+    ++expected;
+    const Eigen::Vector2d start = fp[static_cast<size_t>(o.wall)];
+    for (const auto& w : b.plan->walls) {
+      if ((w.start - start).norm() > 0.3) continue;
+      for (const auto& got_o : w.openings) {
+        const bool type = (got_o.type == OpeningType::kDoor) == (o.type == sim::OpeningType::kDoor);
+        if (type && std::abs(got_o.from_m - o.offset_m) < 0.2 &&
+            std::abs(got_o.length() - o.width_m) < 0.25) {
+          ++found;
+        }
+      }
+    }
+  }
+  EXPECT_EQ(found, expected);
+  EXPECT_EQ(expected, 3) << "seed 3's rect room: a door and two windows";
+}
+
+TEST(Descriptor, RotatedOrMirroredStartMatchesTheSamePlace) {
+  PlaceDescriptor d;
+  d.corners = {{5.0, 90, {{OpeningType::kDoor, 0.9, 1.0}}},
+               {3.0, 90, {}},
+               {5.0, 90, {{OpeningType::kWindow, 1.2, 2.0}}},
+               {3.0, 90, {}}};
+  PlaceDescriptor other = d;
+  other.corners[0].length_m = 6.0;
+  other.corners[2].length_m = 6.0;
+  // Start at corner 2 of d.
+  PlaceDescriptor rotated;
+  for (size_t i = 0; i < 4; ++i) rotated.corners.push_back(d.corners[(i + 2) % 4]);
+  const auto same = MatchDescriptors(rotated, d);
+  EXPECT_NEAR(same.difference, 0.0, 1e-9);
+  EXPECT_EQ(same.start, 2);
+  EXPECT_NEAR(same.score, 1.0, 1e-9);
+  // Walked the other way round (a mirrored start): walls reversed and read from their ends.
+  PlaceDescriptor mirrored;
+  for (size_t k = 0; k < 4; ++k) {
+    CornerEntry e = d.corners[3 - k];
+    e.angle_deg = 90;
+    for (auto& o : e.openings) o.distance_m = e.length_m - o.distance_m - o.length_m;
+    mirrored.corners.push_back(e);
+  }
+  const auto m = MatchDescriptors(mirrored, d);
+  EXPECT_NEAR(m.difference, 0.0, 1e-9);
+  EXPECT_TRUE(m.reversed);
+  // A different room scores worse; a closed door costs little, a missing window more.
+  EXPECT_GT(MatchDescriptors(rotated, other).difference, 1.9);
+  PlaceDescriptor closed = d;
+  closed.corners[0].openings.clear();
+  PlaceDescriptor no_window = d;
+  no_window.corners[2].openings.clear();
+  const double closed_cost = MatchDescriptors(closed, d).difference;
+  EXPECT_GT(closed_cost, 0.0);
+  EXPECT_LT(closed_cost, MatchDescriptors(no_window, d).difference);
+}
+
+TEST(FloorPlan, BadInputsGiveClearStatuses) {
+  FloorPlanBuilder builder;
+  planes::PlaneSet empty;
+  Pose bad;
+  bad.rotation = Eigen::Quaterniond(2, 0, 0, 0);
+  EXPECT_TRUE(absl::IsInvalidArgument(builder.AddKeyframe(empty, Kinect(), bad)));
+  bad.rotation = Eigen::Quaterniond::Identity();
+  bad.translation.x() = std::nan("");
+  EXPECT_TRUE(absl::IsInvalidArgument(builder.AddKeyframe(empty, Kinect(), bad)));
+  // A single frame: not enough.
+  ASSERT_TRUE(builder.AddKeyframe(empty, Kinect(), Pose{}).ok());
+  auto one = builder.Build();
+  EXPECT_TRUE(absl::IsFailedPrecondition(one.status()));
+  EXPECT_NE(one.status().message().find("key frames"), std::string::npos) << one.status();
+  // Frames that never see the floor (a camera looking at the ceiling plane).
+  planes::PlaneSet ceiling;
+  ceiling.planes.emplace_back();
+  ceiling.planes[0].normal = Eigen::Vector3f(0, 0, -1);  // camera looking up at it: z up in world
+  ceiling.planes[0].offset_m = -1.5f;
+  ceiling.planes[0].centroid = Eigen::Vector3f(0, 0, 1.5f);
+  ceiling.planes[0].area_m2 = 8;
+  Pose up;  // camera z axis along world z: looks at the ceiling
+  ASSERT_TRUE(builder.AddKeyframe(ceiling, Kinect(), up).ok());
+  auto none = builder.Build();
+  EXPECT_TRUE(absl::IsFailedPrecondition(none.status()));
+  EXPECT_NE(none.status().message().find("no floor"), std::string::npos) << none.status();
+}
+
+}  // namespace
+}  // namespace lifemap::place
