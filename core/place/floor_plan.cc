@@ -56,17 +56,6 @@ bool Intersect(const Eigen::Vector2d& p1, const Eigen::Vector2d& d1, const Eigen
   return true;
 }
 
-// Whether segments ab and cd cross strictly inside both.
-bool SegmentsCross(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& c,
-                   const Eigen::Vector2d& d) {
-  auto cross = [](const Eigen::Vector2d& u, const Eigen::Vector2d& v) {
-    return u.x() * v.y() - u.y() * v.x();
-  };
-  const double d1 = cross(b - a, c - a), d2 = cross(b - a, d - a);
-  const double d3 = cross(d - c, a - c), d4 = cross(d - c, b - c);
-  return d1 * d2 < 0 && d3 * d4 < 0;
-}
-
 double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
                          const Eigen::Vector2d& b) {
   const Eigen::Vector2d ab = b - a;
@@ -301,48 +290,96 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     if (c.top >= s.o.wall_top_share * highest) tall.push_back(c);
   }
   // Not the outline: a face with a parallel one farther out behind it (furniture against a
-  // wall), or one seen behind another wall from the centre (through a door).
-  std::vector<Candidate> outline;
+  // wall).
+  std::vector<Candidate> faces;
   for (size_t i = 0; i < tall.size(); ++i) {
     const Candidate& c = tall[i];
-    const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
     bool hidden = false;
     for (size_t j = 0; j < tall.size() && !hidden; ++j) {
-      if (j == i) continue;
       const Candidate& o = tall[j];
-      hidden = SegmentsCross(centre, mid, o.a, o.b);
       const double farther = c.acc->offset - o.acc->offset;  // o beyond c along −n
-      if (!hidden && o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg)) && farther > 0) {
+      if (j != i && o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg)) && farther > 0) {
         const Eigen::Vector2d t = c.acc->tangent();
         const double lo = std::max(std::min(t.dot(o.a), t.dot(o.b)), c.s0);
         const double hi = std::min(std::max(t.dot(o.a), t.dot(o.b)), c.s1);
         hidden = hi - lo > 0.5 * (c.s1 - c.s0);
       }
     }
-    if (!hidden) outline.push_back(c);
+    if (!hidden) faces.push_back(c);
   }
-  if (outline.size() < 3) {
+  if (faces.size() < 3) {
     return absl::FailedPreconditionError(
-        absl::StrCat("only ", outline.size(), " walls seen (need 3 or more around the place)"));
+        absl::StrCat("only ", faces.size(), " walls seen (need 3 or more around the place)"));
   }
-  auto angle = [&](const Candidate& c) {
-    const Eigen::Vector2d m = 0.5 * (c.a + c.b) - centre;
-    return std::atan2(m.y(), m.x());
-  };
-  std::sort(outline.begin(), outline.end(),
-            [&](const Candidate& x, const Candidate& y) { return angle(x) < angle(y); });
-
-  // Corners: where consecutive walls meet, or midway across a gap between parallel ones.
-  const size_t n = outline.size();
-  std::vector<Eigen::Vector2d> corners(n);
-  for (size_t i = 0; i < n; ++i) {
-    const Candidate& prev = outline[(i + n - 1) % n];
-    const Candidate& next = outline[i];
+  // The outline: walls chained end to start, counter-clockwise (the place on their left), from
+  // the largest; each next wall is the one the current meets with the least extension of both.
+  // Walls off the chain (seen through a door, furniture) drop out. Where a wall was not seen
+  // the chain breaks: then the walls are ordered by direction from the cameras' centre.
+  constexpr double kMaxJoin = 2.5;  // metres of extension, both walls together
+  auto join = [&](const Candidate& p, const Candidate& q, Eigen::Vector2d* corner) {
+    const Eigen::Vector2d tp = p.acc->tangent(), tq = q.acc->tangent();
     Eigen::Vector2d x;
-    const bool meet = Intersect(prev.a, prev.acc->tangent(), next.a, next.acc->tangent(), &x) &&
-                      (x - prev.b).norm() < 3.0 && (x - next.a).norm() < 3.0;
-    corners[i] = meet ? x : 0.5 * (prev.b + next.a);
+    if (Intersect(p.a, tp, q.a, tq, &x)) {
+      if (tp.dot(x) < p.s0 + 0.3 || tq.dot(x) > q.s1 - 0.3) return 1e9;
+      *corner = x;
+      return (x - p.b).norm() + (x - q.a).norm();
+    }
+    if (tp.dot(tq) < 0) return 1e9;  // antiparallel: the other side of the room
+    *corner = 0.5 * (p.b + q.a);
+    return (p.b - q.a).norm() + std::abs(p.acc->offset - q.acc->offset);
+  };
+  size_t largest = 0;
+  for (size_t i = 1; i < faces.size(); ++i) {
+    if (faces[i].acc->area > faces[largest].acc->area) largest = i;
   }
+  std::vector<size_t> chain = {largest};
+  std::vector<Eigen::Vector2d> joins;  // joins[k]: where chain[k] meets chain[k + 1]
+  std::vector<bool> used(faces.size(), false);
+  used[largest] = true;
+  bool closed = false;
+  while (!closed) {
+    const Candidate& cur = faces[chain.back()];
+    double best = kMaxJoin;
+    int next = -1;
+    Eigen::Vector2d best_corner = Eigen::Vector2d::Zero();
+    for (size_t j = 0; j < faces.size(); ++j) {
+      if (used[j] && !(j == largest && chain.size() >= 3)) continue;
+      Eigen::Vector2d x = Eigen::Vector2d::Zero();
+      const double cost = join(cur, faces[j], &x);
+      if (cost < best) best = cost, next = static_cast<int>(j), best_corner = x;
+    }
+    if (next < 0) break;
+    joins.push_back(best_corner);
+    if (static_cast<size_t>(next) == largest) {
+      closed = true;
+    } else {
+      chain.push_back(static_cast<size_t>(next));
+      used[static_cast<size_t>(next)] = true;
+    }
+  }
+  std::vector<Candidate> outline;
+  std::vector<Eigen::Vector2d> corners;
+  if (closed) {
+    for (size_t k = 0; k < chain.size(); ++k) {
+      outline.push_back(faces[chain[k]]);
+      corners.push_back(joins[(k + chain.size() - 1) % chain.size()]);  // where it starts
+    }
+  } else {
+    outline = faces;
+    auto angle = [&](const Candidate& c) {
+      const Eigen::Vector2d m = 0.5 * (c.a + c.b) - centre;
+      return std::atan2(m.y(), m.x());
+    };
+    std::sort(outline.begin(), outline.end(),
+              [&](const Candidate& x, const Candidate& y) { return angle(x) < angle(y); });
+    const size_t m = outline.size();
+    for (size_t i = 0; i < m; ++i) {
+      const Candidate& prev = outline[(i + m - 1) % m];
+      Eigen::Vector2d x = Eigen::Vector2d::Zero();
+      corners.push_back(join(prev, outline[i], &x) < kMaxJoin ? x : 0.5 * (prev.b + outline[i].a));
+    }
+  }
+  const size_t n = outline.size();
   for (size_t i = 0; i < n; ++i) {
     const Candidate& c = outline[i];
     Wall wall;
@@ -437,29 +474,29 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     std::sort(side.begin(), side.end(), [&](const Tread& a, const Tread& b) {
       return std::abs(a.height) < std::abs(b.height);
     });
-    std::vector<Tread> chain;
+    std::vector<Tread> flight;
     for (const auto& t : side) {
-      if (chain.empty()) {
-        if (std::abs(t.height) < 0.3) chain.push_back(t);
+      if (flight.empty()) {
+        if (std::abs(t.height) < 0.3) flight.push_back(t);
         continue;
       }
-      const double rise = std::abs(t.height) - std::abs(chain.back().height);
-      const double run = (t.centroid - chain.back().centroid).norm();
-      if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) chain.push_back(t);
+      const double rise = std::abs(t.height) - std::abs(flight.back().height);
+      const double run = (t.centroid - flight.back().centroid).norm();
+      if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) flight.push_back(t);
     }
-    if (chain.size() < 3) continue;
+    if (flight.size() < 3) continue;
     StairFlight f;
     f.ascending = dir > 0;
-    f.steps = static_cast<int>(chain.size());
-    f.rise_m = (std::abs(chain.back().height) - std::abs(chain.front().height)) /
-               static_cast<double>(chain.size() - 1);
-    const double run = (chain.back().centroid - chain.front().centroid).norm() /
-                       static_cast<double>(chain.size() - 1);
-    f.length_m = run * static_cast<double>(chain.size());
+    f.steps = static_cast<int>(flight.size());
+    f.rise_m = (std::abs(flight.back().height) - std::abs(flight.front().height)) /
+               static_cast<double>(flight.size() - 1);
+    const double run = (flight.back().centroid - flight.front().centroid).norm() /
+                       static_cast<double>(flight.size() - 1);
+    f.length_m = run * static_cast<double>(flight.size());
     double area = 0;
-    for (const auto& t : chain) area += t.area;
-    f.width_m = run > 0 ? area / static_cast<double>(chain.size()) / run : 0;
-    f.center = 0.5 * (chain.front().centroid + chain.back().centroid);
+    for (const auto& t : flight) area += t.area;
+    f.width_m = run > 0 ? area / static_cast<double>(flight.size()) / run : 0;
+    f.center = 0.5 * (flight.front().centroid + flight.back().centroid);
     f.distance_to_wall_m = 1e9;
     for (const auto& w : plan.walls) {
       f.distance_to_wall_m =
