@@ -5,18 +5,24 @@
 // TUM fr1 office frame. Counters: planes of at least 2000 points (PCL: inliers), and the share
 // of depth pixels they cover.
 //
+// Also the floor plan's incremental update per key frame (planes + folding them in) and a
+// descriptor match against 1,000 stored places.
+//
 //   build/bin/bench_planes
 #include <pcl/features/integral_image_normal.h>
 #include <pcl/point_cloud.h>
 #include <pcl/point_types.h>
 #include <pcl/segmentation/organized_multi_plane_segmentation.h>
 
+#include <random>
 #include <string>
 
 #include <benchmark/benchmark.h>
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/io/tum_dataset.h"
+#include "core/place/descriptor.h"
+#include "core/place/floor_plan.h"
 #include "core/planes/planes.h"
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
@@ -120,6 +126,74 @@ void BM_PclOrganizedMultiPlane(benchmark::State& state) {
   state.counters["coverage"] = covered / cv::countNonZero(s.depth_m > 0);
 }
 BENCHMARK(BM_PclOrganizedMultiPlane)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+
+// One key frame of a rendered visit: its planes and the fold into a floor plan that has seen
+// 20 key frames of the place already.
+void BM_FloorPlanUpdate(benchmark::State& state) {
+  const CameraIntrinsics k{525, 525, 319.5, 239.5, 640, 480};
+  auto place = sim::GeneratePlace(3, "rect");
+  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 90);
+  const auto& v = (*visits)[0];
+  std::vector<cv::Mat> depths;
+  for (size_t f = 0; f < v.trajectory.size(); f += 3) {
+    depths.push_back(sim::Render(*place, v.solids, v.lighting, k, v.trajectory[f].T_world_camera,
+                                 sim::SensorOptions{}, f + 1)
+                         .depth_m);
+  }
+  place::FloorPlanBuilder warm;
+  for (size_t i = 0; i < 20; ++i) {
+    warm.AddKeyframe(*planes::ExtractPlanes(depths[i], k), k, v.trajectory[3 * i].T_world_camera)
+        .IgnoreError();
+  }
+  size_t i = 20;
+  for (auto _ : state) {
+    state.PauseTiming();
+    place::FloorPlanBuilder builder = [&] {
+      place::FloorPlanBuilder b;
+      for (size_t j = 0; j < 20; ++j) {
+        b.AddKeyframe(*planes::ExtractPlanes(depths[j], k), k, v.trajectory[3 * j].T_world_camera)
+            .IgnoreError();
+      }
+      return b;
+    }();
+    state.ResumeTiming();
+    const size_t f = i++ % (depths.size() - 20) + 20;
+    auto planes = planes::ExtractPlanes(depths[f], k);
+    builder.AddKeyframe(*planes, k, v.trajectory[3 * f].T_world_camera).IgnoreError();
+    if (state.range(0) == 1) benchmark::DoNotOptimize(builder.Build());
+  }
+}
+BENCHMARK(BM_FloorPlanUpdate)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(20);
+
+// A query against 1,000 stored descriptors of 4–8 corners with openings and stairs.
+void BM_MatchAgainst1000Places(benchmark::State& state) {
+  std::mt19937 rng(1);
+  std::uniform_real_distribution<double> len(2.0, 9.0), pos(0.0, 1.0);
+  auto make = [&] {
+    place::PlaceDescriptor d;
+    const int corners = 4 + static_cast<int>(rng() % 5);
+    for (int c = 0; c < corners; ++c) {
+      place::CornerEntry e{len(rng), rng() % 4 == 0 ? 270.0 : 90.0, {}};
+      for (int o = 0; o < static_cast<int>(rng() % 3); ++o) {
+        e.openings.push_back({rng() % 2 ? place::OpeningType::kDoor : place::OpeningType::kWindow,
+                              0.9, pos(rng) * (e.length_m - 1)});
+      }
+      d.corners.push_back(e);
+    }
+    if (rng() % 2) d.stairs.push_back({true, 1.7, 1.0, 0.4});
+    return d;
+  };
+  std::vector<place::PlaceDescriptor> stored;
+  for (int i = 0; i < 1000; ++i) stored.push_back(make());
+  const place::PlaceDescriptor query = stored[417];
+  for (auto _ : state) {
+    double best = 1e18;
+    for (const auto& s : stored)
+      best = std::min(best, place::MatchDescriptors(query, s).difference);
+    benchmark::DoNotOptimize(best);
+  }
+}
+BENCHMARK(BM_MatchAgainst1000Places)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace lifemap

@@ -176,6 +176,9 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
     const Eigen::Vector2d o2 = s.Ground(origin);
     const double oh = origin.dot(s.up);
     for (auto& w : s.walls) {
+      // Small faces (clutter, furniture sides) are not worth the rays; a wall passes this
+      // size within a key frame or two.
+      if (w.area < 0.5 * s.o.min_wall_m2) continue;
       const double side = w.n.dot(o2) - w.offset;
       if (side <= 0.05) continue;  // the camera is behind (or on) this wall's line
       const Eigen::Vector2d t = w.tangent();
