@@ -52,6 +52,12 @@ int RunTrain(const CliContext& ctx, const TrainArgs& a) {
   o.candidates = a.candidates;
   o.seed = a.seed;
   const auto start = std::chrono::steady_clock::now();
+  o.progress = [&](int done, int total) {
+    if (ctx.json) return;
+    const double s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    std::cerr << absl::StrFormat("  tree %d of %d trained (%.1f s)\n", done, total, s);
+  };
   if (!ctx.json) {
     std::cerr << absl::StrFormat("training %d trees of depth <= %d on %d images...\n", a.trees,
                                  a.depth, data->images.size());

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <mutex>
 #include <random>
 #include <thread>
 
@@ -287,9 +288,17 @@ absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, in
   };
   std::vector<std::thread> workers;
   const int threads = std::min(options.threads, options.trees);
+  std::mutex progress_mu;
+  int done = 0;
   for (int t = 0; t < threads; ++t) {
     workers.emplace_back([&, t] {
-      for (int k = t; k < options.trees; k += threads) train_tree(k);
+      for (int k = t; k < options.trees; k += threads) {
+        train_tree(k);
+        if (options.progress) {
+          std::lock_guard<std::mutex> lock(progress_mu);
+          options.progress(++done, options.trees);
+        }
+      }
     });
   }
   for (auto& w : workers) w.join();

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,9 @@ struct TrainOptions {
   float max_size = 40.0f;       // pixel metres
   uint64_t seed = 1;
   int threads = 2;
+  // Called after each tree is trained with (trees done, trees in all), one call at a time
+  // (from the training threads).
+  std::function<void(int, int)> progress;
 
   absl::Status Validate() const;
 };

@@ -14,6 +14,7 @@
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
@@ -519,6 +520,19 @@ TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
   EXPECT_GT(s["baselines"]["ransac_plane"]["accuracy"].get<double>(), 0.9)
       << "a plane and 1.5 cm above it nearly solves table vs objects";
   EXPECT_TRUE(s["baselines"].contains("pixel_rtrees"));
+
+  // Data of other classes than the model's: a clear error naming both.
+  testing::WriteSyntheticTum(tmp_.File("pngs"), 2, 0.02, 64, 48);
+  std::filesystem::create_directories(tmp_.File("pngs/labels"));
+  std::ofstream(tmp_.File("pngs/labels/classes.txt")) << "floor\nchair\nthing\n";
+  for (const auto& e : std::filesystem::directory_iterator(tmp_.File("pngs/rgb"))) {
+    cv::imwrite(tmp_.File("pngs/labels/" + e.path().filename().string()),
+                cv::Mat(48, 64, CV_8UC1, cv::Scalar(1)));
+  }
+  r = Run({"eval", "segmentation", "--model", tmp_.File("m.model"), "--data", tmp_.File("pngs")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("[table, object]"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("[floor, chair, thing]"), std::string::npos) << r.err;
 
   std::ofstream(tmp_.File("bad.model")) << "LMRF garbage";
   r = Run({"eval", "segmentation", "--model", tmp_.File("bad.model"), "--data", dir + "/test"});
