@@ -10,6 +10,7 @@
 #include "lifemap/v1/frame_service.grpc.pb.h"
 #include "lifemap/v1/map_service.grpc.pb.h"
 #include "lifemap/v1/model_service.grpc.pb.h"
+#include "lifemap/v1/place_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
 
 namespace lifemap::client {
@@ -83,6 +84,7 @@ class GrpcClient final : public Client {
         visits_(v1::VisitService::NewStub(channel)),
         frames_(v1::FrameService::NewStub(channel)),
         models_(v1::ModelService::NewStub(channel)),
+        places_(v1::PlaceService::NewStub(channel)),
         admin_(v1::AdminService::NewStub(channel)) {}
 
   absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,
@@ -105,6 +107,14 @@ class GrpcClient final : public Client {
     writer->WritesDone();
     if (auto s = FromGrpc(writer->Finish()); !s.ok()) return s;
     return info;
+  }
+  absl::StatusOr<v1::QueryPlaceResponse> QueryPlace(const v1::QueryPlaceRequest& request) override {
+    return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request);
+  }
+  absl::StatusOr<v1::ListPlacesResponse> ListPlaces(const std::string& map) override {
+    v1::ListPlacesRequest req;
+    req.set_map(map);
+    return Unary(&v1::PlaceService::Stub::ListPlaces, places_.get(), req);
   }
   absl::StatusOr<v1::ListModelsResponse> ListModels() override {
     return Unary(&v1::ModelService::Stub::ListModels, models_.get(), v1::ListModelsRequest());
@@ -261,6 +271,7 @@ class GrpcClient final : public Client {
   std::unique_ptr<v1::VisitService::Stub> visits_;
   std::unique_ptr<v1::FrameService::Stub> frames_;
   std::unique_ptr<v1::ModelService::Stub> models_;
+  std::unique_ptr<v1::PlaceService::Stub> places_;
   std::unique_ptr<v1::AdminService::Stub> admin_;
 };
 

@@ -18,6 +18,7 @@
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/model_service.pb.h"
+#include "lifemap/v1/place_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
 
 namespace lifemap::client {
@@ -91,6 +92,11 @@ class Client {
                                                                   const std::string& map) = 0;
   virtual absl::StatusOr<v1::DeleteModelResponse> DeleteModel(const std::string& name) = 0;
   virtual absl::StatusOr<v1::ListClassesResponse> ListClasses(const std::string& map) = 0;
+
+  // Places (architecture, paper 004).
+  virtual absl::StatusOr<v1::QueryPlaceResponse> QueryPlace(
+      const v1::QueryPlaceRequest& request) = 0;
+  virtual absl::StatusOr<v1::ListPlacesResponse> ListPlaces(const std::string& map) = 0;
 
   virtual absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) = 0;
   // Opens a stream and waits for the server's StreamStarted; the error if it refuses.

@@ -42,8 +42,9 @@ void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* ou
   } else {
     add(v1::FRAME_OUTPUT_CLASS_LABELS, labels_available, labels_reason);
   }
-  add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
-      "not implemented in this server yet (place recognition, papers 000 and 004)");
+  // Per frame, the frame service refines this from the visit's architecture.
+  add(v1::FRAME_OUTPUT_PLACE_MATCHES, stores_keyframes,
+      "no map given: places are recognised per visit (architecture, paper 004)");
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
       "not implemented in this server yet (semantic octree, paper 002)");
 }
@@ -131,20 +132,6 @@ grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext*, const v1::Crea
   return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
                       "API keys are not implemented yet: this server has no authentication; "
                       "listen on loopback or a private network only");
-}
-
-namespace {
-grpc::Status NotBuilt(const char* what) {
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                      absl::StrCat(what, " is not implemented in this server yet"));
-}
-}  // namespace
-
-grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest*,
-                                          v1::QueryPlaceResponse*) {
-  return NotBuilt(
-      "QueryPlace (place recognition by appearance with entropy masks, paper 000, and by "
-      "architecture, paper 004)");
 }
 
 }  // namespace lifemap::server

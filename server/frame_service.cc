@@ -194,6 +194,21 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
+    if (f.T_world_camera) {
+      AddArchitectureKeyframe(ctx->places, visit->visit_id, visit->map_id, visit->map_name,
+                              f.depth_m, f.intrinsics, *f.T_world_camera, &visit->architecture);
+    }
+  }
+  // Every result carries the visit's current ranking by architecture (paper 004).
+  const VisitArchitecture& arch = visit->architecture;
+  for (const auto& m : arch.matches) *r.add_place_matches() = m;
+  for (auto& o : *r.mutable_outputs()) {
+    if (o.output() != v1::FRAME_OUTPUT_PLACE_MATCHES) continue;
+    o.set_computed(arch.status.ok());
+    o.set_reason(arch.status.ok()
+                     ? ""
+                     : absl::StrCat("architecture (paper 004): ", arch.status.message(),
+                                    "; appearance matching is not built yet"));
   }
   return p;
 }

@@ -84,6 +84,7 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMap
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
   ctx_->visits->ForgetMap(map->id);
   ctx_->models->InvalidateActivations();  // its id may be reused
+  ctx_->places->Invalidate();
   spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
                deleted->second);
   resp->set_deleted_visits(static_cast<uint32_t>(deleted->first));
@@ -101,6 +102,7 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMap
   auto map = ctx_->store->RenameMap(req->name(), req->new_name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   ctx_->visits->ForgetMap(map->id);
+  ctx_->places->Invalidate();  // rankings name maps
   MapToProto(*map, resp);
   return grpc::Status::OK;
 }

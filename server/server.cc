@@ -18,6 +18,7 @@ struct LifemapServer::Impl {
   ServiceContext ctx;
   std::unique_ptr<store::Store> store;
   std::unique_ptr<KeyframeCommitter> committer;
+  std::unique_ptr<PlaceIndex> places;
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
@@ -48,7 +49,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->store = *std::move(store);
   impl->committer =
       std::make_unique<KeyframeCommitter>(impl->store.get(), config.keyframe_batch_max);
-  impl->visits = std::make_unique<VisitRegistry>(impl->store.get());
+  impl->places = std::make_unique<PlaceIndex>(impl->store.get());
+  impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
   ServiceContext& ctx = impl->ctx;
@@ -56,6 +58,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.store = impl->store.get();
   ctx.committer = impl->committer.get();
   ctx.visits = impl->visits.get();
+  ctx.places = impl->places.get();
   ctx.models = impl->models.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
@@ -64,7 +67,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->map_service = std::make_unique<MapServiceImpl>(&ctx);
   impl->visit_service = std::make_unique<VisitServiceImpl>(&ctx);
   impl->frame_service = std::make_unique<FrameServiceImpl>(&ctx);
-  impl->place_service = std::make_unique<PlaceServiceImpl>();
+  impl->place_service = std::make_unique<PlaceServiceImpl>(&ctx);
   impl->model_service = std::make_unique<ModelServiceImpl>(&ctx);
   impl->admin_service = std::make_unique<AdminServiceImpl>(&ctx);
 

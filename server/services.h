@@ -12,6 +12,7 @@
 #include "lifemap/v1/model_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
+#include "server/architecture.h"
 #include "server/config.h"
 #include "server/keyframe_committer.h"
 #include "server/model_registry.h"
@@ -27,6 +28,7 @@ struct ServiceContext {
   KeyframeCommitter* committer = nullptr;
   VisitRegistry* visits = nullptr;
   ModelRegistry* models = nullptr;
+  PlaceIndex* places = nullptr;
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};
@@ -88,8 +90,14 @@ class FrameServiceImpl final : public v1::FrameService::Service {
 
 class PlaceServiceImpl final : public v1::PlaceService::Service {
  public:
+  explicit PlaceServiceImpl(ServiceContext* ctx) : ctx_(ctx) {}
   grpc::Status QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest*,
                           v1::QueryPlaceResponse*) override;
+  grpc::Status ListPlaces(grpc::ServerContext*, const v1::ListPlacesRequest*,
+                          v1::ListPlacesResponse*) override;
+
+ private:
+  ServiceContext* ctx_;
 };
 
 class ModelServiceImpl final : public v1::ModelService::Service {

@@ -1,6 +1,8 @@
 #include "server/visit_registry.h"
 
 #include "absl/strings/str_cat.h"
+#include "core/common/image_codec.h"
+#include "core/planes/planes.h"
 
 namespace lifemap::server {
 
@@ -26,10 +28,43 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
     absl::MutexLock lock(&state->mu);
     state->frame_count = visit->frame_count;
     if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
+    RebuildArchitecture(state.get());
   }
   absl::MutexLock lock(&mu_);
   auto [it, inserted] = visits_.emplace(visit_id, std::move(state));
   return it->second;  // another thread may have loaded it first: use that one
+}
+
+void VisitRegistry::RebuildArchitecture(VisitState* state) {
+  VisitArchitecture& arch = state->architecture;
+  int folded = 0;
+  auto s = store_->ForEachKeyframeWithImages(
+      state->map_id, state->visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
+        if (!k.T_world_camera) return absl::OkStatus();
+        EncodedDepth depth{DepthEncoding::kPng16, k.depth_png, k.intrinsics.width,
+                           k.intrinsics.height, k.depth_scale};
+        auto d = DecodeDepthMetres(depth);
+        if (!d.ok()) return absl::OkStatus();  // a damaged image does not stop the others
+        auto planes = planes::ExtractPlanes(*d, k.intrinsics);
+        if (planes.ok() &&
+            arch.builder.AddKeyframe(*planes, k.intrinsics, *k.T_world_camera).ok()) {
+          ++folded;
+        }
+        return absl::OkStatus();
+      });
+  if (!s.ok()) {
+    arch.status = s;
+    return;
+  }
+  if (folded == 0) return;
+  auto plan = arch.builder.Build();
+  if (!plan.ok()) {
+    arch.status = plan.status();
+    return;
+  }
+  auto ranked = places_->Rank(place::Describe(*plan), state->visit_id, kFramePlaceMatches);
+  arch.status = ranked.status();
+  if (ranked.ok()) arch.matches = *std::move(ranked);
 }
 
 void VisitRegistry::Forget(int64_t visit_id) {

@@ -57,6 +57,8 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);
 void AddSimCommands(CLI::App* app, CliContext* ctx);
+// `lifemap places show|query`.
+void AddPlaceCommands(CLI::App* app, CliContext* ctx);
 // `lifemap models upload|list|activate|delete|classes`.
 void AddModelCommands(CLI::App* app, CliContext* ctx);
 // `lifemap train` on `app` and `lifemap eval segmentation` on `eval`.

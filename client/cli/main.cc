@@ -25,6 +25,7 @@ int main(int argc, char** argv) {
   lifemap::cli::AddExportCommand(&app, &ctx);
   lifemap::cli::AddProcessCommand(&app, &ctx);
   lifemap::cli::AddModelCommands(&app, &ctx);
+  lifemap::cli::AddPlaceCommands(&app, &ctx);
   lifemap::cli::AddAdminCommands(&app, &ctx);
   lifemap::cli::AddEvalCommands(&app, &ctx);
   lifemap::cli::AddSimCommands(&app, &ctx);

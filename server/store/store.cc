@@ -97,6 +97,17 @@ CREATE TABLE settings (
   value TEXT NOT NULL
 );
 )sql",
+    // 3 -> 4: each visit's architecture (paper 004): its floor plan and descriptor as JSON,
+    // rewritten as key frames arrive.
+    R"sql(
+CREATE TABLE visit_places (
+  visit_id INTEGER PRIMARY KEY REFERENCES visits(id) ON DELETE CASCADE,
+  keyframes INTEGER NOT NULL,
+  floor_plan TEXT NOT NULL,
+  descriptor TEXT NOT NULL,
+  updated_time_s REAL NOT NULL
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");

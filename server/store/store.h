@@ -129,6 +129,17 @@ struct ModelRecord {
   std::vector<std::string> active_maps;  // maps whose own model this is
 };
 
+// A visit's architecture (paper 004) as last derived from its key frames.
+struct VisitPlaceRecord {
+  int64_t visit_id = 0;
+  int64_t map_id = 0;  // filled when read
+  std::string map_name;
+  int keyframes = 0;
+  std::string floor_plan_json;
+  std::string descriptor_json;
+  double updated_time_s = 0;
+};
+
 class Store {
  public:
   // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
@@ -139,7 +150,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 3;
+  static constexpr int kSchemaVersion = 4;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -201,6 +212,11 @@ class Store {
   absl::StatusOr<std::string> ActiveModelName(int64_t map_id);
   // FAILED_PRECONDITION while it is active anywhere; NOT_FOUND for an unknown name.
   absl::Status DeleteModel(const std::string& name);
+
+  // Visit architectures. Put replaces the visit's record (NOT_FOUND for an unknown visit);
+  // List returns those of one map (or every map for ""), by visit id.
+  absl::Status PutVisitPlace(const VisitPlaceRecord& record);
+  absl::StatusOr<std::vector<VisitPlaceRecord>> ListVisitPlaces(const std::string& map_name);
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();

@@ -5,6 +5,7 @@
 
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
+#include "core/place/serialize.h"
 #include "core/planes/planes.h"
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
@@ -78,6 +79,16 @@ TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
   }
   EXPECT_EQ(found, expected);
   EXPECT_EQ(expected, 3) << "seed 3's rect room: a door and two windows";
+
+  // The stored forms round-trip.
+  auto plan = FloorPlanFromJson(FloorPlanToJson(*b.plan));
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  EXPECT_EQ(DescriptorText(Describe(*plan)), DescriptorText(d));
+  auto desc = DescriptorFromJson(DescriptorToJson(d));
+  ASSERT_TRUE(desc.ok()) << desc.status();
+  EXPECT_NEAR(MatchDescriptors(*desc, d).difference, 0.0, 1e-9);
+  EXPECT_TRUE(absl::IsInvalidArgument(DescriptorFromJson("{\"corners\": 3}").status()));
+  EXPECT_TRUE(absl::IsInvalidArgument(FloorPlanFromJson("not json").status()));
 }
 
 TEST(Descriptor, RotatedOrMirroredStartMatchesTheSamePlace) {

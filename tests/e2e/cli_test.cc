@@ -387,6 +387,36 @@ TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
 }
 
 // The synthetic world's folders stream into lifemapd unchanged, with their exact poses.
+// Paper 004 served: two visits of a synthetic room streamed with their poses; the second is
+// recognised as the first by architecture, and `places show` writes the floor plan as SVG.
+TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
+  auto r = Run({"sim", "--seed", "3", "--place-shape", "rect", "--visits", "2", "--frames", "60",
+                "--out", tmp_.File("home")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  ASSERT_EQ(Run({"maps", "create", "home"}).code, 0);
+  for (const char* v : {"visit_00", "visit_01"}) {
+    r = Run({"stream", "--map", "home", "--tum", tmp_.File(std::string("home/") + v),
+             "--use-groundtruth", "--rate", "0"});
+    ASSERT_EQ(r.code, 0) << r.err;
+    if (std::string(v) == "visit_00") {
+      ASSERT_EQ(Run({"visits", "end", "1"}).code, 0);
+    }
+  }
+  r = Run({"places", "show", "home", "--svg", tmp_.File("plan")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("C3 L="), std::string::npos) << r.out;
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("plan-visit-1.svg")));
+  r = Run({"--json", "places", "query", "--visit", "2"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json q = json::parse(r.out);
+  ASSERT_FALSE(q["matches"].empty());
+  EXPECT_EQ(q["matches"][0]["visit_id"], "1");
+  EXPECT_GT(q["matches"][0]["score"].get<double>(), 0.5);
+  r = Run({"places", "query", "--visit", "77"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("NOT_FOUND"), std::string::npos) << r.err;
+}
+
 TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   auto r = Run({"--json", "sim", "--seed", "5", "--place-shape", "square", "--visits", "2",
                 "--frames", "12", "--conditions", "scenery,lighting", "--out", tmp_.File("sim")});

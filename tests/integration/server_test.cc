@@ -478,9 +478,11 @@ TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   auto places = v1::PlaceService::NewStub(channel);
   grpc::ClientContext ctx;
   v1::QueryPlaceResponse resp;
-  const grpc::Status s = places->QueryPlace(&ctx, v1::QueryPlaceRequest(), &resp);
+  v1::QueryPlaceRequest appearance;
+  appearance.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  const grpc::Status s = places->QueryPlace(&ctx, appearance, &resp);
   EXPECT_EQ(s.error_code(), grpc::StatusCode::UNIMPLEMENTED);
-  EXPECT_NE(s.error_message().find("QueryPlace"), std::string::npos);
+  EXPECT_NE(s.error_message().find("appearance"), std::string::npos);
 
   // grpc.health.v1.Health/Check with an empty request; SERVING is field 1 = 1 (bytes 08 01).
   grpc::ClientContext health_ctx;

@@ -1,0 +1,25 @@
+// JSON forms of a floor plan and a descriptor, as the store keeps them with a visit and the CLI
+// prints them. Lengths in metres, angles in degrees, ground-plane coordinates of the plan.
+#pragma once
+
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "core/place/descriptor.h"
+#include "core/place/floor_plan.h"
+
+namespace lifemap::place {
+
+// {"corners": [{"length_m", "angle_deg", "openings": [{"type": "door"|"window", "length_m",
+// "distance_m"}]}], "stairs": [{"ascending", "length_m", "width_m", "distance_to_wall_m"}]}
+std::string DescriptorToJson(const PlaceDescriptor& d);
+// InvalidArgument naming what is malformed.
+absl::StatusOr<PlaceDescriptor> DescriptorFromJson(const std::string& json);
+
+// {"floor_height_m", "keyframes", "walls": [{"start": [x, y], "end": [x, y], "openings": [...]}],
+// "stairs": [{"ascending", "steps", "rise_m", "length_m", "width_m", "center": [x, y],
+// "distance_to_wall_m"}]}
+std::string FloorPlanToJson(const FloorPlan& plan);
+absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& json);
+
+}  // namespace lifemap::place

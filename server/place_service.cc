@@ -1,0 +1,91 @@
+// PlaceService: architecture-based place recognition (paper 004) over stored visits.
+#include "absl/strings/str_cat.h"
+#include "core/place/serialize.h"
+#include "server/convert.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+
+grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest* req,
+                                          v1::QueryPlaceResponse* resp) {
+  bool architecture = req->methods().empty();
+  for (int m : req->methods()) {
+    if (m == v1::MATCH_METHOD_ARCHITECTURE) architecture = true;
+    if (m != v1::MATCH_METHOD_ARCHITECTURE && m != v1::MATCH_METHOD_APPEARANCE) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("unknown match method ", m));
+    }
+  }
+  if (!architecture) {
+    return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                        "appearance place recognition (paper 000) is not implemented in this "
+                        "server yet; ask for MATCH_METHOD_ARCHITECTURE");
+  }
+  if (!req->frames().empty()) {
+    return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                        "ranking raw frames is not implemented yet: stream them (with poses) as a "
+                        "visit of a map and query that visit_id");
+  }
+  if (req->visit_id() == 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "give visit_id (a stored visit)");
+  }
+  if (req->max_results() > 1000) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "max_results must be at most 1000");
+  }
+  auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
+  if (!visit.ok()) return ToGrpcStatus(visit.status());
+  auto stored = ctx_->store->ListVisitPlaces(visit->map_name);
+  if (!stored.ok()) return ToGrpcStatus(stored.status());
+  const store::VisitPlaceRecord* record = nullptr;
+  for (const auto& r : *stored) {
+    if (r.visit_id == visit->id) record = &r;
+  }
+  if (record == nullptr) {
+    // Say why, from the live visit when it is open.
+    std::string why = "its floor plan has not closed yet (walls all around, floor seen)";
+    if (!visit->ended) {
+      auto state = ctx_->visits->Get(visit->id);
+      if (state.ok()) {
+        absl::MutexLock lock(&(*state)->mu);
+        if (!(*state)->architecture.status.ok()) {
+          why = std::string((*state)->architecture.status.message());
+        }
+      }
+    }
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("visit ", visit->id, " has no floor plan: ", why));
+  }
+  auto descriptor = place::DescriptorFromJson(record->descriptor_json);
+  if (!descriptor.ok()) return ToGrpcStatus(descriptor.status());
+  auto ranked =
+      ctx_->places->Rank(*descriptor, visit->id, req->max_results() == 0 ? 10 : req->max_results());
+  if (!ranked.ok()) return ToGrpcStatus(ranked.status());
+  for (auto& m : *ranked) *resp->add_matches() = std::move(m);
+  resp->set_descriptor_text(place::DescriptorText(*descriptor));
+  return grpc::Status::OK;
+}
+
+grpc::Status PlaceServiceImpl::ListPlaces(grpc::ServerContext*, const v1::ListPlacesRequest* req,
+                                          v1::ListPlacesResponse* resp) {
+  if (!req->map().empty()) {
+    if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+    if (auto m = ctx_->store->GetMap(req->map()); !m.ok()) return ToGrpcStatus(m.status());
+  }
+  auto stored = ctx_->store->ListVisitPlaces(req->map());
+  if (!stored.ok()) return ToGrpcStatus(stored.status());
+  for (const auto& r : *stored) {
+    auto* p = resp->add_places();
+    p->set_map(r.map_name);
+    p->set_visit_id(static_cast<uint64_t>(r.visit_id));
+    p->set_keyframes(static_cast<uint32_t>(r.keyframes));
+    p->set_floor_plan_json(r.floor_plan_json);
+    p->set_descriptor_json(r.descriptor_json);
+    if (auto d = place::DescriptorFromJson(r.descriptor_json); d.ok()) {
+      p->set_descriptor_text(place::DescriptorText(*d));
+    }
+    p->set_updated_time_s(r.updated_time_s);
+  }
+  return grpc::Status::OK;
+}
+
+}  // namespace lifemap::server

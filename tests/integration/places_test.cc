@@ -1,0 +1,137 @@
+// Integration tests of architecture-based place recognition (paper 004) served: visits of
+// synthetic places streamed with poses build floor plans; a later visit of the same place
+// ranks it first, in frame results and through QueryPlace.
+#include <grpcpp/grpcpp.h>
+
+#include <gtest/gtest.h>
+
+#include "core/common/image_codec.h"
+#include "core/sim/generator.h"
+#include "core/sim/renderer.h"
+#include "lifemap/v1/place_service.grpc.pb.h"
+#include "tests/integration/server_fixture.h"
+
+namespace lifemap {
+namespace {
+
+using testing::ServerTest;
+
+// Sends every `stride`-th frame of a rendered visit through ProcessFrame into `map`'s open
+// visit; returns the last result.
+v1::FrameResult SendVisit(client::Client* c, const std::string& map, const sim::Place& place,
+                          const sim::Visit& v, int stride = 3) {
+  const CameraIntrinsics k{525, 525, 319.5, 239.5, 640, 480};
+  v1::FrameResult last;
+  for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
+    const Pose& pose = v.trajectory[f].T_world_camera;
+    const auto frame =
+        sim::Render(place, v.SolidsAt(f), v.lighting, k, pose, sim::SensorOptions{}, f + 1);
+    v1::ProcessFrameRequest req;
+    req.set_map(map);
+    v1::Frame* fr = req.mutable_frame();
+    fr->set_sequence(f);
+    fr->set_timestamp_s(v.trajectory[f].timestamp_s);
+    auto* ki = fr->mutable_intrinsics();
+    ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
+    ki->set_width(640), ki->set_height(480);
+    fr->mutable_depth()->set_encoding(v1::DEPTH_PNG16);
+    fr->mutable_depth()->set_depth_scale(5000);
+    fr->mutable_depth()->set_data(*EncodeDepthPng16(frame.depth_m, 5000));
+    fr->mutable_color()->set_encoding(v1::COLOR_JPEG);
+    fr->mutable_color()->set_data(*EncodeJpeg(frame.color_bgr, 80));
+    auto* p = fr->mutable_pose();
+    p->set_tx(pose.translation.x()), p->set_ty(pose.translation.y());
+    p->set_tz(pose.translation.z()), p->set_qx(pose.rotation.x());
+    p->set_qy(pose.rotation.y()), p->set_qz(pose.rotation.z()), p->set_qw(pose.rotation.w());
+    auto r = c->ProcessFrame(req);
+    EXPECT_TRUE(r.ok()) << r.status();
+    if (r.ok()) last = *r;
+  }
+  return last;
+}
+
+const v1::OutputStatus* PlaceStatus(const v1::FrameResult& r) {
+  for (const auto& o : r.outputs()) {
+    if (o.output() == v1::FRAME_OUTPUT_PLACE_MATCHES) return &o;
+  }
+  return nullptr;
+}
+
+TEST_F(ServerTest, ALaterVisitOfAPlaceRanksItFirstByArchitecture) {
+  auto home = sim::GeneratePlace(3, "rect");
+  auto office = sim::GeneratePlace(1, "square");
+  ASSERT_TRUE(home.ok() && office.ok());
+  sim::Conditions scenery;
+  scenery.scenery = true;
+  auto home_visits = sim::GenerateVisits(*home, 3, 2, 6, scenery, 90);
+  auto office_visits = sim::GenerateVisits(*office, 1, 1, 6, scenery, 90);
+  ASSERT_TRUE(home_visits.ok() && office_visits.ok());
+  ASSERT_TRUE(client_->CreateMap("home", "").ok());
+  ASSERT_TRUE(client_->CreateMap("office", "").ok());
+
+  // The first frame: no plan yet, and the result says why.
+  const v1::FrameResult first_home = SendVisit(client_.get(), "home", *home, (*home_visits)[0], 3);
+  ASSERT_NE(PlaceStatus(first_home), nullptr);
+  EXPECT_TRUE(PlaceStatus(first_home)->computed()) << PlaceStatus(first_home)->reason();
+  SendVisit(client_.get(), "office", *office, (*office_visits)[0], 3);
+  auto visits = client_->ListVisits("home");
+  ASSERT_TRUE(visits.ok() && visits->visits_size() == 1);
+  const uint64_t reference = visits->visits(0).id();
+  ASSERT_TRUE(client_->EndVisit(reference).ok());
+
+  // Six months later, props moved: the last result ranks the reference visit first.
+  const v1::FrameResult later = SendVisit(client_.get(), "home", *home, (*home_visits)[1], 3);
+  ASSERT_TRUE(PlaceStatus(later)->computed()) << PlaceStatus(later)->reason();
+  ASSERT_GE(later.place_matches_size(), 2);
+  EXPECT_EQ(later.place_matches(0).map(), "home");
+  EXPECT_EQ(later.place_matches(0).visit_id(), reference);
+  EXPECT_EQ(later.place_matches(0).method(), v1::MATCH_METHOD_ARCHITECTURE);
+  EXPECT_GT(later.place_matches(0).score(), later.place_matches(1).score());
+
+  // QueryPlace for that visit agrees; ListPlaces shows both plans of the map.
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  auto places = v1::PlaceService::NewStub(channel);
+  v1::QueryPlaceRequest q;
+  visits = client_->ListVisits("home");
+  ASSERT_TRUE(visits.ok() && visits->visits_size() == 2);
+  q.set_visit_id(visits->visits(0).id() == reference ? visits->visits(1).id()
+                                                     : visits->visits(0).id());
+  v1::QueryPlaceResponse qr;
+  grpc::ClientContext qc;
+  ASSERT_TRUE(places->QueryPlace(&qc, q, &qr).ok());
+  ASSERT_GE(qr.matches_size(), 1);
+  EXPECT_EQ(qr.matches(0).visit_id(), reference);
+  EXPECT_NE(qr.descriptor_text().find("C3"), std::string::npos) << qr.descriptor_text();
+  v1::ListPlacesRequest lr;
+  lr.set_map("home");
+  v1::ListPlacesResponse list;
+  grpc::ClientContext lc;
+  ASSERT_TRUE(places->ListPlaces(&lc, lr, &list).ok());
+  EXPECT_EQ(list.places_size(), 2);
+
+  // Bad queries: unknown visit, no visit.
+  v1::QueryPlaceRequest unknown;
+  unknown.set_visit_id(999999);
+  grpc::ClientContext uc;
+  EXPECT_EQ(places->QueryPlace(&uc, unknown, &qr).error_code(), grpc::StatusCode::NOT_FOUND);
+  grpc::ClientContext nc;
+  EXPECT_EQ(places->QueryPlace(&nc, v1::QueryPlaceRequest(), &qr).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+TEST_F(ServerTest, FramesWithoutPosesSayWhyTheyHaveNoPlaceMatches) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  *req.mutable_frame() = testing::MakeFrame();
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_NE(PlaceStatus(*r), nullptr);
+  EXPECT_FALSE(PlaceStatus(*r)->computed());
+  EXPECT_NE(PlaceStatus(*r)->reason().find("poses"), std::string::npos)
+      << PlaceStatus(*r)->reason();
+  EXPECT_EQ(r->place_matches_size(), 0);
+}
+
+}  // namespace
+}  // namespace lifemap
