@@ -91,6 +91,23 @@ TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
   EXPECT_TRUE(absl::IsInvalidArgument(FloorPlanFromJson("not json").status()));
 }
 
+TEST(FloorPlan, AscendingStairsAreFoundNearTheirWall) {
+  // Seed 1's square room has a flight of 7 steps up (run 0.29 m, rise 0.18 m, 1.0 m wide, its
+  // centre 0.52 m from the nearest wall).
+  const Built b = BuildVisit(1, "square");
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  ASSERT_EQ(b.place.stairs.size(), 1u);
+  ASSERT_EQ(b.plan->stairs.size(), 1u);
+  const StairFlight& f = b.plan->stairs[0];
+  const sim::Stairs& truth = b.place.stairs[0];
+  EXPECT_EQ(f.ascending, truth.up);
+  EXPECT_NEAR(f.rise_m, truth.rise_m, 0.02);
+  // The top tread is seen least; the flight's length and width come out short by up to a step.
+  EXPECT_NEAR(f.length_m, truth.run_m * truth.steps, 0.4);
+  EXPECT_NEAR(f.width_m, truth.width_m, 0.3);
+  EXPECT_NEAR(f.distance_to_wall_m, 0.52, 0.15);
+}
+
 TEST(Descriptor, RotatedOrMirroredStartMatchesTheSamePlace) {
   PlaceDescriptor d;
   d.corners = {{5.0, 90, {{OpeningType::kDoor, 0.9, 1.0}}},
