@@ -48,17 +48,17 @@ absl::StatusOr<std::vector<v1::PlaceMatch>> PlaceIndex::Rank(const place::PlaceD
 }
 
 absl::Status PlaceIndex::Put(int64_t visit_id, int64_t map_id, const std::string& map,
-                             const place::FloorPlan& plan, double now_s) {
-  const place::PlaceDescriptor d = place::Describe(plan);
+                             const place::FloorPlan& plan, const place::PlaceDescriptor& descriptor,
+                             double now_s) {
   store::VisitPlaceRecord r;
   r.visit_id = visit_id;
   r.keyframes = plan.keyframes;
   r.floor_plan_json = place::FloorPlanToJson(plan);
-  r.descriptor_json = place::DescriptorToJson(d);
+  r.descriptor_json = place::DescriptorToJson(descriptor);
   r.updated_time_s = now_s;
   if (auto s = store_->PutVisitPlace(r); !s.ok()) return s;
   absl::MutexLock lock(&mu_);
-  if (loaded_) visits_[visit_id] = {map_id, map, d};
+  if (loaded_) visits_[visit_id] = {map_id, map, descriptor};
   return absl::OkStatus();
 }
 
@@ -68,31 +68,32 @@ void PlaceIndex::Invalidate() {
   visits_.clear();
 }
 
-void AddArchitectureKeyframe(PlaceIndex* index, int64_t visit_id, int64_t map_id,
-                             const std::string& map, const cv::Mat& depth_m,
-                             const CameraIntrinsics& k, const Pose& T_world_camera,
-                             VisitArchitecture* arch) {
+bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
+                              const Pose& T_world_camera, VisitArchitecture* arch) {
   auto planes = planes::ExtractPlanes(depth_m, k);
-  if (!planes.ok()) {
-    arch->status = planes.status();
-    return;
-  }
-  if (auto s = arch->builder.AddKeyframe(*planes, k, T_world_camera); !s.ok()) {
-    arch->status = s;
-    return;
-  }
+  absl::Status s =
+      planes.ok() ? arch->builder.AddKeyframe(*planes, k, T_world_camera) : planes.status();
+  if (!s.ok()) arch->status = s;
+  return s.ok();
+}
+
+void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_id,
+                               const std::string& map, bool store, VisitArchitecture* arch) {
   auto plan = arch->builder.Build();
   if (!plan.ok()) {
     arch->status = plan.status();
     return;
   }
-  const double now =
-      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-  if (auto s = index->Put(visit_id, map_id, map, *plan, now); !s.ok()) {
-    arch->status = s;
-    return;
+  const place::PlaceDescriptor descriptor = place::Describe(*plan);
+  if (store) {
+    const double now =
+        std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+    if (auto s = index->Put(visit_id, map_id, map, *plan, descriptor, now); !s.ok()) {
+      arch->status = s;
+      return;
+    }
   }
-  auto ranked = index->Rank(place::Describe(*plan), visit_id, kFramePlaceMatches);
+  auto ranked = index->Rank(descriptor, visit_id, kFramePlaceMatches);
   if (!ranked.ok()) {
     arch->status = ranked.status();
     return;

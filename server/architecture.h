@@ -35,9 +35,10 @@ class PlaceIndex {
   // Ranks stored visits (all but `exclude_visit`) by architecture, best first, at most `max`.
   absl::StatusOr<std::vector<v1::PlaceMatch>> Rank(const place::PlaceDescriptor& query,
                                                    int64_t exclude_visit, size_t max);
-  // Stores the visit's plan and descriptor and indexes it.
+  // Stores the visit's plan with its descriptor (Describe(plan)) and indexes it.
   absl::Status Put(int64_t visit_id, int64_t map_id, const std::string& map,
-                   const place::FloorPlan& plan, double now_s);
+                   const place::FloorPlan& plan, const place::PlaceDescriptor& descriptor,
+                   double now_s);
   // Drops a deleted or renamed map's visits (reloaded from the store on next use).
   void Invalidate();
 
@@ -55,13 +56,17 @@ class PlaceIndex {
   std::unordered_map<int64_t, Entry> visits_ ABSL_GUARDED_BY(mu_);
 };
 
-// Folds one key frame (decoded depth in metres, with its pose) into the visit's architecture;
-// when a plan can be derived, stores it and ranks it against the other visits. Errors only
-// change `arch->status` (and the results' outputs say so): a frame is never rejected for them.
-void AddArchitectureKeyframe(PlaceIndex* index, int64_t visit_id, int64_t map_id,
-                             const std::string& map, const cv::Mat& depth_m,
-                             const CameraIntrinsics& k, const Pose& T_world_camera,
-                             VisitArchitecture* arch);
+// Folds one key frame (depth in metres, with its pose) into the visit's architecture: its
+// planes, then the builder. On error sets `arch->status` and returns false.
+bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
+                              const Pose& T_world_camera, VisitArchitecture* arch);
+
+// Derives the visit's plan from what was folded in; when it closes, stores it (with `store`;
+// a resumed visit's stored plan is already there) and ranks the other visits against it.
+// Errors only change `arch->status` (and the results' outputs say so): a frame is never
+// rejected for them.
+void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_id,
+                               const std::string& map, bool store, VisitArchitecture* arch);
 
 // How many places a frame result lists.
 constexpr size_t kFramePlaceMatches = 3;

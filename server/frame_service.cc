@@ -194,9 +194,10 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
-    if (f.T_world_camera) {
-      AddArchitectureKeyframe(ctx->places, visit->visit_id, visit->map_id, visit->map_name,
-                              f.depth_m, f.intrinsics, *f.T_world_camera, &visit->architecture);
+    if (f.T_world_camera && FoldArchitectureKeyframe(f.depth_m, f.intrinsics, *f.T_world_camera,
+                                                     &visit->architecture)) {
+      UpdateArchitectureRanking(ctx->places, visit->visit_id, visit->map_id, visit->map_name,
+                                /*store=*/true, &visit->architecture);
     }
   }
   // Every result carries the visit's current ranking by architecture (paper 004).

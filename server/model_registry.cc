@@ -49,8 +49,6 @@ absl::StatusOr<std::shared_ptr<const LoadedModel>> ModelRegistry::Load(const std
 void ModelRegistry::InvalidateActivations() {
   absl::MutexLock lock(&mu_);
   active_.clear();
-  // Models no longer active anywhere are reloaded on demand; in-flight frames hold their own
-  // reference, so dropping ours here is safe.
   loaded_.clear();
 }
 

@@ -29,8 +29,8 @@ class ModelRegistry {
   // default). nullptr when none applies. DataLoss when the stored file no longer parses.
   absl::StatusOr<std::shared_ptr<const LoadedModel>> ForMap(int64_t map_id);
 
-  // Drops cached activations (after ActivateModel, DeleteModel, DeleteMap); loaded models stay
-  // until no map uses them.
+  // Drops cached activations and parsed models (after ActivateModel, DeleteModel, DeleteMap);
+  // models are parsed again on their next use. Frames in flight keep their own reference.
   void InvalidateActivations();
 
  private:

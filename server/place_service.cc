@@ -34,13 +34,8 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
   }
   auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
   if (!visit.ok()) return ToGrpcStatus(visit.status());
-  auto stored = ctx_->store->ListVisitPlaces(visit->map_name);
-  if (!stored.ok()) return ToGrpcStatus(stored.status());
-  const store::VisitPlaceRecord* record = nullptr;
-  for (const auto& r : *stored) {
-    if (r.visit_id == visit->id) record = &r;
-  }
-  if (record == nullptr) {
+  auto record = ctx_->store->GetVisitPlace(visit->id);
+  if (absl::IsNotFound(record.status())) {
     // Say why, from the live visit when it is open.
     std::string why = "its floor plan has not closed yet (walls all around, floor seen)";
     if (!visit->ended) {
@@ -55,6 +50,7 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                         absl::StrCat("visit ", visit->id, " has no floor plan: ", why));
   }
+  if (!record.ok()) return ToGrpcStatus(record.status());
   auto descriptor = place::DescriptorFromJson(record->descriptor_json);
   if (!descriptor.ok()) return ToGrpcStatus(descriptor.status());
   auto ranked =

@@ -2,7 +2,6 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
-#include "core/planes/planes.h"
 
 namespace lifemap::server {
 
@@ -44,10 +43,8 @@ void VisitRegistry::RebuildArchitecture(VisitState* state) {
         EncodedDepth depth{DepthEncoding::kPng16, k.depth_png, k.intrinsics.width,
                            k.intrinsics.height, k.depth_scale};
         auto d = DecodeDepthMetres(depth);
-        if (!d.ok()) return absl::OkStatus();  // a damaged image does not stop the others
-        auto planes = planes::ExtractPlanes(*d, k.intrinsics);
-        if (planes.ok() &&
-            arch.builder.AddKeyframe(*planes, k.intrinsics, *k.T_world_camera).ok()) {
+        // A damaged image does not stop the others.
+        if (d.ok() && FoldArchitectureKeyframe(*d, k.intrinsics, *k.T_world_camera, &arch)) {
           ++folded;
         }
         return absl::OkStatus();
@@ -56,15 +53,10 @@ void VisitRegistry::RebuildArchitecture(VisitState* state) {
     arch.status = s;
     return;
   }
-  if (folded == 0) return;
-  auto plan = arch.builder.Build();
-  if (!plan.ok()) {
-    arch.status = plan.status();
-    return;
+  if (folded > 0) {
+    UpdateArchitectureRanking(places_, state->visit_id, state->map_id, state->map_name,
+                              /*store=*/false, &arch);
   }
-  auto ranked = places_->Rank(place::Describe(*plan), state->visit_id, kFramePlaceMatches);
-  arch.status = ranked.status();
-  if (ranked.ok()) arch.matches = *std::move(ranked);
 }
 
 void VisitRegistry::Forget(int64_t visit_id) {

@@ -214,9 +214,11 @@ class Store {
   absl::Status DeleteModel(const std::string& name);
 
   // Visit architectures. Put replaces the visit's record (NOT_FOUND for an unknown visit);
-  // List returns those of one map (or every map for ""), by visit id.
+  // List returns those of one map (or every map for ""), by visit id; Get one visit's
+  // (NOT_FOUND when it has none).
   absl::Status PutVisitPlace(const VisitPlaceRecord& record);
   absl::StatusOr<std::vector<VisitPlaceRecord>> ListVisitPlaces(const std::string& map_name);
+  absl::StatusOr<VisitPlaceRecord> GetVisitPlace(int64_t visit_id);
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();
