@@ -5,35 +5,26 @@
 // labels, in the same run.
 //
 //   build/bin/bench_forest
-#include <filesystem>
 #include <string>
 
 #include <benchmark/benchmark.h>
 
 #include "core/common/image_codec.h"
 #include "core/forest/forest.h"
+#include "core/forest/labeled_data.h"
 #include "core/io/labeled_pcd.h"
 #include "core/pipeline/frame_pipeline.h"
 
 namespace lifemap {
 namespace {
 
+// The 14 mOSD `learn` scenes (empty when ../shared/data is absent), read as `lifemap train`
+// reads them.
 std::vector<forest::LabeledImage> Learn() {
   static const std::vector<forest::LabeledImage> images = [] {
-    std::vector<forest::LabeledImage> out;
-    const std::string dir =
-        std::string(LIFEMAP_SOURCE_DIR) + "/../shared/data/pcl_mosd_labeled_subset/learn";
-    if (!std::filesystem::is_directory(dir)) return out;
-    for (const auto& e : std::filesystem::directory_iterator(dir)) {
-      auto f = io::ReadLabeledPcd(e.path().string());
-      if (!f.ok()) continue;
-      forest::LabeledImage im;
-      im.depth_m = f->frame.depth_m;
-      im.color_bgr = f->frame.color_bgr;
-      im.labels = io::MosdTableObjectClasses(f->labels);
-      out.push_back(im);
-    }
-    return out;
+    auto data = forest::ReadLabeledData(
+        {std::string(LIFEMAP_SOURCE_DIR) + "/../shared/data/pcl_mosd_labeled_subset/learn"});
+    return data.ok() ? std::move(data->images) : std::vector<forest::LabeledImage>();
   }();
   return images;
 }

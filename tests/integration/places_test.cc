@@ -117,6 +117,29 @@ TEST_F(ServerTest, ALaterVisitOfAPlaceRanksItFirstByArchitecture) {
   grpc::ClientContext nc;
   EXPECT_EQ(places->QueryPlace(&nc, v1::QueryPlaceRequest(), &qr).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
+  v1::QueryPlaceRequest too_many = q;
+  too_many.set_max_results(1001);
+  grpc::ClientContext mc;
+  EXPECT_EQ(places->QueryPlace(&mc, too_many, &qr).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  v1::QueryPlaceRequest bad_method = q;
+  bad_method.add_methods(static_cast<v1::MatchMethod>(42));
+  grpc::ClientContext bc;
+  EXPECT_EQ(places->QueryPlace(&bc, bad_method, &qr).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  v1::QueryPlaceRequest frames = q;
+  *frames.add_frames() = testing::MakeFrame();
+  grpc::ClientContext fc;
+  EXPECT_EQ(places->QueryPlace(&fc, frames, &qr).error_code(), grpc::StatusCode::UNIMPLEMENTED);
+  for (const char* map : {"no-such-map", "bad name!"}) {
+    v1::ListPlacesRequest bad_map;
+    bad_map.set_map(map);
+    grpc::ClientContext lbc;
+    const auto code = places->ListPlaces(&lbc, bad_map, &list).error_code();
+    EXPECT_EQ(code, std::string(map) == "bad name!" ? grpc::StatusCode::INVALID_ARGUMENT
+                                                    : grpc::StatusCode::NOT_FOUND)
+        << map;
+  }
 }
 
 TEST_F(ServerTest, FramesWithoutPosesSayWhyTheyHaveNoPlaceMatches) {

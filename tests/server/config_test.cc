@@ -59,5 +59,38 @@ TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
   EXPECT_TRUE(absl::IsNotFound(LoadConfigFile(tmp.File("none.json"), ServerConfig()).status()));
 }
 
+TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"labels": {"enabled": false, "stride": 8, "decision": "prior_weighted",
+             "max_model_mb": 64}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_FALSE(c->labels_enabled);
+  EXPECT_EQ(c->pipeline.label_stride, 8);
+  EXPECT_EQ(c->pipeline.label_decision, forest::Decision::kPriorWeighted);
+  EXPECT_EQ(c->max_model_mb, 64);
+  const std::pair<const char*, const char*> bad[] = {
+      {"decision.json", R"({"labels": {"decision": "majority"}})"},
+      {"stride.json", R"({"labels": {"stride": 0}})"},
+      {"wide.json", R"({"labels": {"stride": 17}})"},
+      {"size.json", R"({"labels": {"max_model_mb": 0}})"},
+      {"key.json", R"({"labels": {"strid": 4}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file << ": " << r.status();
+  }
+  EXPECT_NE(
+      LoadConfigFile(tmp.File("key.json"), ServerConfig()).status().message().find("labels.strid"),
+      std::string::npos);
+  EXPECT_NE(LoadConfigFile(tmp.File("decision.json"), ServerConfig())
+                .status()
+                .message()
+                .find("prior_weighted"),
+            std::string::npos);
+}
+
 }  // namespace
 }  // namespace lifemap::server
