@@ -5,7 +5,6 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/place/serialize.h"
-#include "core/planes/planes.h"
 
 namespace lifemap::server {
 
@@ -70,9 +69,7 @@ void PlaceIndex::Invalidate() {
 
 bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
                               const Pose& T_world_camera, VisitArchitecture* arch) {
-  auto planes = planes::ExtractPlanes(depth_m, k);
-  absl::Status s =
-      planes.ok() ? arch->builder.AddKeyframe(*planes, k, T_world_camera) : planes.status();
+  const absl::Status s = arch->builder.AddDepthKeyframe(depth_m, k, T_world_camera);
   if (!s.ok()) arch->status = s;
   return s.ok();
 }

@@ -63,5 +63,7 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx);
 void AddModelCommands(CLI::App* app, CliContext* ctx);
 // `lifemap train` on `app` and `lifemap eval segmentation` on `eval`.
 void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx);
+// `lifemap eval places` (paper 004's evaluation on a synthetic suite).
+void AddPlaceEvalCommand(CLI::App* eval, CliContext* ctx);
 
 }  // namespace lifemap::cli

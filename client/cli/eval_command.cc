@@ -11,6 +11,7 @@
 #include "absl/strings/str_join.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
+#include "client/cli/study.h"
 #include "core/common/image_codec.h"
 #include "core/eval/entropy_study.h"
 #include "core/eval/metrics.h"
@@ -52,7 +53,6 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadPcdFolder(const std::string&
   return scenes;
 }
 
-// Every `stride`-th frame of a TUM-format folder as a scene without ground truth.
 // Ground truth a synthetic visit folder carries (lifemap sim): which pixels count as "moved".
 enum class SimTruth {
   kNone,        // a real recording, or ignore the labels
@@ -78,45 +78,16 @@ std::vector<int> MovableInstances(const std::string& dir) {
   return ids;
 }
 
-// Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
-// truth as the scenes' moved/labelled masks.
-// One frame of a TUM folder, decoded, with its ground-truth pose when known.
-absl::StatusOr<RgbdFrame> DecodeTumFrame(const std::string& dir, const io::TumSequence& seq,
-                                         const io::TumFrameEntry& e) {
-  auto depth = ReadFileBytes(e.depth_path);
-  auto color = ReadFileBytes(e.rgb_path);
-  if (!depth.ok()) return depth.status();
-  if (!color.ok()) return color.status();
-  auto header = ProbeImage(*color);
-  if (!header.ok()) return header.status();
-  EncodedRgbdFrame encoded;
-  encoded.timestamp_s = e.timestamp_s;
-  encoded.intrinsics = seq.intrinsics
-                           ? *seq.intrinsics
-                           : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
-  encoded.intrinsics.width = header->width;
-  encoded.intrinsics.height = header->height;
-  encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
-  encoded.color = {header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg,
-                   *color, 0, 0};
-  encoded.T_world_camera = e.T_world_camera;
-  auto frame = DecodeRgbdFrame(encoded);
-  if (!frame.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
-  }
-  return frame;
-}
-
-// Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
-// truth as the scenes' moved/labelled masks; with `fuse` > 0, each frame's depth fused with
-// its `fuse` neighbours on either side (a multi-frame reconstruction from the ground-truth
-// poses, for the mesh variant).
 // Agreement of eq. 3's masks with the exact ones, pixels summed over frames.
 struct MaskAgreement {
   int64_t intersection = 0, union_ = 0;
   double iou() const { return union_ > 0 ? static_cast<double>(intersection) / union_ : 1.0; }
 };
 
+// Every `stride`-th frame of a TUM-format folder; with `truth`, the synthetic world's ground
+// truth as the scenes' moved/labelled masks; with `fuse` > 0, each frame's depth fused with
+// its `fuse` neighbours on either side (a multi-frame reconstruction from the ground-truth
+// poses, for the mesh variant).
 absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string& dir, int stride,
                                                               SimTruth truth = SimTruth::kNone,
                                                               int fuse = 0,
@@ -131,7 +102,7 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
   std::vector<eval::LabeledScene> scenes;
   for (size_t i = 0; i < seq->frames.size(); i += static_cast<size_t>(stride)) {
     const auto& e = seq->frames[i];
-    auto frame = DecodeTumFrame(dir, *seq, e);
+    auto frame = io::DecodeTumFrame(*seq, e);
     if (!frame.ok()) return frame.status();
     if (fuse > 0) {
       std::vector<RgbdFrame> neighbours;
@@ -139,7 +110,7 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
            j <= std::min(static_cast<int>(seq->frames.size()) - 1, static_cast<int>(i) + fuse);
            ++j) {
         if (j == static_cast<int>(i)) continue;
-        auto other = DecodeTumFrame(dir, *seq, seq->frames[static_cast<size_t>(j)]);
+        auto other = io::DecodeTumFrame(*seq, seq->frames[static_cast<size_t>(j)]);
         if (!other.ok()) return other.status();
         neighbours.push_back(*std::move(other));
       }
@@ -206,39 +177,6 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadLabeledFolder(const std::str
   return ReadPcdFolder(dir);
 }
 
-absl::Status WriteText(const fs::path& path, const std::string& text) {
-  std::ofstream out(path);
-  out << text;
-  return out ? absl::OkStatus()
-             : absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
-}
-
-absl::Status WritePng(const fs::path& path, const cv::Mat& image) {
-  return cv::imwrite(path.string(), image)
-             ? absl::OkStatus()
-             : absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
-}
-
-// Writes a study's files to `out` and prints its report (or summary with --json).
-int FinishStudy(const CliContext& ctx, const fs::path& out,
-                const std::vector<std::pair<std::string, std::string>>& texts,
-                const std::string& png_name, const cv::Mat& png, const json& summary,
-                const std::string& report) {
-  for (const auto& [name, text] : texts) {
-    if (auto s = WriteText(out / name, text); !s.ok()) return Fail(s);
-  }
-  for (auto s : {WriteText(out / "summary.json", summary.dump(2) + "\n"),
-                 WriteText(out / "report.md", report), WritePng(out / png_name, png)}) {
-    if (!s.ok()) return Fail(s);
-  }
-  if (ctx.json) {
-    std::cout << summary.dump() << "\n";
-  } else {
-    std::cout << report;
-  }
-  return 0;
-}
-
 json AucJson(const eval::FeatureAuc& a) {
   return {{"entropy", a.entropy},
           {"planarity", a.planarity},
@@ -261,14 +199,6 @@ struct EvalArgs {
   double min_recall = 0.8;
   int iterations = 10000;
 };
-
-absl::Status PrepareOut(const std::string& out) {
-  std::error_code ec;
-  fs::create_directories(out, ec);
-  if (ec)
-    return absl::PermissionDeniedError(absl::StrCat("cannot create ", out, ": ", ec.message()));
-  return absl::OkStatus();
-}
 
 int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
@@ -334,10 +264,11 @@ int RunFeatures(const CliContext& ctx, const EvalArgs& a) {
           : std::string(),
       sa.entropy, pa.entropy, sa.planarity, pa.planarity, sa.horizontality, pa.horizontality,
       sa.textureness, pa.textureness);
-  return FinishStudy(ctx, a.out, {{"superjuts.csv", csv}}, "entropy_planarity.png",
-                     eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
-                                      "entropy / log M", "planarity"),
-                     summary, report);
+  return FinishStudy(
+      ctx, a.out, {{"superjuts.csv", csv}},
+      {{"entropy_planarity.png", eval::PlotCurves({still, moved}, "superjuts: entropy vs planarity",
+                                                  "entropy / log M", "planarity")}},
+      summary, report);
 }
 
 int RunMatching(const CliContext& ctx, const EvalArgs& a) {
@@ -487,13 +418,57 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
   report +=
       "\nFiles: `pairs.csv` (every pair and threshold), `pr_curve.png` (mean precision "
       "against mean recall as the threshold sweeps), `summary.json`.\n";
-  return FinishStudy(ctx, a.out, {{"pairs.csv", pairs_csv}}, "pr_curve.png",
-                     eval::PlotCurves(curves, "matches kept by neg-entropy threshold", "recall",
-                                      "precision (inlier ratio)"),
-                     summary, report);
+  return FinishStudy(
+      ctx, a.out, {{"pairs.csv", pairs_csv}},
+      {{"pr_curve.png", eval::PlotCurves(curves, "matches kept by neg-entropy threshold", "recall",
+                                         "precision (inlier ratio)")}},
+      summary, report);
+}
+
+absl::Status WriteText(const fs::path& path, const std::string& text) {
+  std::ofstream out(path);
+  out << text;
+  return out ? absl::OkStatus()
+             : absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
+}
+
+absl::Status WritePng(const fs::path& path, const cv::Mat& image) {
+  return cv::imwrite(path.string(), image)
+             ? absl::OkStatus()
+             : absl::PermissionDeniedError(absl::StrCat("cannot write ", path.string()));
 }
 
 }  // namespace
+
+absl::Status PrepareOut(const std::string& out) {
+  std::error_code ec;
+  fs::create_directories(out, ec);
+  if (ec)
+    return absl::PermissionDeniedError(absl::StrCat("cannot create ", out, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+int FinishStudy(const CliContext& ctx, const fs::path& out,
+                const std::vector<std::pair<std::string, std::string>>& texts,
+                const std::vector<std::pair<std::string, cv::Mat>>& pngs, const json& summary,
+                const std::string& report) {
+  for (const auto& [name, text] : texts) {
+    if (auto s = WriteText(out / name, text); !s.ok()) return Fail(s);
+  }
+  for (const auto& [name, png] : pngs) {
+    if (auto s = WritePng(out / name, png); !s.ok()) return Fail(s);
+  }
+  for (auto s : {WriteText(out / "summary.json", summary.dump(2) + "\n"),
+                 WriteText(out / "report.md", report)}) {
+    if (!s.ok()) return Fail(s);
+  }
+  if (ctx.json) {
+    std::cout << summary.dump() << "\n";
+  } else {
+    std::cout << report;
+  }
+  return 0;
+}
 
 void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   auto* ev = app->add_subcommand("eval", "Run the papers' experiments locally on datasets");
@@ -558,6 +533,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
       ->check(CLI::Range(100, 1000000));
   matching->callback([ctx, a] { ctx->run = [ctx, a] { return RunMatching(*ctx, *a); }; });
   AddForestCommands(app, ev, ctx);
+  AddPlaceEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -8,6 +8,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/image_codec.h"
 
 namespace lifemap::io {
 namespace {
@@ -284,6 +285,33 @@ CameraIntrinsics TumIntrinsicsFor(const std::string& dir, int width, int height,
     k.fx *= sx, k.cx *= sx, k.fy *= sy, k.cy *= sy;
   }
   return k;
+}
+
+absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& e) {
+  auto depth = ReadFileBytes(e.depth_path);
+  auto color = ReadFileBytes(e.rgb_path);
+  if (!depth.ok()) return depth.status();
+  if (!color.ok()) return color.status();
+  auto header = ProbeImage(*color);
+  if (!header.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", header.status().message()));
+  }
+  EncodedRgbdFrame encoded;
+  encoded.timestamp_s = e.timestamp_s;
+  encoded.intrinsics = seq.intrinsics
+                           ? *seq.intrinsics
+                           : TumIntrinsicsFor(seq.dir, header->width, header->height, nullptr);
+  encoded.intrinsics.width = header->width;
+  encoded.intrinsics.height = header->height;
+  encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
+  encoded.color = {header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg,
+                   *color, 0, 0};
+  encoded.T_world_camera = e.T_world_camera;
+  auto frame = DecodeRgbdFrame(encoded);
+  if (!frame.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+  }
+  return frame;
 }
 
 }  // namespace lifemap::io

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/common/rgbd_frame.h"
 #include "core/common/types.h"
 
 namespace lifemap::io {
@@ -49,6 +50,12 @@ struct TumSequence {
 // colour/depth pair remains.
 absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
                                             const TumReadOptions& options = {});
+
+// One frame of a sequence read and decoded (16-bit PNG depth at TUM's 5000 units per metre,
+// PNG or JPEG colour), with its intrinsics (the folder's, else TumIntrinsicsFor) and its
+// ground-truth pose when known. NotFound for a missing file; InvalidArgument names the image
+// that does not decode.
+absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& entry);
 
 // Reads "timestamp tx ty tz qx qy qz qw" lines (comments with '#').
 absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path);

@@ -214,6 +214,14 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
   return absl::OkStatus();
 }
 
+absl::Status FloorPlanBuilder::AddDepthKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
+                                                const Pose& T_world_camera,
+                                                const planes::PlaneOptions& plane_options) {
+  auto planes = planes::ExtractPlanes(depth_m, k, plane_options);
+  if (!planes.ok()) return planes.status();
+  return AddKeyframe(*planes, k, T_world_camera);
+}
+
 absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   const State& s = *s_;
   if (s.keyframes < 2) {

@@ -89,6 +89,11 @@ class FloorPlanBuilder {
   // evidence rays), and T_world_camera. InvalidArgument for a non-finite or non-unit pose.
   absl::Status AddKeyframe(const planes::PlaneSet& planes, const CameraIntrinsics& k,
                            const Pose& T_world_camera);
+  // The same from a key frame's depth (CV_32FC1 metres, 0 = no reading): its planes are
+  // extracted first. InvalidArgument also for a depth image the planes cannot be taken from.
+  absl::Status AddDepthKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
+                                const Pose& T_world_camera,
+                                const planes::PlaneOptions& plane_options = {});
 
   // FailedPrecondition when the plan cannot be derived yet, saying why: fewer than 2 key
   // frames, no floor seen (no large horizontal plane facing up below the cameras), or fewer

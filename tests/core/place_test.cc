@@ -31,9 +31,8 @@ Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int s
   for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
     const auto frame = sim::Render(b.place, v.SolidsAt(f), v.lighting, Kinect(),
                                    v.trajectory[f].T_world_camera, sim::SensorOptions{}, f + 1);
-    auto planes = planes::ExtractPlanes(frame.depth_m, Kinect());
-    EXPECT_TRUE(planes.ok());
-    EXPECT_TRUE(builder.AddKeyframe(*planes, Kinect(), v.trajectory[f].T_world_camera).ok());
+    EXPECT_TRUE(
+        builder.AddDepthKeyframe(frame.depth_m, Kinect(), v.trajectory[f].T_world_camera).ok());
   }
   b.plan = builder.Build();
   return b;
