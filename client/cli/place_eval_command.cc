@@ -10,6 +10,7 @@
 #include "client/cli/study.h"
 #include "core/eval/metrics.h"
 #include "core/eval/place_study.h"
+#include "core/place/serialize.h"
 
 namespace lifemap::cli {
 namespace {
@@ -90,7 +91,16 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
   std::string walls_csv = "path,shape,truth_wall,built_wall,truth_m,built_m,error_m\n";
   PlanTally all;
   std::map<std::string, PlanTally> by_shape;
+  std::vector<std::pair<std::string, std::string>> texts;
+  std::vector<std::pair<std::string, cv::Mat>> pngs;
   for (const auto& v : study->visits) {
+    if (v.folded.plan_status.ok()) {
+      std::string name = v.path;
+      std::replace(name.begin(), name.end(), '/', '-');
+      const place::FloorPlan* truth = v.has_truth ? &v.truth.plan : nullptr;
+      texts.emplace_back("plans/" + name + ".svg", place::FloorPlanSvg(v.folded.plan, truth));
+      pngs.emplace_back("plans/" + name + ".png", place::FloorPlanImage(v.folded.plan, truth));
+    }
     all.Add(v);
     by_shape[v.shape].Add(v);
     const auto& e = v.error;
@@ -195,7 +205,8 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
       "Files: `visits.csv` (every visit's plan against the truth), `walls.csv` (every paired "
       "wall), `queries.csv` (every trial and method), `pr_curve.csv` and `pr_curve.png` "
       "(precision against recall as the threshold sweeps, every subset together), "
-      "`f1_subsets.png` (F1 per subset, subsets 1..8 left to right), `summary.json`.\n",
+      "`f1_subsets.png` (F1 per subset, subsets 1..8 left to right), `plans/*.svg|png` (each "
+      "visit's plan in black over the truth in grey), `summary.json`.\n",
       ao.precision, ao.recall, ao.f1, po.precision, po.recall, po.f1);
 
   json shapes = json::object();
@@ -233,16 +244,17 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
        {{"architecture", {{"precision", ao.precision}, {"recall", ao.recall}, {"f1", ao.f1}}},
         {"appearance", {{"precision", po.precision}, {"recall", po.recall}, {"f1", po.f1}}}}},
       {"subsets", subsets}};
-  return FinishStudy(
-      ctx, a.out,
-      {{"visits.csv", visits_csv},
-       {"walls.csv", walls_csv},
-       {"queries.csv", queries_csv},
-       {"pr_curve.csv", curve_csv}},
-      {{"pr_curve.png",
-        eval::PlotCurves(pr, "place recognition, every subset", "recall", "precision")},
-       {"f1_subsets.png", eval::PlotCurves(f1, "F1 per subset (1..8)", "subset", "F1")}},
-      summary, report);
+  pngs.emplace_back("pr_curve.png",
+                    eval::PlotCurves(pr, "place recognition, every subset", "recall", "precision"));
+  pngs.emplace_back("f1_subsets.png", eval::PlotCurves(f1, "F1 per subset (1..8)", "subset", "F1"));
+  texts.emplace_back("visits.csv", visits_csv);
+  texts.emplace_back("walls.csv", walls_csv);
+  texts.emplace_back("queries.csv", queries_csv);
+  texts.emplace_back("pr_curve.csv", curve_csv);
+  if (auto s = PrepareOut((std::filesystem::path(a.out) / "plans").string()); !s.ok()) {
+    return Fail(s);
+  }
+  return FinishStudy(ctx, a.out, texts, pngs, summary, report);
 }
 
 }  // namespace

@@ -2,63 +2,13 @@
 #include <fstream>
 #include <iostream>
 
-#include <nlohmann/json.hpp>
-
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
+#include "core/place/serialize.h"
 
 namespace lifemap::cli {
-namespace {
-
-using nlohmann::json;
-
-// A floor plan as SVG: walls black, doors brown, windows blue, stairs green; 100 px per metre,
-// y up.
-std::string FloorPlanSvg(const json& plan) {
-  double lo_x = 1e9, lo_y = 1e9, hi_x = -1e9, hi_y = -1e9;
-  for (const auto& w : plan["walls"]) {
-    for (const char* end : {"start", "end"}) {
-      lo_x = std::min(lo_x, w[end][0].get<double>()),
-      hi_x = std::max(hi_x, w[end][0].get<double>());
-      lo_y = std::min(lo_y, w[end][1].get<double>()),
-      hi_y = std::max(hi_y, w[end][1].get<double>());
-    }
-  }
-  const double scale = 100, margin = 0.5;
-  auto X = [&](double x) { return (x - lo_x + margin) * scale; };
-  auto Y = [&](double y) { return (hi_y - y + margin) * scale; };
-  std::string svg = absl::StrFormat(
-      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"%.0f\" height=\"%.0f\">\n"
-      "<rect width=\"100%%\" height=\"100%%\" fill=\"white\"/>\n",
-      (hi_x - lo_x + 2 * margin) * scale, (hi_y - lo_y + 2 * margin) * scale);
-  for (const auto& w : plan["walls"]) {
-    const double ax = w["start"][0], ay = w["start"][1], bx = w["end"][0], by = w["end"][1];
-    svg += absl::StrFormat(
-        "<line x1=\"%.1f\" y1=\"%.1f\" x2=\"%.1f\" y2=\"%.1f\" stroke=\"black\" "
-        "stroke-width=\"6\"/>\n",
-        X(ax), Y(ay), X(bx), Y(by));
-    const double len = std::hypot(bx - ax, by - ay);
-    for (const auto& o : w["openings"]) {
-      const double f = o["from_m"].get<double>() / len, t = o["to_m"].get<double>() / len;
-      svg += absl::StrFormat(
-          "<line x1=\"%.1f\" y1=\"%.1f\" x2=\"%.1f\" y2=\"%.1f\" stroke=\"%s\" "
-          "stroke-width=\"10\"/>\n",
-          X(ax + f * (bx - ax)), Y(ay + f * (by - ay)), X(ax + t * (bx - ax)),
-          Y(ay + t * (by - ay)), o["type"] == "door" ? "saddlebrown" : "deepskyblue");
-    }
-  }
-  for (const auto& s : plan["stairs"]) {
-    svg += absl::StrFormat(
-        "<circle cx=\"%.1f\" cy=\"%.1f\" r=\"%.1f\" fill=\"none\" stroke=\"green\" "
-        "stroke-width=\"4\"/>\n",
-        X(s["center"][0]), Y(s["center"][1]), 0.5 * scale * s["length_m"].get<double>());
-  }
-  return svg + "</svg>\n";
-}
-
-}  // namespace
 
 void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
   auto* places = app->add_subcommand(
@@ -85,7 +35,14 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
                         << p.descriptor_text();
               if (!svg->empty()) {
                 const std::string path = absl::StrCat(*svg, "-visit-", p.visit_id(), ".svg");
-                std::ofstream(path) << FloorPlanSvg(json::parse(p.floor_plan_json()));
+                auto plan = place::FloorPlanFromJson(p.floor_plan_json());
+                if (!plan.ok()) {
+                  std::cerr << "lifemap: visit " << p.visit_id()
+                            << ": stored floor plan unreadable: " << plan.status().message()
+                            << "\n";
+                  continue;
+                }
+                std::ofstream(path) << place::FloorPlanSvg(*plan);
                 std::cout << "wrote " << path << "\n";
               }
             }

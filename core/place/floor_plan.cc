@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <map>
 #include <unordered_map>
 
@@ -265,32 +267,70 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   plan.floor_height_m = sum_h / sum_a;
   const double floor = plan.floor_height_m, cell = s.o.cell_m;
 
-  // Candidate walls with their extent (covered cells between the floor and 3.5 m above it).
+  // Candidate walls: runs of covered columns (cells between the floor and 3.5 m above it) along
+  // each wall line. A gap wider than a door splits a line into separate walls: collinear walls
+  // on either side of a notch (T, U rooms), or a wall's continuation seen through a door.
   struct Candidate {
     const WallAcc* acc;
     double s0, s1, top;
+    double seen_m2;        // distinct covered cells of the run
     Eigen::Vector2d a, b;  // endpoints of the seen extent
+    double length() const { return s1 - s0; }
   };
+  const int max_gap = static_cast<int>(std::ceil(s.o.max_wall_gap_m / cell));
   std::vector<Candidate> cands;
   for (const auto& w : s.walls) {
     if (w.area < s.o.min_wall_m2) continue;
-    std::vector<double> ss;
-    double top = 0;
+    std::map<int, std::pair<int, double>> columns;  // column -> covered cells, top
     for (const auto& [key, c] : w.cells) {
       if (c.covered <= 0) continue;
       const double h = (KeyH(key) + 0.5) * cell - floor;
       if (h < 0 || h > 3.5) continue;
-      ss.push_back((KeyS(key) + 0.5) * cell);
-      top = std::max(top, h);
+      auto& col = columns[KeyS(key)];
+      col.first += 1;
+      col.second = std::max(col.second, h);
     }
-    if (ss.size() < 20 || top < s.o.min_wall_top_m) continue;
-    std::sort(ss.begin(), ss.end());
-    Candidate cand{&w, ss[ss.size() / 100], ss[ss.size() - 1 - ss.size() / 100], top, {}, {}};
     const Eigen::Vector2d t = w.tangent(), base = w.n * w.offset;
-    cand.a = base + cand.s0 * t;
-    cand.b = base + cand.s1 * t;
-    if (w.n.dot(centre - 0.5 * (cand.a + cand.b)) <= 0) continue;  // seen from outside
-    cands.push_back(cand);
+    for (auto it = columns.begin(); it != columns.end();) {
+      // One run: columns no more than max_gap apart.
+      std::vector<std::pair<int, int>> run;  // column, cells
+      double top = 0;
+      int prev = it->first;
+      for (; it != columns.end() && it->first - prev <= max_gap; prev = it->first, ++it) {
+        run.emplace_back(it->first, it->second.first);
+        top = std::max(top, it->second.second);
+      }
+      int cells = 0;
+      for (const auto& r : run) cells += r.second;
+      if (cells < 20 || cells * cell * cell < s.o.min_wall_m2 || top < s.o.min_wall_top_m) continue;
+      // The extent without its outermost 1 % of cells (stray readings).
+      int lo_count = 0, hi_count = 0;
+      size_t lo = 0, hi = run.size() - 1;
+      while (lo < hi && (lo_count += run[lo].second) <= cells / 100) ++lo;
+      while (hi > lo && (hi_count += run[hi].second) <= cells / 100) --hi;
+      // Furniture ends below the ceiling: where rays passed just above a face's top along most
+      // of it, its top was in view, so it is not a wall (nothing is seen above a wall's top).
+      int seen_over = 0;
+      for (const auto& r : run) {
+        float free = 0, occluded = 0;
+        for (int h = static_cast<int>(std::floor((floor + top + 0.1) / cell));
+             h <= static_cast<int>(std::floor((floor + top + 0.4) / cell)); ++h) {
+          auto c = w.cells.find(Key(r.first, h));
+          if (c == w.cells.end()) continue;
+          free += c->second.free;
+          occluded += c->second.occluded;
+        }
+        seen_over += free >= 1 && free > occluded ? 1 : 0;
+      }
+      if (seen_over > 0.5 * static_cast<double>(run.size())) continue;
+      Candidate cand{&w, (run[lo].first + 0.5) * cell, (run[hi].first + 0.5) * cell, top,
+                     cells * cell * cell, {}, {}};
+      if (cand.length() < s.o.min_wall_length_m) continue;
+      cand.a = base + cand.s0 * t;
+      cand.b = base + cand.s1 * t;
+      if (w.n.dot(centre - 0.5 * (cand.a + cand.b)) <= 0) continue;  // seen from outside
+      cands.push_back(cand);
+    }
   }
   // Walls rise above furniture (paper 004 keeps the highest large vertical polygons; how high
   // a wall is seen depends on the camera's tilt, so relative to the highest one).
@@ -300,23 +340,53 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   for (const auto& c : cands) {
     if (c.top >= s.o.wall_top_share * highest) tall.push_back(c);
   }
-  // Not the outline: a face with a parallel one farther out behind it (furniture against a
-  // wall).
+  // Not the outline: (a) of two parallel faces one behind the other, the shorter — a face less
+  // than 0.8 m in front of a longer wall is furniture against it (where the wall was hidden
+  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly behind another wall's line, within its extent
+  // (seen through an opening, e.g. the next room's side wall through a door).
+  auto overlap = [](const Candidate& on, const Candidate& c) {
+    // Share of c's extent, projected onto `on`'s line, within on's extent (±0.2 m).
+    const Eigen::Vector2d t = on.acc->tangent();
+    const double c0 = std::min(t.dot(c.a), t.dot(c.b)), c1 = std::max(t.dot(c.a), t.dot(c.b));
+    const double lo = std::max(c0, on.s0 - 0.2), hi = std::min(c1, on.s1 + 0.2);
+    if (c1 - c0 < 0.05) return lo <= hi ? 1.0 : 0.0;
+    return std::max(0.0, hi - lo) / (c1 - c0);
+  };
+  auto grown = [&](Candidate c) {  // a wall's extent across what furniture hides of it
+    c.s0 -= s.o.max_wall_gap_m, c.s1 += s.o.max_wall_gap_m;
+    return c;
+  };
   std::vector<Candidate> faces;
   for (size_t i = 0; i < tall.size(); ++i) {
     const Candidate& c = tall[i];
     bool hidden = false;
     for (size_t j = 0; j < tall.size() && !hidden; ++j) {
       const Candidate& o = tall[j];
-      const double farther = c.acc->offset - o.acc->offset;  // o beyond c along −n
-      if (j != i && o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg)) && farther > 0) {
-        const Eigen::Vector2d t = c.acc->tangent();
-        const double lo = std::max(std::min(t.dot(o.a), t.dot(o.b)), c.s0);
-        const double hi = std::min(std::max(t.dot(o.a), t.dot(o.b)), c.s1);
-        hidden = hi - lo > 0.5 * (c.s1 - c.s0);
+      if (j == i) continue;
+      const double behind_a = o.acc->n.dot(c.a) - o.acc->offset;
+      const double behind_b = o.acc->n.dot(c.b) - o.acc->offset;
+      const bool parallel = o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg));
+      const double in_front = c.acc->offset - o.acc->offset;  // of o, along the normal
+      if (parallel && in_front > s.o.merge_offset_m && in_front < 0.8 &&
+          c.length() < o.length() && overlap(grown(o), c) > 0.5) {
+        hidden = true;  // (a) furniture in front of a wall, where the wall is hidden
+      } else if (parallel && in_front < -s.o.merge_offset_m && c.length() < o.length() &&
+                 overlap(o, c) > 0.5) {
+        hidden = true;  // (a) behind a wall, seen through an opening in it
+      } else if (!parallel && behind_a < -0.2 && behind_b < -0.2 && overlap(o, c) > 0.5) {
+        hidden = true;  // (b)
       }
     }
     if (!hidden) faces.push_back(c);
+  }
+  if (getenv("LIFEMAP_DEBUG_PLAN")) {
+    for (const auto& c : cands) {
+      bool t = false, f = false;
+      for (const auto& x : tall) t |= x.acc == c.acc && x.s0 == c.s0;
+      for (const auto& x : faces) f |= x.acc == c.acc && x.s0 == c.s0;
+      fprintf(stderr, "cand n=(%.2f,%.2f) off=%.2f area=%.1f top=%.2f a=(%.2f,%.2f) b=(%.2f,%.2f) tall=%d face=%d\n",
+              c.acc->n.x(), c.acc->n.y(), c.acc->offset, c.seen_m2, c.top, c.a.x(), c.a.y(), c.b.x(), c.b.y(), t, f);
+    }
   }
   if (faces.size() < 3) {
     return absl::FailedPreconditionError(
@@ -341,7 +411,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   };
   size_t largest = 0;
   for (size_t i = 1; i < faces.size(); ++i) {
-    if (faces[i].acc->area > faces[largest].acc->area) largest = i;
+    if (faces[i].seen_m2 > faces[largest].seen_m2) largest = i;
   }
   std::vector<size_t> chain = {largest};
   std::vector<Eigen::Vector2d> joins;  // joins[k]: where chain[k] meets chain[k + 1]
@@ -396,7 +466,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     Wall wall;
     wall.start = corners[i];
     wall.end = corners[(i + 1) % n];
-    wall.observed_m2 = c.acc->area;
+    wall.observed_m2 = c.seen_m2;
     // Openings: columns (cells along the wall) whose opening band is open, runs of them.
     const Eigen::Vector2d t = c.acc->tangent();
     const double sa = t.dot(wall.start), sb = t.dot(wall.end);

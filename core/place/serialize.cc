@@ -1,8 +1,13 @@
 #include "core/place/serialize.h"
 
+#include <cmath>
+#include <functional>
+
 #include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 
 namespace lifemap::place {
 namespace {
@@ -134,6 +139,104 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& text) {
   } catch (const std::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat("floor plan JSON: ", e.what()));
   }
+}
+
+namespace {
+
+// Draws a plan (over the truth, when given) through line and circle callbacks in pixels, 100 px
+// per metre, y up, 0.5 m margin; returns the canvas size.
+struct Painter {
+  std::function<void(const Eigen::Vector2d&, const Eigen::Vector2d&, const char* colour,
+                     double width_px, double opacity)>
+      line;
+  std::function<void(const Eigen::Vector2d&, double radius_px, double opacity)> circle;
+};
+
+Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const Painter* painter) {
+  Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
+  for (const FloorPlan* p : {&plan, truth}) {
+    if (p == nullptr) continue;
+    for (const auto& w : p->walls) {
+      lo = lo.cwiseMin(w.start).cwiseMin(w.end);
+      hi = hi.cwiseMax(w.start).cwiseMax(w.end);
+    }
+  }
+  if (lo.x() > hi.x()) lo = hi = Eigen::Vector2d::Zero();
+  const double scale = 100, margin = 0.5;
+  const Eigen::Vector2d size = (hi - lo + Eigen::Vector2d(2 * margin, 2 * margin)) * scale;
+  if (painter == nullptr) return size;
+  auto px = [&](const Eigen::Vector2d& p) {
+    return Eigen::Vector2d((p.x() - lo.x() + margin) * scale, (hi.y() - p.y() + margin) * scale);
+  };
+  auto draw = [&](const FloorPlan& p, double width, double opacity) {
+    for (const auto& w : p.walls) {
+      painter->line(px(w.start), px(w.end), "black", width, opacity);
+      const Eigen::Vector2d d = (w.end - w.start).normalized();
+      for (const auto& o : w.openings) {
+        painter->line(px(w.start + o.from_m * d), px(w.start + o.to_m * d),
+                      o.type == OpeningType::kDoor ? "saddlebrown" : "deepskyblue", width + 4,
+                      opacity);
+      }
+    }
+    for (const auto& s : p.stairs) painter->circle(px(s.center), 0.5 * scale * s.length_m, opacity);
+  };
+  if (truth != nullptr) draw(*truth, 18, 0.25);
+  draw(plan, 6, 1.0);
+  return size;
+}
+
+}  // namespace
+
+std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth) {
+  const Eigen::Vector2d size = Paint(plan, truth, nullptr);
+  std::string svg = absl::StrFormat(
+      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"%.0f\" height=\"%.0f\">\n"
+      "<rect width=\"100%%\" height=\"100%%\" fill=\"white\"/>\n",
+      size.x(), size.y());
+  Painter painter;
+  painter.line = [&](const Eigen::Vector2d& a, const Eigen::Vector2d& b, const char* colour,
+                     double width, double opacity) {
+    svg += absl::StrFormat(
+        "<line x1=\"%.1f\" y1=\"%.1f\" x2=\"%.1f\" y2=\"%.1f\" stroke=\"%s\" "
+        "stroke-width=\"%.0f\" stroke-opacity=\"%.2f\"/>\n",
+        a.x(), a.y(), b.x(), b.y(), colour, width, opacity);
+  };
+  painter.circle = [&](const Eigen::Vector2d& c, double r, double opacity) {
+    svg += absl::StrFormat(
+        "<circle cx=\"%.1f\" cy=\"%.1f\" r=\"%.1f\" fill=\"none\" stroke=\"green\" "
+        "stroke-width=\"4\" stroke-opacity=\"%.2f\"/>\n",
+        c.x(), c.y(), r, opacity);
+  };
+  Paint(plan, truth, &painter);
+  return svg + "</svg>\n";
+}
+
+cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth) {
+  const Eigen::Vector2d size = Paint(plan, truth, nullptr);
+  cv::Mat image(static_cast<int>(std::ceil(size.y())), static_cast<int>(std::ceil(size.x())),
+                CV_8UC3, cv::Scalar(255, 255, 255));
+  auto bgr = [](const char* colour, double opacity) {
+    const std::string c(colour);
+    const cv::Scalar full = c == "saddlebrown"   ? cv::Scalar(19, 69, 139)
+                            : c == "deepskyblue" ? cv::Scalar(255, 191, 0)
+                                                 : cv::Scalar(0, 0, 0);
+    return full * opacity + cv::Scalar(255, 255, 255) * (1 - opacity);  // on white
+  };
+  Painter painter;
+  painter.line = [&](const Eigen::Vector2d& a, const Eigen::Vector2d& b, const char* colour,
+                     double width, double opacity) {
+    cv::line(image, cv::Point(static_cast<int>(a.x()), static_cast<int>(a.y())),
+             cv::Point(static_cast<int>(b.x()), static_cast<int>(b.y())), bgr(colour, opacity),
+             std::max(1, static_cast<int>(width)), cv::LINE_AA);
+  };
+  painter.circle = [&](const Eigen::Vector2d& c, double r, double opacity) {
+    cv::circle(image, cv::Point(static_cast<int>(c.x()), static_cast<int>(c.y())),
+               static_cast<int>(r),
+               cv::Scalar(0, 128, 0) * opacity + cv::Scalar(255, 255, 255) * (1 - opacity), 4,
+               cv::LINE_AA);
+  };
+  Paint(plan, truth, &painter);
+  return image;
 }
 
 }  // namespace lifemap::place

@@ -22,4 +22,10 @@ absl::StatusOr<PlaceDescriptor> DescriptorFromJson(const std::string& json);
 std::string FloorPlanToJson(const FloorPlan& plan);
 absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& json);
 
+// The plan as an SVG drawing, 100 px per metre, y up: walls black, doors brown, windows blue,
+// stairs a green circle. With `truth`, the truth is drawn first, wide and pale, under the plan.
+std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth = nullptr);
+// The same drawing as a BGR image (for PNG files).
+cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth = nullptr);
+
 }  // namespace lifemap::place

@@ -94,6 +94,24 @@ Solid RandomProp(std::mt19937_64* rng, int instance, double base_z) {
   return s;
 }
 
+// Whether the straight line from a to b stays inside the polygon (crosses none of its edges).
+bool InSight(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector2d& a,
+             const Eigen::Vector2d& b) {
+  auto cross = [](const Eigen::Vector2d& u, const Eigen::Vector2d& v) {
+    return u.x() * v.y() - u.y() * v.x();
+  };
+  const Eigen::Vector2d d = b - a;
+  for (size_t i = 0; i < polygon.size(); ++i) {
+    const Eigen::Vector2d& p = polygon[i];
+    const Eigen::Vector2d e = polygon[(i + 1) % polygon.size()] - p;
+    const double den = cross(d, e);
+    if (std::abs(den) < 1e-12) continue;
+    const double t = cross(p - a, e) / den, u = cross(p - a, d) / den;
+    if (t > 1e-9 && t < 1 - 1e-9 && u >= 0 && u <= 1) return false;
+  }
+  return true;
+}
+
 Pose LookPose(const Eigen::Vector3d& position, double yaw, double pitch) {
   const Eigen::Vector3d forward(std::cos(yaw) * std::cos(pitch), std::sin(yaw) * std::cos(pitch),
                                 -std::sin(pitch));
@@ -450,6 +468,29 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
     }
   }
   const double radius = std::min(0.8, 0.4 * clearance);
+  // A room not seen whole from that point (T, U; some L) gets further loops: each around the
+  // clearest point not yet in sight, until every part of the floor is in sight of a loop.
+  struct Loop {
+    Eigen::Vector2d centre;
+    double radius;
+  };
+  std::vector<Loop> loops = {{centre, radius}};
+  for (int extra = 0; extra < 3; ++extra) {
+    double best = 0;
+    Eigen::Vector2d next = centre;
+    for (double x = lo.x(); x <= hi.x(); x += 0.1) {
+      for (double y = lo.y(); y <= hi.y(); y += 0.1) {
+        const Eigen::Vector2d p(x, y);
+        if (!InsidePolygon(place.footprint, p.x(), p.y())) continue;
+        bool seen = false;
+        for (const auto& l : loops) seen = seen || InSight(place.footprint, l.centre, p);
+        const double dist = DistanceToEdges(place.footprint, p);
+        if (!seen && dist > best) best = dist, next = p;
+      }
+    }
+    if (best < 0.6) break;  // only slivers out of sight
+    loops.push_back({next, std::min(0.8, 0.4 * best)});
+  }
   constexpr double kFirstVisit = 1.7e9;  // 2023-11-14 UTC
   std::vector<Visit> visits;
   int next_instance = 1;
@@ -574,12 +615,17 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
     }
     // A loop and a quarter around the centre, looking outwards at the walls, camera at ~1.4 m:
     // consecutive frames overlap, and the last quarter revisits the start (a loop closure).
+    // With several loops, the frames are shared among them and each loop is whole plus a
+    // quarter; the camera moves from one loop to the next between two frames.
     const double phase = std::uniform_real_distribution<double>(0, 2 * M_PI)(rng);
     const double height = std::uniform_real_distribution<double>(1.3, 1.5)(rng);
+    const int per_loop = (frames + static_cast<int>(loops.size()) - 1) / static_cast<int>(loops.size());
     for (int f = 0; f < frames; ++f) {
-      const double a = phase + 2.5 * M_PI * f / frames;
-      const Eigen::Vector3d position(centre.x() + radius * std::cos(a),
-                                     centre.y() + radius * std::sin(a),
+      const Loop& loop = loops[static_cast<size_t>(f / per_loop)];
+      const int g = f % per_loop;
+      const double a = phase + 2.5 * M_PI * g / per_loop;
+      const Eigen::Vector3d position(loop.centre.x() + loop.radius * std::cos(a),
+                                     loop.centre.y() + loop.radius * std::sin(a),
                                      height + 0.03 * std::sin(5 * a));
       const double yaw = a + 0.35 * std::sin(3 * a);
       const double pitch = 0.30 + 0.08 * std::sin(2 * a);
