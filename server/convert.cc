@@ -47,7 +47,7 @@ void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out) {
   out->set_height(static_cast<uint32_t>(k.height));
 }
 
-absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame) {
+absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool color_required) {
   auto prefixed = [](const absl::Status& s, const char* field) {
     return absl::Status(s.code(), absl::StrCat("frame.", field, ": ", s.message()));
   };
@@ -85,28 +85,31 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame) {
   out.depth.height = static_cast<int>(std::min<uint32_t>(d.height(), 1u << 20));
   out.depth.depth_scale = d.depth_scale();
 
-  if (!frame.has_color() || frame.color().data().empty()) {
+  const bool no_color = !frame.has_color() || frame.color().data().empty();
+  if (no_color && color_required) {
     return absl::InvalidArgumentError("frame.color is missing or empty");
   }
-  const auto& c = frame.color();
-  switch (c.encoding()) {
-    case v1::COLOR_JPEG:
-      out.color.encoding = ColorEncoding::kJpeg;
-      break;
-    case v1::COLOR_PNG:
-      out.color.encoding = ColorEncoding::kPng;
-      break;
-    case v1::COLOR_RAW_RGB8:
-      out.color.encoding = ColorEncoding::kRawRgb8;
-      break;
-    default:
-      return absl::InvalidArgumentError(
-          absl::StrCat("frame.color.encoding ", c.encoding(),
-                       " is not supported; use COLOR_JPEG, COLOR_PNG or COLOR_RAW_RGB8"));
+  if (!no_color) {
+    const auto& c = frame.color();
+    switch (c.encoding()) {
+      case v1::COLOR_JPEG:
+        out.color.encoding = ColorEncoding::kJpeg;
+        break;
+      case v1::COLOR_PNG:
+        out.color.encoding = ColorEncoding::kPng;
+        break;
+      case v1::COLOR_RAW_RGB8:
+        out.color.encoding = ColorEncoding::kRawRgb8;
+        break;
+      default:
+        return absl::InvalidArgumentError(
+            absl::StrCat("frame.color.encoding ", c.encoding(),
+                         " is not supported; use COLOR_JPEG, COLOR_PNG or COLOR_RAW_RGB8"));
+    }
+    out.color.data = c.data();
+    out.color.width = static_cast<int>(std::min<uint32_t>(c.width(), 1u << 20));
+    out.color.height = static_cast<int>(std::min<uint32_t>(c.height(), 1u << 20));
   }
-  out.color.data = c.data();
-  out.color.width = static_cast<int>(std::min<uint32_t>(c.width(), 1u << 20));
-  out.color.height = static_cast<int>(std::min<uint32_t>(c.height(), 1u << 20));
 
   if (frame.has_pose()) {
     auto pose = PoseFromProto(frame.pose());

@@ -1,5 +1,7 @@
 // PlaceService: architecture-based place recognition (paper 004) over stored visits.
 #include "absl/strings/str_cat.h"
+#include "core/common/rgbd_frame.h"
+#include "core/place/floor_plan.h"
 #include "core/place/serialize.h"
 #include "server/convert.h"
 #include "server/services.h"
@@ -21,16 +23,19 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
                         "appearance place recognition (paper 000) is not implemented in this "
                         "server yet; ask for MATCH_METHOD_ARCHITECTURE");
   }
-  if (!req->frames().empty()) {
-    return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                        "ranking raw frames is not implemented yet: stream them (with poses) as a "
-                        "visit of a map and query that visit_id");
-  }
-  if (req->visit_id() == 0) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "give visit_id (a stored visit)");
-  }
   if (req->max_results() > 1000) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "max_results must be at most 1000");
+  }
+  const size_t max_results = req->max_results() == 0 ? 10 : req->max_results();
+  if (!req->frames().empty()) {
+    if (req->visit_id() != 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "give frames or visit_id, not both");
+    }
+    return QueryFrames(*req, max_results, resp);
+  }
+  if (req->visit_id() == 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "give visit_id (a stored visit) or frames (posed key frames)");
   }
   auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
   if (!visit.ok()) return ToGrpcStatus(visit.status());
@@ -53,11 +58,51 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
   if (!record.ok()) return ToGrpcStatus(record.status());
   auto descriptor = place::DescriptorFromJson(record->descriptor_json);
   if (!descriptor.ok()) return ToGrpcStatus(descriptor.status());
-  auto ranked =
-      ctx_->places->Rank(*descriptor, visit->id, req->max_results() == 0 ? 10 : req->max_results());
+  auto ranked = ctx_->places->Rank(*descriptor, visit->id, max_results);
   if (!ranked.ok()) return ToGrpcStatus(ranked.status());
   for (auto& m : *ranked) *resp->add_matches() = std::move(m);
   resp->set_descriptor_text(place::DescriptorText(*descriptor));
+  return grpc::Status::OK;
+}
+
+grpc::Status PlaceServiceImpl::QueryFrames(const v1::QueryPlaceRequest& req, size_t max_results,
+                                           v1::QueryPlaceResponse* resp) {
+  if (req.frames_size() > kMaxQueryFrames) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat(req.frames_size(), " frames; send at most ", kMaxQueryFrames,
+                                     " (the key frames of a recording)"));
+  }
+  // Nothing is stored: the frames fold into a plan of their own, ranked against stored visits.
+  place::FloorPlanBuilder builder;
+  for (int i = 0; i < req.frames_size(); ++i) {
+    auto fail = [&](const absl::Status& s) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("frames[", i, "]: ", s.message()));
+    };
+    auto encoded = FrameFromProto(req.frames(i), /*color_required=*/false);
+    if (!encoded.ok()) return fail(encoded.status());
+    if (!encoded->T_world_camera) {
+      return fail(absl::InvalidArgumentError(
+          "pose is missing; architecture needs each key frame's T_world_camera"));
+    }
+    auto frame = DecodeRgbdFrame(*encoded, /*decode_color=*/false);
+    if (!frame.ok()) return fail(frame.status());
+    if (auto s =
+            builder.AddDepthKeyframe(frame->depth_m, frame->intrinsics, *encoded->T_world_camera);
+        !s.ok()) {
+      return fail(s);
+    }
+  }
+  auto plan = builder.Build();
+  if (!plan.ok()) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("the frames give no floor plan: ", plan.status().message()));
+  }
+  const place::PlaceDescriptor descriptor = place::Describe(*plan);
+  auto ranked = ctx_->places->Rank(descriptor, /*exclude_visit=*/0, max_results);
+  if (!ranked.ok()) return ToGrpcStatus(ranked.status());
+  for (auto& m : *ranked) *resp->add_matches() = std::move(m);
+  resp->set_descriptor_text(place::DescriptorText(descriptor));
   return grpc::Status::OK;
 }
 

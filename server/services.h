@@ -97,6 +97,10 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
                           v1::ListPlacesResponse*) override;
 
  private:
+  // A query's own posed key frames, folded into a plan that is ranked and not stored.
+  grpc::Status QueryFrames(const v1::QueryPlaceRequest& req, size_t max_results,
+                           v1::QueryPlaceResponse* resp);
+  static constexpr int kMaxQueryFrames = 2000;
   ServiceContext* ctx_;
 };
 

@@ -2,13 +2,91 @@
 #include <fstream>
 #include <iostream>
 
+#include <opencv2/imgcodecs.hpp>
+
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
+#include "core/common/image_codec.h"
+#include "core/io/tum_dataset.h"
 #include "core/place/serialize.h"
+#include "core/tracking/keyframe_selector.h"
 
 namespace lifemap::cli {
+namespace {
+
+struct QueryArgs {
+  uint64_t visit = 0;
+  std::string tum;
+  uint32_t max = 5;
+};
+
+// Adds a recording's key frames (chosen on its ground-truth poses as the server chooses them)
+// to `req` as depth + pose, colour left out, within `max_bytes` of message: when they do not
+// fit, every n-th key frame. Returns a line saying what was sent.
+absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64_t max_bytes,
+                                                  v1::QueryPlaceRequest* req) {
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return seq.status();
+  if (seq->frames_with_pose < 2) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(dir, ": ", seq->frames_with_pose,
+                     " frames have a ground-truth pose; a floor plan needs the key frames' poses "
+                     "(groundtruth.txt)"));
+  }
+  tracking::KeyframeSelector selector;
+  std::vector<const io::TumFrameEntry*> keyframes;
+  for (const auto& e : seq->frames) {
+    if (!e.T_world_camera || !selector.Decide(e.timestamp_s, e.T_world_camera).selected) continue;
+    selector.Accept(e.timestamp_s, e.T_world_camera);
+    keyframes.push_back(&e);
+  }
+  std::vector<v1::Frame> frames;
+  uint64_t bytes = 0;
+  for (const auto* e : keyframes) {
+    auto depth = ReadFileBytes(e->depth_path);
+    if (!depth.ok()) return depth.status();
+    auto header = ProbeImage(*depth);
+    if (!header.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(e->depth_path, ": ", header.status().message()));
+    }
+    const CameraIntrinsics k =
+        seq->intrinsics ? *seq->intrinsics
+                        : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
+    v1::Frame f;
+    f.set_sequence(frames.size());
+    f.set_timestamp_s(e->timestamp_s);
+    auto* ki = f.mutable_intrinsics();
+    ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
+    ki->set_width(static_cast<uint32_t>(header->width));
+    ki->set_height(static_cast<uint32_t>(header->height));
+    f.mutable_depth()->set_encoding(v1::DEPTH_PNG16);
+    f.mutable_depth()->set_depth_scale(5000);
+    bytes += depth->size();
+    f.mutable_depth()->set_data(*std::move(depth));
+    const Pose& p = *e->T_world_camera;
+    auto* pose = f.mutable_pose();
+    pose->set_tx(p.translation.x()), pose->set_ty(p.translation.y());
+    pose->set_tz(p.translation.z()), pose->set_qx(p.rotation.x());
+    pose->set_qy(p.rotation.y()), pose->set_qz(p.rotation.z()), pose->set_qw(p.rotation.w());
+    frames.push_back(std::move(f));
+  }
+  // Leave a tenth of the message for framing; thin evenly when the key frames do not fit.
+  const uint64_t budget = max_bytes - max_bytes / 10;
+  const size_t every = bytes > budget ? static_cast<size_t>((bytes + budget - 1) / budget) : 1;
+  size_t sent = 0;
+  for (size_t i = 0; i < frames.size() && sent < 2000; i += every, ++sent) {
+    *req->add_frames() = std::move(frames[i]);
+  }
+  return absl::StrFormat(
+      "%s: %d frames, %d key frames, sending %d%s", dir, seq->frames.size(), keyframes.size(), sent,
+      every > 1 ? absl::StrFormat(" (every %d-th: message limit %s)", every, HumanBytes(max_bytes))
+                : std::string());
+}
+
+}  // namespace
 
 void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
   auto* places = app->add_subcommand(
@@ -18,11 +96,14 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
   auto* show = places->add_subcommand("show", "A map's floor plans (one per visit)");
   auto map = std::make_shared<std::string>();
   auto svg = std::make_shared<std::string>();
+  auto png = std::make_shared<std::string>();
   show->add_option("MAP", *map, "map name")->required();
   show->add_option("--svg", *svg, "write each plan as PREFIX-visit-ID.svg");
-  show->callback([ctx, map, svg] {
-    ctx->run = [ctx, map, svg] {
-      return RunCall<v1::ListPlacesResponse>(
+  show->add_option("--png", *png, "write each plan as PREFIX-visit-ID.png");
+  show->callback([ctx, map, svg, png] {
+    ctx->run = [ctx, map, svg, png] {
+      bool written = true;
+      const int code = RunCall<v1::ListPlacesResponse>(
           *ctx, [&](client::Client& c) { return c.ListPlaces(*map); },
           [&](const v1::ListPlacesResponse& r) {
             if (r.places().empty()) {
@@ -33,40 +114,72 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
               std::cout << absl::StrFormat("visit %d: %d key frames, updated %s\n", p.visit_id(),
                                            p.keyframes(), HumanTime(p.updated_time_s()))
                         << p.descriptor_text();
+              if (svg->empty() && png->empty()) continue;
+              auto plan = place::FloorPlanFromJson(p.floor_plan_json());
+              if (!plan.ok()) {
+                std::cerr << "lifemap: visit " << p.visit_id()
+                          << ": stored floor plan unreadable: " << plan.status().message() << "\n";
+                written = false;
+                continue;
+              }
+              const std::string stem = absl::StrCat("-visit-", p.visit_id());
               if (!svg->empty()) {
-                const std::string path = absl::StrCat(*svg, "-visit-", p.visit_id(), ".svg");
-                auto plan = place::FloorPlanFromJson(p.floor_plan_json());
-                if (!plan.ok()) {
-                  std::cerr << "lifemap: visit " << p.visit_id()
-                            << ": stored floor plan unreadable: " << plan.status().message()
-                            << "\n";
-                  continue;
-                }
-                std::ofstream(path) << place::FloorPlanSvg(*plan);
-                std::cout << "wrote " << path << "\n";
+                const std::string path = *svg + stem + ".svg";
+                std::ofstream out(path);
+                out << place::FloorPlanSvg(*plan);
+                written = written && static_cast<bool>(out);
+                std::cout << (out ? "wrote " : "could not write ") << path << "\n";
+              }
+              if (!png->empty()) {
+                const std::string path = *png + stem + ".png";
+                const bool ok = cv::imwrite(path, place::FloorPlanImage(*plan));
+                written = written && ok;
+                std::cout << (ok ? "wrote " : "could not write ") << path << "\n";
               }
             }
           });
+      return code == 0 && !written ? 1 : code;
     };
   });
 
-  auto* query =
-      places->add_subcommand("query", "Rank stored visits by architecture against a stored visit");
-  auto visit = std::make_shared<uint64_t>(0);
-  auto max = std::make_shared<uint32_t>(5);
-  query->add_option("--visit", *visit, "visit id (streamed with poses)")->required();
-  query->add_option("--max", *max, "results (default 5)")->check(CLI::Range(1, 1000));
-  query->callback([ctx, visit, max] {
-    ctx->run = [ctx, visit, max] {
+  auto* query = places->add_subcommand(
+      "query", "Rank stored visits by architecture against a stored visit or a recording");
+  auto q = std::make_shared<QueryArgs>();
+  auto* visit_opt = query->add_option("--visit", q->visit, "a stored visit's id");
+  auto* tum_opt = query
+                      ->add_option("--tum", q->tum,
+                                   "a TUM-format recording with ground-truth poses "
+                                   "(groundtruth.txt); its key frames are sent, not stored")
+                      ->check(CLI::ExistingDirectory);
+  visit_opt->excludes(tum_opt);
+  query->add_option("--max", q->max, "results (default 5)")->check(CLI::Range(1, 1000));
+  query->callback([ctx, q] {
+    ctx->run = [ctx, q] {
+      if (q->visit == 0 && q->tum.empty()) {
+        std::cerr << "lifemap: places query needs --visit ID or --tum DIR\n";
+        return 2;
+      }
       v1::QueryPlaceRequest req;
-      req.set_visit_id(*visit);
-      req.set_max_results(*max);
+      req.set_max_results(q->max);
       req.add_methods(v1::MATCH_METHOD_ARCHITECTURE);
+      std::string what = absl::StrCat("visit ", q->visit);
+      if (!q->tum.empty()) {
+        auto client = ctx->Connect();
+        if (!client.ok()) return Fail(client.status());
+        auto info = (*client)->GetServerInfo();
+        if (!info.ok()) return Fail(info.status());
+        auto summary = AddRecordingKeyframes(q->tum, info->max_message_bytes(), &req);
+        if (!summary.ok()) return Fail(summary.status());
+        if (!ctx->json) std::cerr << *summary << "\n";
+        what = q->tum;
+      } else {
+        req.set_visit_id(q->visit);
+      }
       return RunCall<v1::QueryPlaceResponse>(
           *ctx, [&](client::Client& c) { return c.QueryPlace(req); },
           [&](const v1::QueryPlaceResponse& r) {
-            std::cout << "visit " << *visit << ":\n" << r.descriptor_text();
-            if (r.matches().empty()) std::cout << "no other stored visit has a floor plan\n";
+            std::cout << what << ":\n" << r.descriptor_text();
+            if (r.matches().empty()) std::cout << "no stored visit has a floor plan\n";
             for (const auto& m : r.matches()) {
               std::cout << absl::StrFormat("  %-20s visit %-6d score %.3f\n", m.map(), m.visit_id(),
                                            m.score());

@@ -8,7 +8,7 @@
 
 namespace lifemap {
 
-absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color) {
   if (!std::isfinite(in.timestamp_s) || in.timestamp_s <= 0.0) {
     return absl::InvalidArgumentError(
         absl::StrCat("timestamp_s must be a positive number of seconds since the Unix epoch, got ",
@@ -29,7 +29,7 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
   EncodedColor color = in.color;
   color.width = in.intrinsics.width;
   color.height = in.intrinsics.height;
-  if (in.color.width != 0 || in.color.height != 0) {
+  if (decode_color && (in.color.width != 0 || in.color.height != 0)) {
     if (in.color.width != color.width || in.color.height != color.height) {
       return absl::InvalidArgumentError(absl::StrCat("colour is declared ", in.color.width, "x",
                                                      in.color.height, " but the intrinsics say ",
@@ -45,6 +45,7 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in) {
   auto d = DecodeDepthMetres(depth);
   if (!d.ok()) return d.status();
   out.depth_m = *std::move(d);
+  if (!decode_color) return out;
   auto c = DecodeColorBgr(color);
   if (!c.ok()) return c.status();
   out.color_bgr = *std::move(c);

@@ -34,8 +34,10 @@ struct RgbdFrame {
 };
 
 // Validates the timestamp and intrinsics, checks both images against the intrinsics' size and
-// decodes them. InvalidArgument names the field and what to send instead.
-absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in);
+// decodes them. InvalidArgument names the field and what to send instead. Without
+// `decode_color` the colour is neither checked nor decoded (color_bgr stays empty): for uses of
+// depth alone.
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color = true);
 
 struct DepthStats {
   float valid_fraction = 0.0f;  // share of pixels with a reading, [0, 1]

@@ -2,8 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 #include <map>
 #include <unordered_map>
 
@@ -323,8 +321,9 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
         seen_over += free >= 1 && free > occluded ? 1 : 0;
       }
       if (seen_over > 0.5 * static_cast<double>(run.size())) continue;
-      Candidate cand{&w, (run[lo].first + 0.5) * cell, (run[hi].first + 0.5) * cell, top,
-                     cells * cell * cell, {}, {}};
+      Candidate cand{&w,  (run[lo].first + 0.5) * cell, (run[hi].first + 0.5) * cell,
+                     top, cells * cell * cell,          {},
+                     {}};
       if (cand.length() < s.o.min_wall_length_m) continue;
       cand.a = base + cand.s0 * t;
       cand.b = base + cand.s1 * t;
@@ -342,8 +341,9 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   }
   // Not the outline: (a) of two parallel faces one behind the other, the shorter — a face less
   // than 0.8 m in front of a longer wall is furniture against it (where the wall was hidden
-  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly behind another wall's line, within its extent
-  // (seen through an opening, e.g. the next room's side wall through a door).
+  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly
+  // behind another wall's line, within its extent (seen through an opening, e.g. the next room's
+  // side wall through a door).
   auto overlap = [](const Candidate& on, const Candidate& c) {
     // Share of c's extent, projected onto `on`'s line, within on's extent (±0.2 m).
     const Eigen::Vector2d t = on.acc->tangent();
@@ -367,8 +367,8 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       const double behind_b = o.acc->n.dot(c.b) - o.acc->offset;
       const bool parallel = o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg));
       const double in_front = c.acc->offset - o.acc->offset;  // of o, along the normal
-      if (parallel && in_front > s.o.merge_offset_m && in_front < 0.8 &&
-          c.length() < o.length() && overlap(grown(o), c) > 0.5) {
+      if (parallel && in_front > s.o.merge_offset_m && in_front < 0.8 && c.length() < o.length() &&
+          overlap(grown(o), c) > 0.5) {
         hidden = true;  // (a) furniture in front of a wall, where the wall is hidden
       } else if (parallel && in_front < -s.o.merge_offset_m && c.length() < o.length() &&
                  overlap(o, c) > 0.5) {
@@ -378,15 +378,6 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       }
     }
     if (!hidden) faces.push_back(c);
-  }
-  if (getenv("LIFEMAP_DEBUG_PLAN")) {
-    for (const auto& c : cands) {
-      bool t = false, f = false;
-      for (const auto& x : tall) t |= x.acc == c.acc && x.s0 == c.s0;
-      for (const auto& x : faces) f |= x.acc == c.acc && x.s0 == c.s0;
-      fprintf(stderr, "cand n=(%.2f,%.2f) off=%.2f area=%.1f top=%.2f a=(%.2f,%.2f) b=(%.2f,%.2f) tall=%d face=%d\n",
-              c.acc->n.x(), c.acc->n.y(), c.acc->offset, c.seen_m2, c.top, c.a.x(), c.a.y(), c.b.x(), c.b.y(), t, f);
-    }
   }
   if (faces.size() < 3) {
     return absl::FailedPreconditionError(

@@ -68,14 +68,14 @@ struct FloorPlanOptions {
   double horizontal_tolerance_deg = 10;  // ... of horizontal: floor, stairs, tops
   double merge_angle_deg = 10;           // walls of several key frames on one line
   double merge_offset_m = 0.15;
-  double min_wall_m2 = 0.6;     // observed area for a wall to enter the plan
+  double min_wall_m2 = 0.6;        // observed area for a wall to enter the plan
   double min_wall_length_m = 0.8;  // seen along the wall (shorter: furniture sides, pillars)
-  double max_wall_gap_m = 1.2;  // a wider gap in what was seen of a line splits it in two walls
-  double min_wall_top_m = 1.5;  // ... the height above the floor it must be seen up to,
-  double wall_top_share = 0.65; // ... and at least this share of the highest wall's
-  double cell_m = 0.05;         // along-wall and height resolution of the evidence grids
-  double min_opening_m = 0.4;   // narrower gaps are not openings
-  double door_top_m = 2.10;     // paper 004's norms (ISO)
+  double max_wall_gap_m = 1.2;     // a wider gap in what was seen of a line splits it in two walls
+  double min_wall_top_m = 1.5;     // ... the height above the floor it must be seen up to,
+  double wall_top_share = 0.65;    // ... and at least this share of the highest wall's
+  double cell_m = 0.05;            // along-wall and height resolution of the evidence grids
+  double min_opening_m = 0.4;      // narrower gaps are not openings
+  double door_top_m = 2.10;        // paper 004's norms (ISO)
   double window_sill_m = 1.20;
   int ray_stride_px = 8;  // every N-th pixel casts an evidence ray
 };

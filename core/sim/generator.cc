@@ -619,7 +619,8 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
     // quarter; the camera moves from one loop to the next between two frames.
     const double phase = std::uniform_real_distribution<double>(0, 2 * M_PI)(rng);
     const double height = std::uniform_real_distribution<double>(1.3, 1.5)(rng);
-    const int per_loop = (frames + static_cast<int>(loops.size()) - 1) / static_cast<int>(loops.size());
+    const int per_loop =
+        (frames + static_cast<int>(loops.size()) - 1) / static_cast<int>(loops.size());
     for (int f = 0; f < frames; ++f) {
       const Loop& loop = loops[static_cast<size_t>(f / per_loop)];
       const int g = f % per_loop;

@@ -402,10 +402,11 @@ TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
       ASSERT_EQ(Run({"visits", "end", "1"}).code, 0);
     }
   }
-  r = Run({"places", "show", "home", "--svg", tmp_.File("plan")});
+  r = Run({"places", "show", "home", "--svg", tmp_.File("plan"), "--png", tmp_.File("plan")});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("C3 L="), std::string::npos) << r.out;
   EXPECT_TRUE(std::filesystem::exists(tmp_.File("plan-visit-1.svg")));
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("plan-visit-2.png")));
   r = Run({"--json", "places", "query", "--visit", "2"});
   ASSERT_EQ(r.code, 0) << r.err;
   const json q = json::parse(r.out);
@@ -415,6 +416,55 @@ TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
   r = Run({"places", "query", "--visit", "77"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("NOT_FOUND"), std::string::npos) << r.err;
+
+  // A recording asked about without storing it: its key frames' depth and poses are sent.
+  r = Run({"--json", "places", "query", "--tum", tmp_.File("home/visit_01")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json t = json::parse(r.out);
+  ASSERT_EQ(t["matches"].size(), 2u);
+  EXPECT_GT(t["matches"][1]["score"].get<double>(), 0.5);  // both visits of home
+  r = Run({"--json", "visits", "list", "home"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(json::parse(r.out)["visits"].size(), 2u) << "nothing stored by the query";
+  r = Run({"places", "query"});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--visit ID or --tum DIR"), std::string::npos) << r.err;
+  std::filesystem::remove(tmp_.File("home/visit_01/groundtruth.txt"));
+  r = Run({"places", "query", "--tum", tmp_.File("home/visit_01")});
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.err.find("groundtruth.txt"), std::string::npos) << r.err;
+}
+
+TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
+  auto r = Run({"sim", "suite", "--seed", "4", "--places", "2", "--frames", "24", "--out",
+                tmp_.File("suite")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "eval", "places", "--suite", tmp_.File("suite"), "--out", tmp_.File("out")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json s = json::parse(Slurp(tmp_.File("out/summary.json")));
+  for (const char* key : {"f1", "baseline_f1"}) {
+    ASSERT_EQ(s[key].size(), 8u) << key;
+    for (int k = 1; k <= 8; ++k) {
+      const double f1 = s[key]["subset" + std::to_string(k)].get<double>();
+      EXPECT_GE(f1, 0.0);
+      EXPECT_LE(f1, 1.0);
+    }
+  }
+  const json& e = s["floorplan_error"];
+  EXPECT_EQ(e["visits"], 18);
+  EXPECT_GE(e["plans"].get<int>(), 9) << "at least the rectangular room's visits close";
+  EXPECT_LT(e["length_m"].get<double>(), 0.3);
+  EXPECT_LT(e["angle_deg"].get<double>(), 3.0);
+  EXPECT_GT(e["openings_found"].get<double>(), 0.3);
+  // Plain revisits of a rectangular room are recognised by their architecture.
+  EXPECT_GT(s["f1"]["subset1"].get<double>(), 0.0);
+  for (const char* f : {"report.md", "visits.csv", "walls.csv", "queries.csv", "pr_curve.png",
+                        "f1_subsets.png", "plans/place_00-reference.svg"}) {
+    EXPECT_TRUE(std::filesystem::exists(tmp_.File(std::string("out/") + f))) << f;
+  }
+  r = Run({"eval", "places", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
 }
 
 TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {

@@ -16,33 +16,43 @@ namespace {
 
 using testing::ServerTest;
 
+const CameraIntrinsics kKinect{525, 525, 319.5, 239.5, 640, 480};
+
+// Frame f of a rendered visit with its pose, as a robot sends it (colour optional).
+v1::Frame RenderedFrame(const sim::Place& place, const sim::Visit& v, size_t f, bool color) {
+  const CameraIntrinsics& k = kKinect;
+  const Pose& pose = v.trajectory[f].T_world_camera;
+  const auto frame =
+      sim::Render(place, v.SolidsAt(f), v.lighting, k, pose, sim::SensorOptions{}, f + 1);
+  v1::Frame fr;
+  fr.set_sequence(f);
+  fr.set_timestamp_s(v.trajectory[f].timestamp_s);
+  auto* ki = fr.mutable_intrinsics();
+  ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
+  ki->set_width(640), ki->set_height(480);
+  fr.mutable_depth()->set_encoding(v1::DEPTH_PNG16);
+  fr.mutable_depth()->set_depth_scale(5000);
+  fr.mutable_depth()->set_data(*EncodeDepthPng16(frame.depth_m, 5000));
+  if (color) {
+    fr.mutable_color()->set_encoding(v1::COLOR_JPEG);
+    fr.mutable_color()->set_data(*EncodeJpeg(frame.color_bgr, 80));
+  }
+  auto* p = fr.mutable_pose();
+  p->set_tx(pose.translation.x()), p->set_ty(pose.translation.y());
+  p->set_tz(pose.translation.z()), p->set_qx(pose.rotation.x());
+  p->set_qy(pose.rotation.y()), p->set_qz(pose.rotation.z()), p->set_qw(pose.rotation.w());
+  return fr;
+}
+
 // Sends every `stride`-th frame of a rendered visit through ProcessFrame into `map`'s open
 // visit; returns the last result.
 v1::FrameResult SendVisit(client::Client* c, const std::string& map, const sim::Place& place,
                           const sim::Visit& v, int stride = 3) {
-  const CameraIntrinsics k{525, 525, 319.5, 239.5, 640, 480};
   v1::FrameResult last;
   for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
-    const Pose& pose = v.trajectory[f].T_world_camera;
-    const auto frame =
-        sim::Render(place, v.SolidsAt(f), v.lighting, k, pose, sim::SensorOptions{}, f + 1);
     v1::ProcessFrameRequest req;
     req.set_map(map);
-    v1::Frame* fr = req.mutable_frame();
-    fr->set_sequence(f);
-    fr->set_timestamp_s(v.trajectory[f].timestamp_s);
-    auto* ki = fr->mutable_intrinsics();
-    ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
-    ki->set_width(640), ki->set_height(480);
-    fr->mutable_depth()->set_encoding(v1::DEPTH_PNG16);
-    fr->mutable_depth()->set_depth_scale(5000);
-    fr->mutable_depth()->set_data(*EncodeDepthPng16(frame.depth_m, 5000));
-    fr->mutable_color()->set_encoding(v1::COLOR_JPEG);
-    fr->mutable_color()->set_data(*EncodeJpeg(frame.color_bgr, 80));
-    auto* p = fr->mutable_pose();
-    p->set_tx(pose.translation.x()), p->set_ty(pose.translation.y());
-    p->set_tz(pose.translation.z()), p->set_qx(pose.rotation.x());
-    p->set_qy(pose.rotation.y()), p->set_qz(pose.rotation.z()), p->set_qw(pose.rotation.w());
+    *req.mutable_frame() = RenderedFrame(place, v, f, /*color=*/true);
     auto r = c->ProcessFrame(req);
     EXPECT_TRUE(r.ok()) << r.status();
     if (r.ok()) last = *r;
@@ -127,10 +137,42 @@ TEST_F(ServerTest, ALaterVisitOfAPlaceRanksItFirstByArchitecture) {
   grpc::ClientContext bc;
   EXPECT_EQ(places->QueryPlace(&bc, bad_method, &qr).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
-  v1::QueryPlaceRequest frames = q;
-  *frames.add_frames() = testing::MakeFrame();
+  v1::QueryPlaceRequest both = q;
+  *both.add_frames() = testing::MakeFrame();
   grpc::ClientContext fc;
-  EXPECT_EQ(places->QueryPlace(&fc, frames, &qr).error_code(), grpc::StatusCode::UNIMPLEMENTED);
+  EXPECT_EQ(places->QueryPlace(&fc, both, &qr).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+
+  // A recording's own key frames (depth and poses, no colour): ranked, not stored — both home
+  // visits above the office.
+  v1::QueryPlaceRequest recording;
+  for (size_t f = 0; f < (*home_visits)[1].trajectory.size(); f += 3) {
+    *recording.add_frames() = RenderedFrame(*home, (*home_visits)[1], f, /*color=*/false);
+  }
+  v1::QueryPlaceResponse rr;
+  grpc::ClientContext rc;
+  const grpc::Status rs = places->QueryPlace(&rc, recording, &rr);
+  ASSERT_TRUE(rs.ok()) << rs.error_message();
+  ASSERT_EQ(rr.matches_size(), 3);
+  EXPECT_EQ(rr.matches(0).map(), "home");
+  EXPECT_EQ(rr.matches(1).map(), "home");
+  EXPECT_EQ(rr.matches(2).map(), "office");
+  EXPECT_NE(rr.descriptor_text().find("C3"), std::string::npos) << rr.descriptor_text();
+  ASSERT_TRUE(client_->ListVisits("home").ok());
+  EXPECT_EQ(client_->ListVisits("home")->visits_size(), 2);  // nothing stored
+  // Bad frames: no pose (named by index), a single frame (no plan).
+  v1::QueryPlaceRequest unposed = recording;
+  unposed.mutable_frames(1)->clear_pose();
+  grpc::ClientContext uc2;
+  const grpc::Status us = places->QueryPlace(&uc2, unposed, &rr);
+  EXPECT_EQ(us.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(us.error_message().find("frames[1]: pose is missing"), std::string::npos)
+      << us.error_message();
+  v1::QueryPlaceRequest single;
+  *single.add_frames() = recording.frames(0);
+  grpc::ClientContext sc;
+  const grpc::Status ss = places->QueryPlace(&sc, single, &rr);
+  EXPECT_EQ(ss.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_NE(ss.error_message().find("several key frames"), std::string::npos) << ss.error_message();
   for (const char* map : {"no-such-map", "bad name!"}) {
     v1::ListPlacesRequest bad_map;
     bad_map.set_map(map);
