@@ -341,9 +341,10 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   }
   // Not the outline: (a) of two parallel faces one behind the other, the shorter — a face less
   // than 0.8 m in front of a longer wall is furniture against it (where the wall was hidden
-  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly
-  // behind another wall's line, within its extent (seen through an opening, e.g. the next room's
-  // side wall through a door).
+  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face across
+  // another wall, wholly behind its line within its extent (seen through an opening, e.g. the
+  // next room's side wall through a door; walls facing away from each other, as the sides of a
+  // U's notch, are both real).
   auto overlap = [](const Candidate& on, const Candidate& c) {
     // Share of c's extent, projected onto `on`'s line, within on's extent (±0.2 m).
     const Eigen::Vector2d t = on.acc->tangent();
@@ -373,7 +374,8 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       } else if (parallel && in_front < -s.o.merge_offset_m && c.length() < o.length() &&
                  overlap(o, c) > 0.5) {
         hidden = true;  // (a) behind a wall, seen through an opening in it
-      } else if (!parallel && behind_a < -0.2 && behind_b < -0.2 && overlap(o, c) > 0.5) {
+      } else if (std::abs(o.acc->n.dot(c.acc->n)) < std::cos(Deg(s.o.merge_angle_deg)) &&
+                 behind_a < -0.2 && behind_b < -0.2 && overlap(o, c) > 0.5) {
         hidden = true;  // (b)
       }
     }
