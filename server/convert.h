@@ -21,8 +21,7 @@ grpc::Status ToGrpcStatus(const absl::Status& status);
 // Validates the message's fields and views its image bytes (the message must outlive the
 // result). InvalidArgument names the field: "frame.intrinsics.fx must be > 0", ... Without
 // `color_required` a frame may come without colour (uses of depth alone).
-absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame,
-                                                bool color_required = true);
+absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool color_required = true);
 
 absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
 void PoseToProto(const Pose& pose, v1::Pose* out);
