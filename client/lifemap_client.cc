@@ -302,11 +302,14 @@ absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& opt
 absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std::string& depth_path,
                                          double depth_scale, const v1::CameraIntrinsics& intrinsics,
                                          double timestamp_s, uint64_t sequence) {
-  auto rgb = ReadFileBytes(rgb_path);
+  const bool with_color = !rgb_path.empty();
+  absl::StatusOr<std::string> rgb = std::string();
+  if (with_color) rgb = ReadFileBytes(rgb_path);
   if (!rgb.ok()) return rgb.status();
   auto depth = ReadFileBytes(depth_path);
   if (!depth.ok()) return depth.status();
-  auto rgb_header = ProbeImage(*rgb);
+  absl::StatusOr<ImageHeader> rgb_header = ImageHeader();
+  if (with_color) rgb_header = ProbeImage(*rgb);
   if (!rgb_header.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(rgb_path, ": ", rgb_header.status().message()));
   }
@@ -325,8 +328,9 @@ absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std:
   frame.set_timestamp_s(timestamp_s);
   *frame.mutable_intrinsics() = intrinsics;
   if (intrinsics.width() == 0 && intrinsics.height() == 0) {
-    frame.mutable_intrinsics()->set_width(static_cast<uint32_t>(rgb_header->width));
-    frame.mutable_intrinsics()->set_height(static_cast<uint32_t>(rgb_header->height));
+    const ImageHeader& sized = with_color ? *rgb_header : *depth_header;
+    frame.mutable_intrinsics()->set_width(static_cast<uint32_t>(sized.width));
+    frame.mutable_intrinsics()->set_height(static_cast<uint32_t>(sized.height));
   }
   auto* d = frame.mutable_depth();
   d->set_encoding(v1::DEPTH_PNG16);
@@ -334,6 +338,7 @@ absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std:
   d->set_height(static_cast<uint32_t>(depth_header->height));
   d->set_depth_scale(depth_scale);
   d->set_data(*std::move(depth));
+  if (!with_color) return frame;
   auto* c = frame.mutable_color();
   c->set_encoding(rgb_header->format == ImageFormat::kPng ? v1::COLOR_PNG : v1::COLOR_JPEG);
   c->set_width(static_cast<uint32_t>(rgb_header->width));

@@ -105,6 +105,8 @@ class Client {
 
 // Builds a Frame from image files as they are on disk (no re-encoding): depth must be a 16-bit
 // PNG (`depth_scale` units per metre), colour a PNG or JPEG. Checks both headers and sizes.
+// An empty `rgb_path` leaves the colour out (for uses of depth alone, such as QueryPlace); the
+// image size then comes from the depth.
 absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std::string& depth_path,
                                          double depth_scale, const v1::CameraIntrinsics& intrinsics,
                                          double timestamp_s, uint64_t sequence);

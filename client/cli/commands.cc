@@ -13,6 +13,7 @@
 #include "absl/strings/str_split.h"
 #include "client/cli/output.h"
 #include "core/common/image_codec.h"
+#include "core/common/types.h"
 
 namespace lifemap::cli {
 namespace {
@@ -95,10 +96,24 @@ const char* OutputName(v1::FrameOutput o) {
   }
 }
 
-// The shape of most commands: connect, make one call, print the response as JSON (--json) or
-// for a person with `print`. Returns the exit code; `exit_code` lets a command fail on an
-// answer (e.g. an integrity check that found problems).
 }  // namespace
+
+v1::Pose PoseProto(const Pose& T_world_camera) {
+  const auto& t = T_world_camera.translation;
+  const auto& q = T_world_camera.rotation;
+  v1::Pose p;
+  p.set_tx(t.x()), p.set_ty(t.y()), p.set_tz(t.z());
+  p.set_qx(q.x()), p.set_qy(q.y()), p.set_qz(q.z()), p.set_qw(q.w());
+  return p;
+}
+
+v1::CameraIntrinsics IntrinsicsProto(const CameraIntrinsics& k) {
+  v1::CameraIntrinsics out;
+  out.set_fx(k.fx), out.set_fy(k.fy), out.set_cx(k.cx), out.set_cy(k.cy);
+  out.set_width(static_cast<uint32_t>(k.width));
+  out.set_height(static_cast<uint32_t>(k.height));
+  return out;
+}
 
 absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,
                                                          int height) {

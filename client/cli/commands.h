@@ -13,6 +13,11 @@
 #include "client/cli/output.h"
 #include "client/lifemap_client.h"
 
+namespace lifemap {
+struct CameraIntrinsics;
+struct Pose;
+}  // namespace lifemap
+
 namespace lifemap::cli {
 
 struct CliContext {
@@ -23,6 +28,10 @@ struct CliContext {
 
   absl::StatusOr<std::unique_ptr<client::Client>> Connect() const;
 };
+
+// Core values as the messages a robot sends.
+v1::Pose PoseProto(const Pose& T_world_camera);
+v1::CameraIntrinsics IntrinsicsProto(const CameraIntrinsics& k);
 
 // Parses "FX,FY,CX,CY" (pixels) for an image of the given size. InvalidArgument otherwise.
 absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text, int width,

@@ -9,6 +9,7 @@
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
 #include "core/common/image_codec.h"
+#include "core/common/types.h"
 #include "core/io/tum_dataset.h"
 #include "core/place/serialize.h"
 #include "core/tracking/keyframe_selector.h"
@@ -42,36 +43,25 @@ absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64
     selector.Accept(e.timestamp_s, e.T_world_camera);
     keyframes.push_back(&e);
   }
+  // The intrinsics for the depth images' size (the first key frame's).
+  auto first = ReadFileBytes(keyframes.front()->depth_path);
+  if (!first.ok()) return first.status();
+  auto header = ProbeImage(*first);
+  if (!header.ok()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(keyframes.front()->depth_path, ": ", header.status().message()));
+  }
+  const v1::CameraIntrinsics k =
+      IntrinsicsProto(io::TumSequenceIntrinsics(*seq, header->width, header->height, nullptr));
   std::vector<v1::Frame> frames;
   uint64_t bytes = 0;
   for (const auto* e : keyframes) {
-    auto depth = ReadFileBytes(e->depth_path);
-    if (!depth.ok()) return depth.status();
-    auto header = ProbeImage(*depth);
-    if (!header.ok()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(e->depth_path, ": ", header.status().message()));
-    }
-    const CameraIntrinsics k =
-        seq->intrinsics ? *seq->intrinsics
-                        : io::TumIntrinsicsFor(dir, header->width, header->height, nullptr);
-    v1::Frame f;
-    f.set_sequence(frames.size());
-    f.set_timestamp_s(e->timestamp_s);
-    auto* ki = f.mutable_intrinsics();
-    ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
-    ki->set_width(static_cast<uint32_t>(header->width));
-    ki->set_height(static_cast<uint32_t>(header->height));
-    f.mutable_depth()->set_encoding(v1::DEPTH_PNG16);
-    f.mutable_depth()->set_depth_scale(5000);
-    bytes += depth->size();
-    f.mutable_depth()->set_data(*std::move(depth));
-    const Pose& p = *e->T_world_camera;
-    auto* pose = f.mutable_pose();
-    pose->set_tx(p.translation.x()), pose->set_ty(p.translation.y());
-    pose->set_tz(p.translation.z()), pose->set_qx(p.rotation.x());
-    pose->set_qy(p.rotation.y()), pose->set_qz(p.rotation.z()), pose->set_qw(p.rotation.w());
-    frames.push_back(std::move(f));
+    auto f = client::FrameFromFiles(/*rgb_path=*/"", e->depth_path, 5000, k, e->timestamp_s,
+                                    frames.size());
+    if (!f.ok()) return f.status();
+    *f->mutable_pose() = PoseProto(*e->T_world_camera);
+    bytes += f->depth().data().size();
+    frames.push_back(*std::move(f));
   }
   // Leave a tenth of the message for framing; thin evenly when the key frames do not fit.
   const uint64_t budget = max_bytes - max_bytes / 10;

@@ -81,23 +81,9 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
     }
     k = *parsed;
     intrinsics_source = "--intrinsics";
-  } else if (seq->intrinsics) {
-    k.set_fx(seq->intrinsics->fx);
-    k.set_fy(seq->intrinsics->fy);
-    k.set_cx(seq->intrinsics->cx);
-    k.set_cy(seq->intrinsics->cy);
-    k.set_width(static_cast<uint32_t>(header->width));
-    k.set_height(static_cast<uint32_t>(header->height));
-    intrinsics_source = "intrinsics.txt";
   } else {
-    const auto guess =
-        io::TumIntrinsicsFor(a.tum_dir, header->width, header->height, &intrinsics_source);
-    k.set_fx(guess.fx);
-    k.set_fy(guess.fy);
-    k.set_cx(guess.cx);
-    k.set_cy(guess.cy);
-    k.set_width(static_cast<uint32_t>(guess.width));
-    k.set_height(static_cast<uint32_t>(guess.height));
+    k = IntrinsicsProto(
+        io::TumSequenceIntrinsics(*seq, header->width, header->height, &intrinsics_source));
   }
 
   auto client = ctx.Connect();
@@ -158,16 +144,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         break;
       }
       if (a.use_groundtruth && e.T_world_camera) {
-        auto* p = frame->mutable_pose();
-        const auto& t = e.T_world_camera->translation;
-        const auto& q = e.T_world_camera->rotation;
-        p->set_tx(t.x());
-        p->set_ty(t.y());
-        p->set_tz(t.z());
-        p->set_qx(q.x());
-        p->set_qy(q.y());
-        p->set_qz(q.z());
-        p->set_qw(q.w());
+        *frame->mutable_pose() = PoseProto(*e.T_world_camera);
       }
       {
         std::lock_guard<std::mutex> lock(sent_mu);

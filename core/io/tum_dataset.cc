@@ -287,29 +287,39 @@ CameraIntrinsics TumIntrinsicsFor(const std::string& dir, int width, int height,
   return k;
 }
 
-absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& e) {
+CameraIntrinsics TumSequenceIntrinsics(const TumSequence& seq, int width, int height,
+                                       std::string* source) {
+  if (!seq.intrinsics) return TumIntrinsicsFor(seq.dir, width, height, source);
+  CameraIntrinsics k = *seq.intrinsics;
+  k.width = width;
+  k.height = height;
+  if (source) *source = "intrinsics.txt";
+  return k;
+}
+
+absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& e,
+                                         bool decode_color) {
   auto depth = ReadFileBytes(e.depth_path);
-  auto color = ReadFileBytes(e.rgb_path);
   if (!depth.ok()) return depth.status();
+  absl::StatusOr<std::string> color = std::string();
+  if (decode_color) color = ReadFileBytes(e.rgb_path);
   if (!color.ok()) return color.status();
-  auto header = ProbeImage(*color);
+  // The size (and the colour's format) from the image that is decoded first.
+  const std::string& sized_path = decode_color ? e.rgb_path : e.depth_path;
+  auto header = ProbeImage(decode_color ? *color : *depth);
   if (!header.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", header.status().message()));
+    return absl::InvalidArgumentError(absl::StrCat(sized_path, ": ", header.status().message()));
   }
   EncodedRgbdFrame encoded;
   encoded.timestamp_s = e.timestamp_s;
-  encoded.intrinsics = seq.intrinsics
-                           ? *seq.intrinsics
-                           : TumIntrinsicsFor(seq.dir, header->width, header->height, nullptr);
-  encoded.intrinsics.width = header->width;
-  encoded.intrinsics.height = header->height;
+  encoded.intrinsics = TumSequenceIntrinsics(seq, header->width, header->height, nullptr);
   encoded.depth = {DepthEncoding::kPng16, *depth, 0, 0, 5000.0};
   encoded.color = {header->format == ImageFormat::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg,
                    *color, 0, 0};
   encoded.T_world_camera = e.T_world_camera;
-  auto frame = DecodeRgbdFrame(encoded);
+  auto frame = DecodeRgbdFrame(encoded, decode_color);
   if (!frame.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+    return absl::InvalidArgumentError(absl::StrCat(sized_path, ": ", frame.status().message()));
   }
   return frame;
 }

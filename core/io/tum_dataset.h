@@ -52,10 +52,12 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
                                             const TumReadOptions& options = {});
 
 // One frame of a sequence read and decoded (16-bit PNG depth at TUM's 5000 units per metre,
-// PNG or JPEG colour), with its intrinsics (the folder's, else TumIntrinsicsFor) and its
-// ground-truth pose when known. NotFound for a missing file; InvalidArgument names the image
-// that does not decode.
-absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& entry);
+// PNG or JPEG colour), with its intrinsics (TumSequenceIntrinsics) and its ground-truth pose
+// when known. Without `decode_color` the colour file is not read (color_bgr stays empty; the
+// size comes from the depth image). NotFound for a missing file; InvalidArgument names the
+// image that does not decode.
+absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& entry,
+                                         bool decode_color = true);
 
 // Reads "timestamp tx ty tz qx qy qz qw" lines (comments with '#').
 absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path);
@@ -67,6 +69,11 @@ std::optional<Pose> InterpolateTrajectory(const std::vector<TimedPose>& trajecto
 
 // One TUM trajectory line, "timestamp tx ty tz qx qy qz qw", without a newline.
 std::string FormatTumPoseLine(double timestamp_s, const Pose& pose);
+
+// Intrinsics of a sequence's images of width × height: its intrinsics.txt (source
+// "intrinsics.txt"), else TumIntrinsicsFor its folder.
+CameraIntrinsics TumSequenceIntrinsics(const TumSequence& seq, int width, int height,
+                                       std::string* source);
 
 // Intrinsics for a TUM folder: DIR/intrinsics.txt ("fx fy cx cy"), else the official
 // calibration of the freiburg1/2/3 camera named in the path, else TUM's ROS default

@@ -9,6 +9,7 @@
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
+#include "server/convert.h"
 #include "tests/integration/server_fixture.h"
 
 namespace lifemap {
@@ -27,9 +28,7 @@ v1::Frame RenderedFrame(const sim::Place& place, const sim::Visit& v, size_t f, 
   v1::Frame fr;
   fr.set_sequence(f);
   fr.set_timestamp_s(v.trajectory[f].timestamp_s);
-  auto* ki = fr.mutable_intrinsics();
-  ki->set_fx(k.fx), ki->set_fy(k.fy), ki->set_cx(k.cx), ki->set_cy(k.cy);
-  ki->set_width(640), ki->set_height(480);
+  server::IntrinsicsToProto(k, fr.mutable_intrinsics());
   fr.mutable_depth()->set_encoding(v1::DEPTH_PNG16);
   fr.mutable_depth()->set_depth_scale(5000);
   fr.mutable_depth()->set_data(*EncodeDepthPng16(frame.depth_m, 5000));
@@ -37,10 +36,7 @@ v1::Frame RenderedFrame(const sim::Place& place, const sim::Visit& v, size_t f, 
     fr.mutable_color()->set_encoding(v1::COLOR_JPEG);
     fr.mutable_color()->set_data(*EncodeJpeg(frame.color_bgr, 80));
   }
-  auto* p = fr.mutable_pose();
-  p->set_tx(pose.translation.x()), p->set_ty(pose.translation.y());
-  p->set_tz(pose.translation.z()), p->set_qx(pose.rotation.x());
-  p->set_qy(pose.rotation.y()), p->set_qz(pose.rotation.z()), p->set_qw(pose.rotation.w());
+  server::PoseToProto(pose, fr.mutable_pose());
   return fr;
 }
 
