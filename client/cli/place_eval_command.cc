@@ -37,12 +37,12 @@ struct PlanTally {
   void Add(const eval::SuiteVisit& v) {
     ++visits;
     if (!v.has_truth) return;
-    truth_walls += static_cast<int>(v.truth.plan.walls.size());
-    for (const auto& w : v.truth.plan.walls) truth_openings += static_cast<int>(w.openings.size());
-    truth_stairs += static_cast<int>(v.truth.plan.stairs.size());
+    const auto& e = v.error;
+    truth_walls += e.truth_walls;
+    truth_openings += e.truth_openings;
+    truth_stairs += e.truth_stairs;
     if (!v.folded.plan_status.ok()) return;
     ++plans;
-    const auto& e = v.error;
     outlines_right += e.outline_right ? 1 : 0;
     walls_found += e.walls_found;
     openings_found += e.openings_found;
@@ -106,11 +106,10 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
     const auto& e = v.error;
     visits_csv += absl::StrFormat(
         "%s,%s,%s,%s,%d,%d,%d,%s,%d,%d,%d,%d,%.4f,%.3f,%d,%d,%d,%d,%d,%d\n", v.path, v.place_id,
-        v.shape, v.role, v.subset, v.folded.frames, v.folded.keyframes, Status(v),
-        static_cast<int>(v.truth.plan.walls.size()), static_cast<int>(v.folded.plan.walls.size()),
-        e.walls_found, e.outline_right ? 1 : 0, Mean(e.length_errors_m), Mean(e.angle_errors_deg),
-        e.truth_openings, e.openings_found, e.extra_openings, v.truth.closed_doors, e.truth_stairs,
-        e.stairs_found);
+        v.shape, v.role, v.subset, v.folded.frames, v.folded.keyframes, Status(v), e.truth_walls,
+        e.built_walls, e.walls_found, e.outline_right ? 1 : 0, Mean(e.length_errors_m),
+        Mean(e.angle_errors_deg), e.truth_openings, e.openings_found, e.extra_openings,
+        v.truth.closed_doors, e.truth_stairs, e.stairs_found);
     for (const auto& p : e.pairs) {
       walls_csv += absl::StrFormat("%s,%s,%d,%d,%.4f,%.4f,%.4f\n", v.path, v.shape, p.truth,
                                    p.built, p.truth_m, p.built_m, p.built_m - p.truth_m);

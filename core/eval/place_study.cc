@@ -227,7 +227,8 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
 
   place::FloorPlanBuilder builder(options.floor_plan);
   for (size_t j = 0; j < keyframes.size(); ++j) {
-    auto frame = io::DecodeTumFrame(*seq, seq->frames[keyframes[j]]);
+    // Colour only where the appearance baseline keeps the frame.
+    auto frame = io::DecodeTumFrame(*seq, seq->frames[keyframes[j]], /*decode_color=*/keep[j]);
     if (!frame.ok()) return frame.status();
     if (auto s =
             builder.AddDepthKeyframe(frame->depth_m, frame->intrinsics, *frame->T_world_camera);
@@ -411,7 +412,9 @@ absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
     if (truth.ok()) {
       v.has_truth = true;
       v.truth = *std::move(truth);
-      if (v.folded.plan_status.ok()) v.error = CompareFloorPlans(v.folded.plan, v.truth.plan);
+      // A visit without a plan compares as an empty one: the truth's counts, nothing found.
+      v.error = CompareFloorPlans(v.folded.plan_status.ok() ? v.folded.plan : place::FloorPlan(),
+                                  v.truth.plan);
     }
     ++done;
     if (progress) {

@@ -115,7 +115,7 @@ struct SuiteVisit {
   FoldedVisit folded;
   bool has_truth = false;
   TruthPlan truth;
-  FloorPlanError error;  // when both plans exist
+  FloorPlanError error;  // with truth (a visit without a plan: an empty one's)
 };
 
 struct PlaceStudy {
