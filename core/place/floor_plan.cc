@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
+#include <limits>
 #include <map>
 #include <unordered_map>
 
@@ -27,12 +29,20 @@ int64_t Key(int s, int h) {
 int KeyS(int64_t k) { return static_cast<int>(k >> 32); }
 int KeyH(int64_t k) { return static_cast<int>(static_cast<int32_t>(k & 0xffffffff)); }
 
+// Where a camera saw a stretch of a wall line from.
+struct Sighting {
+  double s0 = 0, s1 = 0;       // the stretch along the line (metres, the line's tangent)
+  Eigen::Vector2d from{0, 0};  // the camera on the ground
+  double area = 0;             // planar area seen (m²)
+};
+
 // A vertical plane's line on the ground, accumulated over key frames.
 struct WallAcc {
   Eigen::Vector2d n;  // unit normal towards the side the cameras saw it from
   double offset = 0;  // n·q = offset on the line
   double area = 0;    // planar area seen (m²)
   std::unordered_map<int64_t, Cell> cells;
+  std::vector<Sighting> sightings;
   Eigen::Vector2d tangent() const { return {n.y(), -n.x()}; }  // the seen side on its left
 };
 
@@ -152,6 +162,8 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
     }
     acc->area += p.area_m2;
     const Eigen::Vector2d t = acc->tangent();
+    Sighting sighting{std::numeric_limits<double>::max(), std::numeric_limits<double>::lowest(),
+                      s.Ground(origin), p.area_m2};
     // Rasterise each region's quad into covered cells by sampling it finely enough.
     for (size_t q = 0; q + 3 < p.quads.size(); q += 4) {
       Eigen::Vector3d w[4];
@@ -163,12 +175,15 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
         const Eigen::Vector3d top = w[0] + a * (w[1] - w[0]), bottom = w[3] + a * (w[2] - w[3]);
         for (int j = 0; j <= steps; ++j) {
           const Eigen::Vector3d x = top + (static_cast<double>(j) / steps) * (bottom - top);
-          const int si = static_cast<int>(std::floor(t.dot(s.Ground(x)) / cell));
+          const double along = t.dot(s.Ground(x));
+          sighting.s0 = std::min(sighting.s0, along), sighting.s1 = std::max(sighting.s1, along);
+          const int si = static_cast<int>(std::floor(along / cell));
           const int hi = static_cast<int>(std::floor(x.dot(s.up) / cell));
           acc->cells[Key(si, hi)].covered += 1;
         }
       }
     }
+    if (sighting.s0 <= sighting.s1) acc->sightings.push_back(sighting);
   }
 
   // Evidence rays: through each wall the camera faces, where does the reading lie?
@@ -273,6 +288,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     double s0, s1, top;
     double seen_m2;        // distinct covered cells of the run
     Eigen::Vector2d a, b;  // endpoints of the seen extent
+    Eigen::Vector2d from;  // where the cameras that saw the run were, on average
     double length() const { return s1 - s0; }
   };
   const int max_gap = static_cast<int>(std::ceil(s.o.max_wall_gap_m / cell));
@@ -321,13 +337,24 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
         seen_over += free >= 1 && free > occluded ? 1 : 0;
       }
       if (seen_over > 0.5 * static_cast<double>(run.size())) continue;
-      Candidate cand{&w,  (run[lo].first + 0.5) * cell, (run[hi].first + 0.5) * cell,
-                     top, cells * cell * cell,          {},
+      Candidate cand{&w,
+                     (run[lo].first + 0.5) * cell,
+                     (run[hi].first + 0.5) * cell,
+                     top,
+                     cells * cell * cell,
+                     {},
+                     {},
                      {}};
       if (cand.length() < s.o.min_wall_length_m) continue;
       cand.a = base + cand.s0 * t;
       cand.b = base + cand.s1 * t;
-      if (w.n.dot(centre - 0.5 * (cand.a + cand.b)) <= 0) continue;  // seen from outside
+      Eigen::Vector2d from(0, 0);
+      double from_area = 0;
+      for (const auto& v : w.sightings) {
+        if (v.s1 >= cand.s0 && v.s0 <= cand.s1) from += v.area * v.from, from_area += v.area;
+      }
+      if (!(from_area > 0)) continue;
+      cand.from = from / from_area;
       cands.push_back(cand);
     }
   }
@@ -341,43 +368,51 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   }
   // Not the outline: (a) of two parallel faces one behind the other, the shorter — a face less
   // than 0.8 m in front of a longer wall is furniture against it (where the wall was hidden
-  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face across
-  // another wall, wholly behind its line within its extent (seen through an opening, e.g. the
-  // next room's side wall through a door; walls facing away from each other, as the sides of a
-  // U's notch, are both real).
-  auto overlap = [](const Candidate& on, const Candidate& c) {
-    // Share of c's extent, projected onto `on`'s line, within on's extent (±0.2 m).
+  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly
+  // behind another wall kept by (a), seen through it: the sight line from the cameras that saw
+  // the face to its middle crosses that wall away from its ends (through a door or window, e.g.
+  // the next room's side wall; a wall behind another's line but seen past its end is its
+  // neighbour around a reflex corner, as the sides of a U's notch and the walls beside it).
+  auto overlap = [](const Candidate& on, const Candidate& c, double margin) {
+    // Share of c's extent, projected onto `on`'s line, within on's extent grown by `margin`
+    // metres at either end (shrunk where negative).
     const Eigen::Vector2d t = on.acc->tangent();
     const double c0 = std::min(t.dot(c.a), t.dot(c.b)), c1 = std::max(t.dot(c.a), t.dot(c.b));
-    const double lo = std::max(c0, on.s0 - 0.2), hi = std::min(c1, on.s1 + 0.2);
+    const double lo = std::max(c0, on.s0 - margin), hi = std::min(c1, on.s1 + margin);
     if (c1 - c0 < 0.05) return lo <= hi ? 1.0 : 0.0;
     return std::max(0.0, hi - lo) / (c1 - c0);
   };
-  auto grown = [&](Candidate c) {  // a wall's extent across what furniture hides of it
-    c.s0 -= s.o.max_wall_gap_m, c.s1 += s.o.max_wall_gap_m;
-    return c;
-  };
-  std::vector<Candidate> faces;
+  const double gap = s.o.max_wall_gap_m;  // what furniture may hide of a wall, at either end
+  std::vector<Candidate> kept;
   for (size_t i = 0; i < tall.size(); ++i) {
     const Candidate& c = tall[i];
     bool hidden = false;
     for (size_t j = 0; j < tall.size() && !hidden; ++j) {
       const Candidate& o = tall[j];
-      if (j == i) continue;
-      const double behind_a = o.acc->n.dot(c.a) - o.acc->offset;
-      const double behind_b = o.acc->n.dot(c.b) - o.acc->offset;
-      const bool parallel = o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg));
+      if (j == i || o.acc->n.dot(c.acc->n) <= std::cos(Deg(s.o.merge_angle_deg))) continue;
       const double in_front = c.acc->offset - o.acc->offset;  // of o, along the normal
-      if (parallel && in_front > s.o.merge_offset_m && in_front < 0.8 && c.length() < o.length() &&
-          overlap(grown(o), c) > 0.5) {
-        hidden = true;  // (a) furniture in front of a wall, where the wall is hidden
-      } else if (parallel && in_front < -s.o.merge_offset_m && c.length() < o.length() &&
-                 overlap(o, c) > 0.5) {
-        hidden = true;  // (a) behind a wall, seen through an opening in it
-      } else if (std::abs(o.acc->n.dot(c.acc->n)) < std::cos(Deg(s.o.merge_angle_deg)) &&
-                 behind_a < -0.2 && behind_b < -0.2 && overlap(o, c) > 0.5) {
-        hidden = true;  // (b)
+      hidden = c.length() < o.length() &&
+               ((in_front > s.o.merge_offset_m && in_front < 0.8 && overlap(o, c, gap) > 0.5) ||
+                (in_front < -s.o.merge_offset_m && overlap(o, c, 0.2) > 0.5));
+    }
+    if (!hidden) kept.push_back(c);
+  }
+  std::vector<Candidate> faces;
+  for (const Candidate& c : kept) {
+    bool hidden = false;
+    for (const Candidate& o : kept) {
+      if (&o == &c || o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg))) continue;
+      const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
+      const double at_from = o.acc->n.dot(c.from) - o.acc->offset;
+      const double at_mid = o.acc->n.dot(mid) - o.acc->offset;
+      if (o.acc->n.dot(c.a) - o.acc->offset >= -0.2 || o.acc->n.dot(c.b) - o.acc->offset >= -0.2 ||
+          at_from <= 0) {
+        continue;
       }
+      const Eigen::Vector2d cross = c.from + (at_from / (at_from - at_mid)) * (mid - c.from);
+      const double along = o.acc->tangent().dot(cross);
+      hidden = along > o.s0 + 0.3 && along < o.s1 - 0.3;
+      if (hidden) break;
     }
     if (!hidden) faces.push_back(c);
   }
@@ -385,10 +420,11 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     return absl::FailedPreconditionError(
         absl::StrCat("only ", faces.size(), " walls seen (need 3 or more around the place)"));
   }
-  // The outline: walls chained end to start, counter-clockwise (the place on their left), from
-  // the largest; each next wall is the one the current meets with the least extension of both.
-  // Walls off the chain (seen through a door, furniture) drop out. Where a wall was not seen
-  // the chain breaks: then the walls are ordered by direction from the cameras' centre.
+  // The outline: walls chained end to start, counter-clockwise (the place on their left), into
+  // the closed chain through the largest face that best explains what was seen: the most wall
+  // seen along it, the least extension of walls to their corners, the fewest and shortest unseen
+  // walls. Walls off the chain (seen through a door, furniture) drop out. Where no chain closes,
+  // the walls are ordered by direction from the cameras' centre.
   constexpr double kMaxJoin = 2.5;  // metres of extension, both walls together
   auto join = [&](const Candidate& p, const Candidate& q, Eigen::Vector2d* corner) {
     const Eigen::Vector2d tp = p.acc->tangent(), tq = q.acc->tangent();
@@ -396,69 +432,154 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     if (Intersect(p.a, tp, q.a, tq, &x)) {
       if (tp.dot(x) < p.s0 + 0.3 || tq.dot(x) > q.s1 - 0.3) return 1e9;
       *corner = x;
-      return (x - p.b).norm() + (x - q.a).norm();
+      // A wall seen on past the corner, behind the other wall's line, was seen through an
+      // opening near the corner (the next room's wall on the same line): that overshoot counts
+      // a fifth.
+      const bool p_past = tp.dot(p.b) > tp.dot(x) && q.acc->n.dot(p.b) - q.acc->offset < -0.05;
+      const bool q_past = tq.dot(q.a) < tq.dot(x) && p.acc->n.dot(q.a) - p.acc->offset < -0.05;
+      return (p_past ? 0.2 : 1.0) * (x - p.b).norm() + (q_past ? 0.2 : 1.0) * (x - q.a).norm();
     }
     if (tp.dot(tq) < 0) return 1e9;  // antiparallel: the other side of the room
     *corner = 0.5 * (p.b + q.a);
     return (p.b - q.a).norm() + std::abs(p.acc->offset - q.acc->offset);
   };
-  size_t largest = 0;
-  for (size_t i = 1; i < faces.size(); ++i) {
-    if (faces[i].seen_m2 > faces[largest].seen_m2) largest = i;
-  }
-  std::vector<size_t> chain = {largest};
-  std::vector<Eigen::Vector2d> joins;  // joins[k]: where chain[k] meets chain[k + 1]
-  std::vector<bool> used(faces.size(), false);
-  used[largest] = true;
-  bool closed = false;
-  while (!closed) {
-    const Candidate& cur = faces[chain.back()];
-    double best = kMaxJoin;
-    int next = -1;
-    Eigen::Vector2d best_corner = Eigen::Vector2d::Zero();
+  // A wall not seen at all (hidden behind furniture or people all along, or out of the
+  // cameras' view) is a gap between two walls: the chain may cross it from one wall's end to the
+  // other's start when the unseen wall would have the place on its left (facing the cameras that
+  // saw its neighbours), at a cost of its length and a metre.
+  constexpr double kMaxUnseen = 8.0;  // metres; the depth range of the evidence rays
+  constexpr double kUnseenCost = 1.0;
+  struct Link {
+    int to;       // face index
+    double cost;  // metres
+    bool unseen;  // across a wall not seen, from `at` to `unseen_end`
+    Eigen::Vector2d at, unseen_end;
+  };
+  auto across = [&](const Candidate& p, const Candidate& q, Link* link) {
+    const Eigen::Vector2d g = q.a - p.b;
+    const double len = g.norm();
+    if (len < 0.3 || len > kMaxUnseen) return false;
+    const Eigen::Vector2d left(-g.y() / len, g.x() / len);
+    if (left.dot(0.5 * (p.from + q.from) - 0.5 * (p.b + q.a)) <= 0.3) return false;
+    const Eigen::Vector2d tp = p.acc->tangent(), tq = q.acc->tangent();
+    link->at = p.b, link->unseen_end = q.a;
+    if (std::abs(tp.dot(tq)) > std::cos(Deg(20))) {
+      // Between parallel walls the unseen one runs across them, beyond all that was seen of
+      // either (a wall is seen short more often than long).
+      const double e = std::max(tp.dot(p.b), tp.dot(q.a));
+      link->at = p.b + (e - tp.dot(p.b)) * tp;
+      link->unseen_end = q.a + ((e - tp.dot(q.a)) / tp.dot(tq)) * tq;
+    }
+    link->cost = (link->at - p.b).norm() + (link->unseen_end - q.a).norm() +
+                 (link->unseen_end - link->at).norm() + kUnseenCost;
+    return true;
+  };
+  std::vector<std::vector<Link>> links(faces.size());
+  for (size_t i = 0; i < faces.size(); ++i) {
+    std::vector<Link> gaps;
     for (size_t j = 0; j < faces.size(); ++j) {
-      if (used[j] && !(j == largest && chain.size() >= 3)) continue;
-      Eigen::Vector2d x = Eigen::Vector2d::Zero();
-      const double cost = join(cur, faces[j], &x);
-      if (cost < best) best = cost, next = static_cast<int>(j), best_corner = x;
+      if (j == i) continue;
+      Link l{static_cast<int>(j), 0, false, Eigen::Vector2d::Zero(), Eigen::Vector2d::Zero()};
+      l.cost = join(faces[i], faces[j], &l.at);
+      if (l.cost < kMaxJoin) {
+        links[i].push_back(l);
+      } else if (across(faces[i], faces[j], &l)) {
+        l.unseen = true;
+        gaps.push_back(l);
+      }
     }
-    if (next < 0) break;
-    joins.push_back(best_corner);
-    if (static_cast<size_t>(next) == largest) {
-      closed = true;
-    } else {
-      chain.push_back(static_cast<size_t>(next));
-      used[static_cast<size_t>(next)] = true;
+    // Only the two nearest gaps: an unseen wall joins neighbours, not any two walls.
+    std::sort(gaps.begin(), gaps.end(),
+              [](const Link& x, const Link& y) { return x.cost < y.cost; });
+    if (gaps.size() > 2) gaps.resize(2);
+    links[i].insert(links[i].end(), gaps.begin(), gaps.end());
+  }
+  size_t largest = 0;
+  double seen_total = 0;
+  for (size_t i = 0; i < faces.size(); ++i) {
+    if (faces[i].seen_m2 > faces[largest].seen_m2) largest = i;
+    seen_total += faces[i].length();
+  }
+  // Depth-first over the chains from the largest face, with a bound (the cost so far less all
+  // the wall length still to gain) and a budget of expansions, which the few faces and links
+  // of a room stay far below.
+  std::vector<const Link*> path, best_path;
+  std::vector<bool> used(faces.size(), false);
+  double best_score = std::numeric_limits<double>::max();
+  int budget = 200000;
+  std::function<void(size_t, double, double, int)> search = [&](size_t cur, double cost,
+                                                                double gained, int unseen) {
+    if (--budget < 0 || cost - seen_total >= best_score) return;  // gains at most seen_total
+    for (const Link& l : links[cur]) {
+      const auto j = static_cast<size_t>(l.to);
+      const int u = unseen + (l.unseen ? 1 : 0);
+      if (u > 2) continue;
+      if (j == largest) {
+        const size_t walls = path.size() + 1 + static_cast<size_t>(u);
+        if (walls >= 3 && path.size() + 1 >= 2 && cost + l.cost - gained < best_score) {
+          best_score = cost + l.cost - gained;
+          best_path = path;
+          best_path.push_back(&l);
+        }
+        continue;
+      }
+      if (used[j]) continue;
+      used[j] = true;
+      path.push_back(&l);
+      search(j, cost + l.cost, gained + faces[j].length(), u);
+      path.pop_back();
+      used[j] = false;
+    }
+  };
+  used[largest] = true;
+  search(largest, 0, faces[largest].length(), 0);
+  std::vector<int> chain;              // face index; -1: a wall not seen
+  std::vector<Eigen::Vector2d> joins;  // joins[k]: where chain[k] meets chain[k + 1]
+  const bool closed = !best_path.empty();
+  if (closed) {
+    chain.push_back(static_cast<int>(largest));
+    for (const Link* l : best_path) {
+      joins.push_back(l->at);
+      if (l->unseen) {
+        chain.push_back(-1);
+        joins.push_back(l->unseen_end);
+      }
+      if (static_cast<size_t>(l->to) != largest) chain.push_back(l->to);
     }
   }
-  std::vector<Candidate> outline;
+  std::vector<const Candidate*> outline;  // nullptr: a wall not seen
   std::vector<Eigen::Vector2d> corners;
   if (closed) {
     for (size_t k = 0; k < chain.size(); ++k) {
-      outline.push_back(faces[chain[k]]);
+      outline.push_back(chain[k] < 0 ? nullptr : &faces[static_cast<size_t>(chain[k])]);
       corners.push_back(joins[(k + chain.size() - 1) % chain.size()]);  // where it starts
     }
   } else {
-    outline = faces;
-    auto angle = [&](const Candidate& c) {
-      const Eigen::Vector2d m = 0.5 * (c.a + c.b) - centre;
+    for (const auto& f : faces) outline.push_back(&f);
+    auto angle = [&](const Candidate* c) {
+      const Eigen::Vector2d m = 0.5 * (c->a + c->b) - centre;
       return std::atan2(m.y(), m.x());
     };
     std::sort(outline.begin(), outline.end(),
-              [&](const Candidate& x, const Candidate& y) { return angle(x) < angle(y); });
+              [&](const Candidate* x, const Candidate* y) { return angle(x) < angle(y); });
     const size_t m = outline.size();
     for (size_t i = 0; i < m; ++i) {
-      const Candidate& prev = outline[(i + m - 1) % m];
+      const Candidate& prev = *outline[(i + m - 1) % m];
       Eigen::Vector2d x = Eigen::Vector2d::Zero();
-      corners.push_back(join(prev, outline[i], &x) < kMaxJoin ? x : 0.5 * (prev.b + outline[i].a));
+      corners.push_back(join(prev, *outline[i], &x) < kMaxJoin ? x
+                                                               : 0.5 * (prev.b + outline[i]->a));
     }
   }
   const size_t n = outline.size();
   for (size_t i = 0; i < n; ++i) {
-    const Candidate& c = outline[i];
     Wall wall;
     wall.start = corners[i];
     wall.end = corners[(i + 1) % n];
+    if (outline[i] == nullptr) {  // not seen: no area, no openings
+      plan.walls.push_back(std::move(wall));
+      continue;
+    }
+    const Candidate& c = *outline[i];
     wall.observed_m2 = c.seen_m2;
     // Openings: columns (cells along the wall) whose opening band is open, runs of them.
     const Eigen::Vector2d t = c.acc->tangent();
