@@ -1,11 +1,13 @@
 // `lifemap eval places`: paper 004's evaluation on a synthetic suite (lifemap sim suite) —
 // floor plans against the scenes' ground truth, and place recognition per condition subset by
 // architecture next to an appearance-only baseline.
+#include <fstream>
 #include <iostream>
 #include <map>
 
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/study.h"
 #include "core/eval/metrics.h"
@@ -71,13 +73,36 @@ std::string Status(const eval::SuiteVisit& v) {
 
 struct PlaceEvalArgs {
   std::string suite, out;
+  std::string thresholds_from;  // an earlier run's summary.json
   int threads = 0;
 };
+
+// The thresholds an earlier run chose (its summary.json), for a held-out evaluation.
+absl::Status ReadThresholds(const std::string& path, eval::PlaceStudyOptions* options) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read --thresholds-from ", path));
+  const json s = json::parse(in, nullptr, /*allow_exceptions=*/false);
+  for (const auto& [key, value] :
+       {std::pair<const char*, double*>{"threshold", &options->architecture_threshold},
+        {"baseline_threshold", &options->appearance_threshold}}) {
+    if (!s.is_object() || !s.contains(key) || !s[key].is_number() || s[key].get<double>() < 0 ||
+        s[key].get<double>() > 1) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          path, " has no \"", key,
+          "\" in [0, 1]: give the summary.json an earlier lifemap eval places run wrote"));
+    }
+    *value = s[key].get<double>();
+  }
+  return absl::OkStatus();
+}
 
 int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   eval::PlaceStudyOptions options;
   options.threads = a.threads;
+  if (!a.thresholds_from.empty()) {
+    if (auto s = ReadThresholds(a.thresholds_from, &options); !s.ok()) return Fail(s);
+  }
   auto study = eval::RunPlaceStudy(a.suite, options, [&](const std::string& line) {
     if (!ctx.json) std::cerr << line << "\n";
   });
@@ -170,13 +195,16 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
   report += absl::StrFormat(
       "\n## Place recognition per condition subset (paper 004, Table 2)\n\n"
       "Open set: each query is tried against every reference (its own among them) and with its "
-      "own place left out (to be rejected). One threshold per method, the one of its best F1 "
-      "over every subset together: architecture %.3f, appearance %.3f (chosen on this suite, "
-      "so optimistic for both alike). Top-1: the best reference is the query's place, no "
+      "own place left out (to be rejected). One threshold per method: architecture %.3f, "
+      "appearance %.3f (%s). Top-1: the best reference is the query's place, no "
       "threshold.\n\n"
       "| subset | conditions | architecture P / R / F1 | top-1 | appearance P / R / F1 | top-1 "
       "|\n|---|---|---|---|---|---|\n",
-      study->architecture.operating.threshold, study->appearance.operating.threshold);
+      study->architecture.operating.threshold, study->appearance.operating.threshold,
+      a.thresholds_from.empty()
+          ? "each the one of its best F1 over every subset together, chosen on this suite, so "
+            "optimistic for both alike"
+          : absl::StrCat("chosen on another suite, held out: ", a.thresholds_from));
   json f1_json = json::object(), baseline_json = json::object(), subsets = json::array();
   for (int k = 0; k < 8; ++k) {
     const auto& ar = study->architecture.subsets[static_cast<size_t>(k)];
@@ -239,6 +267,7 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
         {"by_shape", shapes}}},
       {"threshold", ao.threshold},
       {"baseline_threshold", po.threshold},
+      {"thresholds_from", a.thresholds_from.empty() ? json(nullptr) : json(a.thresholds_from)},
       {"overall",
        {{"architecture", {{"precision", ao.precision}, {"recall", ao.recall}, {"f1", ao.f1}}},
         {"appearance", {{"precision", po.precision}, {"recall", po.recall}, {"f1", po.f1}}}}},
@@ -268,6 +297,10 @@ void AddPlaceEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->required()
       ->check(CLI::ExistingDirectory);
   cmd->add_option("--out", a->out, "output folder (created)")->required();
+  cmd->add_option("--thresholds-from", a->thresholds_from,
+                  "summary.json of an earlier run (another seed): accept matches at its "
+                  "thresholds instead of choosing them on this suite (a held-out evaluation)")
+      ->check(CLI::ExistingFile);
   cmd->add_option("--threads", a->threads, "worker threads (default: one per core)")
       ->check(CLI::Range(0, 256));
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunPlaceEval(*ctx, *a); }; });

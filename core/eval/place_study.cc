@@ -308,7 +308,7 @@ namespace {
 // Trials of one method from its query × reference score matrix.
 MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& visits,
                       const std::vector<size_t>& queries, const std::vector<size_t>& references,
-                      const std::vector<std::vector<double>>& scores) {
+                      const std::vector<std::vector<double>>& scores, double threshold) {
   MethodResult m;
   m.name = name;
   std::array<int, 8> known{}, top1{};
@@ -340,6 +340,7 @@ MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& vi
     m.curve.push_back(p);
     if (p.f1 > m.operating.f1) m.operating = p;
   }
+  if (threshold >= 0) m.operating = EvaluateTrials(m.trials, threshold);
   for (int k = 0; k < 8; ++k) {
     m.subsets[static_cast<size_t>(k)] = EvaluateTrials(m.trials, m.operating.threshold, k + 1);
     m.top1[static_cast<size_t>(k)] =
@@ -442,8 +443,10 @@ absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
       look[qi][ri] = AppearanceSimilarity(q, r, options);
     }
   });
-  study.architecture = Evaluate("architecture", study.visits, queries, references, arch);
-  study.appearance = Evaluate("appearance", study.visits, queries, references, look);
+  study.architecture = Evaluate("architecture", study.visits, queries, references, arch,
+                                options.architecture_threshold);
+  study.appearance =
+      Evaluate("appearance", study.visits, queries, references, look, options.appearance_threshold);
   study.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return study;
 }

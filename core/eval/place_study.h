@@ -32,6 +32,10 @@ struct PlaceStudyOptions {
   double ratio_test = 0.8;  // Lowe's ratio for ORB matches
   double ransac_px = 2.0;   // fundamental-matrix RANSAC threshold
   int threads = 0;          // 0 = one per core
+  // Score thresholds to accept a match at, per method; negative: the one of the best F1 over
+  // the suite (optimistic). Fixed ones (chosen on another suite) make the evaluation held out.
+  double architecture_threshold = -1;
+  double appearance_threshold = -1;
 };
 
 // The floor plan a synthetic visit's scene.json describes: the main room's walls

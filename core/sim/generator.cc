@@ -469,7 +469,9 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
   }
   const double radius = std::min(0.8, 0.4 * clearance);
   // A room not seen whole from that point (T, U; some L) gets further loops: each around the
-  // clearest point not yet in sight, until every part of the floor is in sight of a loop.
+  // clearest point not yet in sight, until every part of the floor is in sight of a loop and
+  // near it (within kSightM: an arm of a U seen from afar shows its walls edge-on).
+  constexpr double kSightM = 4.0;
   struct Loop {
     Eigen::Vector2d centre;
     double radius;
@@ -483,12 +485,15 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         const Eigen::Vector2d p(x, y);
         if (!InsidePolygon(place.footprint, p.x(), p.y())) continue;
         bool seen = false;
-        for (const auto& l : loops) seen = seen || InSight(place.footprint, l.centre, p);
+        for (const auto& l : loops) {
+          seen =
+              seen || ((l.centre - p).norm() <= kSightM && InSight(place.footprint, l.centre, p));
+        }
         const double dist = DistanceToEdges(place.footprint, p);
         if (!seen && dist > best) best = dist, next = p;
       }
     }
-    if (best < 0.6) break;  // only slivers out of sight
+    if (best < 1.0) break;  // only corners and slivers out of sight: no room for a loop
     loops.push_back({next, std::min(0.8, 0.4 * best)});
   }
   constexpr double kFirstVisit = 1.7e9;  // 2023-11-14 UTC

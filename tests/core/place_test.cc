@@ -107,6 +107,56 @@ TEST(FloorPlan, AscendingStairsAreFoundNearTheirWall) {
   EXPECT_NEAR(f.distance_to_wall_m, 0.52, 0.15);
 }
 
+TEST(FloorPlan, DescendingStairsAreFoundWhenLookedInto) {
+  // Seed 19's square room has a flight of 5 steps down (rise 0.19 m, run 0.30 m) in a hole in
+  // the floor. The simulated loop looks out at the walls and never into the hole, so the visit
+  // adds key frames from the top of the flight looking down it, as a small robot would before
+  // going down (camera 1.0 m high). Of each lower tread only a strip shows past the one above;
+  // from 1.5 m the strips of the deeper ones, over 2 m away, are within the sensor's noise at
+  // the quadtree's 8-pixel regions and only 2 treads are found, too few for a flight.
+  const auto place = *sim::GeneratePlace(19, "square");
+  ASSERT_EQ(place.stairs.size(), 1u);
+  const sim::Stairs& truth = place.stairs[0];
+  ASSERT_FALSE(truth.up);
+  const auto visits = sim::GenerateVisits(place, 19, 1, 0, sim::Conditions{}, 90);
+  ASSERT_TRUE(visits.ok());
+  const auto& v = (*visits)[0];
+  FloorPlanBuilder builder;
+  auto add = [&](const Pose& pose, uint64_t seed) {
+    const auto frame =
+        sim::Render(place, v.SolidsAt(0), v.lighting, Kinect(), pose, sim::SensorOptions{}, seed);
+    ASSERT_TRUE(builder.AddDepthKeyframe(frame.depth_m, Kinect(), pose).ok());
+  };
+  for (size_t f = 0; f < v.trajectory.size(); f += 3) add(v.trajectory[f].T_world_camera, f + 1);
+  const Eigen::Vector2d dir(std::cos(truth.yaw), std::sin(truth.yaw));
+  const Eigen::Vector2d side(-dir.y(), dir.x());
+  for (int i = 0; i < 5; ++i) {
+    // 0.3 m before the first step, 1.0 m high, pitched 60° down, a little to either side.
+    const Eigen::Vector2d at = truth.origin - 0.3 * dir + (0.1 * (i - 2)) * side;
+    const Eigen::Vector3d forward =
+        Eigen::Vector3d(dir.x(), dir.y(), -std::sqrt(3.0)).normalized();  // 60° down the flight
+    const Eigen::Vector3d right = forward.cross(Eigen::Vector3d::UnitZ()).normalized();
+    Eigen::Matrix3d R;
+    R.col(0) = right;
+    R.col(1) = forward.cross(right);
+    R.col(2) = forward;
+    Pose pose;
+    pose.translation = Eigen::Vector3d(at.x(), at.y(), 1.0);
+    pose.rotation = Eigen::Quaterniond(R);
+    add(pose, 1000 + static_cast<uint64_t>(i));
+  }
+  const auto plan = builder.Build();
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  ASSERT_EQ(plan->stairs.size(), 1u);
+  const StairFlight& f = plan->stairs[0];
+  EXPECT_FALSE(f.ascending);
+  EXPECT_NEAR(f.rise_m, truth.rise_m, 0.02);
+  EXPECT_GE(f.steps, 3);
+  EXPECT_LE(f.steps, truth.steps);
+  const Eigen::Vector2d centre = truth.origin + 0.5 * truth.run_m * truth.steps * dir;
+  EXPECT_LT((f.center - centre).norm(), 0.5);
+}
+
 TEST(Descriptor, RotatedOrMirroredStartMatchesTheSamePlace) {
   PlaceDescriptor d;
   d.corners = {{5.0, 90, {{OpeningType::kDoor, 0.9, 1.0}}},

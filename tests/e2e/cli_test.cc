@@ -465,6 +465,27 @@ TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
   r = Run({"eval", "places", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad")});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
+
+  // Held out: the thresholds of an earlier run are used as they are, not chosen again.
+  json earlier = s;
+  earlier["threshold"] = 0.99;  // accepts almost nothing
+  earlier["baseline_threshold"] = 0.0;
+  std::ofstream(tmp_.File("earlier.json")) << earlier.dump();
+  r = Run({"eval", "places", "--suite", tmp_.File("suite"), "--out", tmp_.File("held"),
+           "--thresholds-from", tmp_.File("earlier.json")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json h = json::parse(Slurp(tmp_.File("held/summary.json")));
+  EXPECT_DOUBLE_EQ(h["threshold"].get<double>(), 0.99);
+  EXPECT_DOUBLE_EQ(h["baseline_threshold"].get<double>(), 0.0);
+  EXPECT_EQ(h["thresholds_from"], tmp_.File("earlier.json"));
+  EXPECT_LE(h["overall"]["architecture"]["recall"].get<double>(),
+            s["overall"]["architecture"]["recall"].get<double>());
+  EXPECT_NE(Slurp(tmp_.File("held/report.md")).find("held out"), std::string::npos);
+  std::ofstream(tmp_.File("nothing.json")) << "{\"f1\": {}}";
+  r = Run({"eval", "places", "--suite", tmp_.File("suite"), "--out", tmp_.File("held2"),
+           "--thresholds-from", tmp_.File("nothing.json")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("has no \"threshold\""), std::string::npos) << r.err;
 }
 
 TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
