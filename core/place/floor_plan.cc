@@ -215,7 +215,9 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
           const double margin = 0.08 + 0.02 * lambda;
           // A reading on the wall adds nothing: coverage comes from planar regions only (a
           // floor point near the line would otherwise pass for wall).
-          if (!(z > 0) || z > lambda + margin) {
+          // No reading says the line is open there only within the sensor's range (beyond
+          // it, a wall gives no reading either).
+          if ((!(z > 0) && lambda < s.o.sensor_range_m) || z > lambda + margin) {
             c.free += 1;
           } else if (z < lambda - margin) {
             c.occluded += 1;
@@ -292,12 +294,15 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     double length() const { return s1 - s0; }
   };
   const int max_gap = static_cast<int>(std::ceil(s.o.max_wall_gap_m / cell));
+  constexpr float kFreeOverCovered = 3;  // rays (2-5 give the same plans on the suite)
   std::vector<Candidate> cands;
   for (const auto& w : s.walls) {
     if (w.area < s.o.min_wall_m2) continue;
     std::map<int, std::pair<int, double>> columns;  // column -> covered cells, top
     for (const auto& [key, c] : w.cells) {
-      if (c.covered <= 0) continue;
+      // Seen covered but also seen through (rays passed on beyond the line): something that
+      // moved (a person walking by, a prop taken away), not the wall.
+      if (c.covered <= 0 || (c.free >= kFreeOverCovered && c.free > 2 * c.occluded)) continue;
       const double h = (KeyH(key) + 0.5) * cell - floor;
       if (h < 0 || h > 3.5) continue;
       auto& col = columns[KeyS(key)];

@@ -77,7 +77,8 @@ struct FloorPlanOptions {
   double min_opening_m = 0.4;      // narrower gaps are not openings
   double door_top_m = 2.10;        // paper 004's norms (ISO)
   double window_sill_m = 1.20;
-  int ray_stride_px = 8;  // every N-th pixel casts an evidence ray
+  int ray_stride_px = 8;        // every N-th pixel casts an evidence ray
+  double sensor_range_m = 4.0;  // depth beyond which a missing reading says nothing (Kinect: 4.5)
 };
 
 class FloorPlanBuilder {
