@@ -645,6 +645,33 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     plan.walls.push_back(std::move(wall));
   }
 
+  // Where a wall was seen only in part, the chain crosses the rest as an unseen wall on the
+  // same line, or meets a corner twice: collinear neighbours become one wall (its openings
+  // measured from the new start) and walls of no length drop out.
+  for (bool changed = true; changed && plan.walls.size() > 3;) {
+    changed = false;
+    for (size_t i = 0; i < plan.walls.size() && plan.walls.size() > 3; ++i) {
+      const size_t j = (i + 1) % plan.walls.size();
+      Wall& a = plan.walls[i];
+      const Wall& b = plan.walls[j];
+      const Eigen::Vector2d da = a.end - a.start, db = b.end - b.start;
+      const bool tiny = db.norm() < 0.05;
+      const bool collinear = da.norm() >= 0.05 && da.normalized().dot(db.normalized()) >
+                                                      std::cos(Deg(s.o.merge_angle_deg));
+      if (!tiny && !collinear) continue;
+      const double shift = da.norm();
+      for (WallOpening o : b.openings) {
+        o.from_m += shift, o.to_m += shift;
+        a.openings.push_back(o);
+      }
+      a.end = b.end;
+      a.observed_m2 += b.observed_m2;
+      plan.walls.erase(plan.walls.begin() + static_cast<std::ptrdiff_t>(j));
+      changed = true;
+      break;
+    }
+  }
+
   // Stairs: horizontal patches off the floor, grouped by tread (height, place), chained where
   // heights step by a riser and positions by a tread.
   struct Tread {

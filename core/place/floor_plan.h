@@ -5,10 +5,15 @@
 // parallel horizontal planes, ascending or descending).
 //
 // Built incrementally: AddKeyframe folds one key frame in (cheap), Build derives the plan.
-// Openings need evidence that the wall is open there, not merely unseen: every key frame casts
-// a grid of its pixels' rays through the walls, and a wall cell counts as open where rays pass
-// it (a reading beyond the wall, or none: glass and far space give none) more often than they
-// stop in front of it (furniture occluding the wall).
+// The planes of successive key frames are merged per wall line on a grid of 5 cm cells (along
+// the line × height) rather than by polygon union (polyclipping): each cell carries the
+// evidence the outline and the openings need, which a union of polygons does not — covered
+// (a planar region lies there), seen through (a key frame's ray passed it: a reading beyond the
+// wall, or none within the sensor's range: glass and far space give none) and occluded (a ray
+// stopped in front of it). A wall cell is open where rays pass it more often than they stop in
+// front of it (furniture occluding the wall); a cell covered but also seen through held
+// something that moved (a person walking by). The outline is the closed chain of walls that
+// best explains what was seen (see Build).
 #pragma once
 
 #include <cstdint>

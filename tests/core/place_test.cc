@@ -94,6 +94,46 @@ TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
   EXPECT_TRUE(absl::IsInvalidArgument(FloorPlanFromJson("not json").status()));
 }
 
+TEST(FloorPlan, AWallSeenInPartOrNotAtAllStillClosesTheOutline) {
+  // Seed 3's rectangular room (6.65 × 4.09 m) walked round, but without the key frames that
+  // look towards the wall at the top of the footprint: the outline still closes, across that
+  // wall where it was never seen, along it where it was seen in part.
+  const auto place = *sim::GeneratePlace(3, "rect");
+  const auto visits = sim::GenerateVisits(place, 3, 1, 0, sim::Conditions{}, 90);
+  ASSERT_TRUE(visits.ok());
+  const auto& v = (*visits)[0];
+  double top = 0;
+  for (const auto& p : place.footprint) top = std::max(top, p.y());
+  auto build = [&](double max_forward_y) {
+    FloorPlanBuilder builder;
+    for (size_t f = 0; f < v.trajectory.size(); f += 3) {
+      const Pose& pose = v.trajectory[f].T_world_camera;
+      if ((pose.rotation * Eigen::Vector3d::UnitZ()).y() > max_forward_y) continue;
+      const auto frame = sim::Render(place, v.SolidsAt(f), v.lighting, Kinect(), pose,
+                                     sim::SensorOptions{}, f + 1);
+      EXPECT_TRUE(builder.AddDepthKeyframe(frame.depth_m, Kinect(), pose).ok());
+    }
+    return builder.Build();
+  };
+  for (double max_forward_y : {0.2, 0.6}) {
+    SCOPED_TRACE(max_forward_y);
+    const auto plan = build(max_forward_y);
+    ASSERT_TRUE(plan.ok()) << plan.status();
+    std::cerr << DescriptorText(Describe(*plan));
+    ASSERT_EQ(plan->walls.size(), 4u);
+    int unseen = 0;
+    for (const auto& w : plan->walls) {
+      EXPECT_TRUE(std::abs(w.length() - 6.653) < 0.15 || std::abs(w.length() - 4.093) < 0.15)
+          << w.length();
+      if (w.observed_m2 > 0) continue;
+      ++unseen;
+      EXPECT_TRUE(w.openings.empty());
+      EXPECT_NEAR(0.5 * (w.start.y() + w.end.y()), top, 0.1);
+    }
+    EXPECT_EQ(unseen, max_forward_y < 0.5 ? 1 : 0);
+  }
+}
+
 TEST(FloorPlan, AscendingStairsAreFoundNearTheirWall) {
   // Seed 1's square room has a flight of 7 steps up (run 0.29 m, rise 0.18 m, 1.0 m wide, its
   // centre 0.52 m from the nearest wall).
