@@ -505,9 +505,10 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     if (faces[i].seen_m2 > faces[largest].seen_m2) largest = i;
     seen_total += faces[i].length();
   }
-  // Depth-first over the chains from the largest face, with a bound (the cost so far less all
-  // the wall length still to gain) and a budget of expansions, which the few faces and links
-  // of a room stay far below.
+  // Depth-first over the chains from the largest face (at most 2 unseen walls in one), with a
+  // bound (no chain scores below its cost so far less all the wall length seen) and a budget of
+  // expansions, which the few faces and links of a room stay far below. Score: the joins' and
+  // unseen walls' costs less the seen length of the walls on the chain (metres).
   std::vector<const Link*> path, best_path;
   std::vector<bool> used(faces.size(), false);
   double best_score = std::numeric_limits<double>::max();
