@@ -493,7 +493,7 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         if (!seen && dist > best) best = dist, next = p;
       }
     }
-    if (best < 1.0) break;  // only corners and slivers out of sight: no room for a loop
+    if (best < 0.8) break;  // only corners and slivers out of sight: no room for a loop
     loops.push_back({next, std::min(0.8, 0.4 * best)});
   }
   constexpr double kFirstVisit = 1.7e9;  // 2023-11-14 UTC
