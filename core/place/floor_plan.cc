@@ -702,29 +702,40 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     std::sort(side.begin(), side.end(), [&](const Tread& a, const Tread& b) {
       return std::abs(a.height) < std::abs(b.height);
     });
+    // The longest chain of treads from any start: the lowest treads of a flight seen from its
+    // top are hidden behind the higher ones, so a chain may begin a few steps up.
     std::vector<Tread> flight;
-    for (const auto& t : side) {
-      if (flight.empty()) {
-        if (std::abs(t.height) < 0.3) flight.push_back(t);
-        continue;
+    for (size_t first = 0; first < side.size(); ++first) {
+      std::vector<Tread> run_of = {side[first]};
+      for (size_t k = first + 1; k < side.size(); ++k) {
+        const double rise = std::abs(side[k].height) - std::abs(run_of.back().height);
+        const double run = (side[k].centroid - run_of.back().centroid).norm();
+        if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) run_of.push_back(side[k]);
       }
-      const double rise = std::abs(t.height) - std::abs(flight.back().height);
-      const double run = (t.centroid - flight.back().centroid).norm();
-      if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) flight.push_back(t);
+      if (run_of.size() > flight.size()) flight = std::move(run_of);
     }
     if (flight.size() < 3) continue;
+    const double rise = (std::abs(flight.back().height) - std::abs(flight.front().height)) /
+                        static_cast<double>(flight.size() - 1);
+    // Steps below the first tread seen: its height in risers, which must be whole.
+    const double below = std::abs(flight.front().height) / rise - 1;
+    if (below < -0.3 || std::abs(below - std::round(below)) > 0.3) continue;
+    const int hidden = static_cast<int>(std::lround(std::max(0.0, below)));
     StairFlight f;
     f.ascending = dir > 0;
-    f.steps = static_cast<int>(flight.size());
-    f.rise_m = (std::abs(flight.back().height) - std::abs(flight.front().height)) /
-               static_cast<double>(flight.size() - 1);
+    f.steps = static_cast<int>(flight.size()) + hidden;
+    f.rise_m = rise;
     const double run = (flight.back().centroid - flight.front().centroid).norm() /
                        static_cast<double>(flight.size() - 1);
-    f.length_m = run * static_cast<double>(flight.size());
+    f.length_m = run * static_cast<double>(f.steps);
     double area = 0;
     for (const auto& t : flight) area += t.area;
     f.width_m = run > 0 ? area / static_cast<double>(flight.size()) / run : 0;
     f.center = 0.5 * (flight.front().centroid + flight.back().centroid);
+    if (hidden > 0 && run > 0) {  // the hidden steps lie before the first tread seen
+      const Eigen::Vector2d along = (flight.back().centroid - flight.front().centroid).normalized();
+      f.center -= 0.5 * hidden * run * along;
+    }
     f.distance_to_wall_m = 1e9;
     for (const auto& w : plan.walls) {
       f.distance_to_wall_m =
