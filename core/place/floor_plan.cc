@@ -44,7 +44,11 @@ struct WallAcc {
   std::unordered_map<int64_t, Cell> cells;
   std::vector<Sighting> sightings;
   Eigen::Vector2d tangent() const { return {n.y(), -n.x()}; }  // the seen side on its left
+  // Signed distance of ground point p from the line (metres; positive on the seen side).
+  double side(const Eigen::Vector2d& p) const { return n.dot(p) - offset; }
 };
+
+constexpr double kRayRangeM = 8.0;  // evidence rays go no farther (depth, metres)
 
 // A horizontal planar patch of one key frame.
 struct Patch {
@@ -194,7 +198,7 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
       // Small faces (clutter, furniture sides) are not worth the rays; a wall passes this
       // size within a key frame or two.
       if (w.area < 0.5 * s.o.min_wall_m2) continue;
-      const double side = w.n.dot(o2) - w.offset;
+      const double side = w.side(o2);
       if (side <= 0.05) continue;  // the camera is behind (or on) this wall's line
       const Eigen::Vector2d t = w.tangent();
       for (int v = s.o.ray_stride_px / 2; v < depth.rows; v += s.o.ray_stride_px) {
@@ -206,7 +210,7 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
           const double den = w.n.dot(d2);
           if (den > -1e-6) continue;  // parallel to or away from the wall
           const double lambda = (w.offset - w.n.dot(o2)) / den;
-          if (lambda <= 0 || lambda > 8.0) continue;
+          if (lambda <= 0 || lambda > kRayRangeM) continue;
           const Eigen::Vector2d hit2 = o2 + lambda * d2;
           const double hit_h = oh + lambda * d.dot(s.up);
           Cell& c = w.cells[Key(static_cast<int>(std::floor(t.dot(hit2) / cell)),
@@ -405,15 +409,11 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   std::vector<Candidate> faces;
   for (const Candidate& c : kept) {
     bool hidden = false;
+    const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
     for (const Candidate& o : kept) {
       if (&o == &c || o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg))) continue;
-      const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
-      const double at_from = o.acc->n.dot(c.from) - o.acc->offset;
-      const double at_mid = o.acc->n.dot(mid) - o.acc->offset;
-      if (o.acc->n.dot(c.a) - o.acc->offset >= -0.2 || o.acc->n.dot(c.b) - o.acc->offset >= -0.2 ||
-          at_from <= 0) {
-        continue;
-      }
+      const double at_from = o.acc->side(c.from), at_mid = o.acc->side(mid);
+      if (o.acc->side(c.a) >= -0.2 || o.acc->side(c.b) >= -0.2 || at_from <= 0) continue;
       const Eigen::Vector2d cross = c.from + (at_from / (at_from - at_mid)) * (mid - c.from);
       const double along = o.acc->tangent().dot(cross);
       hidden = along > o.s0 + 0.3 && along < o.s1 - 0.3;
@@ -440,8 +440,8 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       // A wall seen on past the corner, behind the other wall's line, was seen through an
       // opening near the corner (the next room's wall on the same line): that overshoot counts
       // a fifth.
-      const bool p_past = tp.dot(p.b) > tp.dot(x) && q.acc->n.dot(p.b) - q.acc->offset < -0.05;
-      const bool q_past = tq.dot(q.a) < tq.dot(x) && p.acc->n.dot(q.a) - p.acc->offset < -0.05;
+      const bool p_past = tp.dot(p.b) > tp.dot(x) && q.acc->side(p.b) < -0.05;
+      const bool q_past = tq.dot(q.a) < tq.dot(x) && p.acc->side(q.a) < -0.05;
       return (p_past ? 0.2 : 1.0) * (x - p.b).norm() + (q_past ? 0.2 : 1.0) * (x - q.a).norm();
     }
     if (tp.dot(tq) < 0) return 1e9;  // antiparallel: the other side of the room
@@ -452,7 +452,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   // cameras' view) is a gap between two walls: the chain may cross it from one wall's end to the
   // other's start when the unseen wall would have the place on its left (facing the cameras that
   // saw its neighbours), at a cost of its length and a metre.
-  constexpr double kMaxUnseen = 8.0;  // metres; the depth range of the evidence rays
+  constexpr double kMaxUnseen = kRayRangeM;  // metres: no evidence is gathered farther
   constexpr double kUnseenCost = 1.0;
   struct Link {
     int to;       // face index
