@@ -323,6 +323,14 @@ absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std:
     return absl::InvalidArgumentError(
         absl::StrCat(depth_path, ": depth must be a 16-bit single-channel PNG"));
   }
+  if (with_color &&
+      (rgb_header->width != depth_header->width || rgb_header->height != depth_header->height)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "colour ", rgb_path, " is ", rgb_header->width, "x", rgb_header->height, " but depth ",
+        depth_path, " is ", depth_header->width, "x", depth_header->height,
+        "; a frame's colour and depth must be the same size (depth registered to the colour "
+        "camera)"));
+  }
   v1::Frame frame;
   frame.set_sequence(sequence);
   frame.set_timestamp_s(timestamp_s);

@@ -121,6 +121,19 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
                 absl::StrCat("config file ", path, ": unknown key entropy.", k));
           }
         }
+      } else if (key == "frames") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "min_depth_m") {
+            c.pipeline.frame_limits.depth_range.min_m = v.get<float>();
+          } else if (k == "max_depth_m") {
+            c.pipeline.frame_limits.depth_range.max_m = v.get<float>();
+          } else if (k == "max_pixels") {
+            c.pipeline.frame_limits.max_pixels = v.get<int64_t>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key frames.", k));
+          }
+        }
       } else if (key == "labels") {
         for (const auto& [k, v] : value.items()) {
           if (k == "enabled") {

@@ -33,6 +33,8 @@ struct ServerConfig {
 // Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
 // keyframe {min_translation_m, min_rotation_deg, max_interval_s},
+// frames {min_depth_m, max_depth_m, max_pixels} (depth outside the range is no reading;
+// larger frames are refused),
 // entropy {enabled, threshold, downsample, k, min_size_px, mesh},
 // labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);

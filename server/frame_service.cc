@@ -36,6 +36,9 @@ struct PendingResult {
   v1::FrameResult result;
   std::optional<std::future<absl::StatusOr<int64_t>>> commit;
   Clock::time_point received;
+  // Set when the frame could not be added to its visit (ended, its map deleted, or written by
+  // another stream): the call ends with this status and the frame gets no result.
+  absl::Status visit_closed;
 };
 
 // Builds what the store keeps of a keyframe: the client's PNG-16 depth and JPEG/PNG colour
@@ -110,8 +113,9 @@ void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model, v1:
   }
 }
 
+// `writer` is the stream's claim on the visit (0 for a unary ProcessFrame).
 PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
-                          const tracking::KeyframeOptions& keyframe_options,
+                          uint64_t writer, const tracking::KeyframeOptions& keyframe_options,
                           const pipeline::FrameRequest& frame_request) {
   PendingResult p;
   p.received = Clock::now();
@@ -138,6 +142,17 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   // The model for the visit's map (else the server default) labels the frame; the reference
   // keeps it alive even if it is deactivated meanwhile.
   std::shared_ptr<const LoadedModel> model;
+  std::string map_name;
+  if (visit != nullptr) {
+    absl::MutexLock lock(&visit->mu);
+    // Refused before any work when it cannot be added (the same check holds below, where it
+    // is added).
+    if (auto s = visit->CheckWritable(writer); !s.ok()) {
+      p.visit_closed = s;
+      return p;
+    }
+    map_name = visit->map_name;
+  }
   if (!ctx->config.labels_enabled) {
     effective.no_labeller_reason = "disabled in this server's config (labels.enabled)";
   } else if (auto m = ctx->models->ForMap(visit != nullptr ? visit->map_id : 0); !m.ok()) {
@@ -145,7 +160,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
   } else if (!*m) {
     effective.no_labeller_reason = absl::StrCat(
         "no model is active for ",
-        visit != nullptr ? "map '" + visit->map_name + "'" : std::string("frames without a map"),
+        visit != nullptr ? "map '" + map_name + "'" : std::string("frames without a map"),
         " or as the server default: lifemap models upload FILE NAME; lifemap models activate NAME");
   } else {
     model = *std::move(m);
@@ -174,6 +189,10 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
 
   if (visit == nullptr) return p;
   absl::MutexLock lock(&visit->mu);
+  if (auto s = visit->CheckWritable(writer); !s.ok()) {
+    p.visit_closed = s;
+    return p;
+  }
   ++visit->frame_count;
   visit->selector.set_options(keyframe_options);
   const auto decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
@@ -311,6 +330,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   auto state = ctx_->visits->Get(visit->id);
   if (!state.ok()) return ToGrpcStatus(state.status());
+  auto claim = ctx_->visits->ClaimWriter(*state, context->peer());
+  if (!claim.ok()) return ToGrpcStatus(claim.status());
   spdlog::info("stream {} visit {} of map '{}' from {}", created ? "started" : "resumed", visit->id,
                visit->map_name, context->peer());
 
@@ -344,7 +365,15 @@ grpc::Status FrameServiceImpl::StreamFrames(
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
-    queue.Push(HandleFrame(ctx_, request.frame(), state->get(), *keyframe_options, *frame_request));
+    PendingResult p = HandleFrame(ctx_, request.frame(), state->get(), claim->id(),
+                                  *keyframe_options, *frame_request);
+    if (!p.visit_closed.ok()) {
+      status = ToGrpcStatus(p.visit_closed);
+      spdlog::info("stream for visit {} ends: {}", visit->id,
+                   std::string(p.visit_closed.message()));
+      break;
+    }
+    queue.Push(std::move(p));
     ++frames;
   }
   queue.Close();
@@ -386,7 +415,9 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
   } else if (req->visit_id() != 0) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
-  PendingResult p = HandleFrame(ctx_, req->frame(), state.get(), *keyframe_options, *frame_request);
+  PendingResult p =
+      HandleFrame(ctx_, req->frame(), state.get(), /*writer=*/0, *keyframe_options, *frame_request);
+  if (!p.visit_closed.ok()) return ToGrpcStatus(p.visit_closed);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),
                         p.result.error().message());

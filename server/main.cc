@@ -7,6 +7,7 @@
 #include <iostream>
 #include <thread>
 
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
@@ -31,6 +32,9 @@ int main(int argc, char** argv) {
   app.add_option("--shutdown-grace-s", grace_s, "time streams get to finish on SIGTERM");
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error, off");
   CLI11_PARSE(app, argc, argv);
+  // Logs go to stderr (journald under systemd); stdout carries only the "listening on port"
+  // line that scripts read.
+  spdlog::set_default_logger(spdlog::stderr_color_mt("lifemapd"));
 
   // Signals are taken by a dedicated thread (sigwait), never by an async handler.
   sigset_t signals;

@@ -82,8 +82,11 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMap
   if (!map.ok()) return ToGrpcStatus(map.status());
   auto deleted = ctx_->store->DeleteMap(req->name());
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
-  ctx_->visits->ForgetMap(map->id);
-  ctx_->models->InvalidateActivations();  // its id may be reused
+  // Streams still writing its visits end with NOT_FOUND and commit nothing more.
+  ctx_->visits->CloseMap(
+      map->id, absl::NotFoundError(absl::StrCat(
+                   "map '", req->name(), "' was deleted; nothing more is stored for its visits")));
+  ctx_->models->InvalidateActivations();
   ctx_->places->Invalidate();
   spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
                deleted->second);
@@ -101,7 +104,7 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMap
   }
   auto map = ctx_->store->RenameMap(req->name(), req->new_name());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  ctx_->visits->ForgetMap(map->id);
+  ctx_->visits->RenameMap(map->id, map->name);
   ctx_->places->Invalidate();  // rankings name maps
   MapToProto(*map, resp);
   return grpc::Status::OK;
@@ -128,7 +131,7 @@ grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext*, const v1::UpdateMap
   }
   auto updated = ctx_->store->UpdateMap(req->name(), update);
   if (!updated.ok()) return ToGrpcStatus(updated.status());
-  ctx_->visits->ForgetMap(map->id);
+  ctx_->visits->ForgetMapSettings(map->id);
   MapToProto(*updated, resp);
   return grpc::Status::OK;
 }

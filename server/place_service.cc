@@ -85,7 +85,8 @@ grpc::Status PlaceServiceImpl::QueryFrames(const v1::QueryPlaceRequest& req, siz
       return fail(absl::InvalidArgumentError(
           "pose is missing; architecture needs each key frame's T_world_camera"));
     }
-    auto frame = DecodeRgbdFrame(*encoded, /*decode_color=*/false);
+    auto frame =
+        DecodeRgbdFrame(*encoded, /*decode_color=*/false, ctx_->pipeline->options().frame_limits);
     if (!frame.ok()) return fail(frame.status());
     if (auto s =
             builder.AddDepthKeyframe(frame->depth_m, frame->intrinsics, *encoded->T_world_camera);

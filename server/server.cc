@@ -1,6 +1,7 @@
 #include "server/server.h"
 
 #include <chrono>
+#include <vector>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
@@ -10,11 +11,14 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
+#include "server/instance_lock.h"
 #include "server/services.h"
+#include "server/status_interceptor.h"
 
 namespace lifemap::server {
 
 struct LifemapServer::Impl {
+  std::unique_ptr<InstanceLock> lock;  // declared first: released after the store is closed
   ServiceContext ctx;
   std::unique_ptr<store::Store> store;
   std::unique_ptr<KeyframeCommitter> committer;
@@ -42,6 +46,9 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   if (auto s = config.Validate(); !s.ok()) return s;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
   auto impl = std::make_unique<Impl>();
+  auto lock = InstanceLock::Acquire(config.db_path, config.listen);
+  if (!lock.ok()) return lock.status();
+  impl->lock = *std::move(lock);
   store::StoreOptions store_options;
   store_options.synchronous_full = config.synchronous_full;
   auto store = store::Store::Open(config.db_path, store_options);
@@ -74,6 +81,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   grpc::EnableDefaultHealthCheckService(true);
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
+  // No SO_REUSEPORT: a second server on a busy port must fail, not share the clients.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.AddListeningPort(config.listen, grpc::InsecureServerCredentials(), &impl->port);
   builder.SetMaxReceiveMessageSize(config.max_message_bytes);
   builder.SetMaxSendMessageSize(config.max_message_bytes);
@@ -83,10 +92,15 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   builder.RegisterService(impl->place_service.get());
   builder.RegisterService(impl->model_service.get());
   builder.RegisterService(impl->admin_service.get());
+  std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+  interceptors.push_back(std::make_unique<StatusInterceptorFactory>());
+  builder.experimental().SetInterceptorCreators(std::move(interceptors));
   impl->grpc_server = builder.BuildAndStart();
   if (!impl->grpc_server || impl->port == 0) {
     return absl::UnavailableError(absl::StrCat(
-        "cannot listen on ", config.listen, " (address in use, or not an address of this host)"));
+        "cannot listen on ", config.listen,
+        " (the port is in use, perhaps by another lifemapd, or the address is not one of this "
+        "host's)"));
   }
   spdlog::info("lifemapd {} listening on port {} with database {}", LIFEMAP_VERSION, impl->port,
                config.db_path);
@@ -112,6 +126,7 @@ void LifemapServer::Shutdown() {
   // Every handler has returned; commit what is still queued, then close the store.
   impl_->committer.reset();
   impl_->store.reset();
+  impl_->lock.reset();
   spdlog::info("shutdown complete");
 }
 

@@ -1,9 +1,61 @@
 #include "server/visit_registry.h"
 
+#include <vector>
+
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
 
 namespace lifemap::server {
+
+absl::Status VisitState::CheckWritable(uint64_t stream) const {
+  if (!closed.ok()) return closed;
+  if (writer != 0 && writer != stream) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " of map '", map_name,
+                     "' is being written by another stream (from ", writer_peer,
+                     "); a visit has one writer at a time: wait until that stream ends, or "
+                     "start a new visit (visit_id 0)"));
+  }
+  return absl::OkStatus();
+}
+
+VisitWriter::VisitWriter(VisitWriter&& other) noexcept
+    : state_(std::move(other.state_)), id_(other.id_) {
+  other.id_ = 0;
+}
+
+VisitWriter& VisitWriter::operator=(VisitWriter&& other) noexcept {
+  if (this != &other) {
+    VisitWriter old(std::move(*this));  // releases what this held
+    state_ = std::move(other.state_);
+    id_ = other.id_;
+    other.id_ = 0;
+  }
+  return *this;
+}
+
+VisitWriter::~VisitWriter() {
+  if (state_ == nullptr || id_ == 0) return;
+  absl::MutexLock lock(&state_->mu);
+  if (state_->writer == id_) {
+    state_->writer = 0;
+    state_->writer_peer.clear();
+  }
+}
+
+absl::StatusOr<VisitWriter> VisitRegistry::ClaimWriter(const std::shared_ptr<VisitState>& state,
+                                                       const std::string& peer) {
+  uint64_t id = 0;
+  {
+    absl::MutexLock lock(&mu_);
+    id = next_writer_++;
+  }
+  absl::MutexLock lock(&state->mu);
+  if (auto s = state->CheckWritable(id); !s.ok()) return s;
+  state->writer = id;
+  state->writer_peer = peer;
+  return VisitWriter(state, id);
+}
 
 absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id) {
   {
@@ -22,9 +74,9 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto state = std::make_shared<VisitState>();
   state->visit_id = visit_id;
   state->map_id = visit->map_id;
-  state->map_name = visit->map_name;
   {
     absl::MutexLock lock(&state->mu);
+    state->map_name = visit->map_name;
     state->frame_count = visit->frame_count;
     if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
     RebuildArchitecture(state.get());
@@ -59,9 +111,47 @@ void VisitRegistry::RebuildArchitecture(VisitState* state) {
   }
 }
 
-void VisitRegistry::Forget(int64_t visit_id) {
+int64_t VisitRegistry::CloseVisit(int64_t visit_id, const absl::Status& why) {
+  std::shared_ptr<VisitState> state;
+  {
+    absl::MutexLock lock(&mu_);
+    auto it = visits_.find(visit_id);
+    if (it == visits_.end()) return 0;
+    state = std::move(it->second);
+    visits_.erase(it);
+  }
+  absl::MutexLock lock(&state->mu);
+  state->closed = why;
+  return state->frame_count;
+}
+
+void VisitRegistry::CloseMap(int64_t map_id, const absl::Status& why) {
+  std::vector<std::shared_ptr<VisitState>> closing;
+  {
+    absl::MutexLock lock(&mu_);
+    map_thresholds_.erase(map_id);
+    for (auto it = visits_.begin(); it != visits_.end();) {
+      if (it->second->map_id != map_id) {
+        ++it;
+        continue;
+      }
+      closing.push_back(std::move(it->second));
+      it = visits_.erase(it);
+    }
+  }
+  for (const auto& state : closing) {
+    absl::MutexLock lock(&state->mu);
+    state->closed = why;
+  }
+}
+
+void VisitRegistry::RenameMap(int64_t map_id, const std::string& new_name) {
   absl::MutexLock lock(&mu_);
-  visits_.erase(visit_id);
+  for (auto& [id, state] : visits_) {
+    if (state->map_id != map_id) continue;
+    absl::MutexLock state_lock(&state->mu);
+    state->map_name = new_name;
+  }
 }
 
 absl::StatusOr<std::optional<double>> VisitRegistry::MapEntropyThreshold(int64_t map_id) {
@@ -77,12 +167,9 @@ absl::StatusOr<std::optional<double>> VisitRegistry::MapEntropyThreshold(int64_t
   return map->entropy_threshold;
 }
 
-void VisitRegistry::ForgetMap(int64_t map_id) {
+void VisitRegistry::ForgetMapSettings(int64_t map_id) {
   absl::MutexLock lock(&mu_);
   map_thresholds_.erase(map_id);
-  for (auto it = visits_.begin(); it != visits_.end();) {
-    it = it->second->map_id == map_id ? visits_.erase(it) : std::next(it);
-  }
 }
 
 }  // namespace lifemap::server

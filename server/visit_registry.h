@@ -1,5 +1,6 @@
 // Per-visit state that outlives one stream: the keyframe selector and the frame counter, so a
-// robot that reconnects (or sends unary ProcessFrame calls) continues where it stopped.
+// robot that reconnects (or sends unary ProcessFrame calls) continues where it stopped; who
+// writes the visit; and whether it may still be written.
 #pragma once
 
 #include <cstdint>
@@ -19,12 +20,43 @@ namespace lifemap::server {
 struct VisitState {
   int64_t visit_id = 0;
   int64_t map_id = 0;
-  std::string map_name;
-  // Serialises frames of one visit (several streams to one visit are processed in turn).
+  // Serialises frames of one visit.
   absl::Mutex mu;
+  std::string map_name ABSL_GUARDED_BY(mu);  // follows RenameMap
+  // OK while frames may be added. Otherwise why not (FAILED_PRECONDITION: the visit was ended;
+  // NOT_FOUND: its map was deleted): a stream writing it ends with this status, and nothing
+  // more is committed to the visit.
+  absl::Status closed ABSL_GUARDED_BY(mu);
+  // The stream writing this visit (0: none) and its peer. A visit has one writer at a time: a
+  // second stream, or a ProcessFrame into the visit, is refused while the first is open.
+  uint64_t writer ABSL_GUARDED_BY(mu) = 0;
+  std::string writer_peer ABSL_GUARDED_BY(mu);
   tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
   int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
   VisitArchitecture architecture ABSL_GUARDED_BY(mu);
+
+  // OK if a frame from `writer` (0: a unary ProcessFrame) may be added now; else the status
+  // to answer: `closed`, or FAILED_PRECONDITION naming the stream that writes the visit.
+  absl::Status CheckWritable(uint64_t writer) const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
+};
+
+// Makes a stream the one writer of a visit for its lifetime. Movable, not copyable.
+class VisitWriter {
+ public:
+  VisitWriter() = default;
+  VisitWriter(VisitWriter&& other) noexcept;
+  VisitWriter& operator=(VisitWriter&& other) noexcept;
+  ~VisitWriter();
+  VisitWriter(const VisitWriter&) = delete;
+  VisitWriter& operator=(const VisitWriter&) = delete;
+
+  uint64_t id() const { return id_; }
+
+ private:
+  friend class VisitRegistry;
+  VisitWriter(std::shared_ptr<VisitState> state, uint64_t id) : state_(std::move(state)), id_(id) {}
+  std::shared_ptr<VisitState> state_;
+  uint64_t id_ = 0;
 };
 
 // Thread-safe.
@@ -36,10 +68,22 @@ class VisitRegistry {
   // the visit's last keyframe; the architecture is rebuilt from its stored key frames).
   // NOT_FOUND for an unknown visit; FAILED_PRECONDITION if ended.
   absl::StatusOr<std::shared_ptr<VisitState>> Get(int64_t visit_id);
-  // Forgets a visit (ended, or its map deleted).
-  void Forget(int64_t visit_id);
-  // Forgets a map's visits and cached settings (deleted, renamed or updated).
-  void ForgetMap(int64_t map_id);
+
+  // Claims `state` for a stream from `peer` until the returned writer is destroyed.
+  // FAILED_PRECONDITION naming the visit and the stream that holds it, or the visit's
+  // `closed` status.
+  absl::StatusOr<VisitWriter> ClaimWriter(const std::shared_ptr<VisitState>& state,
+                                          const std::string& peer);
+
+  // Marks a visit closed with `why` (its stream ends with it) and forgets it. For EndVisit:
+  // returns the visit's frame count as of the close.
+  int64_t CloseVisit(int64_t visit_id, const absl::Status& why);
+  // Closes every loaded visit of a map (deleted) with `why` and forgets its settings.
+  void CloseMap(int64_t map_id, const absl::Status& why);
+  // A map renamed: its visits' states follow the new name.
+  void RenameMap(int64_t map_id, const std::string& new_name);
+  // Forgets a map's cached settings (updated).
+  void ForgetMapSettings(int64_t map_id);
 
   // The map's own entropy threshold (nullopt = the server default), cached.
   absl::StatusOr<std::optional<double>> MapEntropyThreshold(int64_t map_id);
@@ -53,6 +97,7 @@ class VisitRegistry {
   absl::Mutex mu_;
   std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
   std::unordered_map<int64_t, std::optional<double>> map_thresholds_ ABSL_GUARDED_BY(mu_);
+  uint64_t next_writer_ ABSL_GUARDED_BY(mu_) = 1;
 };
 
 }  // namespace lifemap::server

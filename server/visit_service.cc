@@ -36,17 +36,19 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
                                         v1::Visit* resp) {
   const auto id = static_cast<int64_t>(req->visit_id());
   if (id <= 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
-  int64_t frames = 0;
   auto state = ctx_->visits->Get(id);
-  if (state.ok()) {
-    absl::MutexLock lock(&(*state)->mu);
-    frames = (*state)->frame_count;
-  } else if (!absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
+  if (!state.ok() && !absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
     return ToGrpcStatus(state.status());
   }
+  // A stream still writing the visit ends with FAILED_PRECONDITION; keyframes it had already
+  // queued are committed before the visit is marked ended, nothing after.
+  const int64_t frames = ctx_->visits->CloseVisit(
+      id, absl::FailedPreconditionError(absl::StrCat(
+              "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
+  auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
+  if (!drained.ok()) return ToGrpcStatus(drained.status());
   auto visit = ctx_->store->EndVisit(id, NowSeconds(), frames);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
-  ctx_->visits->Forget(id);
   VisitToProto(*visit, resp);
   return grpc::Status::OK;
 }

@@ -257,8 +257,7 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
       if (description_flag->count() > 0) req.set_description(set_args->description);
       if (threshold_flag->count() > 0) req.set_entropy_threshold(set_args->entropy_threshold);
       if (!req.has_description() && !req.has_entropy_threshold()) {
-        std::cerr << "lifemap: nothing to change: give --description or --entropy-threshold\n";
-        return 2;
+        return UsageError("nothing to change: give --description or --entropy-threshold");
       }
       return RunCall<v1::Map>(
           *ctx, [&](client::Client& c) { return c.UpdateMap(req); }, PrintMap);
@@ -273,9 +272,8 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   del->callback([ctx, del_name, yes] {
     ctx->run = [ctx, del_name, yes] {
       if (!*yes) {
-        std::cerr << "lifemap: refusing to delete map '" << *del_name
-                  << "' without --yes (its visits and keyframes are deleted for good)\n";
-        return 2;
+        return UsageError("refusing to delete map '" + *del_name +
+                          "' without --yes (its visits and keyframes are deleted for good)");
       }
       return RunCall<v1::DeleteMapResponse>(
           *ctx, [&](client::Client& c) { return c.DeleteMap(*del_name); },
@@ -442,8 +440,7 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
       } else {
         auto parsed = ParseIntrinsicsFlag(a->intrinsics, header->width, header->height);
         if (!parsed.ok()) {
-          std::cerr << "lifemap: " << parsed.status().message() << "\n";
-          return 2;
+          return UsageError(std::string(parsed.status().message()));
         }
         k = *parsed;
       }
@@ -515,7 +512,9 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
                     << a->map << "'\n";
         }
         for (const auto& o : result->outputs()) {
-          if (!o.computed()) std::cout << "not computed: " << o.reason() << "\n";
+          if (!o.computed()) {
+            std::cout << OutputName(o.output()) << " not computed: " << o.reason() << "\n";
+          }
         }
         if (result->has_labels()) {
           std::cout << "labels by '" << result->labels().model() << "' (mean confidence "

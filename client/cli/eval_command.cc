@@ -341,9 +341,8 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
       }
     }
     if (set.pairs.empty()) {
-      std::cerr << "lifemap: no frame pair is " << a.min_gap
-                << " frames apart; lower --min-gap or --frame-stride\n";
-      return 2;
+      return UsageError(absl::StrCat("no frame pair is ", a.min_gap,
+                                     " frames apart; lower --min-gap or --frame-stride"));
     }
     report +=
         "\nThe TUM set has no labels: its oracle and static figures equal the unmasked "
@@ -351,8 +350,7 @@ int RunMatching(const CliContext& ctx, const EvalArgs& a) {
     inputs.push_back(std::move(set));
   }
   if (inputs.empty()) {
-    std::cerr << "lifemap: give --data DIR (labelled .pcd scenes) or --a DIR --b DIR (TUM)\n";
-    return 2;
+    return UsageError("give --data DIR (labelled .pcd scenes) or --a DIR --b DIR (TUM)");
   }
   for (size_t set = 0; set < inputs.size(); ++set) {
     // The first set picks one threshold for every pair; later sets reuse it (cross-set check).

@@ -35,6 +35,7 @@ int main(int argc, char** argv) {
     const int code = app.exit(e);
     return code == 0 ? 0 : 2;  // usage errors exit 2, like most Unix tools
   }
+  lifemap::cli::SetJsonErrors(ctx.json);
   if (!ctx.run) {
     std::cerr << app.help();
     return 2;

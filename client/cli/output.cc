@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include <google/protobuf/util/json_util.h>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/str_format.h"
 
@@ -19,10 +20,29 @@ std::string ToJson(const google::protobuf::Message& message, bool multiline) {
   return out;
 }
 
+namespace {
+bool json_errors = false;
+
+void PrintError(absl::StatusCode code, absl::string_view message) {
+  std::cerr << "lifemap: " << message << " [" << absl::StatusCodeToString(code) << "]\n";
+  if (json_errors) {
+    const nlohmann::json error = {
+        {"error", {{"code", absl::StatusCodeToString(code)}, {"message", std::string(message)}}}};
+    std::cout << error.dump() << std::endl;
+  }
+}
+}  // namespace
+
+void SetJsonErrors(bool json) { json_errors = json; }
+
 int Fail(const absl::Status& status) {
-  std::cerr << "lifemap: " << status.message() << " [" << absl::StatusCodeToString(status.code())
-            << "]\n";
+  PrintError(status.code(), status.message());
   return 1;
+}
+
+int UsageError(const std::string& message) {
+  PrintError(absl::StatusCode::kInvalidArgument, message);
+  return 2;
 }
 
 std::string HumanBytes(uint64_t bytes) {

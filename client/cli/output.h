@@ -13,9 +13,15 @@ namespace lifemap::cli {
 // `multiline` for a person reading a file, single-line for one-object-per-line output.
 std::string ToJson(const google::protobuf::Message& message, bool multiline = true);
 
-// Prints "lifemap: <message>" on stderr and returns the exit code for the status: 1 for
-// errors from the server or the system, 2 for bad usage (INVALID_ARGUMENT raised locally).
+// With `json` (the --json flag), errors are also printed on stdout as one JSON object,
+// {"error": {"code": "NOT_FOUND", "message": "..."}}, for scripts. Set once by main().
+void SetJsonErrors(bool json);
+
+// Prints "lifemap: <message> [CODE]" on stderr (and the JSON error, see SetJsonErrors) and
+// returns 1, the exit code for errors from the server, the data or the system.
 int Fail(const absl::Status& status);
+// The same for a command line that cannot work as given; returns 2 (bad usage).
+int UsageError(const std::string& message);
 
 // "12.3 MB", "512 B".
 std::string HumanBytes(uint64_t bytes);

@@ -123,8 +123,12 @@ int RunPlaceEval(const CliContext& ctx, const PlaceEvalArgs& a) {
       std::string name = v.path;
       std::replace(name.begin(), name.end(), '/', '-');
       const place::FloorPlan* truth = v.has_truth ? &v.truth.plan : nullptr;
-      texts.emplace_back("plans/" + name + ".svg", place::FloorPlanSvg(v.folded.plan, truth));
-      pngs.emplace_back("plans/" + name + ".png", place::FloorPlanImage(v.folded.plan, truth));
+      const std::string title = absl::StrCat(v.path, " (", v.shape, "): built plan",
+                                             truth != nullptr ? " over scene.json's truth" : "");
+      texts.emplace_back("plans/" + name + ".svg",
+                         place::FloorPlanSvg(v.folded.plan, truth, title));
+      pngs.emplace_back("plans/" + name + ".png",
+                        place::FloorPlanImage(v.folded.plan, truth, title));
     }
     all.Add(v);
     by_shape[v.shape].Add(v);

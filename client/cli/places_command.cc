@@ -113,16 +113,19 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
                 continue;
               }
               const std::string stem = absl::StrCat("-visit-", p.visit_id());
+              const std::string title =
+                  absl::StrFormat("map '%s', visit %d: floor plan from %d key frames", *map,
+                                  p.visit_id(), p.keyframes());
               if (!svg->empty()) {
                 const std::string path = *svg + stem + ".svg";
                 std::ofstream out(path);
-                out << place::FloorPlanSvg(*plan);
+                out << place::FloorPlanSvg(*plan, nullptr, title);
                 written = written && static_cast<bool>(out);
                 std::cout << (out ? "wrote " : "could not write ") << path << "\n";
               }
               if (!png->empty()) {
                 const std::string path = *png + stem + ".png";
-                const bool ok = cv::imwrite(path, place::FloorPlanImage(*plan));
+                const bool ok = cv::imwrite(path, place::FloorPlanImage(*plan, nullptr, title));
                 written = written && ok;
                 std::cout << (ok ? "wrote " : "could not write ") << path << "\n";
               }
@@ -146,8 +149,7 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
   query->callback([ctx, q] {
     ctx->run = [ctx, q] {
       if (q->visit == 0 && q->tum.empty()) {
-        std::cerr << "lifemap: places query needs --visit ID or --tum DIR\n";
-        return 2;
+        return UsageError("places query needs --visit ID or --tum DIR");
       }
       v1::QueryPlaceRequest req;
       req.set_max_results(q->max);
@@ -169,7 +171,10 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
           *ctx, [&](client::Client& c) { return c.QueryPlace(req); },
           [&](const v1::QueryPlaceResponse& r) {
             std::cout << what << ":\n" << r.descriptor_text();
-            if (r.matches().empty()) std::cout << "no stored visit has a floor plan\n";
+            if (r.matches().empty()) {
+              std::cout << (q->visit != 0 ? "no other stored visit has a floor plan\n"
+                                          : "no stored visit has a floor plan\n");
+            }
             for (const auto& m : r.matches()) {
               std::cout << absl::StrFormat("  %-20s visit %-6d score %.3f\n", m.map(), m.visit_id(),
                                            m.score());

@@ -67,8 +67,7 @@ int RunSim(const CliContext& ctx, const SimArgs& a) {
   options.sensor.noise = !a.no_noise;
   auto camera = SimCamera(a);
   if (!camera.ok()) {
-    std::cerr << "lifemap: " << camera.status().message() << "\n";
-    return 2;
+    return UsageError(std::string(camera.status().message()));
   }
   options.intrinsics = *camera;
   nlohmann::json manifest = {{"seed", a.seed},
@@ -224,8 +223,7 @@ void AddSimCommands(CLI::App* app, CliContext* ctx) {
     if (sim->get_subcommands().empty()) {
       ctx->run = [ctx, a] {
         if (a->out.empty()) {
-          std::cerr << "lifemap: sim needs --out DIR\n";
-          return 2;
+          return UsageError("sim needs --out DIR");
         }
         return RunSim(*ctx, *a);
       };

@@ -47,8 +47,7 @@ double Percentile(std::vector<double> v, double p) {
 
 int RunStream(const CliContext& ctx, const StreamArgs& a) {
   if (a.rate_hz > 1000.0) {
-    std::cerr << "lifemap: --rate must be at most 1000 Hz (0 = as fast as the server takes)\n";
-    return 2;
+    return UsageError("--rate must be at most 1000 Hz (0 = as fast as the server takes)");
   }
   io::TumReadOptions read_options;
   read_options.associations_file = a.associations;
@@ -76,8 +75,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   if (!a.intrinsics.empty()) {
     auto parsed = ParseIntrinsicsFlag(a.intrinsics, header->width, header->height);
     if (!parsed.ok()) {
-      std::cerr << "lifemap: " << parsed.status().message() << "\n";
-      return 2;
+      return UsageError(std::string(parsed.status().message()));
     }
     k = *parsed;
     intrinsics_source = "--intrinsics";
@@ -120,6 +118,13 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         "streaming %d frames of %s into map '%s', %s visit %d (intrinsics: %s%s)\n", n, a.tum_dir,
         a.map, (*stream)->started().new_visit() ? "new" : "resumed", visit_id, intrinsics_source,
         a.use_groundtruth ? "; poses from groundtruth.txt" : "");
+    if (seq->listed_but_missing > 0) {
+      std::cerr << absl::StrFormat(
+          "  note: %d files named in %s are not on disk; only the %d complete colour/depth pairs "
+          "are sent\n",
+          seq->listed_but_missing, a.associations.empty() ? "rgb.txt/depth.txt" : a.associations,
+          seq->frames.size());
+    }
   }
 
   std::mutex sent_mu;
@@ -158,6 +163,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
 
   std::vector<double> latencies_ms;
   std::vector<uint64_t> keyframe_ids;
+  std::map<std::string, size_t> keyframes_refused;  // by the server's reason
   size_t results = 0, rejected = 0;
   v1::FrameResult result;
   while ((*stream)->Receive(&result)) {
@@ -180,7 +186,11 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
                   << " rejected: " << result.error().message() << "\n";
       }
     }
-    if (result.keyframe().committed()) keyframe_ids.push_back(result.keyframe().keyframe_id());
+    if (result.keyframe().committed()) {
+      keyframe_ids.push_back(result.keyframe().keyframe_id());
+    } else if (result.keyframe().selected()) {
+      ++keyframes_refused[result.keyframe().reason()];
+    }
     if (ctx.json) {
       nlohmann::json line = nlohmann::json::parse(ToJson(result, false));
       line["client_latency_ms"] = latency_ms;
@@ -195,33 +205,64 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   const absl::Status final_status = (*stream)->Finish();
   const double elapsed_s = std::chrono::duration<double>(Clock::now() - t0).count();
   if (progress) std::cerr << "\n";
-  if (!send_error.empty()) return Fail(absl::InvalidArgumentError(send_error));
-  if (!final_status.ok()) return Fail(final_status);
 
+  // Why the stream ended early, and whether the visit can be resumed.
+  absl::Status ended = final_status;
+  if (!send_error.empty()) ended = absl::InvalidArgumentError(send_error);
+  std::string resume;
+  if (!ended.ok() && !absl::IsNotFound(ended) && !absl::IsFailedPrecondition(ended) &&
+      !absl::IsInvalidArgument(ended)) {
+    resume =
+        absl::StrFormat("lifemap stream --map %s --tum %s --visit %d", a.map, a.tum_dir, visit_id);
+  }
+  size_t refused = 0;
+  for (const auto& [reason, count] : keyframes_refused) refused += count;
   const double fps = results / std::max(elapsed_s, 1e-9);
   const double p50 = Percentile(latencies_ms, 50), p99 = Percentile(latencies_ms, 99);
   if (ctx.json) {
     nlohmann::json summary = {
         {"map", a.map},
         {"visit_id", visit_id},
+        {"pairs_found", seq->frames.size()},
+        {"files_missing", seq->listed_but_missing},
         {"frames_sent", sent.load()},
         {"results", results},
         {"frames_rejected", rejected},
         {"keyframes_stored", keyframe_ids.size()},
         {"keyframe_ids", keyframe_ids},
+        {"keyframes_refused", refused},
+        {"keyframes_refused_by_reason", keyframes_refused},
         {"elapsed_s", elapsed_s},
         {"frames_per_s", fps},
         {"latency_ms", {{"p50", p50}, {"p99", p99}}},
     };
+    if (!ended.ok()) {
+      summary["error"] = {{"code", absl::StatusCodeToString(ended.code())},
+                          {"message", std::string(ended.message())}};
+      if (!resume.empty()) summary["resume_with"] = resume;
+    }
     std::cout << nlohmann::json{{"summary", summary}}.dump() << std::endl;
   } else {
     std::cout << absl::StrFormat(
-        "map '%s' visit %d: %d frames sent, %d results (%d rejected), %d keyframes stored\n"
-        "%.1f frames/s over %.2f s; latency p50 %.1f ms, p99 %.1f ms\n",
-        a.map, visit_id, sent.load(), results, rejected, keyframe_ids.size(), fps, elapsed_s, p50,
-        p99);
+        "map '%s' visit %d: %d frames sent, %d answered (%d rejected), %d keyframes stored, %d "
+        "refused\n%.1f frames/s over %.2f s; latency p50 %.1f ms, p99 %.1f ms\n",
+        a.map, visit_id, sent.load(), results, rejected, keyframe_ids.size(), refused, fps,
+        elapsed_s, p50, p99);
+    for (const auto& [reason, count] : keyframes_refused) {
+      std::cout << absl::StrFormat("  %d keyframes refused: %s\n", count, reason);
+    }
   }
-  return rejected == 0 ? 0 : 1;
+  if (!ended.ok()) {
+    std::string what = absl::StrFormat(
+        "the stream ended early after %d of %d frames: %s; %d keyframes of visit %d were stored "
+        "before",
+        sent.load(), n, ended.message(), keyframe_ids.size(), visit_id);
+    if (!resume.empty()) absl::StrAppend(&what, "; resume the visit with: ", resume);
+    // With --json the summary above already holds the error.
+    std::cerr << "lifemap: " << what << " [" << absl::StatusCodeToString(ended.code()) << "]\n";
+    return 1;
+  }
+  return rejected == 0 && refused == 0 ? 0 : 1;
 }
 
 }  // namespace

@@ -167,14 +167,36 @@ absl::StatusOr<ImageHeader> ProbeImage(std::string_view bytes) {
   return absl::InvalidArgumentError("image data is neither PNG nor JPEG (unknown signature)");
 }
 
-absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth) {
+absl::Status DepthRange::Validate() const {
+  if (!(min_m > 0.0f && min_m < max_m && max_m <= 1000.0f)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("depth range must satisfy 0 < min_depth_m < max_depth_m <= 1000, got [", min_m,
+                     ", ", max_m, "]"));
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// Readings outside the range (and NaN, infinite, negative ones) become 0, no reading.
+void KeepDepthRange(const DepthRange& range, cv::Mat* depth_m) {
+  float* v = depth_m->ptr<float>();
+  const size_t n = depth_m->total();
+  for (size_t i = 0; i < n; ++i) {
+    // Written so that NaN fails the test too.
+    if (!(v[i] >= range.min_m && v[i] <= range.max_m)) v[i] = 0.0f;
+  }
+}
+
+absl::StatusOr<cv::Mat> DecodeDepthUnranged(const EncodedDepth& depth) {
   if (auto s = CheckExpectedSize("depth", depth.width, depth.height); !s.ok()) return s;
   const size_t pixels = static_cast<size_t>(depth.width) * static_cast<size_t>(depth.height);
   const bool scaled = depth.encoding != DepthEncoding::kRawF32;
-  if (scaled && (!std::isfinite(depth.depth_scale) || depth.depth_scale <= 0.0)) {
+  // Written so that NaN fails the test too.
+  if (scaled && !(depth.depth_scale >= kMinDepthScale && depth.depth_scale <= kMaxDepthScale)) {
     return absl::InvalidArgumentError(
-        absl::StrCat("depth_scale must be > 0 units per metre (TUM: 5000, millimetres: 1000), got ",
-                     depth.depth_scale));
+        absl::StrCat("depth_scale must be within [", kMinDepthScale, ", ", kMaxDepthScale,
+                     "] units per metre (TUM: 5000, millimetres: 1000), got ", depth.depth_scale));
   }
   cv::Mat out(depth.height, depth.width, CV_32FC1);
   switch (depth.encoding) {
@@ -218,15 +240,21 @@ absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth) {
                                                        " bytes; ", depth.width, "x", depth.height,
                                                        " needs ", pixels * 4));
       }
-      std::memcpy(out.data, depth.data.data(), pixels * 4);
-      float* v = out.ptr<float>();
-      for (size_t i = 0; i < pixels; ++i) {
-        if (!std::isfinite(v[i]) || v[i] < 0.0f) v[i] = 0.0f;
-      }
+      std::memcpy(out.data, depth.data.data(), pixels * 4);  // NaN and the rest: KeepDepthRange
       return out;
     }
   }
   return absl::InvalidArgumentError("unknown depth encoding");
+}
+
+}  // namespace
+
+absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth, const DepthRange& range) {
+  if (auto s = range.Validate(); !s.ok()) return s;
+  auto out = DecodeDepthUnranged(depth);
+  if (!out.ok()) return out;
+  KeepDepthRange(range, &*out);
+  return out;
 }
 
 absl::StatusOr<cv::Mat> DecodeColorBgr(const EncodedColor& color) {

@@ -38,9 +38,23 @@ struct EncodedDepth {
   double depth_scale = 0.0;  // units per metre for kPng16 / kRawU16 (TUM 5000)
 };
 
+// depth_scale bounds, units per metre: 1 (uint16 metres) to 10^6 (micrometres).
+inline constexpr double kMinDepthScale = 1.0;
+inline constexpr double kMaxDepthScale = 1e6;
+
+// The depths a sensor plausibly reports, metres. A reading outside is no reading (0), so that
+// every decoded depth is 0 or finite within [min_m, max_m] and the per-frame stages (normals,
+// bins, forest offsets scaled by 1/depth) never see a value that overflows them.
+struct DepthRange {
+  float min_m = 0.05f;  // (0, max_m)
+  float max_m = 50.0f;  // (min_m, 1000]
+  absl::Status Validate() const;
+};
+
 // Decodes depth into CV_32FC1 metres; pixels without a reading are 0. NaN, infinite and
-// negative float readings count as no reading.
-absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth);
+// negative float readings, and readings outside `range`, count as no reading. InvalidArgument
+// for a depth_scale outside [kMinDepthScale, kMaxDepthScale] (scaled encodings).
+absl::StatusOr<cv::Mat> DecodeDepthMetres(const EncodedDepth& depth, const DepthRange& range = {});
 
 enum class ColorEncoding { kJpeg, kPng, kRawRgb8 };
 

@@ -8,14 +8,45 @@
 
 namespace lifemap {
 
-absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color) {
+absl::Status FrameLimits::Validate() const {
+  if (auto s = depth_range.Validate(); !s.ok()) return s;
+  constexpr int64_t kMin = int64_t{CameraIntrinsics::kMinSide} * CameraIntrinsics::kMinSide;
+  constexpr int64_t kMax = int64_t{CameraIntrinsics::kMaxSide} * CameraIntrinsics::kMaxSide;
+  if (max_pixels < kMin || max_pixels > kMax) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_pixels must be within [", kMin, ", ", kMax, "], got ", max_pixels));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color,
+                                          const FrameLimits& limits) {
   if (!std::isfinite(in.timestamp_s) || in.timestamp_s <= 0.0) {
     return absl::InvalidArgumentError(
         absl::StrCat("timestamp_s must be a positive number of seconds since the Unix epoch, got ",
                      in.timestamp_s));
   }
   if (auto s = in.intrinsics.Validate(); !s.ok()) return s;
+  const int64_t pixels = int64_t{in.intrinsics.width} * in.intrinsics.height;
+  if (pixels > limits.max_pixels) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("frame is ", in.intrinsics.width, "x", in.intrinsics.height, " = ", pixels,
+                     " pixels; this server takes at most ", limits.max_pixels,
+                     " (frames.max_pixels): send a smaller image"));
+  }
 
+  const bool depth_declared = in.depth.width != 0 || in.depth.height != 0;
+  const bool color_declared = decode_color && (in.color.width != 0 || in.color.height != 0);
+  if (depth_declared && color_declared &&
+      (in.depth.width != in.color.width || in.depth.height != in.color.height)) {
+    // Neither is blamed alone: either may be the odd one.
+    return absl::InvalidArgumentError(
+        absl::StrCat("colour is declared ", in.color.width, "x", in.color.height, " and depth ",
+                     in.depth.width, "x", in.depth.height,
+                     "; they must be the same size (depth registered to the colour "
+                     "camera), and the intrinsics say ",
+                     in.intrinsics.width, "x", in.intrinsics.height));
+  }
   EncodedDepth depth = in.depth;
   depth.width = in.intrinsics.width;
   depth.height = in.intrinsics.height;
@@ -42,7 +73,7 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decod
   out.timestamp_s = in.timestamp_s;
   out.intrinsics = in.intrinsics;
   out.T_world_camera = in.T_world_camera;
-  auto d = DecodeDepthMetres(depth);
+  auto d = DecodeDepthMetres(depth, limits.depth_range);
   if (!d.ok()) return d.status();
   out.depth_m = *std::move(d);
   if (!decode_color) return out;

@@ -33,11 +33,20 @@ struct RgbdFrame {
   std::optional<Pose> T_world_camera;
 };
 
+// What a frame may hold (config section `frames`).
+struct FrameLimits {
+  DepthRange depth_range;            // readings outside are no reading
+  int64_t max_pixels = 1280 * 1024;  // per image; [kMinSide², kMaxSide²] of CameraIntrinsics
+  absl::Status Validate() const;
+};
+
 // Validates the timestamp and intrinsics, checks both images against the intrinsics' size and
 // decodes them. InvalidArgument names the field and what to send instead. Without
 // `decode_color` the colour is neither checked nor decoded (color_bgr stays empty): for uses of
-// depth alone.
-absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color = true);
+// depth alone. InvalidArgument for a frame of more than limits.max_pixels; depth readings
+// outside limits.depth_range count as no reading.
+absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color = true,
+                                          const FrameLimits& limits = {});
 
 struct DepthStats {
   float valid_fraction = 0.0f;  // share of pixels with a reading, [0, 1]

@@ -23,6 +23,14 @@ absl::Status CameraIntrinsics::Validate() const {
                                                    " is outside [", kMinSide, ", ", kMaxSide,
                                                    "] pixels per side"));
   }
+  if (fx < kMinFocalPerSide * width || fx > kMaxFocalPerSide * width ||
+      fy < kMinFocalPerSide * height || fy > kMaxFocalPerSide * height) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "intrinsics focal lengths fx=", fx, " fy=", fy, " are not physical for a ", width, "x",
+        height, " image: fx must be within [", kMinFocalPerSide * width, ", ",
+        kMaxFocalPerSide * width, "] and fy within [", kMinFocalPerSide * height, ", ",
+        kMaxFocalPerSide * height, "] pixels (a field of view from 1 to 170 degrees)"));
+  }
   if (cx < 0.0 || cx >= width || cy < 0.0 || cy >= height) {
     return absl::InvalidArgumentError(absl::StrCat(
         "principal point (", cx, ", ", cy, ") lies outside the ", width, "x", height, " image"));
@@ -49,6 +57,13 @@ absl::StatusOr<Pose> Pose::FromComponents(double tx, double ty, double tz, doubl
   for (double v : {tx, ty, tz, qx, qy, qz, qw}) {
     if (!std::isfinite(v)) {
       return absl::InvalidArgumentError("pose contains NaN or infinity");
+    }
+  }
+  for (double v : {tx, ty, tz}) {
+    if (std::abs(v) > kMaxTranslationM) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("pose translation (", tx, ", ", ty, ", ", tz, ") m has a component beyond ",
+                       kMaxTranslationM, " m; send metres relative to the map's own origin"));
     }
   }
   const double norm = std::sqrt(qx * qx + qy * qy + qz * qz + qw * qw);

@@ -23,9 +23,12 @@ inline int Face(float x, float y, float z, float* u, float* v) {
   return z > 0 ? 4 : 5;
 }
 
+// Clamped in float before the conversion, so that any input (NaN included) gives a cell.
 inline int Cell(float t) {
-  const int i = static_cast<int>((t + 1.0f) * 0.5f * SphereBins::kLutSide);
-  return i < 0 ? 0 : (i >= SphereBins::kLutSide ? SphereBins::kLutSide - 1 : i);
+  const float f = (t + 1.0f) * 0.5f * SphereBins::kLutSide;
+  if (!(f >= 0.0f)) return 0;
+  if (f >= static_cast<float>(SphereBins::kLutSide - 1)) return SphereBins::kLutSide - 1;
+  return static_cast<int>(f);
 }
 
 }  // namespace

@@ -50,11 +50,14 @@ inline double Box(const cv::Mat& integral, int x0, int y0, int x1, int y1) {
 // Mean of a channel over the rectangle centred at (cx, cy) of size (w, h), clipped to the
 // image; kLarge when its centre is outside or it holds no valid depth.
 float RectMean(const Channels& ch, int channel, float cx, float cy, float w, float h) {
-  if (cx < 0 || cy < 0 || cx >= ch.cols || cy >= ch.rows) return kLarge;
-  const int x0 = std::max(0, static_cast<int>(cx - w / 2));
-  const int y0 = std::max(0, static_cast<int>(cy - h / 2));
-  const int x1 = std::min(ch.cols, std::max(x0 + 1, static_cast<int>(cx + w / 2) + 1));
-  const int y1 = std::min(ch.rows, std::max(y0 + 1, static_cast<int>(cy + h / 2) + 1));
+  // Written so that NaN centres are outside too.
+  if (!(cx >= 0 && cy >= 0 && cx < ch.cols && cy < ch.rows)) return kLarge;
+  // Edges clipped in float before the conversion: a rectangle far larger than the image (a
+  // model's size at a depth near the sensor's minimum) must not overflow an int.
+  const int x0 = static_cast<int>(std::max(0.0f, cx - w / 2));
+  const int y0 = static_cast<int>(std::max(0.0f, cy - h / 2));
+  const int x1 = std::max(x0 + 1, static_cast<int>(std::min<float>(ch.cols - 1, cx + w / 2)) + 1);
+  const int y1 = std::max(y0 + 1, static_cast<int>(std::min<float>(ch.rows - 1, cy + h / 2)) + 1);
   if (channel == 0) {
     const double n = Box(ch.depth_count, x0, y0, x1, y1);
     return n > 0 ? static_cast<float>(Box(ch.depth_sum, x0, y0, x1, y1) / n) : kLarge;

@@ -58,6 +58,7 @@ absl::StatusOr<FrameLabels> LabelFrame(const forest::Forest& forest, const RgbdF
 }  // namespace
 
 absl::Status PipelineOptions::Validate() const {
+  if (auto s = frame_limits.Validate(); !s.ok()) return s;
   if (!(std::abs(world_up.norm() - 1.0f) < 1e-3f)) {
     return absl::InvalidArgumentError("world_up must be a unit vector");
   }
@@ -83,7 +84,7 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
         absl::StrCat("entropy_threshold must be within [0, 1], got ", *request.entropy_threshold));
   }
   const auto start = std::chrono::steady_clock::now();
-  auto frame = DecodeRgbdFrame(in);
+  auto frame = DecodeRgbdFrame(in, /*decode_color=*/true, options_.frame_limits);
   if (!frame.ok()) return frame.status();
   FrameAnalysis out;
   out.frame = *std::move(frame);

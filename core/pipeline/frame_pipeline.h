@@ -17,6 +17,8 @@
 namespace lifemap::pipeline {
 
 struct PipelineOptions {
+  // Frames larger are refused; depth readings outside the range are no reading.
+  FrameLimits frame_limits;
   bool entropy_masks = true;
   entropy::EntropyMaskOptions entropy;
   // "Up" (against gravity) in the world frame of client poses; TUM's mocap frame is z-up.

@@ -143,16 +143,22 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& text) {
 
 namespace {
 
-// Draws a plan (over the truth, when given) through line and circle callbacks in pixels, 100 px
-// per metre, y up, 0.5 m margin; returns the canvas size.
+// Draws a plan (over the truth, when given) through line, circle and text callbacks in
+// pixels, 100 px per metre, y up, 0.5 m margin, below a header with the title, a legend and a
+// 1 m scale bar; returns the canvas size.
 struct Painter {
   std::function<void(const Eigen::Vector2d&, const Eigen::Vector2d&, const char* colour,
                      double width_px, double opacity)>
       line;
   std::function<void(const Eigen::Vector2d&, double radius_px, double opacity)> circle;
+  // Text with its baseline's left end at the point.
+  std::function<void(const Eigen::Vector2d&, const std::string& text, double height_px)> text;
 };
 
-Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const Painter* painter) {
+constexpr double kHeaderPx = 64, kMinWidthPx = 560;
+
+Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::string& title,
+                      const Painter* painter) {
   Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
   for (const FloorPlan* p : {&plan, truth}) {
     if (p == nullptr) continue;
@@ -163,10 +169,13 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const Paint
   }
   if (lo.x() > hi.x()) lo = hi = Eigen::Vector2d::Zero();
   const double scale = 100, margin = 0.5;
-  const Eigen::Vector2d size = (hi - lo + Eigen::Vector2d(2 * margin, 2 * margin)) * scale;
+  Eigen::Vector2d size = (hi - lo + Eigen::Vector2d(2 * margin, 2 * margin)) * scale;
+  size.x() = std::max(size.x(), kMinWidthPx);
+  size.y() += kHeaderPx;
   if (painter == nullptr) return size;
   auto px = [&](const Eigen::Vector2d& p) {
-    return Eigen::Vector2d((p.x() - lo.x() + margin) * scale, (hi.y() - p.y() + margin) * scale);
+    return Eigen::Vector2d((p.x() - lo.x() + margin) * scale,
+                           kHeaderPx + (hi.y() - p.y() + margin) * scale);
   };
   auto draw = [&](const FloorPlan& p, double width, double opacity) {
     for (const auto& w : p.walls) {
@@ -182,13 +191,33 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const Paint
   };
   if (truth != nullptr) draw(*truth, 18, 0.25);
   draw(plan, 6, 1.0);
+
+  // Header: title; legend; scale bar.
+  painter->text({10, 22}, title.empty() ? "floor plan (top view, y up)" : title, 16);
+  double x = 10;
+  const double y = 48;
+  auto key = [&](const char* colour, double width, double opacity, const std::string& label) {
+    painter->line({x, y - 5}, {x + 30, y - 5}, colour, width, opacity);
+    painter->text({x + 36, y}, label, 12);
+    x += 36 + 7.5 * static_cast<double>(label.size()) + 14;
+  };
+  key("black", 6, 1.0, "wall");
+  key("saddlebrown", 10, 1.0, "door");
+  key("deepskyblue", 10, 1.0, "window");
+  painter->circle({x + 8, y - 5}, 8, 1.0);
+  painter->text({x + 22, y}, "stairs", 12);
+  x += 22 + 7.5 * 6 + 14;
+  if (truth != nullptr) key("black", 18, 0.25, "truth");
+  const double bar_right = size.x() - 12;
+  painter->line({bar_right - scale, y - 5}, {bar_right, y - 5}, "black", 3, 1.0);
+  painter->text({bar_right - scale, y - 12}, "1 m", 12);
   return size;
 }
 
 }  // namespace
 
-std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth) {
-  const Eigen::Vector2d size = Paint(plan, truth, nullptr);
+std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth, const std::string& title) {
+  const Eigen::Vector2d size = Paint(plan, truth, title, nullptr);
   std::string svg = absl::StrFormat(
       "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"%.0f\" height=\"%.0f\">\n"
       "<rect width=\"100%%\" height=\"100%%\" fill=\"white\"/>\n",
@@ -207,12 +236,29 @@ std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth) {
         "stroke-width=\"4\" stroke-opacity=\"%.2f\"/>\n",
         c.x(), c.y(), r, opacity);
   };
-  Paint(plan, truth, &painter);
+  painter.text = [&](const Eigen::Vector2d& at, const std::string& text, double height) {
+    std::string escaped;
+    for (char c : text) {
+      if (c == '<') {
+        escaped += "&lt;";
+      } else if (c == '>') {
+        escaped += "&gt;";
+      } else if (c == '&') {
+        escaped += "&amp;";
+      } else {
+        escaped += c;
+      }
+    }
+    svg += absl::StrFormat(
+        "<text x=\"%.1f\" y=\"%.1f\" font-family=\"sans-serif\" font-size=\"%.0f\">%s</text>\n",
+        at.x(), at.y(), height, escaped);
+  };
+  Paint(plan, truth, title, &painter);
   return svg + "</svg>\n";
 }
 
-cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth) {
-  const Eigen::Vector2d size = Paint(plan, truth, nullptr);
+cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth, const std::string& title) {
+  const Eigen::Vector2d size = Paint(plan, truth, title, nullptr);
   cv::Mat image(static_cast<int>(std::ceil(size.y())), static_cast<int>(std::ceil(size.x())),
                 CV_8UC3, cv::Scalar(255, 255, 255));
   auto bgr = [](const char* colour, double opacity) {
@@ -235,7 +281,12 @@ cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth) {
                cv::Scalar(0, 128, 0) * opacity + cv::Scalar(255, 255, 255) * (1 - opacity), 4,
                cv::LINE_AA);
   };
-  Paint(plan, truth, &painter);
+  painter.text = [&](const Eigen::Vector2d& at, const std::string& text, double height) {
+    // Hershey simplex is about 22 px tall at scale 1.
+    cv::putText(image, text, cv::Point(static_cast<int>(at.x()), static_cast<int>(at.y())),
+                cv::FONT_HERSHEY_SIMPLEX, height / 22.0, cv::Scalar(0, 0, 0), 1, cv::LINE_AA);
+  };
+  Paint(plan, truth, title, &painter);
   return image;
 }
 

@@ -24,8 +24,11 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& json);
 
 // The plan as an SVG drawing, 100 px per metre, y up: walls black, doors brown, windows blue,
 // stairs a green circle. With `truth`, the truth is drawn first, wide and pale, under the plan.
-std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth = nullptr);
+// A header above it holds `title` (what the plan is of), a legend and a 1 m scale bar.
+std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth = nullptr,
+                         const std::string& title = "");
 // The same drawing as a BGR image (for PNG files).
-cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth = nullptr);
+cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth = nullptr,
+                       const std::string& title = "");
 
 }  // namespace lifemap::place

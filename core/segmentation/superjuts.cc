@@ -97,8 +97,11 @@ absl::StatusOr<Superjuts> SegmentSuperjuts(const normals::NormalMap& map,
     const float w = EdgeWeight(map.points.at<cv::Vec3f>(r, c), map.normals.at<cv::Vec3f>(r, c),
                                map.points.at<cv::Vec3f>(r2, c2), map.normals.at<cv::Vec3f>(r2, c2),
                                options.convex_squared);
-    const int b =
-        std::min(kWeightBins - 1, static_cast<int>(std::max(w, 0.0f) * (kWeightBins / kMaxWeight)));
+    // Clamped in float before the conversion: a NaN weight (degenerate normals) is the
+    // heaviest edge instead of an out-of-range bin.
+    const float scaled = w * (kWeightBins / kMaxWeight);
+    const int b = scaled >= 0.0f ? static_cast<int>(std::min(scaled, kWeightBins - 1.0f))
+                                 : (scaled < 0.0f ? 0 : kWeightBins - 1);
     unsorted.push_back(
         {static_cast<uint32_t>(r * cols + c), static_cast<uint32_t>(r2 * cols + c2)});
     bin.push_back(static_cast<uint16_t>(b));

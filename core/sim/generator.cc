@@ -635,7 +635,19 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
                                      height + 0.03 * std::sin(5 * a));
       const double yaw = a + 0.35 * std::sin(3 * a);
       const double pitch = 0.30 + 0.08 * std::sin(2 * a);
-      v.trajectory.push_back({v.start_time_s + f / 30.0, LookPose(position, yaw, pitch)});
+      // Frames come at 30 Hz unless that would move the camera faster than a person walks
+      // (kMaxWalkSpeedMps, kMaxTurnRateRadps): then the frames are further apart in time, so
+      // a short visit (few frames) lasts as long as its path takes to walk, and the move from
+      // one loop to the next takes its walking time.
+      const Pose pose = LookPose(position, yaw, pitch);
+      double t = v.start_time_s;
+      if (!v.trajectory.empty()) {
+        const Pose& last = v.trajectory.back().T_world_camera;
+        t = v.trajectory.back().timestamp_s +
+            std::max({1.0 / 30.0, TranslationDistanceM(last, pose) / kMaxWalkSpeedMps,
+                      RotationAngleRad(last, pose) / kMaxTurnRateRadps});
+      }
+      v.trajectory.push_back({t, pose});
     }
     visits.push_back(std::move(v));
   }

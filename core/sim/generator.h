@@ -1,6 +1,7 @@
 // Deterministic generation of places, visits months apart, and camera trajectories.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -59,8 +60,15 @@ std::vector<Solid> StairSolids(const Stairs& stairs, int first_instance);
 // shape: rect, square, L, T or U. InvalidArgument for other shapes.
 absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape);
 
-// `count` visits `months_apart` months apart, each with `frames` frames at 30 Hz along one loop
-// through the room. Visit 0 is the reference; later ones apply the conditions' changes.
+// The camera moves at most as fast as a person carrying it: 1 m/s and 60°/s.
+inline constexpr double kMaxWalkSpeedMps = 1.0;
+inline constexpr double kMaxTurnRateRadps = M_PI / 3.0;
+
+// `count` visits `months_apart` months apart, each with `frames` frames along one loop (and a
+// quarter) through the room, at 30 Hz or slower where needed to keep to a walking speed
+// (kMaxWalkSpeedMps, kMaxTurnRateRadps): fewer frames make a visit of the same path, the
+// frames further apart in time. Visit 0 is the reference; later ones apply the conditions'
+// changes.
 absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t seed, int count,
                                                   double months_apart, const Conditions& conditions,
                                                   int frames);

@@ -108,6 +108,79 @@ CREATE TABLE visit_places (
   updated_time_s REAL NOT NULL
 );
 )sql",
+    // 4 -> 5: ids of maps, visits, keyframes and models are never reused (AUTOINCREMENT):
+    // reusing a deleted map's or visit's id let a stream still running for the deleted one
+    // commit into its successor. SQLite cannot add AUTOINCREMENT to a table, so each is
+    // rebuilt (SQLite's documented procedure: new table, copy, drop, rename; run with
+    // foreign_keys off, so the rows that reference them are kept as they are).
+    R"sql(
+CREATE TABLE models_new (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  name TEXT NOT NULL UNIQUE,
+  uploaded_time_s REAL NOT NULL,
+  size_bytes INTEGER NOT NULL,
+  class_names TEXT NOT NULL,
+  class_colors TEXT NOT NULL,
+  training_json TEXT NOT NULL,
+  trees INTEGER NOT NULL,
+  nodes INTEGER NOT NULL,
+  data BLOB NOT NULL
+);
+INSERT INTO models_new (id, name, uploaded_time_s, size_bytes, class_names, class_colors,
+                        training_json, trees, nodes, data)
+  SELECT id, name, uploaded_time_s, size_bytes, class_names, class_colors, training_json, trees,
+         nodes, data FROM models;
+DROP TABLE models;
+ALTER TABLE models_new RENAME TO models;
+
+CREATE TABLE maps_new (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  name TEXT NOT NULL UNIQUE,
+  description TEXT NOT NULL DEFAULT '',
+  created_time_s REAL NOT NULL,
+  entropy_threshold REAL,
+  model_id INTEGER REFERENCES models(id)
+);
+INSERT INTO maps_new (id, name, description, created_time_s, entropy_threshold, model_id)
+  SELECT id, name, description, created_time_s, entropy_threshold, model_id FROM maps;
+DROP TABLE maps;
+ALTER TABLE maps_new RENAME TO maps;
+
+CREATE TABLE visits_new (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  robot TEXT NOT NULL DEFAULT '',
+  label TEXT NOT NULL DEFAULT '',
+  start_time_s REAL NOT NULL,
+  end_time_s REAL NOT NULL DEFAULT 0,
+  ended INTEGER NOT NULL DEFAULT 0,
+  frame_count INTEGER NOT NULL DEFAULT 0
+);
+INSERT INTO visits_new (id, map_id, robot, label, start_time_s, end_time_s, ended, frame_count)
+  SELECT id, map_id, robot, label, start_time_s, end_time_s, ended, frame_count FROM visits;
+DROP TABLE visits;
+ALTER TABLE visits_new RENAME TO visits;
+CREATE INDEX visits_by_map ON visits(map_id, start_time_s);
+
+CREATE TABLE keyframes_new (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  visit_id INTEGER NOT NULL REFERENCES visits(id) ON DELETE CASCADE,
+  sequence INTEGER NOT NULL,
+  timestamp_s REAL NOT NULL,
+  has_pose INTEGER NOT NULL,
+  tx REAL, ty REAL, tz REAL, qx REAL, qy REAL, qz REAL, qw REAL,
+  fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
+  width INTEGER NOT NULL, height INTEGER NOT NULL,
+  depth_scale REAL NOT NULL,
+  color_encoding INTEGER NOT NULL,
+  depth_bytes INTEGER NOT NULL,
+  color_bytes INTEGER NOT NULL
+);
+INSERT INTO keyframes_new SELECT * FROM keyframes;
+DROP TABLE keyframes;
+ALTER TABLE keyframes_new RENAME TO keyframes;
+CREATE INDEX keyframes_by_visit ON keyframes(visit_id, timestamp_s);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -326,9 +399,8 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
           absl::StrCat(path, ": could not switch to WAL mode (is the file system local?)"));
     }
   }
-  if (auto s =
-          db->Exec(absl::StrCat("PRAGMA synchronous=", options.synchronous_full ? "FULL" : "NORMAL",
-                                "; PRAGMA foreign_keys=ON;"));
+  if (auto s = db->Exec(
+          absl::StrCat("PRAGMA synchronous=", options.synchronous_full ? "FULL" : "NORMAL"));
       !s.ok()) {
     return s;
   }
@@ -353,9 +425,21 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
     Transaction tx(db);
     if (auto s = tx.Begin(); !s.ok()) return s;
     if (auto s = db->Exec(kMigrations[v]); !s.ok()) return s;
+    // The migration must leave every reference intact (foreign keys are off while it runs).
+    auto dangling = db->QueryInt("SELECT COUNT(*) FROM pragma_foreign_key_check");
+    if (!dangling.ok()) return dangling.status();
+    if (*dangling > 0) {
+      return absl::DataLossError(
+          absl::StrCat(path, ": migrating to schema ", v + 1, " would leave ", *dangling,
+                       " rows referencing rows that do not exist; the file stays at schema ", v,
+                       " (run an older lifemapd, or restore a backup)"));
+    }
     if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", v + 1)); !s.ok()) return s;
     if (auto s = tx.Commit(); !s.ok()) return s;
   }
+  // Foreign keys are enforced from here on (migrations ran without them: a table rebuild must
+  // not cascade).
+  if (auto s = db->Exec("PRAGMA foreign_keys=ON"); !s.ok()) return s;
 
   auto read_db = Database::Open(path, false, true, options.busy_timeout_ms);
   if (!read_db.ok()) return read_db.status();

@@ -150,7 +150,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 4;
+  static constexpr int kSchemaVersion = 5;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 

@@ -227,6 +227,40 @@ TEST(Generator, DynamicVisitsHaveWalkersThatRenderAsPeople) {
   EXPECT_EQ(start.back().cls, SemanticClass::kPerson);
 }
 
+TEST(Generator, TheCameraKeepsAWalkingPaceWhateverTheFrameCount) {
+  // A U place has several loops: the move between them must be walked too.
+  for (const char* shape : {"rect", "U"}) {
+    auto place = GeneratePlace(7, shape);
+    ASSERT_TRUE(place.ok());
+    for (int frames : {30, 300, 1200}) {
+      auto visits = GenerateVisits(*place, 7, 1, 0, {}, frames);
+      ASSERT_TRUE(visits.ok());
+      const auto& tr = (*visits)[0].trajectory;
+      ASSERT_EQ(tr.size(), static_cast<size_t>(frames));
+      int at_30hz = 0;
+      for (size_t i = 1; i < tr.size(); ++i) {
+        const double dt = tr[i].timestamp_s - tr[i - 1].timestamp_s;
+        ASSERT_GE(dt, 1.0 / 30.0 - 1e-5) << shape << " " << frames << " frame " << i;
+        EXPECT_LE(TranslationDistanceM(tr[i - 1].T_world_camera, tr[i].T_world_camera) / dt,
+                  kMaxWalkSpeedMps * 1.001)
+            << shape << " " << frames << " frame " << i;
+        EXPECT_LE(RotationAngleRad(tr[i - 1].T_world_camera, tr[i].T_world_camera) / dt,
+                  kMaxTurnRateRadps * 1.001)
+            << shape << " " << frames << " frame " << i;
+        at_30hz += dt < 1.0 / 30.0 + 1e-5;  // timestamps are Unix times: ~1e-7 s steps
+      }
+      // Fewer frames: the same path, so a visit as long in time.
+      if (frames == 30) {
+        EXPECT_GT(tr.back().timestamp_s - tr.front().timestamp_s, 5.0) << shape;
+      }
+      // Many frames: the camera's own rate (30 Hz) nearly throughout.
+      if (frames == 1200) {
+        EXPECT_GT(at_30hz, frames * 9 / 10) << shape;
+      }
+    }
+  }
+}
+
 TEST(Generator, RejectsBadArguments) {
   EXPECT_TRUE(absl::IsInvalidArgument(GeneratePlace(1, "octagon").status()));
   auto place = GeneratePlace(1, "rect");

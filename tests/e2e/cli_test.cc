@@ -106,6 +106,7 @@ class Process {
   std::string out() const { return Slurp(out_); }
   std::string err() const { return Slurp(err_); }
   bool started() const { return pid_ > 0; }
+  pid_t pid() const { return pid_; }
 
  private:
   pid_t pid_ = -1;
@@ -162,7 +163,8 @@ class CliTest : public ::testing::Test {
 
   // Starts `lifemap --json stream` of a synthetic recording into map "m" at the recording's
   // 30 Hz and returns once `acks` keyframes are acknowledged.
-  std::unique_ptr<Process> StreamUntilAcknowledged(const std::string& tum, size_t acks);
+  std::unique_ptr<Process> StreamUntilAcknowledged(const std::string& tum, size_t acks,
+                                                   const std::string& map = "m");
 
   std::vector<std::string> Cli(std::vector<std::string> args) const {
     args.insert(args.begin(), {kLifemap, "--server", address_});
@@ -242,6 +244,25 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
   EXPECT_NE(r.err.find("does not exist"), std::string::npos);
 }
 
+TEST_F(CliTest, ASecondServerOnTheSamePortOrDatabaseRefusesToStart) {
+  // The same port, another database: refused (no SO_REUSEPORT sharing the clients).
+  Process same_port({kLifemapd, "--listen", address_, "--db", tmp_.File("other.db")},
+                    tmp_.File("port.out"), tmp_.File("port.err"));
+  ASSERT_TRUE(same_port.WaitFor(std::chrono::seconds(20))) << "it must not serve";
+  EXPECT_NE(same_port.Wait(), 0);
+  EXPECT_NE(same_port.err().find("in use"), std::string::npos) << same_port.err();
+  // Another port, the same database: refused, naming the first server's pid and address.
+  Process same_db({kLifemapd, "--listen", "127.0.0.1:0", "--db", Db()}, tmp_.File("db.out"),
+                  tmp_.File("db.err"));
+  ASSERT_TRUE(same_db.WaitFor(std::chrono::seconds(20))) << "it must not serve";
+  EXPECT_NE(same_db.Wait(), 0);
+  EXPECT_NE(same_db.err().find("pid " + std::to_string(server_->pid())), std::string::npos)
+      << same_db.err();
+  EXPECT_NE(same_db.err().find(Db() + ".lock"), std::string::npos) << same_db.err();
+  // The first server still answers alone.
+  EXPECT_EQ(Run({"maps", "list"}).code, 0);
+}
+
 TEST_F(CliTest, ProcessWritesResultJson) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 1);
@@ -265,6 +286,40 @@ TEST_F(CliTest, ProcessWritesResultJson) {
   EXPECT_NE(r.err.find("16-bit"), std::string::npos) << r.err;
 }
 
+TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 40, 0.021);
+  // Two files listed in rgb.txt are not on disk.
+  std::vector<std::filesystem::path> rgb;
+  for (const auto& e : std::filesystem::directory_iterator(tum + "/rgb")) rgb.push_back(e.path());
+  std::sort(rgb.begin(), rgb.end());
+  std::filesystem::remove(rgb[3]);
+  std::filesystem::remove(rgb[7]);
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  auto r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  json summary = json::parse(Lines(r.out).back())["summary"];
+  EXPECT_EQ(summary["files_missing"], 2);
+  EXPECT_EQ(summary["frames_sent"], 38);
+  EXPECT_EQ(summary["pairs_found"], 38);
+  r = Run({"stream", "--map", "m", "--tum", tum, "--rate", "0"});
+  EXPECT_NE(r.err.find("2 files named in rgb.txt/depth.txt are not on disk"), std::string::npos)
+      << r.err;
+
+  // The map deleted while a stream runs: the stream ends non-zero, saying what was stored.
+  const std::string long_tum = tmp_.File("long");
+  testing::WriteSyntheticTum(long_tum, 300, 0.01);  // 10 s at the recording's 30 Hz
+  auto stream = StreamUntilAcknowledged(long_tum, 1, "doomed");
+  ASSERT_TRUE(stream);
+  ASSERT_EQ(Run({"maps", "delete", "doomed", "--yes"}).code, 0);
+  EXPECT_EQ(stream->Wait(), 1);
+  summary = json::parse(Lines(stream->out()).back())["summary"];
+  EXPECT_EQ(summary["error"]["code"], "NOT_FOUND") << summary.dump();
+  EXPECT_FALSE(summary.contains("resume_with")) << "a deleted map's visit cannot be resumed";
+  EXPECT_NE(stream->err().find("was deleted"), std::string::npos) << stream->err();
+  EXPECT_NE(stream->err().find("were stored before"), std::string::npos) << stream->err();
+}
+
 TEST_F(CliTest, ClearErrorsForBadFlagsAndUnreachableServer) {
   auto r = Run({"stream", "--map", "m", "--tum", "/nonexistent/dir"});
   EXPECT_EQ(r.code, 2);
@@ -276,6 +331,13 @@ TEST_F(CliTest, ClearErrorsForBadFlagsAndUnreachableServer) {
   r = Run({"stream", "--map", "nomap", "--tum", tum});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("lifemap maps create nomap"), std::string::npos) << r.err;
+  // With --json an error is also a JSON object on stdout.
+  r = Run({"--json", "maps", "show", "nomap"});
+  EXPECT_EQ(r.code, 1);
+  ASSERT_FALSE(r.out.empty()) << r.err;
+  const json error = json::parse(Lines(r.out).back());
+  EXPECT_EQ(error["error"]["code"], "NOT_FOUND") << r.out;
+  EXPECT_NE(error["error"]["message"].get<std::string>().find("nomap"), std::string::npos);
   Process p({kLifemap, "--server", "127.0.0.1:1", "--connect-timeout", "1", "maps", "list"},
             tmp_.File("u.out"), tmp_.File("u.err"));
   EXPECT_EQ(p.Wait(), 1);
@@ -330,10 +392,11 @@ void ExpectDurable(const std::string& db, const std::set<uint64_t>& acked) {
   }
 }
 
-std::unique_ptr<Process> CliTest::StreamUntilAcknowledged(const std::string& tum, size_t acks) {
-  if (Run({"maps", "create", "m"}).code != 0) return nullptr;
+std::unique_ptr<Process> CliTest::StreamUntilAcknowledged(const std::string& tum, size_t acks,
+                                                          const std::string& map) {
+  if (Run({"maps", "create", map}).code != 0) return nullptr;
   auto stream = std::make_unique<Process>(
-      Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
+      Cli({"--json", "stream", "--map", map, "--tum", tum, "--use-groundtruth"}),
       tmp_.File("stream.out"), tmp_.File("stream.err"));
   const auto end = Clock::now() + std::chrono::seconds(30);
   while (AcknowledgedKeyframes(stream->out()).size() < acks) {
@@ -355,10 +418,19 @@ TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
   server_->Signal(SIGKILL);
   EXPECT_EQ(server_->Wait(), 128 + SIGKILL);
   EXPECT_NE(stream.Wait(), 0) << "the stream fails when its server dies";
-  EXPECT_EQ(Lines(stream.out()).back().find("summary"), std::string::npos)
-      << "killed mid-stream, before the recording's end";
   const std::set<uint64_t> acked = AcknowledgedKeyframes(stream.out());
   ASSERT_GE(acked.size(), 4u);
+  // The summary says the stream ended early, how much was stored and how to resume.
+  const json summary = json::parse(Lines(stream.out()).back())["summary"];
+  EXPECT_TRUE(summary.contains("error")) << summary.dump();
+  EXPECT_EQ(summary["keyframes_stored"].get<size_t>(), acked.size());
+  EXPECT_LT(summary["frames_sent"].get<size_t>(), 150u) << "killed before the recording's end";
+  const std::string visit = std::to_string(summary["visit_id"].get<uint64_t>());
+  EXPECT_NE(summary.value("resume_with", "").find("--visit " + visit), std::string::npos)
+      << summary.dump();
+  EXPECT_NE(stream.err().find("keyframes of visit " + visit + " were stored before"),
+            std::string::npos)
+      << stream.err();
   ExpectDurable(Db(), acked);
 
   // A restarted server serves them and the check passes.

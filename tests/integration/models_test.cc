@@ -4,6 +4,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "core/forest/forest.h"
+#include "tests/integration/model_fixture.h"
 #include "tests/integration/server_fixture.h"
 
 namespace lifemap {
@@ -11,44 +12,10 @@ namespace {
 
 using testing::ServerTest;
 
-constexpr int kWidth = 160, kHeight = 120;
-
-// A plane at 1.5 m, red on the left, blue on the right (so a colour feature separates them).
-cv::Mat TwoColors() {
-  cv::Mat bgr(kHeight, kWidth, CV_8UC3, cv::Scalar(0, 0, 220));
-  bgr(cv::Rect(kWidth / 2, 0, kWidth / 2, kHeight)).setTo(cv::Scalar(220, 0, 0));
-  return bgr;
-}
-
-v1::Frame TwoColorFrame(uint64_t sequence) {
-  v1::Frame f = testing::MakeFrame(kWidth, kHeight, 1.5, 1000.0 + sequence, sequence);
-  f.mutable_color()->set_encoding(v1::COLOR_PNG);
-  f.mutable_color()->set_data(testing::PngBytes(TwoColors()));
-  return f;
-}
-
-// A model file that calls the left half "wall" and the right half "door"; `swap` the other way.
-std::string TwoColorModel(bool swap = false) {
-  forest::LabeledImage im;
-  im.depth_m = cv::Mat(kHeight, kWidth, CV_32FC1, cv::Scalar(1.5f));
-  im.color_bgr = TwoColors();
-  im.labels = cv::Mat(kHeight, kWidth, CV_8UC1, cv::Scalar(swap ? 1 : 0));
-  im.labels(cv::Rect(kWidth / 2, 0, kWidth / 2, kHeight)).setTo(swap ? 0 : 1);
-  im.labels(cv::Rect(kWidth / 2 - 6, 0, 12, kHeight)).setTo(forest::kIgnore);
-  forest::TrainOptions o;
-  o.trees = 1;
-  o.max_depth = 6;
-  o.candidates = 100;
-  o.max_offset = 4;
-  o.max_size = 3;
-  auto model = forest::Forest::Train({im}, 2, o);
-  EXPECT_TRUE(model.ok()) << model.status();
-  forest::ModelDescription d;
-  d.class_names = {"wall", "door"};
-  d.class_colors = {0x808080, 0x00FF00};
-  d.training_json = R"({"test":true})";
-  return model->Serialize(d);
-}
+constexpr int kWidth = testing::kModelWidth, kHeight = testing::kModelHeight;
+using testing::TwoColorFrame;
+using testing::TwoColorModel;
+using testing::TwoColors;
 
 // The label image of a result, decoded.
 cv::Mat Labels(const v1::FrameResult& r) {

@@ -26,7 +26,11 @@ inline absl::StatusOr<v1::Frame> FirstTumFrame(const std::string& dir) {
 
 class ServerTest : public ::testing::Test {
  protected:
+  // Starts a server on the fixture's database, stopping the running one first (one server
+  // per database).
   void StartServer(server::ServerConfig config = {}) {
+    client_.reset();
+    server_.reset();
     config.listen = "127.0.0.1:0";
     config.db_path = tmp_.File("lifemap.db");
     config.shutdown_grace_s = 2;
@@ -41,11 +45,7 @@ class ServerTest : public ::testing::Test {
   }
   void SetUp() override { StartServer(); }
   // Stops the server and starts it again on the same database with the last config.
-  void RestartServer() {
-    client_.reset();
-    server_.reset();
-    StartServer(config_);
-  }
+  void RestartServer() { StartServer(config_); }
 
   // ProcessFrame's status for a frame, against map "m" (created on demand).
   absl::Status Process(const v1::Frame& frame, const std::string& map = "") {

@@ -92,5 +92,31 @@ TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
             std::string::npos);
 }
 
+TEST(ConfigFile, ReadsAndChecksTheFramesSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"frames": {"min_depth_m": 0.2, "max_depth_m": 8, "max_pixels": 307200}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_FLOAT_EQ(c->pipeline.frame_limits.depth_range.min_m, 0.2f);
+  EXPECT_FLOAT_EQ(c->pipeline.frame_limits.depth_range.max_m, 8.0f);
+  EXPECT_EQ(c->pipeline.frame_limits.max_pixels, 307200);
+  EXPECT_EQ(ServerConfig().pipeline.frame_limits.max_pixels, 1280 * 1024)
+      << "the default fits 1280x1024 depth";
+  const std::pair<const char*, const char*> bad[] = {
+      {"order.json", R"({"frames": {"min_depth_m": 5, "max_depth_m": 4}})"},
+      {"zero.json", R"({"frames": {"min_depth_m": 0}})"},
+      {"far.json", R"({"frames": {"max_depth_m": 1e6}})"},
+      {"pixels.json", R"({"frames": {"max_pixels": 10}})"},
+      {"huge.json", R"({"frames": {"max_pixels": 100000000}})"},
+      {"key.json", R"({"frames": {"max_depth": 4}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file << ": " << r.status();
+  }
+}
+
 }  // namespace
 }  // namespace lifemap::server

@@ -128,6 +128,43 @@ TEST_F(StoreTest, DeletingAMapCascadesToVisitsAndKeyframes) {
   EXPECT_TRUE(problems->empty());
 }
 
+TEST_F(StoreTest, IdsOfDeletedRowsAreNeverReused) {
+  // The newest map, visit, keyframe and model deleted: their successors get new ids, also
+  // after the store is reopened. (A reused visit id let a stream for the deleted visit commit
+  // keyframes into its successor.)
+  auto map = store_->CreateMap("m", "", 1.0);
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 1.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  ModelRecord model;
+  model.name = "forest";
+  model.class_names = {"a", "b"};
+  model.class_colors = {1, 2};
+  auto m1 = store_->InsertModel(model, "bytes");
+  ASSERT_TRUE(map.ok() && visit.ok() && m1.ok());
+  ASSERT_TRUE(store_->DeleteMap("m").ok());
+  ASSERT_TRUE(store_->DeleteModel("forest").ok());
+  store_.reset();
+  auto reopened = Store::Open(tmp_.File("lifemap.db"));
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  store_ = *std::move(reopened);
+
+  auto map2 = store_->CreateMap("m", "", 2.0);
+  auto visit2 = store_->StartVisit("m", "", "", 2.0);
+  std::vector<KeyframeRecord> batch2 = {Keyframe(visit2->id, 2.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&batch2, {}).ok());
+  auto m2 = store_->InsertModel(model, "bytes");
+  ASSERT_TRUE(map2.ok() && visit2.ok() && m2.ok());
+  EXPECT_GT(map2->id, map->id);
+  EXPECT_GT(visit2->id, visit->id);
+  EXPECT_GT(batch2[0].id, batch[0].id);
+  EXPECT_GT(m2->id, m1->id);
+  // The deleted visit stays deleted: a keyframe for it is refused, not given to the new one.
+  std::vector<KeyframeRecord> orphan = {Keyframe(visit->id, 3.0)};
+  EXPECT_TRUE(absl::IsNotFound(store_->InsertKeyframes(&orphan, {})));
+  EXPECT_EQ(store_->GetMap("m")->keyframe_count, 1);
+}
+
 TEST_F(StoreTest, EndedVisitIsNotTheLatestOpenOne) {
   ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
   auto v1 = store_->StartVisit("m", "", "", 1.0);
@@ -300,6 +337,15 @@ PRAGMA user_version = 1;
   EXPECT_FALSE(k->features.has_value());
   auto problems = (*store)->CheckIntegrity();
   EXPECT_TRUE(problems.ok() && problems->empty());
+  // The migrated tables keep their ids and never reuse them.
+  auto visits = (*store)->ListVisits("old");
+  ASSERT_TRUE(visits.ok() && visits->size() == 1u);
+  EXPECT_EQ((*visits)[0].id, 1);
+  ASSERT_TRUE((*store)->DeleteMap("old").ok());
+  auto fresh = (*store)->CreateMap("new", "", 8.0);
+  ASSERT_TRUE(fresh.ok());
+  EXPECT_EQ(fresh->id, 2);
+  EXPECT_EQ((*store)->StartVisit("new", "", "", 9.0)->id, 2);
 }
 
 TEST_F(StoreTest, ModelsAreStoredActivatedPerMapOrAsDefaultAndGuardedOnDelete) {

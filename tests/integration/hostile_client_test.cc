@@ -1,0 +1,252 @@
+// Regression tests of defects found by trying lifemapd as a hostile client and a tired operator
+// would (issue 12): absurd but finite frames, a map deleted under a running stream, a second
+// server on a busy port or database, two writers to one visit.
+#include <cstring>
+#include <functional>
+#include <limits>
+#include <thread>
+
+#include <grpcpp/generic/generic_stub.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/codegen/client_unary_call.h>
+#include <gtest/gtest.h>
+
+#include "tests/integration/model_fixture.h"
+#include "tests/integration/server_fixture.h"
+
+namespace lifemap {
+namespace {
+
+using testing::MakeFrame;
+using testing::ServerTest;
+
+// A frame whose depth is raw float32 metres, every pixel `depth_m`.
+v1::Frame RawF32Frame(float depth_m, uint64_t sequence = 0) {
+  v1::Frame f = MakeFrame(160, 120, 1.5, 1000.0 + sequence, sequence);
+  std::string data(160 * 120 * sizeof(float), '\0');
+  for (size_t i = 0; i < 160 * 120; ++i) std::memcpy(&data[i * sizeof(float)], &depth_m, 4);
+  f.mutable_depth()->set_encoding(v1::DEPTH_RAW_F32);
+  f.mutable_depth()->set_data(data);
+  f.mutable_depth()->set_width(160);
+  f.mutable_depth()->set_height(120);
+  return f;
+}
+
+class HostileClientTest : public ServerTest {};
+
+TEST_F(HostileClientTest, AbsurdButFiniteDepthIsNoReadingNotACrash) {
+  // With a model active too: the labels' depth-normalised features see the same values.
+  ASSERT_TRUE(client_->UploadModel("two", testing::TwoColorModel()).ok());
+  ASSERT_TRUE(client_->ActivateModel("two", "").ok());
+  for (float depth : {1e30f, std::numeric_limits<float>::max(), 1e-30f, 1e10f, 1e-3f, 60.0f}) {
+    v1::ProcessFrameRequest req;
+    *req.mutable_frame() = RawF32Frame(depth);
+    auto r = client_->ProcessFrame(req);
+    ASSERT_TRUE(r.ok()) << depth << ": " << r.status();
+    EXPECT_EQ(r->valid_depth_fraction(), 0.0f) << depth << " m is outside the sensor's range";
+  }
+  // A mix: half the image a plane at 1.2 m, half absurd.
+  v1::Frame mixed = RawF32Frame(1.2f);
+  const float absurd = 3e38f;
+  for (size_t i = 0; i < 160 * 60; ++i) {
+    std::memcpy(&(*mixed.mutable_depth()->mutable_data())[i * 4], &absurd, 4);
+  }
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = mixed;
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_NEAR(r->valid_depth_fraction(), 0.5f, 0.01f);
+  EXPECT_NEAR(r->median_depth_m(), 1.2f, 1e-3f);
+  EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
+}
+
+TEST_F(HostileClientTest, DepthScaleOutsideItsRangeIsRefused) {
+  for (double scale : {1e-18, 1e-3, 1e12}) {
+    v1::Frame f = MakeFrame(160, 120);
+    f.mutable_depth()->set_depth_scale(scale);
+    const absl::Status s = Process(f);
+    EXPECT_TRUE(absl::IsInvalidArgument(s)) << scale << ": " << s;
+    EXPECT_NE(s.message().find("depth_scale"), std::string::npos) << s;
+  }
+  EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
+}
+
+TEST_F(HostileClientTest, FramesOverThePixelLimitAreRefusedBeforeDecoding) {
+  server::ServerConfig config;
+  config.pipeline.frame_limits.max_pixels = 320 * 240;
+  StartServer(config);
+  EXPECT_TRUE(Process(MakeFrame(320, 240)).ok());
+  const absl::Status s = Process(MakeFrame(640, 480));
+  EXPECT_TRUE(absl::IsInvalidArgument(s)) << s;
+  EXPECT_NE(s.message().find("max_pixels"), std::string::npos) << s;
+  EXPECT_NE(s.message().find("307200"), std::string::npos) << s;
+}
+
+TEST_F(HostileClientTest, AbsurdPosesAndIntrinsicsAreRefusedNotStored) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  struct Case {
+    const char* name;
+    std::function<void(v1::Frame*)> spoil;
+    const char* message_part;
+  };
+  const Case cases[] = {
+      {"translation 1e300",
+       [](v1::Frame* f) {
+         f->mutable_pose()->set_qw(1);
+         f->mutable_pose()->set_tx(1e300);
+       },
+       "map's own origin"},
+      {"fx 1e-300", [](v1::Frame* f) { f->mutable_intrinsics()->set_fx(1e-300); }, "not physical"},
+      {"fy 1e12", [](v1::Frame* f) { f->mutable_intrinsics()->set_fy(1e12); }, "not physical"},
+  };
+  for (const auto& c : cases) {
+    v1::Frame f = MakeFrame(160, 120);
+    c.spoil(&f);
+    const absl::Status s = Process(f, "m");
+    EXPECT_TRUE(absl::IsInvalidArgument(s)) << c.name << ": " << s;
+    EXPECT_NE(s.message().find(c.message_part), std::string::npos) << c.name << ": " << s;
+  }
+  EXPECT_EQ(client_->GetMap("m")->keyframe_count(), 0u);
+}
+
+// Sends one frame on an open stream and returns its result (false if the stream ended).
+bool SendAndReceive(client::FrameStream* stream, const v1::Frame& frame, v1::FrameResult* result) {
+  return stream->Send(frame) && stream->Receive(result);
+}
+
+// Closes the sending side, reads the remaining results and returns the stream's status.
+absl::Status CloseAndFinish(client::FrameStream* stream) {
+  stream->CloseSend();
+  v1::FrameResult r;
+  while (stream->Receive(&r)) {
+  }
+  return stream->Finish();
+}
+
+TEST_F(HostileClientTest, AStreamWhoseMapIsDeletedEndsAndNothingLandsInTheNextMap) {
+  ASSERT_TRUE(client_->CreateMap("old", "").ok());
+  v1::StreamStart start;
+  start.set_map("old");
+  auto orphan = client_->OpenStream(start);
+  ASSERT_TRUE(orphan.ok()) << orphan.status();
+  v1::FrameResult r;
+  ASSERT_TRUE(SendAndReceive(orphan->get(), MakeFrame(160, 120, 1.5, 1000.0, 0), &r));
+  EXPECT_TRUE(r.keyframe().committed());
+  const auto old_map_id = client_->GetMap("old")->id();
+  const auto old_visit = (*orphan)->started().visit_id();
+
+  ASSERT_TRUE(client_->DeleteMap("old").ok());
+  ASSERT_TRUE(client_->CreateMap("new", "").ok());
+  EXPECT_NE(client_->GetMap("new")->id(), old_map_id) << "a deleted map's id is not reused";
+  start.set_map("new");
+  auto fresh = client_->OpenStream(start);
+  ASSERT_TRUE(fresh.ok()) << fresh.status();
+  const auto new_visit = (*fresh)->started().visit_id();
+  EXPECT_NE(new_visit, old_visit) << "a deleted visit's id is not reused";
+  ASSERT_TRUE(SendAndReceive(fresh->get(), MakeFrame(160, 120, 1.5, 2000.0, 0), &r));
+  EXPECT_TRUE(r.keyframe().committed());
+
+  // The orphaned stream's next frame (a keyframe by time) ends it; nothing is committed.
+  (*orphan)->Send(MakeFrame(160, 120, 1.5, 1005.0, 1));
+  EXPECT_FALSE((*orphan)->Receive(&r));
+  const absl::Status ended = (*orphan)->Finish();
+  EXPECT_TRUE(absl::IsNotFound(ended)) << ended;
+  EXPECT_NE(ended.message().find("'old' was deleted"), std::string::npos) << ended;
+
+  EXPECT_TRUE(CloseAndFinish(fresh->get()).ok());
+  auto keyframes = client_->ListKeyframes("new", 0);
+  ASSERT_TRUE(keyframes.ok());
+  ASSERT_EQ(keyframes->keyframes_size(), 1);
+  EXPECT_EQ(keyframes->keyframes(0).visit_id(), new_visit);
+}
+
+TEST_F(HostileClientTest, AStreamWhoseVisitIsEndedEndsWithFailedPrecondition) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok());
+  v1::FrameResult r;
+  ASSERT_TRUE(SendAndReceive(stream->get(), MakeFrame(160, 120, 1.5, 1000.0, 0), &r));
+  const auto visit = (*stream)->started().visit_id();
+  auto ended = client_->EndVisit(visit);
+  ASSERT_TRUE(ended.ok()) << ended.status();
+  EXPECT_EQ(ended->frame_count(), 1u) << "the frames streamed so far are counted";
+  (*stream)->Send(MakeFrame(160, 120, 1.5, 1005.0, 1));
+  EXPECT_FALSE((*stream)->Receive(&r));
+  const absl::Status s = (*stream)->Finish();
+  EXPECT_TRUE(absl::IsFailedPrecondition(s)) << s;
+  EXPECT_NE(s.message().find("ended"), std::string::npos) << s;
+  EXPECT_EQ(client_->GetMap("m")->keyframe_count(), 1u);
+}
+
+TEST_F(HostileClientTest, AVisitHasOneWriterAtATime) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto first = client_->OpenStream(start);
+  ASSERT_TRUE(first.ok());
+  const auto visit = (*first)->started().visit_id();
+  v1::FrameResult r;
+  ASSERT_TRUE(SendAndReceive(first->get(), MakeFrame(160, 120, 1.5, 1000.0, 0), &r));
+
+  start.set_visit_id(visit);
+  auto second = client_->OpenStream(start);
+  EXPECT_TRUE(absl::IsFailedPrecondition(second.status())) << second.status();
+  EXPECT_NE(second.status().message().find("visit " + std::to_string(visit)), std::string::npos)
+      << second.status();
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  req.set_visit_id(visit);
+  *req.mutable_frame() = MakeFrame(160, 120, 1.5, 1001.0, 1);
+  EXPECT_TRUE(absl::IsFailedPrecondition(client_->ProcessFrame(req).status()));
+
+  // The first writer goes on undisturbed; once it ends, the visit can be resumed.
+  ASSERT_TRUE(SendAndReceive(first->get(), MakeFrame(160, 120, 1.5, 1002.0, 2), &r));
+  EXPECT_TRUE(r.keyframe().committed());
+  ASSERT_TRUE(CloseAndFinish(first->get()).ok());
+  auto resumed = client_->OpenStream(start);
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_EQ((*resumed)->started().visit_id(), visit);
+  EXPECT_TRUE(CloseAndFinish(resumed->get()).ok());
+  EXPECT_TRUE(client_->ProcessFrame(req).ok()) << "no writer: a unary frame may be added";
+}
+
+TEST_F(HostileClientTest, AColourImageOfTheWrongSizeIsNamedNotTheDepth) {
+  v1::Frame f = MakeFrame(640, 480);
+  *f.mutable_color() = MakeFrame(320, 240).color();
+  f.mutable_color()->set_width(320);
+  f.mutable_color()->set_height(240);
+  f.mutable_depth()->set_width(640);
+  f.mutable_depth()->set_height(480);
+  const absl::Status s = Process(f);
+  EXPECT_TRUE(absl::IsInvalidArgument(s)) << s;
+  EXPECT_NE(s.message().find("colour is declared 320x240 and depth 640x480"), std::string::npos)
+      << s;
+  // Undeclared sizes: the colour image's own header is what is checked, and named.
+  f.mutable_color()->clear_width();
+  f.mutable_color()->clear_height();
+  const absl::Status undeclared = Process(f);
+  EXPECT_NE(undeclared.message().find("colour image is 320x240"), std::string::npos)
+      << undeclared;
+}
+
+TEST_F(HostileClientTest, InvalidUtf8IsInvalidArgumentWithAMessage) {
+  // CreateMapRequest{name: "\xff\xfe"} as raw bytes: field 1, length 2.
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  grpc::ClientContext ctx;
+  grpc::Slice slice(std::string("\x0a\x02\xff\xfe", 4));
+  grpc::ByteBuffer request(&slice, 1), response;
+  const grpc::Status s = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
+      channel.get(),
+      grpc::internal::RpcMethod("/lifemap.v1.MapService/CreateMap",
+                                grpc::internal::RpcMethod::NORMAL_RPC),
+      &ctx, request, &response);
+  EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_NE(s.error_message().find("UTF-8"), std::string::npos) << s.error_message();
+  EXPECT_NE(s.error_message().find("CreateMap"), std::string::npos) << s.error_message();
+  EXPECT_TRUE(client_->ListMaps()->maps().empty());
+}
+
+}  // namespace
+}  // namespace lifemap
