@@ -227,8 +227,7 @@ TEST_F(HostileClientTest, AColourImageOfTheWrongSizeIsNamedNotTheDepth) {
   f.mutable_color()->clear_width();
   f.mutable_color()->clear_height();
   const absl::Status undeclared = Process(f);
-  EXPECT_NE(undeclared.message().find("colour image is 320x240"), std::string::npos)
-      << undeclared;
+  EXPECT_NE(undeclared.message().find("colour image is 320x240"), std::string::npos) << undeclared;
 }
 
 TEST_F(HostileClientTest, InvalidUtf8IsInvalidArgumentWithAMessage) {
