@@ -182,9 +182,10 @@ namespace {
 void KeepDepthRange(const DepthRange& range, cv::Mat* depth_m) {
   float* v = depth_m->ptr<float>();
   const size_t n = depth_m->total();
+  const float lo = range.min_m, hi = range.max_m;
   for (size_t i = 0; i < n; ++i) {
-    // Written so that NaN fails the test too.
-    if (!(v[i] >= range.min_m && v[i] <= range.max_m)) v[i] = 0.0f;
+    // A select rather than a conditional store, so that it vectorises; NaN fails the test.
+    v[i] = (v[i] >= lo && v[i] <= hi) ? v[i] : 0.0f;
   }
 }
 
