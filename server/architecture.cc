@@ -22,8 +22,18 @@ absl::Status PlaceIndex::LoadLocked() {
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<v1::PlaceMatch>> PlaceIndex::Rank(const place::PlaceDescriptor& query,
-                                                             int64_t exclude_visit, size_t max) {
+ArchitectureRanking VisitArchitecture::Ranking() const {
+  absl::MutexLock lock(&mu);
+  return ranking;
+}
+
+void VisitArchitecture::SetStatus(const absl::Status& status) {
+  absl::MutexLock lock(&mu);
+  ranking.status = status;
+}
+
+absl::StatusOr<std::vector<PlaceMatch>> PlaceIndex::Rank(const place::PlaceDescriptor& query,
+                                                         int64_t exclude_visit, size_t max) {
   absl::MutexLock lock(&mu_);
   if (auto s = LoadLocked(); !s.ok()) return s;
   std::vector<std::pair<double, const std::pair<const int64_t, Entry>*>> scored;
@@ -34,14 +44,10 @@ absl::StatusOr<std::vector<v1::PlaceMatch>> PlaceIndex::Rank(const place::PlaceD
   std::sort(scored.begin(), scored.end(), [](const auto& a, const auto& b) {
     return a.first > b.first || (a.first == b.first && a.second->first < b.second->first);
   });
-  std::vector<v1::PlaceMatch> out;
+  std::vector<PlaceMatch> out;
   for (size_t i = 0; i < scored.size() && i < max; ++i) {
-    v1::PlaceMatch m;
-    m.set_map(scored[i].second->second.map);
-    m.set_visit_id(static_cast<uint64_t>(scored[i].second->first));
-    m.set_score(scored[i].first);
-    m.set_method(v1::MATCH_METHOD_ARCHITECTURE);
-    out.push_back(std::move(m));
+    const auto& [visit_id, entry] = *scored[i].second;
+    out.push_back({entry.map_id, entry.map, visit_id, scored[i].first});
   }
   return out;
 }
@@ -70,7 +76,7 @@ void PlaceIndex::Invalidate() {
 bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
                               const Pose& T_world_camera, VisitArchitecture* arch) {
   const absl::Status s = arch->builder.AddDepthKeyframe(depth_m, k, T_world_camera);
-  if (!s.ok()) arch->status = s;
+  if (!s.ok()) arch->SetStatus(s);
   return s.ok();
 }
 
@@ -78,7 +84,7 @@ void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_
                                const std::string& map, bool store, VisitArchitecture* arch) {
   auto plan = arch->builder.Build();
   if (!plan.ok()) {
-    arch->status = plan.status();
+    arch->SetStatus(plan.status());
     return;
   }
   const place::PlaceDescriptor descriptor = place::Describe(*plan);
@@ -86,17 +92,76 @@ void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_
     const double now =
         std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
     if (auto s = index->Put(visit_id, map_id, map, *plan, descriptor, now); !s.ok()) {
-      arch->status = s;
+      arch->SetStatus(s);
       return;
     }
   }
   auto ranked = index->Rank(descriptor, visit_id, kFramePlaceMatches);
   if (!ranked.ok()) {
-    arch->status = ranked.status();
+    arch->SetStatus(ranked.status());
     return;
   }
-  arch->matches = *std::move(ranked);
-  arch->status = absl::OkStatus();
+  absl::MutexLock lock(&arch->mu);
+  arch->ranking.matches = *std::move(ranked);
+  arch->ranking.status = absl::OkStatus();
+}
+
+ArchitectureWorker::ArchitectureWorker(PlaceIndex* index)
+    : index_(index), thread_([this] { Run(); }) {}
+
+ArchitectureWorker::~ArchitectureWorker() {
+  {
+    absl::MutexLock lock(&mu_);
+    stopping_ = true;
+  }
+  thread_.join();
+}
+
+uint64_t ArchitectureWorker::Submit(Visit visit, cv::Mat depth_m, const CameraIntrinsics& k,
+                                    const Pose& T_world_camera) {
+  absl::MutexLock lock(&mu_);
+  const uint64_t ticket = ++submitted_;
+  queue_.push_back({ticket, std::move(visit), std::move(depth_m), k, T_world_camera});
+  return ticket;
+}
+
+void ArchitectureWorker::Wait(uint64_t ticket) {
+  absl::MutexLock lock(&mu_);
+  struct Arg {
+    const ArchitectureWorker* worker;
+    uint64_t ticket;
+  } arg{this, ticket};
+  mu_.Await(absl::Condition(
+      +[](Arg* a) ABSL_NO_THREAD_SAFETY_ANALYSIS { return a->worker->done_ >= a->ticket; }, &arg));
+}
+
+uint64_t ArchitectureWorker::last_ticket() const {
+  absl::MutexLock lock(&mu_);
+  return submitted_;
+}
+
+void ArchitectureWorker::Run() {
+  for (;;) {
+    Job job;
+    {
+      absl::MutexLock lock(&mu_);
+      mu_.Await(absl::Condition(
+          +[](ArchitectureWorker* w)
+               ABSL_NO_THREAD_SAFETY_ANALYSIS { return w->stopping_ || !w->queue_.empty(); },
+          this));
+      if (queue_.empty()) return;  // stopping and drained
+      job = std::move(queue_.front());
+      queue_.pop_front();
+    }
+    Visit& v = job.visit;
+    if (FoldArchitectureKeyframe(job.depth_m, job.k, job.T_world_camera, v.arch)) {
+      UpdateArchitectureRanking(index_, v.visit_id, v.map_id, v.map_name(), /*store=*/true, v.arch);
+    }
+    const uint64_t ticket = job.ticket;
+    job = Job();  // releases the depth and the visit before the ticket counts as done
+    absl::MutexLock lock(&mu_);
+    done_ = std::max(done_, ticket);
+  }
 }
 
 }  // namespace lifemap::server

@@ -1,11 +1,18 @@
 // Architecture-based place recognition served (paper 004): each visit's floor plan is built as
 // its posed key frames arrive, stored with the visit, and ranked against every other stored
 // visit's descriptor; frame results carry the ranking.
+//
+// The work runs off the reply path: a frame that becomes a key frame queues its depth on the
+// ArchitectureWorker (planes, fold, derive the plan, store it, rank), and every frame result
+// reports the ranking as known when it is answered (one or two key frames behind at most).
 #pragma once
 
 #include <cstdint>
+#include <deque>
+#include <functional>
 #include <memory>
 #include <string>
+#include <thread>
 #include <unordered_map>
 #include <vector>
 
@@ -14,17 +21,34 @@
 #include "core/common/rgbd_frame.h"
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
-#include "lifemap/v1/frame_service.pb.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
 
-// One visit's architecture in the making. Guarded by its VisitState's mutex.
-struct VisitArchitecture {
-  place::FloorPlanBuilder builder;
+// A stored visit ranked against a query (the proto's PlaceMatch is made in server/convert).
+struct PlaceMatch {
+  int64_t map_id = 0;
+  std::string map;
+  int64_t visit_id = 0;
+  double score = 0.0;  // [0, 1], paper 004's descriptor match
+};
+
+// What a frame result reports of its visit's architecture.
+struct ArchitectureRanking {
   absl::Status status = absl::FailedPreconditionError(
       "no posed key frame yet (architecture needs the robot's poses)");
-  std::vector<v1::PlaceMatch> matches;  // best first, as of the last key frame
+  std::vector<PlaceMatch> matches;  // best first, as of the last key frame folded
+};
+
+// One visit's architecture in the making. The builder is used by one thread at a time: the
+// registry while it loads the visit, then only the ArchitectureWorker.
+struct VisitArchitecture {
+  place::FloorPlanBuilder builder;
+  mutable absl::Mutex mu;
+  ArchitectureRanking ranking ABSL_GUARDED_BY(mu);
+
+  ArchitectureRanking Ranking() const;
+  void SetStatus(const absl::Status& status);
 };
 
 // The descriptors of every stored visit, for ranking. Thread-safe.
@@ -33,8 +57,8 @@ class PlaceIndex {
   explicit PlaceIndex(store::Store* store) : store_(store) {}
 
   // Ranks stored visits (all but `exclude_visit`) by architecture, best first, at most `max`.
-  absl::StatusOr<std::vector<v1::PlaceMatch>> Rank(const place::PlaceDescriptor& query,
-                                                   int64_t exclude_visit, size_t max);
+  absl::StatusOr<std::vector<PlaceMatch>> Rank(const place::PlaceDescriptor& query,
+                                               int64_t exclude_visit, size_t max);
   // Stores the visit's plan with its descriptor (Describe(plan)) and indexes it.
   absl::Status Put(int64_t visit_id, int64_t map_id, const std::string& map,
                    const place::FloorPlan& plan, const place::PlaceDescriptor& descriptor,
@@ -57,16 +81,64 @@ class PlaceIndex {
 };
 
 // Folds one key frame (depth in metres, with its pose) into the visit's architecture: its
-// planes, then the builder. On error sets `arch->status` and returns false.
+// planes, then the builder. On error sets the ranking's status and returns false.
 bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
                               const Pose& T_world_camera, VisitArchitecture* arch);
 
 // Derives the visit's plan from what was folded in; when it closes, stores it (with `store`;
 // a resumed visit's stored plan is already there) and ranks the other visits against it.
-// Errors only change `arch->status` (and the results' outputs say so): a frame is never
+// Errors only change the ranking's status (and the results' outputs say so): a frame is never
 // rejected for them.
 void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_id,
                                const std::string& map, bool store, VisitArchitecture* arch);
+
+// Folds posed key frames into their visits' architecture on one thread, in the order they
+// were submitted (so a visit's key frames fold in frame order), off the reply path.
+// Thread-safe.
+class ArchitectureWorker {
+ public:
+  explicit ArchitectureWorker(PlaceIndex* index);
+  // Finishes every queued key frame, then stops.
+  ~ArchitectureWorker();
+  ArchitectureWorker(const ArchitectureWorker&) = delete;
+  ArchitectureWorker& operator=(const ArchitectureWorker&) = delete;
+
+  // The visit a key frame belongs to, as the worker needs it. `arch` must stay alive until the
+  // job is done (the caller's shared_ptr to the visit state is kept in `keep_alive`).
+  struct Visit {
+    int64_t visit_id = 0;
+    int64_t map_id = 0;
+    std::function<std::string()> map_name;  // read when the plan is stored (renames follow)
+    VisitArchitecture* arch = nullptr;
+    std::shared_ptr<const void> keep_alive;
+  };
+  // Queues a posed key frame; returns its ticket for Wait(). `depth_m` is shared, not copied
+  // (cv::Mat reference counting): the caller must not write to it afterwards.
+  uint64_t Submit(Visit visit, cv::Mat depth_m, const CameraIntrinsics& k,
+                  const Pose& T_world_camera);
+  // Blocks until the key frame with `ticket` (and all before it) is folded and ranked.
+  void Wait(uint64_t ticket);
+  // The ticket of the last key frame submitted (0: none yet).
+  uint64_t last_ticket() const;
+
+ private:
+  struct Job {
+    uint64_t ticket = 0;
+    Visit visit;
+    cv::Mat depth_m;
+    CameraIntrinsics k;
+    Pose T_world_camera;
+  };
+  void Run();
+
+  PlaceIndex* const index_;
+  mutable absl::Mutex mu_;
+  std::deque<Job> queue_ ABSL_GUARDED_BY(mu_);
+  uint64_t submitted_ ABSL_GUARDED_BY(mu_) = 0;
+  uint64_t done_ ABSL_GUARDED_BY(mu_) = 0;
+  bool stopping_ ABSL_GUARDED_BY(mu_) = false;
+  std::thread thread_;
+};
 
 // How many places a frame result lists.
 constexpr size_t kFramePlaceMatches = 3;

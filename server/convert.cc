@@ -192,4 +192,11 @@ absl::StatusOr<std::optional<double>> EntropyThresholdFromProto(double value, co
   return std::optional<double>(value);
 }
 
+void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {
+  out->set_map(m.map);
+  out->set_visit_id(static_cast<uint64_t>(m.visit_id));
+  out->set_score(m.score);
+  out->set_method(v1::MATCH_METHOD_ARCHITECTURE);
+}
+
 }  // namespace lifemap::server

@@ -12,6 +12,7 @@
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
+#include "server/architecture.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
@@ -36,6 +37,8 @@ void MapToProto(const store::MapRecord& map, v1::Map* out);
 void VisitToProto(const store::VisitRecord& visit, v1::Visit* out);
 void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out);
 void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out);
+// A match by architecture (paper 004).
+void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out);
 
 // A neg-entropy threshold field: 0 = unset (nullopt), else within (0, 1]. InvalidArgument names
 // the field otherwise (NaN included).

@@ -33,6 +33,7 @@ double MsBetween(Clock::time_point a, Clock::time_point b) {
 
 // A frame processed but not yet answered: its result, and the commit it waits for.
 struct PendingResult {
+  uint64_t architecture_ticket = 0;  // the key frame's job on the ArchitectureWorker, if any
   v1::FrameResult result;
   std::optional<std::future<absl::StatusOr<int64_t>>> commit;
   Clock::time_point received;
@@ -114,9 +115,11 @@ void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model, v1:
 }
 
 // `writer` is the stream's claim on the visit (0 for a unary ProcessFrame).
-PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitState* visit,
-                          uint64_t writer, const tracking::KeyframeOptions& keyframe_options,
+PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
+                          const std::shared_ptr<VisitState>& visit_state, uint64_t writer,
+                          const tracking::KeyframeOptions& keyframe_options,
                           const pipeline::FrameRequest& frame_request) {
+  VisitState* visit = visit_state.get();
   PendingResult p;
   p.received = Clock::now();
   v1::FrameResult& r = p.result;
@@ -213,15 +216,21 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame, VisitStat
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
-    if (f.T_world_camera && FoldArchitectureKeyframe(f.depth_m, f.intrinsics, *f.T_world_camera,
-                                                     &visit->architecture)) {
-      UpdateArchitectureRanking(ctx->places, visit->visit_id, visit->map_id, visit->map_name,
-                                /*store=*/true, &visit->architecture);
+    if (f.T_world_camera) {
+      // Folded, ranked and stored off the reply path, in key-frame order.
+      ArchitectureWorker::Visit job{visit->visit_id, visit->map_id,
+                                    [visit] {
+                                      absl::MutexLock name_lock(&visit->mu);
+                                      return visit->map_name;
+                                    },
+                                    &visit->architecture, visit_state};
+      p.architecture_ticket =
+          ctx->architecture->Submit(std::move(job), f.depth_m, f.intrinsics, *f.T_world_camera);
     }
   }
-  // Every result carries the visit's current ranking by architecture (paper 004).
-  const VisitArchitecture& arch = visit->architecture;
-  for (const auto& m : arch.matches) *r.add_place_matches() = m;
+  // Every result carries the visit's ranking by architecture (paper 004) as known now.
+  const ArchitectureRanking arch = visit->architecture.Ranking();
+  for (const auto& m : arch.matches) PlaceMatchToProto(m, r.add_place_matches());
   for (auto& o : *r.mutable_outputs()) {
     if (o.output() != v1::FRAME_OUTPUT_PLACE_MATCHES) continue;
     o.set_computed(arch.status.ok());
@@ -359,14 +368,16 @@ grpc::Status FrameServiceImpl::StreamFrames(
 
   grpc::Status status = grpc::Status::OK;
   uint64_t frames = 0;
+  uint64_t last_architecture_ticket = 0;
   while (stream->Read(&request)) {
     if (!request.has_frame()) {
       status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
-    PendingResult p = HandleFrame(ctx_, request.frame(), state->get(), claim->id(),
-                                  *keyframe_options, *frame_request);
+    PendingResult p =
+        HandleFrame(ctx_, request.frame(), *state, claim->id(), *keyframe_options, *frame_request);
+    last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
     if (!p.visit_closed.ok()) {
       status = ToGrpcStatus(p.visit_closed);
       spdlog::info("stream for visit {} ends: {}", visit->id,
@@ -378,6 +389,9 @@ grpc::Status FrameServiceImpl::StreamFrames(
   }
   queue.Close();
   writer.join();
+  // A stream that ends has its visit's floor plan folded, stored and ranked: a robot (or an
+  // operator) that asks right after sees every key frame it sent.
+  if (last_architecture_ticket > 0) ctx_->architecture->Wait(last_architecture_ticket);
 
   // Persist the visit's frame counter (it rides on keyframe commits otherwise).
   int64_t frame_count = 0;
@@ -416,7 +430,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
   PendingResult p =
-      HandleFrame(ctx_, req->frame(), state.get(), /*writer=*/0, *keyframe_options, *frame_request);
+      HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *keyframe_options, *frame_request);
   if (!p.visit_closed.ok()) return ToGrpcStatus(p.visit_closed);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),

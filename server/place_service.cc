@@ -46,10 +46,8 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
     if (!visit->ended) {
       auto state = ctx_->visits->Get(visit->id);
       if (state.ok()) {
-        absl::MutexLock lock(&(*state)->mu);
-        if (!(*state)->architecture.status.ok()) {
-          why = std::string((*state)->architecture.status.message());
-        }
+        const absl::Status status = (*state)->architecture.Ranking().status;
+        if (!status.ok()) why = std::string(status.message());
       }
     }
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
@@ -60,7 +58,7 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
   if (!descriptor.ok()) return ToGrpcStatus(descriptor.status());
   auto ranked = ctx_->places->Rank(*descriptor, visit->id, max_results);
   if (!ranked.ok()) return ToGrpcStatus(ranked.status());
-  for (auto& m : *ranked) *resp->add_matches() = std::move(m);
+  for (const auto& m : *ranked) PlaceMatchToProto(m, resp->add_matches());
   resp->set_descriptor_text(place::DescriptorText(*descriptor));
   return grpc::Status::OK;
 }
@@ -102,7 +100,7 @@ grpc::Status PlaceServiceImpl::QueryFrames(const v1::QueryPlaceRequest& req, siz
   const place::PlaceDescriptor descriptor = place::Describe(*plan);
   auto ranked = ctx_->places->Rank(descriptor, /*exclude_visit=*/0, max_results);
   if (!ranked.ok()) return ToGrpcStatus(ranked.status());
-  for (auto& m : *ranked) *resp->add_matches() = std::move(m);
+  for (const auto& m : *ranked) PlaceMatchToProto(m, resp->add_matches());
   resp->set_descriptor_text(place::DescriptorText(descriptor));
   return grpc::Status::OK;
 }

@@ -23,6 +23,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<store::Store> store;
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<PlaceIndex> places;
+  std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
@@ -57,6 +58,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->committer =
       std::make_unique<KeyframeCommitter>(impl->store.get(), config.keyframe_batch_max);
   impl->places = std::make_unique<PlaceIndex>(impl->store.get());
+  impl->architecture = std::make_unique<ArchitectureWorker>(impl->places.get());
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
@@ -66,6 +68,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.committer = impl->committer.get();
   ctx.visits = impl->visits.get();
   ctx.places = impl->places.get();
+  ctx.architecture = impl->architecture.get();
   ctx.models = impl->models.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
@@ -123,7 +126,9 @@ void LifemapServer::Shutdown() {
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
   impl_->grpc_server->Shutdown(deadline);
-  // Every handler has returned; commit what is still queued, then close the store.
+  // Every handler has returned; fold the key frames still queued for architecture, commit
+  // what is still queued, then close the store.
+  impl_->architecture.reset();
   impl_->committer.reset();
   impl_->store.reset();
   impl_->lock.reset();

@@ -29,6 +29,7 @@ struct ServiceContext {
   VisitRegistry* visits = nullptr;
   ModelRegistry* models = nullptr;
   PlaceIndex* places = nullptr;
+  ArchitectureWorker* architecture = nullptr;
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};

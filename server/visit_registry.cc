@@ -79,8 +79,8 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
     state->map_name = visit->map_name;
     state->frame_count = visit->frame_count;
     if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
-    RebuildArchitecture(state.get());
   }
+  RebuildArchitecture(state.get());
   absl::MutexLock lock(&mu_);
   auto [it, inserted] = visits_.emplace(visit_id, std::move(state));
   return it->second;  // another thread may have loaded it first: use that one
@@ -88,6 +88,11 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
 
 void VisitRegistry::RebuildArchitecture(VisitState* state) {
   VisitArchitecture& arch = state->architecture;
+  std::string map_name;
+  {
+    absl::MutexLock lock(&state->mu);
+    map_name = state->map_name;
+  }
   int folded = 0;
   auto s = store_->ForEachKeyframeWithImages(
       state->map_id, state->visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
@@ -102,11 +107,11 @@ void VisitRegistry::RebuildArchitecture(VisitState* state) {
         return absl::OkStatus();
       });
   if (!s.ok()) {
-    arch.status = s;
+    arch.SetStatus(s);
     return;
   }
   if (folded > 0) {
-    UpdateArchitectureRanking(places_, state->visit_id, state->map_id, state->map_name,
+    UpdateArchitectureRanking(places_, state->visit_id, state->map_id, map_name,
                               /*store=*/false, &arch);
   }
 }

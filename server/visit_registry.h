@@ -33,7 +33,9 @@ struct VisitState {
   std::string writer_peer ABSL_GUARDED_BY(mu);
   tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
   int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
-  VisitArchitecture architecture ABSL_GUARDED_BY(mu);
+  // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
+  // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
+  VisitArchitecture architecture;
 
   // OK if a frame from `writer` (0: a unary ProcessFrame) may be added now; else the status
   // to answer: `closed`, or FAILED_PRECONDITION naming the stream that writes the visit.
@@ -89,8 +91,9 @@ class VisitRegistry {
   absl::StatusOr<std::optional<double>> MapEntropyThreshold(int64_t map_id);
 
  private:
-  // Folds the visit's stored posed key frames into its architecture (a resumed visit).
-  void RebuildArchitecture(VisitState* state) ABSL_EXCLUSIVE_LOCKS_REQUIRED(state->mu);
+  // Folds the visit's stored posed key frames into its architecture (a resumed visit), before
+  // the state is shared.
+  void RebuildArchitecture(VisitState* state);
 
   store::Store* const store_;
   PlaceIndex* const places_;

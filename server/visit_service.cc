@@ -45,6 +45,8 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
   const int64_t frames = ctx_->visits->CloseVisit(
       id, absl::FailedPreconditionError(absl::StrCat(
               "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
+  // Its floor plan too: what was sent before the end is folded, stored and ranked.
+  ctx_->architecture->Wait(ctx_->architecture->last_ticket());
   auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
   if (!drained.ok()) return ToGrpcStatus(drained.status());
   auto visit = ctx_->store->EndVisit(id, NowSeconds(), frames);
