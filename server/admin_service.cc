@@ -13,61 +13,27 @@ double NowSeconds() {
   return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
-void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
-                        const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes,
-                        bool labels_available, const std::string& labels_reason) {
-  auto add = [out](v1::FrameOutput o, bool computed, const std::string& reason) {
-    auto* s = out->Add();
-    s->set_output(o);
-    s->set_computed(computed);
-    if (!computed) s->set_reason(reason);
-  };
-  const bool pose_from_client = analysis && analysis->frame.T_world_camera.has_value();
-  add(v1::FRAME_OUTPUT_POSE, pose_from_client,
-      "no odometry in this server yet: send the robot's pose in Frame.pose");
-  add(v1::FRAME_OUTPUT_KEYFRAME, stores_keyframes,
-      "no map given: the frame is processed but nothing is stored");
-  if (!options.entropy_masks) {
-    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, "disabled in this server's config (entropy.enabled)");
-  } else if (analysis && !analysis->entropy) {
-    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
-        absl::StrCat("not computed for this frame: ", analysis->entropy_status.message()));
-  } else {
-    add(v1::FRAME_OUTPUT_ENTROPY_MASK, true, "");
-  }
-  if (analysis) {
-    add(v1::FRAME_OUTPUT_CLASS_LABELS, analysis->labels.has_value(),
-        std::string(analysis->labels_status.message()));
-  } else {
-    add(v1::FRAME_OUTPUT_CLASS_LABELS, labels_available, labels_reason);
-  }
-  // Per frame, the frame service refines this from the visit's architecture.
-  add(v1::FRAME_OUTPUT_PLACE_MATCHES, stores_keyframes,
-      "no map given: places are recognised per visit (architecture, paper 004)");
-  add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
-      "not implemented in this server yet (semantic octree, paper 002)");
-}
-
 grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
                                              v1::ServerInfo* resp) {
   resp->set_version(LIFEMAP_VERSION);
   resp->set_api_version("lifemap.v1");
   // A server-level answer: poses count as computed only when the client sends them.
   // Labels: computed for frames of maps with an active model (or with a server default).
-  bool labels = false;
-  std::string reason;
+  OutputFacts facts;
   if (!ctx_->config.labels_enabled) {
-    reason = "disabled in this server's config (labels.enabled)";
+    facts.labeller = absl::FailedPreconditionError(kLabelsDisabled);
   } else if (auto models = ctx_->store->ListModels(); !models.ok()) {
-    reason = absl::StrCat("models unreadable: ", models.status().message());
+    facts.labeller = absl::FailedPreconditionError(
+        absl::StrCat("models unreadable: ", models.status().message()));
   } else {
-    for (const auto& m : *models) labels = labels || m.is_default || !m.active_maps.empty();
-    if (!labels) {
-      reason = "no model is active: lifemap models upload FILE NAME; lifemap models activate NAME";
+    bool active = false;
+    for (const auto& m : *models) active = active || m.is_default || !m.active_maps.empty();
+    if (!active) {
+      facts.labeller = absl::FailedPreconditionError(
+          "no model is active: lifemap models upload FILE NAME; lifemap models activate NAME");
     }
   }
-  FillOutputStatuses(resp->mutable_outputs(), ctx_->config.pipeline, nullptr, true, labels, reason);
+  FillOutputStatuses(ctx_->config.pipeline, facts, resp->mutable_outputs());
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));
   resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));

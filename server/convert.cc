@@ -199,4 +199,47 @@ void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {
   out->set_method(v1::MATCH_METHOD_ARCHITECTURE);
 }
 
+void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,
+                        google::protobuf::RepeatedPtrField<v1::OutputStatus>* out) {
+  auto add = [out](v1::FrameOutput o, bool computed, absl::string_view reason) {
+    auto* s = out->Add();
+    s->set_output(o);
+    s->set_computed(computed);
+    if (!computed) s->set_reason(std::string(reason));
+  };
+  const pipeline::FrameAnalysis* a = facts.analysis;
+  add(v1::FRAME_OUTPUT_POSE, a != nullptr && a->frame.T_world_camera.has_value(),
+      "no odometry in this server yet: send the robot's pose in Frame.pose");
+  add(v1::FRAME_OUTPUT_KEYFRAME, facts.has_map,
+      "no map given: the frame is processed but nothing is stored");
+  if (!options.entropy_masks) {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, "disabled in this server's config (entropy.enabled)");
+  } else if (a != nullptr && !a->entropy) {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
+        absl::StrCat("not computed for this frame: ", a->entropy_status.message()));
+  } else {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, true, "");
+  }
+  if (!facts.labeller.ok()) {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, false, facts.labeller.message());
+  } else if (a != nullptr && !a->labels) {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, false,
+        absl::StrCat("the model failed on this frame: ", a->labels_status.message()));
+  } else {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, true, "");
+  }
+  if (!facts.has_map) {
+    add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
+        "no map given: places are recognised per visit (architecture, paper 004)");
+  } else if (facts.architecture && !facts.architecture->status.ok()) {
+    add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
+        absl::StrCat("architecture (paper 004): ", facts.architecture->status.message(),
+                     "; appearance matching is not built yet"));
+  } else {
+    add(v1::FRAME_OUTPUT_PLACE_MATCHES, true, "");
+  }
+  add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
+      "not implemented in this server yet (semantic octree, paper 002)");
+}
+
 }  // namespace lifemap::server

@@ -6,6 +6,7 @@
 
 #include "absl/status/statusor.h"
 #include "core/common/rgbd_frame.h"
+#include "core/pipeline/frame_pipeline.h"
 #include "core/tracking/keyframe_selector.h"
 #include "lifemap/v1/admin_service.pb.h"
 #include "lifemap/v1/common.pb.h"
@@ -39,6 +40,23 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
 void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out);
 // A match by architecture (paper 004).
 void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out);
+
+// What decides whether each per-frame output is computed, as the services know it.
+struct OutputFacts {
+  // The frame's analysis; null for the server-wide answer (GetServerInfo).
+  const pipeline::FrameAnalysis* analysis = nullptr;
+  // Frames sent with a map may become keyframes and get place matches.
+  bool has_map = true;
+  // OK when a model labels this frame (server-wide: some map's); else why not.
+  absl::Status labeller;
+  // The visit's ranking by architecture, per frame of a visit.
+  std::optional<ArchitectureRanking> architecture;
+};
+inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";
+
+// The one place that decides each FrameOutput's status: computed, or why not.
+void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,
+                        google::protobuf::RepeatedPtrField<v1::OutputStatus>* out);
 
 // A neg-entropy threshold field: 0 = unset (nullopt), else within (0, 1]. InvalidArgument names
 // the field otherwise (NaN included).

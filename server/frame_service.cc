@@ -156,15 +156,19 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     }
     map_name = visit->map_name;
   }
+  OutputFacts facts;
+  facts.has_map = visit != nullptr;
   if (!ctx->config.labels_enabled) {
-    effective.no_labeller_reason = "disabled in this server's config (labels.enabled)";
+    facts.labeller = absl::FailedPreconditionError(kLabelsDisabled);
   } else if (auto m = ctx->models->ForMap(visit != nullptr ? visit->map_id : 0); !m.ok()) {
-    effective.no_labeller_reason = absl::StrCat("the active model failed: ", m.status().message());
+    facts.labeller = absl::FailedPreconditionError(
+        absl::StrCat("the active model failed: ", m.status().message()));
   } else if (!*m) {
-    effective.no_labeller_reason = absl::StrCat(
+    facts.labeller = absl::FailedPreconditionError(absl::StrCat(
         "no model is active for ",
         visit != nullptr ? "map '" + map_name + "'" : std::string("frames without a map"),
-        " or as the server default: lifemap models upload FILE NAME; lifemap models activate NAME");
+        " or as the server default: lifemap models upload FILE NAME; lifemap models activate "
+        "NAME"));
   } else {
     model = *std::move(m);
     effective.labeller = &model->forest;
@@ -184,13 +188,16 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   } else {
     r.set_pose_source(v1::POSE_SOURCE_NONE);
   }
-  FillOutputStatuses(r.mutable_outputs(), ctx->pipeline->options(), &*analysis, visit != nullptr);
+  facts.analysis = &*analysis;
   if (analysis->entropy) EntropyToProto(*analysis->entropy, r.mutable_entropy());
   if (analysis->labels) LabelsToProto(*analysis->labels, *model, r.mutable_labels());
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
 
-  if (visit == nullptr) return p;
+  if (visit == nullptr) {
+    FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
+    return p;
+  }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
     p.visit_closed = s;
@@ -201,8 +208,9 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   const auto decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
   r.mutable_keyframe()->set_selected(decision.selected);
   r.mutable_keyframe()->set_reason(decision.reason);
+  absl::StatusOr<store::KeyframeRecord> record = absl::FailedPreconditionError("not a keyframe");
   if (decision.selected) {
-    auto record = MakeKeyframeRecord(frame, f, visit->visit_id);
+    record = MakeKeyframeRecord(frame, f, visit->visit_id);
     if (record.ok() && analysis->entropy) {
       // Keypoints in zones likely to move are dropped before they are stored for matching.
       record->features = store::KeyframeFeatures{
@@ -211,8 +219,9 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     }
     if (!record.ok()) {
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
-      return p;
     }
+  }
+  if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
@@ -229,16 +238,9 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     }
   }
   // Every result carries the visit's ranking by architecture (paper 004) as known now.
-  const ArchitectureRanking arch = visit->architecture.Ranking();
-  for (const auto& m : arch.matches) PlaceMatchToProto(m, r.add_place_matches());
-  for (auto& o : *r.mutable_outputs()) {
-    if (o.output() != v1::FRAME_OUTPUT_PLACE_MATCHES) continue;
-    o.set_computed(arch.status.ok());
-    o.set_reason(arch.status.ok()
-                     ? ""
-                     : absl::StrCat("architecture (paper 004): ", arch.status.message(),
-                                    "; appearance matching is not built yet"));
-  }
+  facts.architecture = visit->architecture.Ranking();
+  for (const auto& m : facts.architecture->matches) PlaceMatchToProto(m, r.add_place_matches());
+  FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
   return p;
 }
 

@@ -140,13 +140,4 @@ class AdminServiceImpl final : public v1::AdminService::Service {
   ServiceContext* ctx_;
 };
 
-// Which per-frame outputs this build computes, and why the others are absent.
-// `analysis` (may be null for the server-wide answer) refines it per frame; `stores_keyframes`
-// is false for frames sent without a map. Without an analysis, `labels_available` and
-// `labels_reason` give the server-wide answer for class labels.
-void FillOutputStatuses(google::protobuf::RepeatedPtrField<v1::OutputStatus>* out,
-                        const pipeline::PipelineOptions& options,
-                        const pipeline::FrameAnalysis* analysis, bool stores_keyframes = true,
-                        bool labels_available = false, const std::string& labels_reason = "");
-
 }  // namespace lifemap::server

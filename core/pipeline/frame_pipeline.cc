@@ -78,11 +78,6 @@ Eigen::Vector3f UpInCamera(const std::optional<Pose>& T_world_camera,
 
 absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
                                                      const FrameRequest& request) const {
-  if (request.entropy_threshold &&
-      !(*request.entropy_threshold >= 0.0f && *request.entropy_threshold <= 1.0f)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("entropy_threshold must be within [0, 1], got ", *request.entropy_threshold));
-  }
   const auto start = std::chrono::steady_clock::now();
   auto frame = DecodeRgbdFrame(in, /*decode_color=*/true, options_.frame_limits);
   if (!frame.ok()) return frame.status();
@@ -99,8 +94,6 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
       return LabelFrame(*request.labeller, out.frame, options_.label_decision,
                         options_.label_stride);
     });
-  } else {
-    out.labels_status = absl::FailedPreconditionError(request.no_labeller_reason);
   }
   if (options_.entropy_masks) {
     entropy::EntropyMaskOptions options = options_.entropy;

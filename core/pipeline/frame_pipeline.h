@@ -32,11 +32,12 @@ struct PipelineOptions {
 
 // Per-frame settings a request may override.
 struct FrameRequest {
-  std::optional<float> entropy_threshold;  // [0, 1]
+  // [0, 1]; the caller validates it (out of range, the masks are not computed and
+  // entropy_status says why).
+  std::optional<float> entropy_threshold;
   // The model that labels this frame (the caller keeps it alive during Process); null = no
-  // labels, and labels_status says why (`no_labeller_reason`).
+  // labels (the caller knows why).
   const forest::Forest* labeller = nullptr;
-  std::string no_labeller_reason = "no model";
 };
 
 // A frame's class labels and what the server reports of them. The per-class probabilities
@@ -60,7 +61,7 @@ struct FrameAnalysis {
   absl::Status entropy_status;
   // Set when the request had a labeller and the frame could be labelled.
   std::optional<FrameLabels> labels;
-  absl::Status labels_status;
+  absl::Status labels_status;  // why labelling failed, when the request had a labeller
   double decode_ms = 0.0;
   double process_ms = 0.0;  // everything after decoding
 };
