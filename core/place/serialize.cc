@@ -155,7 +155,8 @@ struct Painter {
   std::function<void(const Eigen::Vector2d&, const std::string& text, double height_px)> text;
 };
 
-constexpr double kHeaderPx = 64, kMinWidthPx = 560;
+// Wide enough for the legend (with the truth key) and the scale bar side by side.
+constexpr double kHeaderPx = 64, kMinWidthPx = 700;
 
 Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::string& title,
                       const Painter* painter) {
@@ -199,14 +200,14 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::
   auto key = [&](const char* colour, double width, double opacity, const std::string& label) {
     painter->line({x, y - 5}, {x + 30, y - 5}, colour, width, opacity);
     painter->text({x + 36, y}, label, 12);
-    x += 36 + 7.5 * static_cast<double>(label.size()) + 14;
+    x += 36 + 11.0 * static_cast<double>(label.size()) + 16;  // PNG text: ~11 px a letter
   };
   key("black", 6, 1.0, "wall");
   key("saddlebrown", 10, 1.0, "door");
   key("deepskyblue", 10, 1.0, "window");
   painter->circle({x + 8, y - 5}, 8, 1.0);
   painter->text({x + 22, y}, "stairs", 12);
-  x += 22 + 7.5 * 6 + 14;
+  x += 22 + 11.0 * 6 + 16;
   if (truth != nullptr) key("black", 18, 0.25, "truth");
   const double bar_right = size.x() - 12;
   painter->line({bar_right - scale, y - 5}, {bar_right, y - 5}, "black", 3, 1.0);
