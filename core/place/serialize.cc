@@ -197,18 +197,25 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::
   painter->text({10, 22}, title.empty() ? "floor plan (top view, y up)" : title, 16);
   double x = 10;
   const double y = 48;
-  auto key = [&](const char* colour, double width, double opacity, const std::string& label) {
-    painter->line({x, y - 5}, {x + 30, y - 5}, colour, width, opacity);
-    painter->text({x + 36, y}, label, 12);
-    x += 36 + 11.0 * static_cast<double>(label.size()) + 16;  // PNG text: ~11 px a letter
+  // One legend entry: its symbol drawn `symbol_px` wide at x, then its label.
+  auto key = [&](double symbol_px, const std::function<void()>& symbol, const std::string& label) {
+    symbol();
+    painter->text({x + symbol_px + 6, y}, label, 12);
+    x += symbol_px + 6 + 11.0 * static_cast<double>(label.size()) + 16;  // PNG: ~11 px a letter
   };
-  key("black", 6, 1.0, "wall");
-  key("saddlebrown", 10, 1.0, "door");
-  key("deepskyblue", 10, 1.0, "window");
-  painter->circle({x + 8, y - 5}, 8, 1.0);
-  painter->text({x + 22, y}, "stairs", 12);
-  x += 22 + 11.0 * 6 + 16;
-  if (truth != nullptr) key("black", 18, 0.25, "truth");
+  auto stroke = [&](const char* colour, double width, double opacity) {
+    return [=, &x] { painter->line({x, y - 5}, {x + 30, y - 5}, colour, width, opacity); };
+  };
+  key(30, stroke("black", 6, 1.0), "wall");
+  key(30, stroke("saddlebrown", 10, 1.0), "door");
+  key(30, stroke("deepskyblue", 10, 1.0), "window");
+  key(
+      16,
+      [&] {
+        painter->circle({x + 8, y - 5}, 8, 1.0);
+      },
+      "stairs");
+  if (truth != nullptr) key(30, stroke("black", 18, 0.25), "truth");
   const double bar_right = size.x() - 12;
   painter->line({bar_right - scale, y - 5}, {bar_right, y - 5}, "black", 3, 1.0);
   painter->text({bar_right - scale, y - 12}, "1 m", 12);
