@@ -10,7 +10,7 @@
 #include "absl/cleanup/cleanup.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
-#include "core/features/keypoints.h"
+#include "core/pipeline/keyframe.h"
 #include "server/bounded_queue.h"
 #include "server/convert.h"
 #include "server/services.h"
@@ -213,9 +213,8 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     record = MakeKeyframeRecord(frame, f, visit->visit_id);
     if (record.ok() && analysis->entropy) {
       // Keypoints in zones likely to move are dropped before they are stored for matching.
-      record->features = store::KeyframeFeatures{
-          analysis->entropy->threshold, analysis->entropy->superjuts,
-          features::ExtractOrb(f.color_bgr, analysis->entropy->mask, kKeyframeKeypoints)};
+      auto features = pipeline::ExtractKeyframeFeatures(*analysis, {kKeyframeKeypoints});
+      if (features.ok()) record->features = *std::move(features);
     }
     if (!record.ok()) {
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));

@@ -238,7 +238,7 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
     }
     if (keep[j]) {
       v.appearance.push_back(
-          features::ExtractOrb(frame->color_bgr, cv::Mat(), options.orb_keypoints));
+          features::ExtractOrb(frame->color_bgr, options.orb_keypoints));
     }
   }
   auto plan = builder.Build();

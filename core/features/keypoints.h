@@ -1,11 +1,15 @@
-// Keypoints and descriptors for appearance matching, with the zones an entropy mask marks as
-// likely to move pruned before they are stored (paper 000).
+// Keypoints and descriptors for appearance matching (paper 000): detected once per keyframe,
+// each with its 3D point from the depth image, and pruned where an entropy mask marks zones
+// likely to move before they are stored or matched.
 #pragma once
 
 #include <string>
 #include <vector>
 
+#include <Eigen/Core>
 #include <opencv2/core.hpp>
+
+#include "core/common/types.h"
 
 namespace lifemap::features {
 
@@ -20,12 +24,30 @@ struct KeypointSet {
   std::string type;  // "orb"
   std::vector<Keypoint> keypoints;
   cv::Mat descriptors;  // one row per keypoint (ORB: 32 bytes, CV_8UC1)
-  int detected = 0;     // before pruning
-  int masked = 0;       // dropped because they lay in masked zones
+  // Per keypoint, its point in the camera frame (metres, x right, y down, z forward) from the
+  // depth reading at its pixel; NaN where there is none. Empty when no depth was attached.
+  std::vector<Eigen::Vector3f> points;
+  int detected = 0;  // before pruning
+  int masked = 0;    // dropped because they lay in masked zones
+
+  size_t size() const { return keypoints.size(); }
+  // Keypoints that have a 3D point.
+  int with_points() const;
 };
 
-// ORB keypoints (OpenCV, up to max_keypoints) of a BGR image; those where `mask` (CV_8UC1 of
-// the image's size, or empty) is non-zero are dropped.
-KeypointSet ExtractOrb(const cv::Mat& color_bgr, const cv::Mat& mask, int max_keypoints = 1000);
+// ORB keypoints and descriptors (OpenCV, up to max_keypoints) of a BGR image, none pruned.
+KeypointSet ExtractOrb(const cv::Mat& color_bgr, int max_keypoints = 1000);
+
+// Fills `set->points` from a depth image (CV_32FC1 metres, 0 or NaN = no reading) registered
+// with the colour image the keypoints came from.
+void AttachPoints(const cv::Mat& depth_m, const CameraIntrinsics& intrinsics, KeypointSet* set);
+
+// The keypoints where `mask` (CV_8UC1 of the image's size, or empty) is zero, in order; the
+// others are counted in `masked`.
+KeypointSet PruneByMask(const KeypointSet& set, const cv::Mat& mask);
+
+// The keypoints whose `keep` entry is true (keep.size() == set.size()); the others are counted
+// in `masked`. For pruning by a rule other than a mask (the evaluation's null and oracle).
+KeypointSet Select(const KeypointSet& set, const std::vector<bool>& keep);
 
 }  // namespace lifemap::features

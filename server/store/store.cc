@@ -181,6 +181,20 @@ DROP TABLE keyframes;
 ALTER TABLE keyframes_new RENAME TO keyframes;
 CREATE INDEX keyframes_by_visit ON keyframes(visit_id, timestamp_s);
 )sql",
+    // 5 -> 6: appearance place recognition. Each keypoint's 3D point in its camera's frame
+    // (float32 x, y, z; NaN without depth; NULL for keyframes stored before), and the
+    // vocabularies the appearance index was built with (the newest is in use).
+    R"sql(
+ALTER TABLE keyframe_features ADD COLUMN points BLOB;
+CREATE TABLE appearance_vocabularies (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  created_time_s REAL NOT NULL,
+  source TEXT NOT NULL,
+  training_keyframes INTEGER NOT NULL,
+  words INTEGER NOT NULL,
+  data BLOB NOT NULL
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -196,6 +210,7 @@ constexpr int kKeyframeColumnCount = 22;
 static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "blobs are written little-endian");
 constexpr size_t kSuperjutRecord = 28;
 constexpr size_t kKeypointRecord = 20;
+constexpr size_t kPointRecord = 12;  // float32 x, y, z
 
 std::string EncodeSuperjuts(const std::vector<entropy::SuperjutScore>& superjuts) {
   std::string out(superjuts.size() * kSuperjutRecord, '\0');
@@ -229,6 +244,14 @@ absl::StatusOr<std::vector<entropy::SuperjutScore>> DecodeSuperjuts(const std::s
     j.textureness = floats[3];
     j.neg_entropy = floats[4];
     p += kSuperjutRecord;
+  }
+  return out;
+}
+
+std::string EncodePoints(const std::vector<Eigen::Vector3f>& points) {
+  std::string out(points.size() * kPointRecord, '\0');
+  for (size_t i = 0; i < points.size(); ++i) {
+    std::memcpy(out.data() + i * kPointRecord, points[i].data(), kPointRecord);
   }
   return out;
 }
@@ -727,7 +750,8 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       auto insert_features = db->Prepare(
           "INSERT INTO keyframe_features (keyframe_id, entropy_threshold, superjut_count, "
           "superjuts, keypoint_type, keypoints_stored, keypoints_masked, keypoints, "
-          "descriptor_bytes, descriptors) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)");
+          "descriptor_bytes, descriptors, points) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, "
+          "?11)");
       if (!insert_features.ok()) return insert_features.status();
       StatementScope s(*insert_features);
       s->Bind(1, k.id).Bind(2, f.entropy_threshold);
@@ -735,6 +759,11 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(5, f.keypoints.type).Bind(6, static_cast<int64_t>(f.keypoints.keypoints.size()));
       s->Bind(7, int64_t{f.keypoints.masked}).BindBlob(8, keypoints);
       s->Bind(9, static_cast<int64_t>(row_bytes)).BindBlob(10, descriptors);
+      if (f.keypoints.points.size() == f.keypoints.keypoints.size()) {
+        s->BindBlob(11, EncodePoints(f.keypoints.points));
+      } else {
+        s->BindNull(11);
+      }
       if (auto st = s->Run(); !st.ok()) return st;
     }
   }
@@ -831,7 +860,7 @@ absl::StatusOr<KeyframeFeatures> Store::GetKeyframeFeatures(int64_t keyframe_id)
   absl::MutexLock lock(&impl_->read_mu);
   auto stmt = impl_->read_db->Prepare(
       "SELECT entropy_threshold, superjuts, keypoint_type, keypoints_masked, keypoints, "
-      "descriptor_bytes, descriptors FROM keyframe_features WHERE keyframe_id = ?1");
+      "descriptor_bytes, descriptors, points FROM keyframe_features WHERE keyframe_id = ?1");
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
   s->Bind(1, keyframe_id);
@@ -866,6 +895,17 @@ absl::StatusOr<KeyframeFeatures> Store::GetKeyframeFeatures(int64_t keyframe_id)
   if (n > 0) {
     f.keypoints.descriptors = cv::Mat(static_cast<int>(n), static_cast<int>(row_bytes), CV_8UC1);
     std::memcpy(f.keypoints.descriptors.data, descriptors.data(), descriptors.size());
+  }
+  if (!s->ColumnIsNull(7)) {
+    const std::string points = s->ColumnBlob(7);
+    if (points.size() != n * kPointRecord) {
+      return absl::DataLossError(
+          absl::StrCat("stored 3D points of keyframe ", keyframe_id, " are truncated"));
+    }
+    f.keypoints.points.resize(n);
+    for (size_t i = 0; i < n; ++i) {
+      std::memcpy(f.keypoints.points[i].data(), points.data() + i * kPointRecord, kPointRecord);
+    }
   }
   return f;
 }

@@ -20,6 +20,7 @@
 #include "core/common/types.h"
 #include "core/entropy/superjut_scores.h"
 #include "core/features/keypoints.h"
+#include "core/pipeline/keyframe.h"
 
 namespace lifemap::store {
 
@@ -64,13 +65,8 @@ struct VisitRecord {
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
 
-// What the entropy mask made of a keyframe (paper 000): its superjuts as scored, the threshold
-// applied, and the keypoints kept for matching (those in masked zones dropped).
-struct KeyframeFeatures {
-  double entropy_threshold = 0;
-  std::vector<entropy::SuperjutScore> superjuts;
-  features::KeypointSet keypoints;
-};
+// What the keyframe step made of a keyframe (core/pipeline/keyframe.h), stored with it.
+using KeyframeFeatures = pipeline::KeyframeFeatures;
 
 // Counts of KeyframeFeatures, for listings (no blobs read).
 struct KeyframeFeatureCounts {
@@ -129,6 +125,26 @@ struct ModelRecord {
   std::vector<std::string> active_maps;  // maps whose own model this is
 };
 
+// A stored keyframe's descriptors as the appearance index needs them (no images, no points).
+struct KeyframeDescriptors {
+  int64_t map_id = 0;
+  int64_t visit_id = 0;
+  int64_t keyframe_id = 0;
+  double timestamp_s = 0;
+  cv::Mat descriptors;  // CV_8UC1, one row per kept keypoint
+};
+
+// A vocabulary of visual words for the appearance index (core/appearance/vocabulary.h), as
+// stored: the newest one is in use.
+struct VocabularyRecord {
+  int64_t id = 0;
+  double created_time_s = 0;
+  std::string source;  // what it was trained on, for listings
+  int64_t training_keyframes = 0;
+  int64_t words = 0;
+  std::string data;  // Vocabulary::Serialize()
+};
+
 // A visit's architecture (paper 004) as last derived from its key frames.
 struct VisitPlaceRecord {
   int64_t visit_id = 0;
@@ -150,7 +166,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 5;
+  static constexpr int kSchemaVersion = 6;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -192,6 +208,11 @@ class Store {
   absl::StatusOr<KeyframeRecord> GetKeyframe(int64_t map_id, int64_t keyframe_id);
   // A keyframe's stored features (superjuts and keypoints). NOT_FOUND if it has none.
   absl::StatusOr<KeyframeFeatures> GetKeyframeFeatures(int64_t keyframe_id);
+  // Calls `fn` for every stored keyframe that has features (every map, by keyframe id) with
+  // its descriptors; stops early when `fn` returns a non-OK status and returns it. The read
+  // lock is held throughout: `fn` must not call the store.
+  absl::Status ForEachKeyframeDescriptors(
+      const std::function<absl::Status(const KeyframeDescriptors&)>& fn);
   // The visit's latest keyframe (without images), to resume keyframe selection.
   absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
 
@@ -219,6 +240,11 @@ class Store {
   absl::Status PutVisitPlace(const VisitPlaceRecord& record);
   absl::StatusOr<std::vector<VisitPlaceRecord>> ListVisitPlaces(const std::string& map_name);
   absl::StatusOr<VisitPlaceRecord> GetVisitPlace(int64_t visit_id);
+
+  // Appearance vocabularies. Put stores a new one (it becomes the one in use; its id is
+  // returned); Latest returns the one in use, nullopt when none was stored.
+  absl::StatusOr<int64_t> PutVocabulary(const VocabularyRecord& record);
+  absl::StatusOr<std::optional<VocabularyRecord>> LatestVocabulary();
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();

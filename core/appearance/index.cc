@@ -1,0 +1,81 @@
+#include "core/appearance/index.h"
+
+#include <algorithm>
+
+namespace lifemap::appearance {
+
+void InvertedIndex::Add(const KeyframeRef& keyframe, const BowVector& bow) {
+  absl::MutexLock lock(&mu_);
+  const auto entry = static_cast<uint32_t>(entries_.size());
+  entries_.push_back(keyframe);
+  for (const auto& [word, weight] : bow.words) {
+    if (word < postings_.size()) postings_[word].push_back({entry, weight});
+  }
+}
+
+size_t InvertedIndex::RemoveIf(const std::function<bool(const KeyframeRef&)>& drop) {
+  absl::MutexLock lock(&mu_);
+  // Entries are renumbered densely so that query scratch stays proportional to what is kept.
+  std::vector<int64_t> renumber(entries_.size(), -1);
+  std::vector<KeyframeRef> kept;
+  for (size_t i = 0; i < entries_.size(); ++i) {
+    if (drop(entries_[i])) continue;
+    renumber[i] = static_cast<int64_t>(kept.size());
+    kept.push_back(entries_[i]);
+  }
+  const size_t removed = entries_.size() - kept.size();
+  if (removed == 0) return 0;
+  for (auto& list : postings_) {
+    size_t out = 0;
+    for (const Posting& p : list) {
+      if (renumber[p.entry] < 0) continue;
+      list[out++] = {static_cast<uint32_t>(renumber[p.entry]), p.weight};
+    }
+    list.resize(out);
+  }
+  entries_ = std::move(kept);
+  return removed;
+}
+
+std::vector<Candidate> InvertedIndex::Query(
+    const BowVector& query, size_t top_k,
+    const std::function<bool(const KeyframeRef&)>& exclude) const {
+  absl::ReaderMutexLock lock(&mu_);
+  std::vector<float> score(entries_.size(), 0.0f);
+  for (const auto& [word, weight] : query.words) {
+    if (word >= postings_.size()) continue;
+    for (const Posting& p : postings_[word]) score[p.entry] += std::min(weight, p.weight);
+  }
+  std::vector<Candidate> out;
+  for (size_t i = 0; i < score.size(); ++i) {
+    if (score[i] <= 0) continue;
+    if (exclude && exclude(entries_[i])) continue;
+    out.push_back({entries_[i], score[i]});
+  }
+  const auto better = [](const Candidate& a, const Candidate& b) {
+    return a.score != b.score ? a.score > b.score : a.keyframe.keyframe_id < b.keyframe.keyframe_id;
+  };
+  if (out.size() > top_k) {
+    std::partial_sort(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(top_k), out.end(),
+                      better);
+    out.resize(top_k);
+  } else {
+    std::sort(out.begin(), out.end(), better);
+  }
+  return out;
+}
+
+IndexStats InvertedIndex::Stats() const {
+  absl::ReaderMutexLock lock(&mu_);
+  IndexStats s;
+  s.keyframes = entries_.size();
+  s.memory_bytes = entries_.capacity() * sizeof(KeyframeRef) +
+                   postings_.capacity() * sizeof(std::vector<Posting>);
+  for (const auto& list : postings_) {
+    s.postings += list.size();
+    s.memory_bytes += list.capacity() * sizeof(Posting);
+  }
+  return s;
+}
+
+}  // namespace lifemap::appearance

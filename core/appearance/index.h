@@ -1,0 +1,62 @@
+// An inverted file over the words of every indexed keyframe: a query's candidates are the
+// keyframes sharing the most weight of its words (the L1 score of Nistér & Stewénius, as in
+// DBoW2: s(v, w) = 1 − ½‖v − w‖₁ = Σ_word min(v_word, w_word) for L1-normalised vectors), in
+// time proportional to the postings of the query's words rather than to the keyframes stored.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <vector>
+
+#include "absl/synchronization/mutex.h"
+#include "core/appearance/vocabulary.h"
+
+namespace lifemap::appearance {
+
+// Which stored keyframe an index entry is.
+struct KeyframeRef {
+  int64_t map_id = 0;
+  int64_t visit_id = 0;
+  int64_t keyframe_id = 0;
+  double timestamp_s = 0;  // the frame's capture time, seconds
+};
+
+struct Candidate {
+  KeyframeRef keyframe;
+  float score = 0;  // L1 score in [0, 1]
+};
+
+struct IndexStats {
+  size_t keyframes = 0;
+  size_t postings = 0;
+  size_t memory_bytes = 0;  // postings and entries, as allocated
+};
+
+// Thread-safe: queries share a reader lock; Add and Remove take it exclusively.
+class InvertedIndex {
+ public:
+  explicit InvertedIndex(size_t words) : postings_(words) {}
+
+  // Words outside the vocabulary's size are ignored.
+  void Add(const KeyframeRef& keyframe, const BowVector& bow);
+  // Removes the entries `drop` selects; returns how many. Linear in the postings.
+  size_t RemoveIf(const std::function<bool(const KeyframeRef&)>& drop);
+
+  // The `top_k` best-scoring entries with score > 0 that `exclude` (may be empty) does not
+  // reject, best first.
+  std::vector<Candidate> Query(const BowVector& query, size_t top_k,
+                               const std::function<bool(const KeyframeRef&)>& exclude = {}) const;
+
+  IndexStats Stats() const;
+
+ private:
+  struct Posting {
+    uint32_t entry;
+    float weight;
+  };
+  mutable absl::Mutex mu_;
+  std::vector<std::vector<Posting>> postings_ ABSL_GUARDED_BY(mu_);
+  std::vector<KeyframeRef> entries_ ABSL_GUARDED_BY(mu_);
+};
+
+}  // namespace lifemap::appearance
