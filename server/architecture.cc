@@ -47,7 +47,12 @@ absl::StatusOr<std::vector<PlaceMatch>> PlaceIndex::Rank(const place::PlaceDescr
   std::vector<PlaceMatch> out;
   for (size_t i = 0; i < scored.size() && i < max; ++i) {
     const auto& [visit_id, entry] = *scored[i].second;
-    out.push_back({entry.map_id, entry.map, visit_id, scored[i].first});
+    PlaceMatch m;
+    m.map_id = entry.map_id;
+    m.map = entry.map;
+    m.visit_id = visit_id;
+    m.score = scored[i].first;
+    out.push_back(std::move(m));
   }
   return out;
 }

@@ -11,6 +11,7 @@
 #include <deque>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 #include <unordered_map>
@@ -25,12 +26,17 @@
 
 namespace lifemap::server {
 
-// A stored visit ranked against a query (the proto's PlaceMatch is made in server/convert).
+// A stored visit (architecture) or keyframe (appearance) matched to a query (the proto's
+// PlaceMatch is made in server/convert).
 struct PlaceMatch {
+  enum class Method { kArchitecture, kAppearance, kFused };
+  Method method = Method::kArchitecture;
   int64_t map_id = 0;
   std::string map;
   int64_t visit_id = 0;
-  double score = 0.0;  // [0, 1], paper 004's descriptor match
+  int64_t keyframe_id = 0;  // appearance: the matched keyframe
+  double score = 0.0;       // [0, 1]: paper 004's descriptor match, or the verified PnP score
+  std::optional<Pose> T_match_query;  // appearance: the query camera in the keyframe's frame
 };
 
 // What a frame result reports of its visit's architecture.

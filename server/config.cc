@@ -47,6 +47,7 @@ absl::Status ServerConfig::Validate() const {
         absl::StrCat("labels.max_model_mb must be within [1, 1024], got ", max_model_mb));
   }
   if (auto s = pipeline.Validate(); !s.ok()) return s;
+  if (auto s = appearance.Validate(); !s.ok()) return s;
   return keyframe.Validate();
 }
 
@@ -155,6 +156,35 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key labels.", k));
+          }
+        }
+      } else if (key == "appearance") {
+        for (const auto& [k, v] : value.items()) {
+          auto& a = c.appearance;
+          if (k == "enabled") {
+            a.enabled = v.get<bool>();
+          } else if (k == "min_training_keyframes") {
+            a.min_training_keyframes = v.get<int>();
+          } else if (k == "max_training_keyframes") {
+            a.max_training_keyframes = v.get<int>();
+          } else if (k == "exclude_recent_s") {
+            a.exclude_recent_s = v.get<double>();
+          } else if (k == "max_frame_matches") {
+            a.max_frame_matches = v.get<int>();
+          } else if (k == "frame_interval_s") {
+            a.frame_interval_s =
+                v.is_null() ? std::nullopt : std::optional<double>(v.get<double>());
+          } else if (k == "candidates") {
+            a.recognizer.candidates = v.get<int>();
+          } else if (k == "min_inliers") {
+            a.recognizer.verify.min_inliers = v.get<int>();
+          } else if (k == "vocabulary_branching") {
+            a.vocabulary.branching = v.get<int>();
+          } else if (k == "vocabulary_levels") {
+            a.vocabulary.levels = v.get<int>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key appearance.", k));
           }
         }
       } else {

@@ -4,11 +4,33 @@
 #include <cstdint>
 #include <string>
 
+#include <optional>
+
 #include "absl/status/statusor.h"
+#include "core/appearance/recognizer.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/tracking/keyframe_selector.h"
 
 namespace lifemap::server {
+
+// Appearance place recognition (server/appearance.h).
+struct AppearanceOptions {
+  bool enabled = true;
+  int min_training_keyframes = 30;     // stored keyframes before a vocabulary is trained, ≥ 2
+  int max_training_keyframes = 3000;   // keyframes a vocabulary is trained on at most
+  appearance::VocabularyOptions vocabulary;
+  appearance::RecognizerOptions recognizer;
+  // A keyframe of the querying visit is not a match when taken less than this long before or
+  // after the query (it is the same view a moment ago, not a recognised place), seconds.
+  double exclude_recent_s = 10.0;
+  int max_frame_matches = 3;  // appearance matches a frame result lists, [1, 100]
+  // Non-keyframes are queried too when a frame's options ask (FrameOptions.
+  // appearance_interval_s); this is the default for frames that do not say: nullopt =
+  // keyframes only; 0 = every frame; t > 0 = at most every t seconds per stream.
+  std::optional<double> frame_interval_s;
+
+  absl::Status Validate() const;
+};
 
 struct ServerConfig {
   std::string listen = "127.0.0.1:50051";  // HOST:PORT; port 0 picks a free port
@@ -24,6 +46,7 @@ struct ServerConfig {
   bool labels_enabled = true;        // label frames when a model is active
   tracking::KeyframeOptions keyframe;
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
+  AppearanceOptions appearance;
 
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
@@ -36,7 +59,10 @@ struct ServerConfig {
 // frames {min_depth_m, max_depth_m, max_pixels} (depth outside the range is no reading;
 // larger frames are refused),
 // entropy {enabled, threshold, downsample, k, min_size_px, mesh},
-// labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb}.
+// labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb},
+// appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
+// max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
+// vocabulary_branching, vocabulary_levels}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

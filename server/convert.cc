@@ -195,8 +195,20 @@ absl::StatusOr<std::optional<double>> EntropyThresholdFromProto(double value, co
 void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {
   out->set_map(m.map);
   out->set_visit_id(static_cast<uint64_t>(m.visit_id));
+  out->set_keyframe_id(static_cast<uint64_t>(m.keyframe_id));
   out->set_score(m.score);
-  out->set_method(v1::MATCH_METHOD_ARCHITECTURE);
+  switch (m.method) {
+    case PlaceMatch::Method::kArchitecture:
+      out->set_method(v1::MATCH_METHOD_ARCHITECTURE);
+      break;
+    case PlaceMatch::Method::kAppearance:
+      out->set_method(v1::MATCH_METHOD_APPEARANCE);
+      break;
+    case PlaceMatch::Method::kFused:
+      out->set_method(v1::MATCH_METHOD_FUSED);
+      break;
+  }
+  if (m.T_match_query) PoseToProto(*m.T_match_query, out->mutable_t_match_query());
 }
 
 void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,
@@ -230,13 +242,19 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
   }
   if (!facts.has_map) {
     add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
-        "no map given: places are recognised per visit (architecture, paper 004)");
-  } else if (facts.architecture && !facts.architecture->status.ok()) {
-    add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
-        absl::StrCat("architecture (paper 004): ", facts.architecture->status.message(),
-                     "; appearance matching is not built yet"));
+        "no map given: places are recognised for frames of a visit");
   } else {
-    add(v1::FRAME_OUTPUT_PLACE_MATCHES, true, "");
+    // Computed when either method answered; otherwise why neither did.
+    const bool by_architecture = facts.architecture && facts.architecture->status.ok();
+    const bool by_appearance = facts.appearance && facts.appearance->ok();
+    add(v1::FRAME_OUTPUT_PLACE_MATCHES, by_architecture || by_appearance,
+        absl::StrCat(
+            "architecture (paper 004): ",
+            facts.architecture ? facts.architecture->status.message() : "not asked",
+            "; appearance (paper 000): ",
+            facts.appearance ? facts.appearance->message()
+                             : "queried on keyframes only (FrameOptions.appearance_interval_s "
+                               "asks for other frames)"));
   }
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
       "not implemented in this server yet (semantic octree, paper 002)");

@@ -51,6 +51,9 @@ struct OutputFacts {
   absl::Status labeller;
   // The visit's ranking by architecture, per frame of a visit.
   std::optional<ArchitectureRanking> architecture;
+  // Whether appearance matches were sought for this frame (nullopt: not asked) and, if they
+  // could not be, why (an empty list of verified matches is OK: nothing recognised).
+  std::optional<absl::Status> appearance;
 };
 inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";
 

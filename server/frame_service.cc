@@ -1,4 +1,5 @@
 #include <algorithm>
+#include <cmath>
 #include <chrono>
 #include <deque>
 #include <future>
@@ -114,11 +115,48 @@ void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model, v1:
   }
 }
 
+// What a stream's (or a call's) options ask of each frame.
+struct FrameSettings {
+  tracking::KeyframeOptions keyframe;
+  pipeline::FrameRequest request;
+  std::optional<double> appearance_interval_s;  // nullopt: keyframes only
+};
+
+// Appearance matches of a frame (paper 000) into the result: the view's pruned features against
+// every stored keyframe but its own visit's last few seconds. OK with no match (nothing
+// recognised); otherwise why it could not be asked.
+absl::Status AppearanceMatches(ServiceContext* ctx,
+                               const absl::StatusOr<pipeline::KeyframeFeatures>& features,
+                               const RgbdFrame& f, int64_t visit_id, v1::FrameResult* r) {
+  if (!features.ok()) return features.status();
+  const double recent_s = ctx->appearance->options().exclude_recent_s;
+  const double t = f.timestamp_s;
+  auto recognition = ctx->appearance->Recognize(
+      features->keypoints, f.intrinsics, [visit_id, t, recent_s](const appearance::KeyframeRef& k) {
+        return k.visit_id == visit_id && std::abs(k.timestamp_s - t) < recent_s;
+      });
+  if (!recognition.ok()) return recognition.status();
+  const size_t n = std::min(recognition->matches.size(),
+                            static_cast<size_t>(ctx->appearance->options().max_frame_matches));
+  for (size_t i = 0; i < n; ++i) {
+    const appearance::AppearanceMatch& m = recognition->matches[i];
+    PlaceMatch match;
+    match.method = PlaceMatch::Method::kAppearance;
+    match.map_id = m.keyframe.map_id;
+    if (auto map = ctx->store->GetMapById(m.keyframe.map_id); map.ok()) match.map = map->name;
+    match.visit_id = m.keyframe.visit_id;
+    match.keyframe_id = m.keyframe.keyframe_id;
+    match.score = m.verification.score;
+    match.T_match_query = m.verification.T_match_query;
+    PlaceMatchToProto(match, r->add_place_matches());
+  }
+  return absl::OkStatus();
+}
+
 // `writer` is the stream's claim on the visit (0 for a unary ProcessFrame).
 PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
                           const std::shared_ptr<VisitState>& visit_state, uint64_t writer,
-                          const tracking::KeyframeOptions& keyframe_options,
-                          const pipeline::FrameRequest& frame_request) {
+                          const FrameSettings& settings) {
   VisitState* visit = visit_state.get();
   PendingResult p;
   p.received = Clock::now();
@@ -134,7 +172,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   };
   auto encoded = FrameFromProto(frame);
   if (!encoded.ok()) return reject(encoded.status());
-  pipeline::FrameRequest effective = frame_request;
+  pipeline::FrameRequest effective = settings.request;
   if (visit != nullptr && !effective.entropy_threshold) {
     // The map's own threshold, when it has one, comes before the server's default.
     auto map_threshold = ctx->visits->MapEntropyThreshold(visit->map_id);
@@ -198,27 +236,50 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
     return p;
   }
+  // Decided under the visit's lock; the keyframe's features and appearance query run outside it
+  // (a visit has one writer, so its frames still arrive here one at a time, in order).
+  tracking::KeyframeDecision decision;
+  bool query_appearance = false;
+  {
+    absl::MutexLock lock(&visit->mu);
+    if (auto s = visit->CheckWritable(writer); !s.ok()) {
+      p.visit_closed = s;
+      return p;
+    }
+    ++visit->frame_count;
+    visit->selector.set_options(settings.keyframe);
+    decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
+    query_appearance = decision.selected;
+    if (!query_appearance && settings.appearance_interval_s &&
+        (!visit->last_appearance_query_s ||
+         f.timestamp_s - *visit->last_appearance_query_s >= *settings.appearance_interval_s)) {
+      query_appearance = true;
+    }
+    if (query_appearance) visit->last_appearance_query_s = f.timestamp_s;
+  }
+  r.mutable_keyframe()->set_selected(decision.selected);
+  r.mutable_keyframe()->set_reason(decision.reason);
+  absl::StatusOr<store::KeyframeRecord> record = absl::FailedPreconditionError("not a keyframe");
+  absl::StatusOr<pipeline::KeyframeFeatures> features =
+      absl::FailedPreconditionError("not extracted");
+  if (decision.selected || query_appearance) {
+    features = pipeline::ExtractKeyframeFeatures(*analysis, {kKeyframeKeypoints});
+  }
+  if (decision.selected) {
+    record = MakeKeyframeRecord(frame, f, visit->visit_id);
+    // Keypoints in zones likely to move were dropped before they are stored for matching.
+    if (record.ok() && analysis->entropy && features.ok()) record->features = *features;
+    if (!record.ok()) {
+      r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
+    }
+  }
+  if (query_appearance) {
+    facts.appearance = AppearanceMatches(ctx, features, f, visit->visit_id, &r);
+  }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
     p.visit_closed = s;
     return p;
-  }
-  ++visit->frame_count;
-  visit->selector.set_options(keyframe_options);
-  const auto decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
-  r.mutable_keyframe()->set_selected(decision.selected);
-  r.mutable_keyframe()->set_reason(decision.reason);
-  absl::StatusOr<store::KeyframeRecord> record = absl::FailedPreconditionError("not a keyframe");
-  if (decision.selected) {
-    record = MakeKeyframeRecord(frame, f, visit->visit_id);
-    if (record.ok() && analysis->entropy) {
-      // Keypoints in zones likely to move are dropped before they are stored for matching.
-      auto features = pipeline::ExtractKeyframeFeatures(*analysis, {kKeyframeKeypoints});
-      if (features.ok()) record->features = *std::move(features);
-    }
-    if (!record.ok()) {
-      r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
-    }
   }
   if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
@@ -263,13 +324,27 @@ void FinishResult(PendingResult* p) {
   timing->set_total_ms(MsBetween(p->received, Clock::now()));
 }
 
-// The per-frame overrides a request's options carry. InvalidArgument for out-of-range values.
-absl::StatusOr<pipeline::FrameRequest> FrameRequestFromProto(const v1::FrameOptions& o) {
-  pipeline::FrameRequest request;
+// What a request's options ask, over the server's defaults. InvalidArgument for out-of-range
+// values, naming the field.
+absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
+                                                     const ServerConfig& config) {
+  FrameSettings settings;
+  auto keyframe = KeyframeOptionsFromProto(o, config.keyframe);
+  if (!keyframe.ok()) return keyframe.status();
+  settings.keyframe = *keyframe;
   auto threshold = EntropyThresholdFromProto(o.entropy_threshold(), "options.entropy_threshold");
   if (!threshold.ok()) return threshold.status();
-  if (*threshold) request.entropy_threshold = static_cast<float>(**threshold);
-  return request;
+  if (*threshold) settings.request.entropy_threshold = static_cast<float>(**threshold);
+  settings.appearance_interval_s = config.appearance.frame_interval_s;
+  if (o.has_appearance_interval_s()) {
+    const double t = o.appearance_interval_s();
+    if (!(t >= 0 && t <= 3600)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "options.appearance_interval_s must be within [0, 3600] s (0 = every frame), got ", t));
+    }
+    settings.appearance_interval_s = t;
+  }
+  return settings;
 }
 
 // Resolves the visit a stream or call writes to. visit_id 0: a new visit (or, with
@@ -330,10 +405,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
                         "the first message of a stream must be StreamStart (map, visit)");
   }
   const v1::StreamStart start = request.start();
-  auto keyframe_options = KeyframeOptionsFromProto(start.options(), ctx_->config.keyframe);
-  if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
-  auto frame_request = FrameRequestFromProto(start.options());
-  if (!frame_request.ok()) return ToGrpcStatus(frame_request.status());
+  auto settings = FrameSettingsFromProto(start.options(), ctx_->config);
+  if (!settings.ok()) return ToGrpcStatus(settings.status());
   bool created = false;
   auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(), start.visit_label(),
                             false, &created);
@@ -377,7 +450,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
       break;
     }
     PendingResult p =
-        HandleFrame(ctx_, request.frame(), *state, claim->id(), *keyframe_options, *frame_request);
+        HandleFrame(ctx_, request.frame(), *state, claim->id(), *settings);
     last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
     if (!p.visit_closed.ok()) {
       status = ToGrpcStatus(p.visit_closed);
@@ -415,10 +488,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
 grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
                                             const v1::ProcessFrameRequest* req,
                                             v1::FrameResult* resp) {
-  auto keyframe_options = KeyframeOptionsFromProto(req->options(), ctx_->config.keyframe);
-  if (!keyframe_options.ok()) return ToGrpcStatus(keyframe_options.status());
-  auto frame_request = FrameRequestFromProto(req->options());
-  if (!frame_request.ok()) return ToGrpcStatus(frame_request.status());
+  auto settings = FrameSettingsFromProto(req->options(), ctx_->config);
+  if (!settings.ok()) return ToGrpcStatus(settings.status());
   std::shared_ptr<VisitState> state;
   if (!req->map().empty()) {
     bool created = false;
@@ -431,7 +502,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
   PendingResult p =
-      HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *keyframe_options, *frame_request);
+      HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *settings);
   if (!p.visit_closed.ok()) return ToGrpcStatus(p.visit_closed);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),

@@ -6,8 +6,12 @@
 
 namespace lifemap::server {
 
-KeyframeCommitter::KeyframeCommitter(store::Store* store, int batch_max)
-    : store_(store), batch_max_(batch_max), thread_([this] { Run(); }) {}
+KeyframeCommitter::KeyframeCommitter(store::Store* store, int batch_max,
+                                     CommittedHook on_committed)
+    : store_(store),
+      batch_max_(batch_max),
+      on_committed_(std::move(on_committed)),
+      thread_([this] { Run(); }) {}
 
 KeyframeCommitter::~KeyframeCommitter() {
   {
@@ -57,6 +61,9 @@ void KeyframeCommitter::Commit(std::deque<Pending>* batch) {
   }
   absl::Status status = store_->InsertKeyframes(&keyframes, counts);
   if (status.ok()) {
+    if (on_committed_) {
+      for (const auto& k : keyframes) on_committed_(k);
+    }
     size_t next = 0;
     int64_t n = 0;
     for (auto& p : *batch) {

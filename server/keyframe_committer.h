@@ -5,6 +5,7 @@
 
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <future>
 #include <optional>
 #include <thread>
@@ -17,8 +18,12 @@ namespace lifemap::server {
 
 class KeyframeCommitter {
  public:
+  // Called on the committer's thread with each keyframe after its transaction committed (its
+  // id set), before the submitter's future is fulfilled. Must not block for long.
+  using CommittedHook = std::function<void(const store::KeyframeRecord&)>;
+
   // `store` must outlive the committer. batch_max bounds one transaction.
-  KeyframeCommitter(store::Store* store, int batch_max);
+  KeyframeCommitter(store::Store* store, int batch_max, CommittedHook on_committed = {});
   // Commits everything still queued, then stops.
   ~KeyframeCommitter();
   KeyframeCommitter(const KeyframeCommitter&) = delete;
@@ -42,6 +47,7 @@ class KeyframeCommitter {
 
   store::Store* const store_;
   const int batch_max_;
+  const CommittedHook on_committed_;
   mutable absl::Mutex mu_;
   std::deque<Pending> queue_ ABSL_GUARDED_BY(mu_);
   bool stopping_ ABSL_GUARDED_BY(mu_) = false;

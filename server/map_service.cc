@@ -88,6 +88,7 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMap
                    "map '", req->name(), "' was deleted; nothing more is stored for its visits")));
   ctx_->models->InvalidateActivations();
   ctx_->places->Invalidate();
+  ctx_->appearance->RemoveMap(map->id);
   spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
                deleted->second);
   resp->set_deleted_visits(static_cast<uint32_t>(deleted->first));

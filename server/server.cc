@@ -21,6 +21,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<InstanceLock> lock;  // declared first: released after the store is closed
   ServiceContext ctx;
   std::unique_ptr<store::Store> store;
+  std::unique_ptr<AppearanceIndex> appearance;  // the committer calls it: after it goes
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<PlaceIndex> places;
   std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
@@ -55,8 +56,13 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   auto store = store::Store::Open(config.db_path, store_options);
   if (!store.ok()) return store.status();
   impl->store = *std::move(store);
-  impl->committer =
-      std::make_unique<KeyframeCommitter>(impl->store.get(), config.keyframe_batch_max);
+  impl->appearance = std::make_unique<AppearanceIndex>(impl->store.get(), config.appearance);
+  if (auto s = impl->appearance->Load(); !s.ok()) return s;
+  impl->committer = std::make_unique<KeyframeCommitter>(
+      impl->store.get(), config.keyframe_batch_max,
+      [appearance = impl->appearance.get()](const store::KeyframeRecord& k) {
+        appearance->OnCommitted(k);
+      });
   impl->places = std::make_unique<PlaceIndex>(impl->store.get());
   impl->architecture = std::make_unique<ArchitectureWorker>(impl->places.get());
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
@@ -66,6 +72,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.config = config;
   ctx.store = impl->store.get();
   ctx.committer = impl->committer.get();
+  ctx.appearance = impl->appearance.get();
   ctx.visits = impl->visits.get();
   ctx.places = impl->places.get();
   ctx.architecture = impl->architecture.get();
@@ -130,6 +137,7 @@ void LifemapServer::Shutdown() {
   // what is still queued, then close the store.
   impl_->architecture.reset();
   impl_->committer.reset();
+  impl_->appearance.reset();
   impl_->store.reset();
   impl_->lock.reset();
   spdlog::info("shutdown complete");

@@ -12,6 +12,7 @@
 #include "lifemap/v1/model_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
+#include "server/appearance.h"
 #include "server/architecture.h"
 #include "server/config.h"
 #include "server/keyframe_committer.h"
@@ -30,6 +31,7 @@ struct ServiceContext {
   ModelRegistry* models = nullptr;
   PlaceIndex* places = nullptr;
   ArchitectureWorker* architecture = nullptr;
+  AppearanceIndex* appearance = nullptr;
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};

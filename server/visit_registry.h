@@ -33,6 +33,9 @@ struct VisitState {
   std::string writer_peer ABSL_GUARDED_BY(mu);
   tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
   int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
+  // Timestamp of the last frame whose appearance matches were sought (FrameOptions.
+  // appearance_interval_s), seconds.
+  std::optional<double> last_appearance_query_s ABSL_GUARDED_BY(mu);
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;

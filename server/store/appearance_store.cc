@@ -7,14 +7,15 @@
 namespace lifemap::store {
 
 absl::Status Store::ForEachKeyframeDescriptors(
-    const std::function<absl::Status(const KeyframeDescriptors&)>& fn) {
+    int64_t map_id, const std::function<absl::Status(const KeyframeDescriptors&)>& fn) {
   absl::MutexLock lock(&impl_->read_mu);
   auto stmt = impl_->read_db->Prepare(
       "SELECT v.map_id, k.visit_id, k.id, k.timestamp_s, f.descriptor_bytes, f.descriptors "
       "FROM keyframe_features f JOIN keyframes k ON k.id = f.keyframe_id "
-      "JOIN visits v ON v.id = k.visit_id ORDER BY k.id");
+      "JOIN visits v ON v.id = k.visit_id WHERE ?1 = 0 OR v.map_id = ?1 ORDER BY k.id");
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
+  s->Bind(1, map_id);
   for (;;) {
     auto row = s->Step();
     if (!row.ok()) return row.status();

@@ -208,11 +208,11 @@ class Store {
   absl::StatusOr<KeyframeRecord> GetKeyframe(int64_t map_id, int64_t keyframe_id);
   // A keyframe's stored features (superjuts and keypoints). NOT_FOUND if it has none.
   absl::StatusOr<KeyframeFeatures> GetKeyframeFeatures(int64_t keyframe_id);
-  // Calls `fn` for every stored keyframe that has features (every map, by keyframe id) with
-  // its descriptors; stops early when `fn` returns a non-OK status and returns it. The read
-  // lock is held throughout: `fn` must not call the store.
+  // Calls `fn` for every stored keyframe that has features (of one map, or every map for
+  // map_id 0; by keyframe id) with its descriptors; stops early when `fn` returns a non-OK
+  // status and returns it. The read lock is held throughout: `fn` must not call the store.
   absl::Status ForEachKeyframeDescriptors(
-      const std::function<absl::Status(const KeyframeDescriptors&)>& fn);
+      int64_t map_id, const std::function<absl::Status(const KeyframeDescriptors&)>& fn);
   // The visit's latest keyframe (without images), to resume keyframe selection.
   absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
 

@@ -1,0 +1,337 @@
+#include "server/appearance.h"
+
+#include <algorithm>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+
+absl::Status AppearanceOptions::Validate() const {
+  if (min_training_keyframes < 2) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "appearance.min_training_keyframes must be at least 2, got ", min_training_keyframes));
+  }
+  if (max_training_keyframes < min_training_keyframes) {
+    return absl::InvalidArgumentError(
+        "appearance.max_training_keyframes must be at least min_training_keyframes");
+  }
+  if (!(exclude_recent_s >= 0 && exclude_recent_s <= 86400)) {
+    return absl::InvalidArgumentError("appearance.exclude_recent_s must be in [0, 86400]");
+  }
+  if (max_frame_matches < 1 || max_frame_matches > 100) {
+    return absl::InvalidArgumentError("appearance.max_frame_matches must be in [1, 100]");
+  }
+  if (frame_interval_s && !(*frame_interval_s >= 0 && *frame_interval_s <= 3600)) {
+    return absl::InvalidArgumentError("appearance.frame_interval_s must be in [0, 3600] or null");
+  }
+  if (auto s = vocabulary.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("appearance.vocabulary: ", s.message()));
+  }
+  if (auto s = recognizer.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("appearance: ", s.message()));
+  }
+  return absl::OkStatus();
+}
+
+AppearanceIndex::AppearanceIndex(store::Store* store, AppearanceOptions options)
+    : store_(store), options_(std::move(options)), thread_([this] { Run(); }) {}
+
+AppearanceIndex::~AppearanceIndex() {
+  {
+    absl::MutexLock lock(&queue_mu_);
+    stopping_ = true;
+  }
+  thread_.join();
+}
+
+void AppearanceIndex::Push(Job job) {
+  absl::MutexLock lock(&queue_mu_);
+  queue_.push_back(std::move(job));
+}
+
+void AppearanceIndex::Run() {
+  for (;;) {
+    Job job;
+    {
+      absl::MutexLock lock(&queue_mu_);
+      queue_mu_.Await(absl::Condition(
+          +[](AppearanceIndex* self) ABSL_NO_THREAD_SAFETY_ANALYSIS {
+            return self->stopping_ || !self->queue_.empty();
+          },
+          this));
+      if (queue_.empty()) return;  // stopping, nothing left
+      job = std::move(queue_.front());
+      queue_.pop_front();
+    }
+    absl::Status status;
+    switch (job.kind) {
+      case Job::Kind::kAdd: {
+        std::shared_ptr<const appearance::Vocabulary> vocabulary;
+        std::shared_ptr<appearance::InvertedIndex> index;
+        int64_t stored = 0;
+        {
+          absl::MutexLock lock(&mu_);
+          vocabulary = vocabulary_;
+          index = index_;
+          stored = ++stored_with_features_;
+        }
+        auto map = MapOfVisit(job.keyframe.visit_id);
+        if (!map.ok()) {
+          status = map.status();  // the visit is gone (its map deleted meanwhile)
+        } else if (vocabulary) {
+          job.keyframe.map_id = *map;
+          auto bow = vocabulary->Transform(job.descriptors);
+          if (bow.ok()) index->Add(job.keyframe, *bow);
+          status = bow.status();
+        } else if (stored >= options_.min_training_keyframes) {
+          status = TrainLocked();
+        }
+        break;
+      }
+      case Job::Kind::kRemoveMap: {
+        absl::MutexLock lock(&mu_);
+        if (index_) {
+          const auto map = job.keyframe.map_id;
+          stored_with_features_ -= static_cast<int64_t>(
+              index_->RemoveIf([map](const appearance::KeyframeRef& k) { return k.map_id == map; }));
+        }
+        break;
+      }
+      case Job::Kind::kRebuild: {
+        bool has_vocabulary = false;
+        {
+          absl::MutexLock lock(&mu_);
+          has_vocabulary = vocabulary_ != nullptr;
+        }
+        status = job.retrain || !has_vocabulary ? TrainLocked() : IndexStored(0);
+        break;
+      }
+      case Job::Kind::kFlush:
+        break;
+    }
+    if (!status.ok()) spdlog::warn("appearance index: {}", status.ToString());
+    if (job.done) {
+      if (status.ok()) {
+        job.done->set_value(Stats());
+      } else {
+        job.done->set_value(status);
+      }
+    }
+  }
+}
+
+absl::Status AppearanceIndex::Load() {
+  if (!options_.enabled) return absl::OkStatus();
+  auto stored = store_->LatestVocabulary();
+  if (!stored.ok()) return stored.status();
+  if (*stored) {
+    auto vocabulary = appearance::Vocabulary::Deserialize((*stored)->data);
+    if (!vocabulary.ok()) {
+      return absl::DataLossError(absl::StrCat("stored appearance vocabulary ", (*stored)->id, ": ",
+                                              vocabulary.status().message(),
+                                              "; run `lifemap places index rebuild --retrain`"));
+    }
+    absl::MutexLock lock(&mu_);
+    vocabulary_ = std::make_shared<appearance::Vocabulary>(*std::move(vocabulary));
+    vocabulary_id_ = (*stored)->id;
+  }
+  auto done = std::make_shared<std::promise<absl::StatusOr<AppearanceIndexStats>>>();
+  auto future = done->get_future();
+  Job job;
+  job.kind = Job::Kind::kRebuild;
+  job.done = done;
+  Push(std::move(job));
+  auto stats = future.get();
+  if (!stats.ok()) return stats.status();
+  spdlog::info("appearance index: {} keyframes indexed{} ({:.1f} MB)", stats->keyframes,
+               stats->has_vocabulary
+                   ? absl::StrCat(" with vocabulary ", stats->vocabulary_id, " (", stats->words,
+                                  " words)")
+                   : absl::StrCat("; no vocabulary yet (trained once ",
+                                  options_.min_training_keyframes, " keyframes are stored, ",
+                                  stats->stored_with_features, " now)"),
+               static_cast<double>(stats->memory_bytes) / 1e6);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<int64_t> AppearanceIndex::MapOfVisit(int64_t visit_id) {
+  if (auto it = visit_maps_.find(visit_id); it != visit_maps_.end()) return it->second;
+  auto visit = store_->GetVisit(visit_id);
+  if (!visit.ok()) return visit.status();
+  visit_maps_[visit_id] = visit->map_id;
+  return visit->map_id;
+}
+
+void AppearanceIndex::OnCommitted(const store::KeyframeRecord& k) {
+  if (!options_.enabled || !k.features || k.features->keypoints.size() == 0) return;
+  Job job;
+  job.kind = Job::Kind::kAdd;
+  job.keyframe = {0, k.visit_id, k.id, k.timestamp_s};
+  job.descriptors = k.features->keypoints.descriptors;
+  Push(std::move(job));
+}
+
+void AppearanceIndex::RemoveMap(int64_t map_id) {
+  if (!options_.enabled) return;
+  Job job;
+  job.kind = Job::Kind::kRemoveMap;
+  job.keyframe.map_id = map_id;
+  Push(std::move(job));
+}
+
+void AppearanceIndex::Flush() {
+  Job job;
+  job.kind = Job::Kind::kFlush;
+  job.done = std::make_shared<std::promise<absl::StatusOr<AppearanceIndexStats>>>();
+  auto future = job.done->get_future();
+  Push(std::move(job));
+  future.get().IgnoreError();  // a flush has nothing to fail
+}
+
+absl::StatusOr<AppearanceIndexStats> AppearanceIndex::Rebuild(bool retrain) {
+  if (!options_.enabled) {
+    return absl::FailedPreconditionError("appearance is disabled in this server's config");
+  }
+  Job job;
+  job.kind = Job::Kind::kRebuild;
+  job.retrain = retrain;
+  job.done = std::make_shared<std::promise<absl::StatusOr<AppearanceIndexStats>>>();
+  auto future = job.done->get_future();
+  Push(std::move(job));
+  return future.get();
+}
+
+absl::Status AppearanceIndex::TrainLocked() {
+  // Count first, then keep every n-th keyframe's descriptors so that at most
+  // max_training_keyframes are held.
+  int64_t stored = 0;
+  if (auto s = store_->ForEachKeyframeDescriptors(
+          0, [&](const store::KeyframeDescriptors&) { return ++stored, absl::OkStatus(); });
+      !s.ok()) {
+    return s;
+  }
+  if (stored < options_.min_training_keyframes) {
+    absl::MutexLock lock(&mu_);
+    stored_with_features_ = stored;
+    return absl::OkStatus();  // not yet: Recognize says how many it waits for
+  }
+  const int64_t step = (stored + options_.max_training_keyframes - 1) /
+                       options_.max_training_keyframes;
+  std::vector<cv::Mat> training;
+  int64_t i = 0;
+  if (auto s = store_->ForEachKeyframeDescriptors(0,
+                                                  [&](const store::KeyframeDescriptors& k) {
+                                                    if (i++ % step == 0 && !k.descriptors.empty()) {
+                                                      training.push_back(k.descriptors);
+                                                    }
+                                                    return absl::OkStatus();
+                                                  });
+      !s.ok()) {
+    return s;
+  }
+  auto vocabulary = appearance::Vocabulary::Train(training, options_.vocabulary);
+  if (!vocabulary.ok()) return vocabulary.status();
+  store::VocabularyRecord record;
+  record.created_time_s = NowSeconds();
+  record.source = absl::StrCat("stored keyframes (", training.size(), " of ", stored, ")");
+  record.training_keyframes = static_cast<int64_t>(training.size());
+  record.words = static_cast<int64_t>(vocabulary->words());
+  record.data = vocabulary->Serialize();
+  auto id = store_->PutVocabulary(record);
+  if (!id.ok()) return id.status();
+  spdlog::info("appearance vocabulary {} trained on {} keyframes: {} words", *id,
+               training.size(), vocabulary->words());
+  {
+    absl::MutexLock lock(&mu_);
+    vocabulary_ = std::make_shared<appearance::Vocabulary>(*std::move(vocabulary));
+    vocabulary_id_ = *id;
+  }
+  return IndexStored(0);
+}
+
+absl::Status AppearanceIndex::IndexStored(int64_t map_id) {
+  std::shared_ptr<const appearance::Vocabulary> vocabulary;
+  {
+    absl::MutexLock lock(&mu_);
+    vocabulary = vocabulary_;
+  }
+  // A whole rebuild makes a fresh index and swaps it in; a map's keyframes go into the live one.
+  std::shared_ptr<appearance::InvertedIndex> index;
+  if (vocabulary) {
+    if (map_id == 0) {
+      index = std::make_shared<appearance::InvertedIndex>(vocabulary->words());
+    } else {
+      absl::MutexLock lock(&mu_);
+      index = index_;
+    }
+  }
+  int64_t counted = 0;
+  auto s = store_->ForEachKeyframeDescriptors(map_id, [&](const store::KeyframeDescriptors& k) {
+    ++counted;
+    if (!index || k.descriptors.empty()) return absl::OkStatus();
+    auto bow = vocabulary->Transform(k.descriptors);
+    if (!bow.ok()) return bow.status();
+    index->Add({k.map_id, k.visit_id, k.keyframe_id, k.timestamp_s}, *bow);
+    return absl::OkStatus();
+  });
+  if (!s.ok()) return s;
+  absl::MutexLock lock(&mu_);
+  if (map_id == 0) {
+    stored_with_features_ = counted;
+    if (index) index_ = std::move(index);
+  } else {
+    stored_with_features_ += counted;
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<appearance::Recognition> AppearanceIndex::Recognize(
+    const features::KeypointSet& query, const CameraIntrinsics& intrinsics,
+    const appearance::KeyframeFilter& exclude) const {
+  if (!options_.enabled) {
+    return absl::FailedPreconditionError(
+        "appearance is disabled in this server's config (appearance.enabled)");
+  }
+  std::shared_ptr<const appearance::Vocabulary> vocabulary;
+  std::shared_ptr<appearance::InvertedIndex> index;
+  int64_t stored = 0;
+  {
+    absl::MutexLock lock(&mu_);
+    vocabulary = vocabulary_;
+    index = index_;
+    stored = stored_with_features_;
+  }
+  if (!vocabulary || !index) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "no appearance vocabulary yet: one is trained once ", options_.min_training_keyframes,
+        " keyframes with features are stored (", stored,
+        " now), or run `lifemap places index rebuild --retrain`"));
+  }
+  const appearance::FeatureLoader load = [this](const appearance::KeyframeRef& k) {
+    auto f = store_->GetKeyframeFeatures(k.keyframe_id);
+    if (!f.ok()) return absl::StatusOr<features::KeypointSet>(f.status());
+    return absl::StatusOr<features::KeypointSet>(std::move(f->keypoints));
+  };
+  return appearance::Recognize(query, intrinsics, *vocabulary, *index, load, exclude,
+                               options_.recognizer);
+}
+
+AppearanceIndexStats AppearanceIndex::Stats() const {
+  absl::MutexLock lock(&mu_);
+  AppearanceIndexStats s;
+  s.has_vocabulary = vocabulary_ != nullptr;
+  s.vocabulary_id = vocabulary_id_;
+  s.words = vocabulary_ ? vocabulary_->words() : 0;
+  if (index_) {
+    const auto is = index_->Stats();
+    s.keyframes = is.keyframes;
+    s.memory_bytes = is.memory_bytes;
+  }
+  s.stored_with_features = stored_with_features_;
+  return s;
+}
+
+}  // namespace lifemap::server

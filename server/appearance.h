@@ -1,0 +1,106 @@
+// Appearance place recognition served (paper 000): an index over the words of every stored
+// keyframe of every map, built with a vocabulary trained here on stored keyframes and kept in
+// the store, and queried by keyframes (and frames that ask) with PnP verification.
+//
+// Lifecycle. At start the newest stored vocabulary is loaded and every stored keyframe's
+// descriptors are indexed. Without one, the index waits: once `min_training_keyframes`
+// keyframes with features are stored, a vocabulary is trained on them (at most
+// `max_training_keyframes`, evenly spread), stored, and everything is indexed. Each committed
+// keyframe is indexed after its commit, on this class's own thread, off the reply path.
+// `lifemap places index rebuild [--retrain]` (AdminService.RebuildAppearanceIndex) re-reads the
+// store, optionally training a new vocabulary first.
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <future>
+#include <memory>
+#include <optional>
+#include <string>
+#include <thread>
+#include <unordered_map>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "core/appearance/recognizer.h"
+#include "server/config.h"
+#include "server/store/store.h"
+
+namespace lifemap::server {
+
+struct AppearanceIndexStats {
+  bool has_vocabulary = false;
+  int64_t vocabulary_id = 0;
+  size_t words = 0;
+  size_t keyframes = 0;
+  size_t memory_bytes = 0;
+  int64_t stored_with_features = 0;  // known at load and counted since
+};
+
+// Thread-safe.
+class AppearanceIndex {
+ public:
+  AppearanceIndex(store::Store* store, AppearanceOptions options);
+  // Finishes queued work, then stops.
+  ~AppearanceIndex();
+  AppearanceIndex(const AppearanceIndex&) = delete;
+  AppearanceIndex& operator=(const AppearanceIndex&) = delete;
+
+  // Loads the stored vocabulary (or trains one when enough keyframes are stored) and indexes
+  // every stored keyframe; errors are those of the store or a damaged vocabulary.
+  absl::Status Load();
+
+  // After a keyframe's commit (with its id and features): queued for indexing.
+  void OnCommitted(const store::KeyframeRecord& keyframe);
+  // Drops a deleted map's keyframes.
+  void RemoveMap(int64_t map_id);
+
+  // Appearance matches of a view (its features pruned already), verified, best first.
+  // FailedPrecondition saying why there can be none: appearance disabled, no vocabulary yet (and
+  // how many keyframes it waits for), nothing indexed, no features in the view.
+  absl::StatusOr<appearance::Recognition> Recognize(
+      const features::KeypointSet& query, const CameraIntrinsics& intrinsics,
+      const appearance::KeyframeFilter& exclude) const;
+
+  // Re-reads the store; with `retrain` (or without a vocabulary) trains and stores a new
+  // vocabulary first. Blocks until done; returns the stats after.
+  absl::StatusOr<AppearanceIndexStats> Rebuild(bool retrain);
+
+  // Blocks until every keyframe passed to OnCommitted so far is indexed.
+  void Flush();
+
+  AppearanceIndexStats Stats() const;
+  const AppearanceOptions& options() const { return options_; }
+
+ private:
+  struct Job {
+    enum class Kind { kAdd, kRemoveMap, kRebuild, kFlush } kind = Kind::kAdd;
+    appearance::KeyframeRef keyframe;
+    cv::Mat descriptors;
+    bool retrain = false;
+    std::shared_ptr<std::promise<absl::StatusOr<AppearanceIndexStats>>> done;
+  };
+  void Run();
+  void Push(Job job);
+  // Worker thread only.
+  absl::Status TrainLocked();
+  absl::Status IndexStored(int64_t map_id);
+  absl::StatusOr<int64_t> MapOfVisit(int64_t visit_id);
+
+  store::Store* const store_;
+  const AppearanceOptions options_;
+
+  mutable absl::Mutex mu_;
+  std::shared_ptr<const appearance::Vocabulary> vocabulary_ ABSL_GUARDED_BY(mu_);
+  std::shared_ptr<appearance::InvertedIndex> index_ ABSL_GUARDED_BY(mu_);
+  int64_t vocabulary_id_ ABSL_GUARDED_BY(mu_) = 0;
+  int64_t stored_with_features_ ABSL_GUARDED_BY(mu_) = 0;
+
+  absl::Mutex queue_mu_;
+  std::deque<Job> queue_ ABSL_GUARDED_BY(queue_mu_);
+  bool stopping_ ABSL_GUARDED_BY(queue_mu_) = false;
+  std::unordered_map<int64_t, int64_t> visit_maps_;  // worker thread only
+  std::thread thread_;
+};
+
+}  // namespace lifemap::server
