@@ -58,9 +58,8 @@ void AppearanceIndex::Run() {
     {
       absl::MutexLock lock(&queue_mu_);
       queue_mu_.Await(absl::Condition(
-          +[](AppearanceIndex* self) ABSL_NO_THREAD_SAFETY_ANALYSIS {
-            return self->stopping_ || !self->queue_.empty();
-          },
+          +[](AppearanceIndex* self)
+               ABSL_NO_THREAD_SAFETY_ANALYSIS { return self->stopping_ || !self->queue_.empty(); },
           this));
       if (queue_.empty()) return;  // stopping, nothing left
       job = std::move(queue_.front());
@@ -95,8 +94,8 @@ void AppearanceIndex::Run() {
         absl::MutexLock lock(&mu_);
         if (index_) {
           const auto map = job.keyframe.map_id;
-          stored_with_features_ -= static_cast<int64_t>(
-              index_->RemoveIf([map](const appearance::KeyframeRef& k) { return k.map_id == map; }));
+          stored_with_features_ -= static_cast<int64_t>(index_->RemoveIf(
+              [map](const appearance::KeyframeRef& k) { return k.map_id == map; }));
         }
         break;
       }
@@ -146,14 +145,13 @@ absl::Status AppearanceIndex::Load() {
   Push(std::move(job));
   auto stats = future.get();
   if (!stats.ok()) return stats.status();
-  spdlog::info("appearance index: {} keyframes indexed{} ({:.1f} MB)", stats->keyframes,
-               stats->has_vocabulary
-                   ? absl::StrCat(" with vocabulary ", stats->vocabulary_id, " (", stats->words,
-                                  " words)")
-                   : absl::StrCat("; no vocabulary yet (trained once ",
-                                  options_.min_training_keyframes, " keyframes are stored, ",
-                                  stats->stored_with_features, " now)"),
-               static_cast<double>(stats->memory_bytes) / 1e6);
+  spdlog::info(
+      "appearance index: {} keyframes indexed{} ({:.1f} MB)", stats->keyframes,
+      stats->has_vocabulary
+          ? absl::StrCat(" with vocabulary ", stats->vocabulary_id, " (", stats->words, " words)")
+          : absl::StrCat("; no vocabulary yet (trained once ", options_.min_training_keyframes,
+                         " keyframes are stored, ", stats->stored_with_features, " now)"),
+      static_cast<double>(stats->memory_bytes) / 1e6);
   return absl::OkStatus();
 }
 
@@ -218,8 +216,8 @@ absl::Status AppearanceIndex::TrainLocked() {
     stored_with_features_ = stored;
     return absl::OkStatus();  // not yet: Recognize says how many it waits for
   }
-  const int64_t step = (stored + options_.max_training_keyframes - 1) /
-                       options_.max_training_keyframes;
+  const int64_t step =
+      (stored + options_.max_training_keyframes - 1) / options_.max_training_keyframes;
   std::vector<cv::Mat> training;
   int64_t i = 0;
   if (auto s = store_->ForEachKeyframeDescriptors(0,
@@ -242,8 +240,8 @@ absl::Status AppearanceIndex::TrainLocked() {
   record.data = vocabulary->Serialize();
   auto id = store_->PutVocabulary(record);
   if (!id.ok()) return id.status();
-  spdlog::info("appearance vocabulary {} trained on {} keyframes: {} words", *id,
-               training.size(), vocabulary->words());
+  spdlog::info("appearance vocabulary {} trained on {} keyframes: {} words", *id, training.size(),
+               vocabulary->words());
   {
     absl::MutexLock lock(&mu_);
     vocabulary_ = std::make_shared<appearance::Vocabulary>(*std::move(vocabulary));
@@ -305,10 +303,10 @@ absl::StatusOr<appearance::Recognition> AppearanceIndex::Recognize(
     stored = stored_with_features_;
   }
   if (!vocabulary || !index) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "no appearance vocabulary yet: one is trained once ", options_.min_training_keyframes,
-        " keyframes with features are stored (", stored,
-        " now), or run `lifemap places index rebuild --retrain`"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("no appearance vocabulary yet: one is trained once ",
+                     options_.min_training_keyframes, " keyframes with features are stored (",
+                     stored, " now), or run `lifemap places index rebuild --retrain`"));
   }
   const appearance::FeatureLoader load = [this](const appearance::KeyframeRef& k) {
     auto f = store_->GetKeyframeFeatures(k.keyframe_id);

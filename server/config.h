@@ -16,8 +16,8 @@ namespace lifemap::server {
 // Appearance place recognition (server/appearance.h).
 struct AppearanceOptions {
   bool enabled = true;
-  int min_training_keyframes = 30;     // stored keyframes before a vocabulary is trained, ≥ 2
-  int max_training_keyframes = 3000;   // keyframes a vocabulary is trained on at most
+  int min_training_keyframes = 30;    // stored keyframes before a vocabulary is trained, ≥ 2
+  int max_training_keyframes = 3000;  // keyframes a vocabulary is trained on at most
   appearance::VocabularyOptions vocabulary;
   appearance::RecognizerOptions recognizer;
   // A keyframe of the querying visit is not a match when taken less than this long before or

@@ -248,13 +248,13 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
     const bool by_architecture = facts.architecture && facts.architecture->status.ok();
     const bool by_appearance = facts.appearance && facts.appearance->ok();
     add(v1::FRAME_OUTPUT_PLACE_MATCHES, by_architecture || by_appearance,
-        absl::StrCat(
-            "architecture (paper 004): ",
-            facts.architecture ? facts.architecture->status.message() : "not asked",
-            "; appearance (paper 000): ",
-            facts.appearance ? facts.appearance->message()
-                             : "queried on keyframes only (FrameOptions.appearance_interval_s "
-                               "asks for other frames)"));
+        absl::StrCat("architecture (paper 004): ",
+                     facts.architecture ? facts.architecture->status.message() : "not asked",
+                     "; appearance (paper 000): ",
+                     facts.appearance
+                         ? facts.appearance->message()
+                         : "queried on keyframes only (FrameOptions.appearance_interval_s "
+                           "asks for other frames)"));
   }
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
       "not implemented in this server yet (semantic octree, paper 002)");

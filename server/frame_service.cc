@@ -1,6 +1,6 @@
 #include <algorithm>
-#include <cmath>
 #include <chrono>
+#include <cmath>
 #include <deque>
 #include <future>
 #include <optional>
@@ -449,8 +449,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
-    PendingResult p =
-        HandleFrame(ctx_, request.frame(), *state, claim->id(), *settings);
+    PendingResult p = HandleFrame(ctx_, request.frame(), *state, claim->id(), *settings);
     last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
     if (!p.visit_closed.ok()) {
       status = ToGrpcStatus(p.visit_closed);
@@ -501,8 +500,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
   } else if (req->visit_id() != 0) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
-  PendingResult p =
-      HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *settings);
+  PendingResult p = HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *settings);
   if (!p.visit_closed.ok()) return ToGrpcStatus(p.visit_closed);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),

@@ -6,8 +6,7 @@
 
 namespace lifemap::server {
 
-KeyframeCommitter::KeyframeCommitter(store::Store* store, int batch_max,
-                                     CommittedHook on_committed)
+KeyframeCommitter::KeyframeCommitter(store::Store* store, int batch_max, CommittedHook on_committed)
     : store_(store),
       batch_max_(batch_max),
       on_committed_(std::move(on_committed)),

@@ -1,0 +1,176 @@
+// Integration tests of appearance place recognition served (paper 000): keyframes of a TUM
+// recording stored in one visit are recognised, with a verified relative pose, by the frames of
+// a later visit; another desk is not; the vocabulary and index survive a restart.
+#include <gtest/gtest.h>
+
+#include "core/io/tum_dataset.h"
+#include "server/convert.h"
+#include "tests/integration/server_fixture.h"
+
+namespace lifemap {
+namespace {
+
+using testing::ServerTest;
+
+struct TumFrames {
+  std::vector<v1::Frame> frames;  // without poses: appearance does not need them
+  std::vector<std::optional<Pose>> truth;
+};
+
+TumFrames ReadTum(const std::string& dir) {
+  TumFrames out;
+  auto seq = io::ReadTumSequence(dir);
+  EXPECT_TRUE(seq.ok()) << seq.status();
+  if (!seq.ok()) return out;
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  uint64_t sequence = 0;
+  for (const auto& e : seq->frames) {
+    auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, sequence++);
+    EXPECT_TRUE(f.ok()) << f.status();
+    out.frames.push_back(*f);
+    out.truth.push_back(e.T_world_camera);
+  }
+  return out;
+}
+
+std::vector<v1::PlaceMatch> AppearanceMatches(const v1::FrameResult& r) {
+  std::vector<v1::PlaceMatch> out;
+  for (const auto& m : r.place_matches()) {
+    if (m.method() == v1::MATCH_METHOD_APPEARANCE) out.push_back(m);
+  }
+  return out;
+}
+
+const v1::OutputStatus& PlaceStatus(const v1::FrameResult& r) {
+  for (const auto& o : r.outputs()) {
+    if (o.output() == v1::FRAME_OUTPUT_PLACE_MATCHES) return o;
+  }
+  static const v1::OutputStatus kNone;
+  return kNone;
+}
+
+class AppearanceTest : public ServerTest {
+ protected:
+  void SetUp() override {
+    server::ServerConfig config;
+    config.appearance.min_training_keyframes = 4;  // a test's few keyframes train a vocabulary
+    StartServer(config);
+  }
+
+  // Sends frames into `map`'s open visit (a new one when none is open) with ProcessFrame.
+  std::vector<v1::FrameResult> Send(const std::string& map, const std::vector<v1::Frame>& frames,
+                                    std::optional<double> appearance_interval_s) {
+    std::vector<v1::FrameResult> out;
+    for (const auto& f : frames) {
+      v1::ProcessFrameRequest req;
+      req.set_map(map);
+      *req.mutable_frame() = f;
+      req.mutable_options()->set_keyframe_max_interval_s(0.15);
+      if (appearance_interval_s) {
+        req.mutable_options()->set_appearance_interval_s(*appearance_interval_s);
+      }
+      auto r = client_->ProcessFrame(req);
+      EXPECT_TRUE(r.ok()) << r.status();
+      if (r.ok()) out.push_back(*r);
+    }
+    return out;
+  }
+};
+
+TEST_F(AppearanceTest, ALaterVisitRecognisesStoredKeyframesWithTheirPoseAndAnotherDeskDoesNot) {
+  const std::string xyz_dir = lifemap::testing::SharedDataset("tum_fr1_xyz_subset");
+  const std::string desk_dir = lifemap::testing::SharedDataset("tum_fr1_desk_subset");
+  if (xyz_dir.empty() || desk_dir.empty()) GTEST_SKIP() << "../shared/data TUM fr1 subsets absent";
+  const TumFrames xyz = ReadTum(xyz_dir);
+  const TumFrames desk = ReadTum(desk_dir);
+  ASSERT_GE(xyz.frames.size(), 30u);
+  ASSERT_TRUE(client_->CreateMap("office", "").ok());
+
+  // Visit 1 stores the even frames. Before the vocabulary exists, results say why they have no
+  // appearance matches.
+  std::vector<v1::Frame> even, odd;
+  for (size_t i = 0; i < xyz.frames.size(); ++i) (i % 2 == 0 ? even : odd).push_back(xyz.frames[i]);
+  const auto first = Send("office", even, std::nullopt);
+  ASSERT_FALSE(first.empty());
+  EXPECT_TRUE(first[0].keyframe().selected());
+  EXPECT_TRUE(AppearanceMatches(first[0]).empty());
+  EXPECT_NE(PlaceStatus(first[0]).reason().find("no appearance vocabulary yet"), std::string::npos)
+      << PlaceStatus(first[0]).reason();
+  int keyframes = 0;
+  for (const auto& r : first) keyframes += r.keyframe().committed() ? 1 : 0;
+  ASSERT_GE(keyframes, 4);
+  auto visits = client_->ListVisits("office");
+  ASSERT_TRUE(visits.ok());
+  ASSERT_EQ(visits->visits_size(), 1);
+  const uint64_t stored_visit = visits->visits(0).id();
+  ASSERT_TRUE(client_->EndVisit(stored_visit).ok());
+
+  // Visit 2: the odd frames, each asking for appearance matches. Indexing follows commits off
+  // the reply path; by the later frames every keyframe of visit 1 is indexed.
+  const auto second = Send("office", odd, /*appearance_interval_s=*/0.0);
+  int matched = 0;
+  for (size_t i = 0; i < second.size(); ++i) {
+    const auto matches = AppearanceMatches(second[i]);
+    if (matches.empty()) continue;
+    ++matched;
+    const v1::PlaceMatch& best = matches[0];
+    EXPECT_EQ(best.map(), "office");
+    EXPECT_EQ(best.visit_id(), stored_visit);
+    EXPECT_GT(best.keyframe_id(), 0u);
+    EXPECT_GT(best.score(), 0.3);
+    EXPECT_LE(best.score(), 1.0);
+    EXPECT_TRUE(PlaceStatus(second[i]).computed());
+    // The relative pose against the ground truth of the two frames.
+    auto kf = client_->GetKeyframe("office", best.keyframe_id());
+    ASSERT_TRUE(kf.ok()) << kf.status();
+    size_t stored_index = 0;
+    for (size_t j = 0; j < xyz.frames.size(); ++j) {
+      if (std::abs(xyz.frames[j].timestamp_s() - kf->summary().timestamp_s()) < 1e-6)
+        stored_index = j;
+    }
+    const size_t query_index = 2 * i + 1;
+    ASSERT_TRUE(xyz.truth[stored_index] && xyz.truth[query_index]);
+    const Eigen::Isometry3d truth =
+        xyz.truth[stored_index]->ToIsometry().inverse() * xyz.truth[query_index]->ToIsometry();
+    auto estimated = server::PoseFromProto(best.t_match_query());
+    ASSERT_TRUE(estimated.ok());
+    const Eigen::Isometry3d error = truth.inverse() * estimated->ToIsometry();
+    EXPECT_LT(error.translation().norm(), 0.05) << "query frame " << query_index;
+    EXPECT_LT(Eigen::AngleAxisd(error.linear()).angle(), 0.05);
+  }
+  EXPECT_GE(matched, static_cast<int>(second.size()) / 2);
+
+  // Another desk of the same office: asked, computed, nothing verified.
+  ASSERT_TRUE(client_->CreateMap("elsewhere", "").ok());
+  const auto other = Send("elsewhere", desk.frames, 0.0);
+  for (const auto& r : other) EXPECT_TRUE(AppearanceMatches(r).empty());
+
+  // After a restart the stored vocabulary and keyframes answer at once.
+  RestartServer();
+  const auto again = Send("office", {odd[odd.size() / 2]}, 0.0);
+  ASSERT_EQ(again.size(), 1u);
+  EXPECT_FALSE(AppearanceMatches(again[0]).empty()) << PlaceStatus(again[0]).reason();
+}
+
+TEST_F(AppearanceTest, ABadIntervalIsRefusedAndNonKeyframesSayHowToAsk) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  *req.mutable_frame() = lifemap::testing::MakeFrame();
+  req.mutable_options()->set_appearance_interval_s(-1);
+  auto r = client_->ProcessFrame(req);
+  EXPECT_TRUE(absl::IsInvalidArgument(r.status()));
+  EXPECT_NE(r.status().message().find("appearance_interval_s"), absl::string_view::npos);
+  req.mutable_options()->clear_appearance_interval_s();
+  ASSERT_TRUE(client_->ProcessFrame(req).ok());  // the visit's first frame: a keyframe
+  req.mutable_frame()->set_timestamp_s(req.frame().timestamp_s() + 0.01);
+  r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_FALSE(r->keyframe().selected());
+  EXPECT_NE(PlaceStatus(*r).reason().find("appearance_interval_s"), std::string::npos)
+      << PlaceStatus(*r).reason();
+}
+
+}  // namespace
+}  // namespace lifemap
