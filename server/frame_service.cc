@@ -25,8 +25,6 @@ using Clock = std::chrono::steady_clock;
 // up to 13.1 m: covers indoor Kinect-class sensors).
 constexpr double kStoredDepthScale = 5000.0;
 constexpr int kStoredJpegQuality = 90;
-// ORB keypoints detected per keyframe (before the entropy mask prunes them).
-constexpr int kKeyframeKeypoints = 1000;
 
 double MsBetween(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double, std::milli>(b - a).count();
@@ -263,7 +261,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   absl::StatusOr<pipeline::KeyframeFeatures> features =
       absl::FailedPreconditionError("not extracted");
   if (decision.selected || query_appearance) {
-    features = pipeline::ExtractKeyframeFeatures(*analysis, {kKeyframeKeypoints});
+    features = pipeline::ExtractKeyframeFeatures(*analysis, {});
   }
   if (decision.selected) {
     record = MakeKeyframeRecord(frame, f, visit->visit_id);

@@ -100,9 +100,17 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
                           v1::ListPlacesResponse*) override;
 
  private:
-  // A query's own posed key frames, folded into a plan that is ranked and not stored.
-  grpc::Status QueryFrames(const v1::QueryPlaceRequest& req, size_t max_results,
-                           v1::QueryPlaceResponse* resp);
+  struct MethodOutcome;
+  // Each method's answer for a query's frames (not stored) or a stored visit. A non-OK
+  // grpc::Status fails the call (a bad frame, a store error); a method that cannot answer
+  // says why in its outcome.
+  grpc::Status ArchitectureOfFrames(const std::vector<EncodedRgbdFrame>& frames, size_t max_results,
+                                    MethodOutcome* out);
+  grpc::Status AppearanceOfFrames(
+      const std::vector<EncodedRgbdFrame>& frames, size_t max_results, MethodOutcome* out,
+      google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame);
+  void ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
+  void AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
   static constexpr int kMaxQueryFrames = 2000;
   ServiceContext* ctx_;
 };

@@ -141,6 +141,48 @@ TEST_F(AppearanceTest, ALaterVisitRecognisesStoredKeyframesWithTheirPoseAndAnoth
   }
   EXPECT_GE(matched, static_cast<int>(second.size()) / 2);
 
+  // QueryPlace by appearance on a few frames: each answered in order; both visits of the desk
+  // ranked (the second holds some of these very frames as keyframes).
+  v1::QueryPlaceRequest query;
+  query.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  for (size_t i = 1; i < odd.size(); i += 4) *query.add_frames() = odd[i];
+  auto answer = client_->QueryPlace(query);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  ASSERT_EQ(answer->frames_size(), query.frames_size());
+  int frames_matched = 0;
+  for (int i = 0; i < answer->frames_size(); ++i) {
+    EXPECT_EQ(answer->frames(i).index(), static_cast<uint32_t>(i));
+    frames_matched += answer->frames(i).matches_size() > 0 ? 1 : 0;
+  }
+  EXPECT_GE(frames_matched, query.frames_size() - 1);
+  ASSERT_EQ(answer->matches_size(), 2);
+  EXPECT_TRUE(answer->matches(0).visit_id() == stored_visit ||
+              answer->matches(1).visit_id() == stored_visit);
+  EXPECT_GE(answer->matches(0).score(), answer->matches(1).score());
+  EXPECT_EQ(answer->matches(0).method(), v1::MATCH_METHOD_APPEARANCE);
+  // Both methods on frames without poses: appearance answers, architecture says why not, and
+  // there is no fused ranking.
+  query.clear_methods();
+  answer = client_->QueryPlace(query);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  ASSERT_EQ(answer->method_status_size(), 2);
+  EXPECT_FALSE(answer->method_status(0).computed());
+  EXPECT_NE(answer->method_status(0).reason().find("pose is missing"), std::string::npos);
+  EXPECT_TRUE(answer->method_status(1).computed());
+  for (const auto& m : answer->matches()) EXPECT_NE(m.method(), v1::MATCH_METHOD_FUSED);
+  // The second (stored) visit, by appearance: the first.
+  visits = client_->ListVisits("office");
+  ASSERT_TRUE(visits.ok());
+  ASSERT_EQ(visits->visits_size(), 2);
+  v1::QueryPlaceRequest by_visit;
+  by_visit.set_visit_id(visits->visits(0).id() == stored_visit ? visits->visits(1).id()
+                                                               : visits->visits(0).id());
+  by_visit.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  answer = client_->QueryPlace(by_visit);
+  ASSERT_TRUE(answer.ok()) << answer.status();
+  ASSERT_GE(answer->matches_size(), 1);
+  EXPECT_EQ(answer->matches(0).visit_id(), stored_visit);
+
   // Another desk of the same office: asked, computed, nothing verified.
   ASSERT_TRUE(client_->CreateMap("elsewhere", "").ok());
   const auto other = Send("elsewhere", desk.frames, 0.0);

@@ -173,6 +173,7 @@ TEST_F(ServerTest, ALaterVisitOfAPlaceRanksItFirstByArchitecture) {
   // A recording's own key frames (depth and poses, no colour): ranked, not stored — both home
   // visits above the office.
   v1::QueryPlaceRequest recording;
+  recording.add_methods(v1::MATCH_METHOD_ARCHITECTURE);
   for (size_t f = 0; f < (*home_visits)[1].trajectory.size(); f += 3) {
     *recording.add_frames() = RenderedFrame(*home, (*home_visits)[1], f, /*color=*/false);
   }

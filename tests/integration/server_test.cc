@@ -11,6 +11,7 @@
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
 #include "core/io/tum_dataset.h"
+#include "lifemap/v1/map_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "server/server.h"
 #include "server/store/store.h"
@@ -475,14 +476,14 @@ TEST_F(ServerTest, ResumedVisitContinuesKeyframeSelection) {
 
 TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
-  auto places = v1::PlaceService::NewStub(channel);
+  auto maps = v1::MapService::NewStub(channel);
   grpc::ClientContext ctx;
-  v1::QueryPlaceResponse resp;
-  v1::QueryPlaceRequest appearance;
-  appearance.add_methods(v1::MATCH_METHOD_APPEARANCE);
-  const grpc::Status s = places->QueryPlace(&ctx, appearance, &resp);
+  v1::Map imported;
+  auto writer = maps->ImportMap(&ctx, &imported);
+  writer->WritesDone();
+  const grpc::Status s = writer->Finish();
   EXPECT_EQ(s.error_code(), grpc::StatusCode::UNIMPLEMENTED);
-  EXPECT_NE(s.error_message().find("appearance"), std::string::npos);
+  EXPECT_NE(s.error_message().find("ImportMap"), std::string::npos);
 
   // grpc.health.v1.Health/Check with an empty request; SERVING is field 1 = 1 (bytes 08 01).
   grpc::ClientContext health_ctx;
