@@ -155,6 +155,11 @@ class GrpcClient final : public Client {
   absl::StatusOr<v1::VacuumResponse> Vacuum() override {
     return Unary(&v1::AdminService::Stub::Vacuum, admin_.get(), v1::VacuumRequest());
   }
+  absl::StatusOr<v1::AppearanceIndexInfo> RebuildAppearanceIndex(bool retrain) override {
+    v1::RebuildAppearanceIndexRequest req;
+    req.set_retrain(retrain);
+    return Unary(&v1::AdminService::Stub::RebuildAppearanceIndex, admin_.get(), req);
+  }
 
   absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                     const std::string& description) override {

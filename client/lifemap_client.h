@@ -62,6 +62,7 @@ class Client {
   virtual absl::StatusOr<v1::BackupResponse> Backup(const std::string& server_path) = 0;
   virtual absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() = 0;
   virtual absl::StatusOr<v1::VacuumResponse> Vacuum() = 0;
+  virtual absl::StatusOr<v1::AppearanceIndexInfo> RebuildAppearanceIndex(bool retrain) = 0;
 
   virtual absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                             const std::string& description) = 0;

@@ -57,6 +57,31 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext*, const v1::GetStats
   resp->set_frames_rejected(ctx_->frames_rejected.load());
   resp->set_keyframes_committed(ctx_->committer->committed());
   resp->set_uptime_s(NowSeconds() - ctx_->started_time_s);
+  AppearanceInfoToProto(ctx_->appearance->Stats(), resp->mutable_appearance());
+  return grpc::Status::OK;
+}
+
+void AdminServiceImpl::AppearanceInfoToProto(const AppearanceIndexStats& s,
+                                             v1::AppearanceIndexInfo* out) const {
+  out->set_enabled(ctx_->appearance->options().enabled);
+  out->set_has_vocabulary(s.has_vocabulary);
+  out->set_vocabulary_id(static_cast<uint64_t>(s.vocabulary_id));
+  out->set_words(s.words);
+  out->set_keyframes(s.keyframes);
+  out->set_memory_bytes(s.memory_bytes);
+  out->set_stored_keyframes(static_cast<uint64_t>(s.stored_with_features));
+  out->set_min_training_keyframes(
+      static_cast<uint32_t>(ctx_->appearance->options().min_training_keyframes));
+}
+
+grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext*,
+                                                      const v1::RebuildAppearanceIndexRequest* req,
+                                                      v1::AppearanceIndexInfo* resp) {
+  auto stats = ctx_->appearance->Rebuild(req->retrain());
+  if (!stats.ok()) return ToGrpcStatus(stats.status());
+  spdlog::info("appearance index rebuilt{}: {} keyframes", req->retrain() ? " (retrained)" : "",
+               stats->keyframes);
+  AppearanceInfoToProto(*stats, resp);
   return grpc::Status::OK;
 }
 

@@ -86,7 +86,7 @@ void AppearanceIndex::Run() {
           if (bow.ok()) index->Add(job.keyframe, *bow);
           status = bow.status();
         } else if (stored >= options_.min_training_keyframes) {
-          status = TrainLocked();
+          status = TrainLocked(/*asked=*/false);
         }
         break;
       }
@@ -105,7 +105,8 @@ void AppearanceIndex::Run() {
           absl::MutexLock lock(&mu_);
           has_vocabulary = vocabulary_ != nullptr;
         }
-        status = job.retrain || !has_vocabulary ? TrainLocked() : IndexStored(0);
+        status = job.retrain || !has_vocabulary ? TrainLocked(/*asked=*/job.retrain)
+                                                : IndexStored(0);
         break;
       }
       case Job::Kind::kFlush:
@@ -202,7 +203,7 @@ absl::StatusOr<AppearanceIndexStats> AppearanceIndex::Rebuild(bool retrain) {
   return future.get();
 }
 
-absl::Status AppearanceIndex::TrainLocked() {
+absl::Status AppearanceIndex::TrainLocked(bool asked) {
   // Count first, then keep every n-th keyframe's descriptors so that at most
   // max_training_keyframes are held.
   int64_t stored = 0;
@@ -211,7 +212,12 @@ absl::Status AppearanceIndex::TrainLocked() {
       !s.ok()) {
     return s;
   }
-  if (stored < options_.min_training_keyframes) {
+  if (asked && stored == 0) {
+    return absl::FailedPreconditionError(
+        "no stored keyframe has features to train a vocabulary on: stream some frames into a "
+        "map first (keyframes stored before lifemap 0.1's appearance index have none)");
+  }
+  if (!asked && stored < options_.min_training_keyframes) {
     absl::MutexLock lock(&mu_);
     stored_with_features_ = stored;
     return absl::OkStatus();  // not yet: Recognize says how many it waits for

@@ -82,8 +82,9 @@ class AppearanceIndex {
   };
   void Run();
   void Push(Job job);
-  // Worker thread only.
-  absl::Status TrainLocked();
+  // Worker thread only. Trains a vocabulary on the stored keyframes and re-indexes them; unless
+  // `asked` (an operator's rebuild), only once min_training_keyframes are stored.
+  absl::Status TrainLocked(bool asked);
   absl::Status IndexStored(int64_t map_id);
   absl::StatusOr<int64_t> MapOfVisit(int64_t visit_id);
 

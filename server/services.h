@@ -145,8 +145,12 @@ class AdminServiceImpl final : public v1::AdminService::Service {
   grpc::Status Vacuum(grpc::ServerContext*, const v1::VacuumRequest*, v1::VacuumResponse*) override;
   grpc::Status CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
                             v1::CreateApiKeyResponse*) override;
+  grpc::Status RebuildAppearanceIndex(grpc::ServerContext*,
+                                      const v1::RebuildAppearanceIndexRequest*,
+                                      v1::AppearanceIndexInfo*) override;
 
  private:
+  void AppearanceInfoToProto(const AppearanceIndexStats& s, v1::AppearanceIndexInfo* out) const;
   ServiceContext* ctx_;
 };
 

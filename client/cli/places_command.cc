@@ -21,28 +21,35 @@ struct QueryArgs {
   uint64_t visit = 0;
   std::string tum;
   uint32_t max = 5;
+  std::string method = "both";
 };
 
-// Adds a recording's key frames (chosen on its ground-truth poses as the server chooses them)
-// to `req` as depth + pose, colour left out, within `max_bytes` of message: when they do not
-// fit, every n-th key frame. Returns a line saying what was sent.
+// Adds a recording's key frames (chosen as the server chooses them: on its ground-truth poses
+// when it has them, else by time) to `req`: depth, the pose when known, colour when
+// `with_color` (appearance needs it), within `max_bytes` of message: when they do not fit, every
+// n-th key frame. `need_poses`: architecture alone, which cannot go without them. Returns a
+// line saying what was sent.
 absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64_t max_bytes,
+                                                  bool with_color, bool need_poses,
                                                   v1::QueryPlaceRequest* req) {
   auto seq = io::ReadTumSequence(dir);
   if (!seq.ok()) return seq.status();
-  if (seq->frames_with_pose < 2) {
+  if (need_poses && seq->frames_with_pose < 2) {
     return absl::FailedPreconditionError(
         absl::StrCat(dir, ": ", seq->frames_with_pose,
                      " frames have a ground-truth pose; a floor plan needs the key frames' poses "
-                     "(groundtruth.txt)"));
+                     "(groundtruth.txt); --method appearance works without them"));
   }
+  const bool posed = seq->frames_with_pose >= 2;
   tracking::KeyframeSelector selector;
   std::vector<const io::TumFrameEntry*> keyframes;
   for (const auto& e : seq->frames) {
-    if (!e.T_world_camera || !selector.Decide(e.timestamp_s, e.T_world_camera).selected) continue;
+    if (posed && !e.T_world_camera) continue;
+    if (!selector.Decide(e.timestamp_s, e.T_world_camera).selected) continue;
     selector.Accept(e.timestamp_s, e.T_world_camera);
     keyframes.push_back(&e);
   }
+  if (keyframes.empty()) return absl::FailedPreconditionError(absl::StrCat(dir, ": no frames"));
   // The intrinsics for the depth images' size (the first key frame's).
   auto first = ReadFileBytes(keyframes.front()->depth_path);
   if (!first.ok()) return first.status();
@@ -56,11 +63,11 @@ absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64
   std::vector<v1::Frame> frames;
   uint64_t bytes = 0;
   for (const auto* e : keyframes) {
-    auto f = client::FrameFromFiles(/*rgb_path=*/"", e->depth_path, 5000, k, e->timestamp_s,
-                                    frames.size());
+    auto f = client::FrameFromFiles(with_color ? e->rgb_path : "", e->depth_path, 5000, k,
+                                    e->timestamp_s, frames.size());
     if (!f.ok()) return f.status();
-    *f->mutable_pose() = PoseProto(*e->T_world_camera);
-    bytes += f->depth().data().size();
+    if (e->T_world_camera) *f->mutable_pose() = PoseProto(*e->T_world_camera);
+    bytes += f->depth().data().size() + f->color().data().size();
     frames.push_back(*std::move(f));
   }
   // Leave a tenth of the message for framing; thin evenly when the key frames do not fit.
@@ -76,11 +83,60 @@ absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64
                 : std::string());
 }
 
+const char* MethodName(v1::MatchMethod m) {
+  switch (m) {
+    case v1::MATCH_METHOD_ARCHITECTURE:
+      return "architecture";
+    case v1::MATCH_METHOD_APPEARANCE:
+      return "appearance";
+    case v1::MATCH_METHOD_FUSED:
+      return "fused";
+    default:
+      return "?";
+  }
+}
+
+void PrintMatch(const v1::PlaceMatch& m) {
+  std::cout << absl::StrFormat("  %-12s %-20s visit %-6d", MethodName(m.method()), m.map(),
+                               m.visit_id());
+  if (m.keyframe_id() != 0) std::cout << absl::StrFormat(" keyframe %-8d", m.keyframe_id());
+  std::cout << absl::StrFormat(" score %.3f", m.score());
+  if (m.has_t_match_query()) {
+    const auto& t = m.t_match_query();
+    std::cout << absl::StrFormat("  query at (%.3f, %.3f, %.3f) m in the keyframe's camera", t.tx(),
+                                 t.ty(), t.tz());
+  }
+  std::cout << "\n";
+}
+
+void PrintQueryAnswer(const std::string& what, const v1::QueryPlaceResponse& r) {
+  std::cout << what << ":\n";
+  for (const auto& s : r.method_status()) {
+    if (!s.computed()) std::cout << "  " << MethodName(s.method()) << ": " << s.reason() << "\n";
+  }
+  std::cout << r.descriptor_text();
+  if (r.matches().empty()) std::cout << "  no stored visit matches\n";
+  for (const auto& m : r.matches()) PrintMatch(m);
+  for (const auto& f : r.frames()) {
+    std::cout << "frame " << f.index() << ":";
+    if (!f.reason().empty()) {
+      std::cout << " " << f.reason() << "\n";
+    } else if (f.matches().empty()) {
+      std::cout << " nothing recognised\n";
+    } else {
+      std::cout << "\n";
+      for (const auto& m : f.matches()) PrintMatch(m);
+    }
+  }
+}
+
 }  // namespace
 
 void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
   auto* places = app->add_subcommand(
-      "places", "Floor plans of stored visits and which stored place a visit is (paper 004)");
+      "places",
+      "Which stored place a view or visit is: by architecture (floor plans, paper 004) and by "
+      "appearance (entropy-pruned features, paper 000)");
   places->require_subcommand(1);
 
   auto* show = places->add_subcommand("show", "A map's floor plans (one per visit)");
@@ -135,17 +191,60 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
     };
   });
 
+  auto* index = places->add_subcommand(
+      "index", "The appearance index over every stored keyframe (paper 000)");
+  index->require_subcommand(1);
+  auto print_index = [](const v1::AppearanceIndexInfo& a) {
+    if (!a.enabled()) {
+      std::cout << "appearance: disabled in the server's config (appearance.enabled)\n";
+    } else if (!a.has_vocabulary()) {
+      std::cout << absl::StrFormat(
+          "appearance: no vocabulary yet; one is trained once %d keyframes with features are "
+          "stored (%d now), or run `lifemap places index rebuild --retrain`\n",
+          a.min_training_keyframes(), a.stored_keyframes());
+    } else {
+      std::cout << absl::StrFormat(
+          "appearance: vocabulary %d (%d words); %d of %d stored keyframes indexed, %s in "
+          "memory\n",
+          a.vocabulary_id(), a.words(), a.keyframes(), a.stored_keyframes(),
+          HumanBytes(a.memory_bytes()));
+    }
+  };
+  index->add_subcommand("show", "The index's vocabulary, keyframes and memory")
+      ->callback([ctx, print_index] {
+        ctx->run = [ctx, print_index] {
+          return RunCall<v1::Stats>(
+              *ctx, [](client::Client& c) { return c.GetStats(); },
+              [&](const v1::Stats& s) { print_index(s.appearance()); });
+        };
+      });
+  auto* rebuild = index->add_subcommand(
+      "rebuild", "Re-read every stored keyframe into the index (after a restore, say)");
+  auto retrain = std::make_shared<bool>(false);
+  rebuild->add_flag("--retrain", *retrain,
+                    "first train a new vocabulary on the stored keyframes (kept in the store)");
+  rebuild->callback([ctx, retrain, print_index] {
+    ctx->run = [ctx, retrain, print_index] {
+      return RunCall<v1::AppearanceIndexInfo>(
+          *ctx, [&](client::Client& c) { return c.RebuildAppearanceIndex(*retrain); }, print_index);
+    };
+  });
+
   auto* query = places->add_subcommand(
-      "query", "Rank stored visits by architecture against a stored visit or a recording");
+      "query",
+      "Recognise a stored visit or a recording among the stored visits: by architecture, by "
+      "appearance (also per frame), or both (fused)");
   auto q = std::make_shared<QueryArgs>();
   auto* visit_opt = query->add_option("--visit", q->visit, "a stored visit's id");
   auto* tum_opt = query
                       ->add_option("--tum", q->tum,
-                                   "a TUM-format recording with ground-truth poses "
-                                   "(groundtruth.txt); its key frames are sent, not stored")
+                                   "a TUM-format recording; its key frames are sent, not stored "
+                                   "(architecture needs its groundtruth.txt poses)")
                       ->check(CLI::ExistingDirectory);
   visit_opt->excludes(tum_opt);
   query->add_option("--max", q->max, "results (default 5)")->check(CLI::Range(1, 1000));
+  query->add_option("--method", q->method, "architecture, appearance or both (default)")
+      ->check(CLI::IsMember({"architecture", "appearance", "both"}));
   query->callback([ctx, q] {
     ctx->run = [ctx, q] {
       if (q->visit == 0 && q->tum.empty()) {
@@ -153,14 +252,18 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
       }
       v1::QueryPlaceRequest req;
       req.set_max_results(q->max);
-      req.add_methods(v1::MATCH_METHOD_ARCHITECTURE);
+      const bool architecture = q->method != "appearance";
+      const bool appearance = q->method != "architecture";
+      if (architecture) req.add_methods(v1::MATCH_METHOD_ARCHITECTURE);
+      if (appearance) req.add_methods(v1::MATCH_METHOD_APPEARANCE);
       std::string what = absl::StrCat("visit ", q->visit);
       if (!q->tum.empty()) {
         auto client = ctx->Connect();
         if (!client.ok()) return Fail(client.status());
         auto info = (*client)->GetServerInfo();
         if (!info.ok()) return Fail(info.status());
-        auto summary = AddRecordingKeyframes(q->tum, info->max_message_bytes(), &req);
+        auto summary = AddRecordingKeyframes(q->tum, info->max_message_bytes(), appearance,
+                                             /*need_poses=*/!appearance, &req);
         if (!summary.ok()) return Fail(summary.status());
         if (!ctx->json) std::cerr << *summary << "\n";
         what = q->tum;
@@ -169,17 +272,7 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
       }
       return RunCall<v1::QueryPlaceResponse>(
           *ctx, [&](client::Client& c) { return c.QueryPlace(req); },
-          [&](const v1::QueryPlaceResponse& r) {
-            std::cout << what << ":\n" << r.descriptor_text();
-            if (r.matches().empty()) {
-              std::cout << (q->visit != 0 ? "no other stored visit has a floor plan\n"
-                                          : "no stored visit has a floor plan\n");
-            }
-            for (const auto& m : r.matches()) {
-              std::cout << absl::StrFormat("  %-20s visit %-6d score %.3f\n", m.map(), m.visit_id(),
-                                           m.score());
-            }
-          });
+          [&](const v1::QueryPlaceResponse& r) { PrintQueryAnswer(what, r); });
     };
   });
 }
