@@ -41,28 +41,36 @@ std::vector<Candidate> InvertedIndex::Query(
     const BowVector& query, size_t top_k,
     const std::function<bool(const KeyframeRef&)>& exclude) const {
   absl::ReaderMutexLock lock(&mu_);
-  std::vector<float> score(entries_.size(), 0.0f);
+  const size_t n = entries_.size();
+  // Stop words (Sivic & Zisserman): a word in most keyframes tells them apart little and costs
+  // the longest posting lists; skipped once the index is large enough for shares to mean much.
+  const size_t stop_length = n >= kStopWordMinKeyframes
+                                 ? static_cast<size_t>(stop_word_share_ * static_cast<double>(n))
+                                 : n + 1;
+  std::vector<float> score(n, 0.0f);
   for (const auto& [word, weight] : query.words) {
-    if (word >= postings_.size()) continue;
+    if (word >= postings_.size() || postings_[word].size() > stop_length) continue;
     for (const Posting& p : postings_[word]) score[p.entry] += std::min(weight, p.weight);
   }
-  std::vector<Candidate> out;
-  for (size_t i = 0; i < score.size(); ++i) {
-    if (score[i] <= 0) continue;
-    if (exclude && exclude(entries_[i])) continue;
-    out.push_back({entries_[i], score[i]});
-  }
+  // The best top_k by a bounded min-heap (the worst kept on top).
   const auto better = [](const Candidate& a, const Candidate& b) {
     return a.score != b.score ? a.score > b.score : a.keyframe.keyframe_id < b.keyframe.keyframe_id;
   };
-  if (out.size() > top_k) {
-    std::partial_sort(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(top_k), out.end(),
-                      better);
-    out.resize(top_k);
-  } else {
-    std::sort(out.begin(), out.end(), better);
+  std::vector<Candidate> heap;
+  heap.reserve(top_k + 1);
+  for (size_t i = 0; i < n; ++i) {
+    if (score[i] <= 0) continue;
+    if (heap.size() == top_k && !(score[i] > heap.front().score)) continue;
+    if (exclude && exclude(entries_[i])) continue;
+    heap.push_back({entries_[i], score[i]});
+    std::push_heap(heap.begin(), heap.end(), better);
+    if (heap.size() > top_k) {
+      std::pop_heap(heap.begin(), heap.end(), better);
+      heap.pop_back();
+    }
   }
-  return out;
+  std::sort(heap.begin(), heap.end(), better);
+  return heap;
 }
 
 IndexStats InvertedIndex::Stats() const {

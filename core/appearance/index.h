@@ -35,7 +35,9 @@ struct IndexStats {
 // Thread-safe: queries share a reader lock; Add and Remove take it exclusively.
 class InvertedIndex {
  public:
-  explicit InvertedIndex(size_t words) : postings_(words) {}
+  // `stop_word_share` in (0, 1]: see Query (1 = no stop list).
+  explicit InvertedIndex(size_t words, double stop_word_share = kStopWordShare)
+      : stop_word_share_(stop_word_share), postings_(words) {}
 
   // Words outside the vocabulary's size are ignored.
   void Add(const KeyframeRef& keyframe, const BowVector& bow);
@@ -43,17 +45,22 @@ class InvertedIndex {
   size_t RemoveIf(const std::function<bool(const KeyframeRef&)>& drop);
 
   // The `top_k` best-scoring entries with score > 0 that `exclude` (may be empty) does not
-  // reject, best first.
+  // reject, best first. Once the index holds kStopWordMinKeyframes keyframes, words found in
+  // more than stop_word_share of them are not scored (a stop list).
   std::vector<Candidate> Query(const BowVector& query, size_t top_k,
                                const std::function<bool(const KeyframeRef&)>& exclude = {}) const;
 
   IndexStats Stats() const;
+
+  static constexpr size_t kStopWordMinKeyframes = 1000;
+  static constexpr double kStopWordShare = 0.2;
 
  private:
   struct Posting {
     uint32_t entry;
     float weight;
   };
+  const double stop_word_share_;
   mutable absl::Mutex mu_;
   std::vector<std::vector<Posting>> postings_ ABSL_GUARDED_BY(mu_);
   std::vector<KeyframeRef> entries_ ABSL_GUARDED_BY(mu_);
