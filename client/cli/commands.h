@@ -74,5 +74,6 @@ void AddModelCommands(CLI::App* app, CliContext* ctx);
 void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx);
 // `lifemap eval places` (paper 004's evaluation on a synthetic suite).
 void AddPlaceEvalCommand(CLI::App* eval, CliContext* ctx);
+void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx);
 
 }  // namespace lifemap::cli

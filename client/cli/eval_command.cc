@@ -532,6 +532,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   matching->callback([ctx, a] { ctx->run = [ctx, a] { return RunMatching(*ctx, *a); }; });
   AddForestCommands(app, ev, ctx);
   AddPlaceEvalCommand(ev, ctx);
+  AddAppearanceEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -27,6 +27,8 @@ using nlohmann::json;
 Eigen::Vector2d Point(const json& j) { return {j.at(0).get<double>(), j.at(1).get<double>()}; }
 
 // Runs job(i) for i in [0, n) on `threads` threads (0 = one per core).
+}  // namespace
+
 void ParallelFor(size_t n, int threads, const std::function<void(size_t)>& job) {
   const unsigned workers = std::max(
       1u, std::min<unsigned>(threads > 0 ? static_cast<unsigned>(threads)
@@ -42,7 +44,7 @@ void ParallelFor(size_t n, int threads, const std::function<void(size_t)>& job) 
   for (auto& t : pool) t.join();
 }
 
-}  // namespace
+namespace {}  // namespace
 
 absl::StatusOr<TruthPlan> ReadTruthPlan(const std::string& path) {
   std::ifstream in(path);
@@ -237,8 +239,7 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
                           absl::StrCat(seq->frames[keyframes[j]].depth_path, ": ", s.message()));
     }
     if (keep[j]) {
-      v.appearance.push_back(
-          features::ExtractOrb(frame->color_bgr, options.orb_keypoints));
+      v.appearance.push_back(features::ExtractOrb(frame->color_bgr, options.orb_keypoints));
     }
   }
   auto plan = builder.Build();
@@ -335,14 +336,8 @@ MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& vi
       m.trials.push_back(t);
     }
   }
-  for (int step = 0; step <= 200; ++step) {
-    const PrPoint p = EvaluateTrials(m.trials, step / 200.0);
-    m.curve.push_back(p);
-    if (p.f1 > m.operating.f1) m.operating = p;
-  }
-  if (threshold >= 0) m.operating = EvaluateTrials(m.trials, threshold);
+  SummariseTrials(threshold, &m);
   for (int k = 0; k < 8; ++k) {
-    m.subsets[static_cast<size_t>(k)] = EvaluateTrials(m.trials, m.operating.threshold, k + 1);
     m.top1[static_cast<size_t>(k)] =
         known[static_cast<size_t>(k)] > 0
             ? static_cast<double>(top1[static_cast<size_t>(k)]) / known[static_cast<size_t>(k)]
@@ -353,17 +348,28 @@ MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& vi
 
 }  // namespace
 
-absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
-                                         const PlaceStudyOptions& options,
-                                         const std::function<void(const std::string&)>& progress) {
-  const auto start = std::chrono::steady_clock::now();
+void SummariseTrials(double threshold, MethodResult* m) {
+  m->curve.clear();
+  m->operating = PrPoint();
+  for (int step = 0; step <= 200; ++step) {
+    const PrPoint p = EvaluateTrials(m->trials, step / 200.0);
+    m->curve.push_back(p);
+    if (p.f1 > m->operating.f1) m->operating = p;
+  }
+  if (threshold >= 0) m->operating = EvaluateTrials(m->trials, threshold);
+  for (int k = 0; k < 8; ++k) {
+    m->subsets[static_cast<size_t>(k)] = EvaluateTrials(m->trials, m->operating.threshold, k + 1);
+  }
+}
+
+absl::StatusOr<std::vector<SuiteVisit>> ReadSuiteManifest(const std::string& suite_dir) {
   const fs::path root(suite_dir);
   std::ifstream in(root / "manifest.json");
   if (!in) {
     return absl::NotFoundError(absl::StrCat((root / "manifest.json").string(),
                                             ": cannot open (make a suite with lifemap sim suite)"));
   }
-  PlaceStudy study;
+  std::vector<SuiteVisit> visits;
   try {
     json manifest;
     in >> manifest;
@@ -387,13 +393,26 @@ absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
         return absl::InvalidArgumentError(
             absl::StrCat("manifest.json: query ", s.path, " has subset ", s.subset, " (1..8)"));
       }
-      study.visits.push_back(std::move(s));
+      visits.push_back(std::move(s));
     }
   } catch (const json::exception& e) {
     return absl::InvalidArgumentError(
         absl::StrCat((root / "manifest.json").string(), ": not a suite manifest: ", e.what()));
   }
-  if (study.visits.empty()) return absl::InvalidArgumentError("manifest.json lists no visits");
+  if (visits.empty()) return absl::InvalidArgumentError("manifest.json lists no visits");
+
+  return visits;
+}
+
+absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
+                                         const PlaceStudyOptions& options,
+                                         const std::function<void(const std::string&)>& progress) {
+  const auto start = std::chrono::steady_clock::now();
+  const fs::path root(suite_dir);
+  PlaceStudy study;
+  auto visits = ReadSuiteManifest(suite_dir);
+  if (!visits.ok()) return visits.status();
+  study.visits = *std::move(visits);
 
   // Fold every visit (the expensive part) in parallel.
   std::mutex mu;

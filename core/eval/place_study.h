@@ -128,6 +128,17 @@ struct PlaceStudy {
   double seconds = 0;
 };
 
+// The visits DIR/manifest.json (lifemap sim suite) lists, with role, subset and shape (nothing
+// folded). NotFound without it; InvalidArgument for a malformed one.
+absl::StatusOr<std::vector<SuiteVisit>> ReadSuiteManifest(const std::string& suite_dir);
+
+// Fills m->curve (thresholds 0..1 in steps of 0.005), m->operating (at `threshold`, or the best
+// F1 over every subset when it is negative) and m->subsets from m->trials (top1 untouched).
+void SummariseTrials(double threshold, MethodResult* m);
+
+// Runs job(0..n-1) on `threads` threads (0 = one per core).
+void ParallelFor(size_t n, int threads, const std::function<void(size_t)>& job);
+
 // Reads DIR/manifest.json (lifemap sim suite), folds every visit and evaluates. `progress`
 // (may be empty) hears one line per folded visit.
 absl::StatusOr<PlaceStudy> RunPlaceStudy(const std::string& suite_dir,
