@@ -243,6 +243,8 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
   if (!facts.has_map) {
     add(v1::FRAME_OUTPUT_PLACE_MATCHES, false,
         "no map given: places are recognised for frames of a visit");
+  } else if (facts.analysis == nullptr) {
+    add(v1::FRAME_OUTPUT_PLACE_MATCHES, true, "");  // server-wide: both methods are served
   } else {
     // Computed when either method answered; otherwise why neither did.
     const bool by_architecture = facts.architecture && facts.architecture->status.ok();
