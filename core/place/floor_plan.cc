@@ -10,54 +10,20 @@
 #include <Eigen/Geometry>
 
 #include "absl/strings/str_cat.h"
+#include "core/place/floor_plan_steps.h"
 
 namespace lifemap::place {
+
+using steps::Cell;
+using steps::Key;
+using steps::kRayRangeM;
+using steps::Patch;
+using steps::Sighting;
+using steps::WallAcc;
+
 namespace {
 
 double Deg(double d) { return d * M_PI / 180.0; }
-
-// Evidence about one cell of a wall (along × height).
-struct Cell {
-  float covered = 0;   // a planar region or a reading lies on the wall here
-  float free = 0;      // a ray passed here: a reading beyond the wall, or none
-  float occluded = 0;  // a ray stopped in front of the wall here
-};
-
-int64_t Key(int s, int h) {
-  return (static_cast<int64_t>(s) << 32) ^ static_cast<int64_t>(static_cast<uint32_t>(h));
-}
-int KeyS(int64_t k) { return static_cast<int>(k >> 32); }
-int KeyH(int64_t k) { return static_cast<int>(static_cast<int32_t>(k & 0xffffffff)); }
-
-// Where a camera saw a stretch of a wall line from.
-struct Sighting {
-  double s0 = 0, s1 = 0;       // the stretch along the line (metres, the line's tangent)
-  Eigen::Vector2d from{0, 0};  // the camera on the ground
-  double area = 0;             // planar area seen (m²)
-};
-
-// A vertical plane's line on the ground, accumulated over key frames.
-struct WallAcc {
-  Eigen::Vector2d n;  // unit normal towards the side the cameras saw it from
-  double offset = 0;  // n·q = offset on the line
-  double area = 0;    // planar area seen (m²)
-  std::unordered_map<int64_t, Cell> cells;
-  std::vector<Sighting> sightings;
-  Eigen::Vector2d tangent() const { return {n.y(), -n.x()}; }  // the seen side on its left
-  // Signed distance of ground point p from the line (metres; positive on the seen side).
-  double side(const Eigen::Vector2d& p) const { return n.dot(p) - offset; }
-};
-
-constexpr double kRayRangeM = 8.0;  // evidence rays go no farther (depth, metres)
-
-// A horizontal planar patch of one key frame.
-struct Patch {
-  double height = 0;  // along up
-  Eigen::Vector2d centroid{0, 0};
-  Eigen::Vector2d lo{0, 0}, hi{0, 0};
-  double area = 0;
-  bool faces_up = true;
-};
 
 // Where two 2D lines p + s·d meet; false when (nearly) parallel.
 bool Intersect(const Eigen::Vector2d& p1, const Eigen::Vector2d& d1, const Eigen::Vector2d& p2,
@@ -243,72 +209,113 @@ absl::Status FloorPlanBuilder::AddDepthKeyframe(const cv::Mat& depth_m, const Ca
   return AddKeyframe(*planes, k, T_world_camera);
 }
 
-absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
-  const State& s = *s_;
-  if (s.keyframes < 2) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("a floor plan needs several key frames around the place; have ", s.keyframes));
+absl::Status FloorPlanOptions::Validate() const {
+  auto bad = [](const char* name, double value, const char* range) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("floor plan option ", name, " must be ", range, ", got ", value));
+  };
+  if (!world_up.allFinite() || world_up.norm() < 1e-6) {
+    return absl::InvalidArgumentError(
+        "floor plan option world_up must be a finite non-zero vector");
   }
-  FloorPlan plan;
-  plan.keyframes = s.keyframes;
-  plan.up = s.up, plan.e1 = s.e1, plan.e2 = s.e2;
-  double camera_h = 0;
-  Eigen::Vector2d centre(0, 0);
-  for (const auto& c : s.cameras) camera_h += c.dot(s.up), centre += s.Ground(c);
-  camera_h /= static_cast<double>(s.cameras.size());
-  centre /= static_cast<double>(s.cameras.size());
+  const struct {
+    const char* name;
+    double value, lo, hi;
+  } ranges[] = {
+      {"vertical_tolerance_deg", vertical_tolerance_deg, 0.1, 45},
+      {"horizontal_tolerance_deg", horizontal_tolerance_deg, 0.1, 45},
+      {"merge_angle_deg", merge_angle_deg, 0.1, 45},
+      {"merge_offset_m", merge_offset_m, 0.001, 2},
+      {"min_wall_m2", min_wall_m2, 0, 100},
+      {"min_wall_length_m", min_wall_length_m, 0, 100},
+      {"max_wall_gap_m", max_wall_gap_m, 0, 100},
+      {"min_wall_top_m", min_wall_top_m, 0, 10},
+      {"wall_top_share", wall_top_share, 0, 1},
+      {"cell_m", cell_m, 0.005, 1},
+      {"min_opening_m", min_opening_m, 0, 10},
+      {"door_top_m", door_top_m, 0.5, 10},
+      {"window_sill_m", window_sill_m, 0.1, 10},
+      {"ray_stride_px", static_cast<double>(ray_stride_px), 1, 256},
+      {"sensor_range_m", sensor_range_m, 0.1, 100},
+      {"floor_bin_m", floor_bin_m, 0.001, 1},
+      {"floor_below_cameras_m", floor_below_cameras_m, 0, 10},
+      {"min_floor_m2", min_floor_m2, 0, 1000},
+      {"max_wall_height_m", max_wall_height_m, 0.5, 100},
+      {"free_over_covered", free_over_covered, 0, 1000},
+      {"min_wall_cells", static_cast<double>(min_wall_cells), 1, 1e6},
+      {"furniture_depth_m", furniture_depth_m, 0, 10},
+      {"max_join_m", max_join_m, 0, 100},
+      {"unseen_wall_cost_m", unseen_wall_cost_m, 0, 100},
+      {"max_tread_m2", max_tread_m2, 0, 100},
+      {"min_riser_m", min_riser_m, 0, 1},
+      {"max_riser_m", max_riser_m, 0, 1},
+      {"min_tread_run_m", min_tread_run_m, 0, 5},
+      {"max_tread_run_m", max_tread_run_m, 0, 5},
+      {"min_treads", static_cast<double>(min_treads), 2, 1000},
+  };
+  for (const auto& r : ranges) {
+    if (!(r.value >= r.lo && r.value <= r.hi)) {
+      return bad(r.name, r.value, absl::StrCat("within [", r.lo, ", ", r.hi, "]").c_str());
+    }
+  }
+  if (window_sill_m >= door_top_m) return bad("window_sill_m", window_sill_m, "below door_top_m");
+  if (min_riser_m >= max_riser_m) return bad("min_riser_m", min_riser_m, "below max_riser_m");
+  if (min_tread_run_m >= max_tread_run_m) {
+    return bad("min_tread_run_m", min_tread_run_m, "below max_tread_run_m");
+  }
+  return absl::OkStatus();
+}
 
-  // The ground: the height (2 cm bins) with the most upward-facing area below the cameras.
+namespace steps {
+
+absl::StatusOr<double> FindFloor(const std::vector<Patch>& patches, double camera_h,
+                                 const FloorPlanOptions& o) {
+  const double bin = o.floor_bin_m;
   std::map<int, double> floor_area;
-  for (const auto& p : s.patches) {
-    if (p.faces_up && p.height < camera_h - 0.5) {
-      floor_area[static_cast<int>(std::floor(p.height / 0.02))] += p.area;
+  for (const auto& p : patches) {
+    if (p.faces_up && p.height < camera_h - o.floor_below_cameras_m) {
+      floor_area[static_cast<int>(std::floor(p.height / bin))] += p.area;
     }
   }
   int best_bin = 0;
   double best_area = 0;
-  for (const auto& [bin, area] : floor_area) {
-    const double a = area + (floor_area.count(bin - 1) ? floor_area.at(bin - 1) : 0) +
-                     (floor_area.count(bin + 1) ? floor_area.at(bin + 1) : 0);
-    if (a > best_area) best_area = a, best_bin = bin;
+  for (const auto& [b, area] : floor_area) {
+    const double a = area + (floor_area.count(b - 1) ? floor_area.at(b - 1) : 0) +
+                     (floor_area.count(b + 1) ? floor_area.at(b + 1) : 0);
+    if (a > best_area) best_area = a, best_bin = b;
   }
-  if (best_area < 1.0) {
+  if (best_area < o.min_floor_m2) {
     return absl::FailedPreconditionError(
         absl::StrCat("no floor seen (largest upward plane below the cameras: ", best_area,
                      " m²); the key frames must see the ground"));
   }
   double sum_h = 0, sum_a = 0;
-  for (const auto& p : s.patches) {
-    if (p.faces_up && std::abs(p.height / 0.02 - (best_bin + 0.5)) <= 1.5) {
+  for (const auto& p : patches) {
+    if (p.faces_up && std::abs(p.height / bin - (best_bin + 0.5)) <= 1.5) {
       sum_h += p.height * p.area, sum_a += p.area;
     }
   }
-  plan.floor_height_m = sum_h / sum_a;
-  const double floor = plan.floor_height_m, cell = s.o.cell_m;
+  return sum_h / sum_a;
+}
 
-  // Candidate walls: runs of covered columns (cells between the floor and 3.5 m above it) along
-  // each wall line. A gap wider than a door splits a line into separate walls: collinear walls
-  // on either side of a notch (T, U rooms), or a wall's continuation seen through a door.
-  struct Candidate {
-    const WallAcc* acc;
-    double s0, s1, top;
-    double seen_m2;        // distinct covered cells of the run
-    Eigen::Vector2d a, b;  // endpoints of the seen extent
-    Eigen::Vector2d from;  // where the cameras that saw the run were, on average
-    double length() const { return s1 - s0; }
-  };
-  const int max_gap = static_cast<int>(std::ceil(s.o.max_wall_gap_m / cell));
-  constexpr float kFreeOverCovered = 3;  // rays (2-5 give the same plans on the suite)
-  std::vector<Candidate> cands;
-  for (const auto& w : s.walls) {
-    if (w.area < s.o.min_wall_m2) continue;
+std::vector<WallCandidate> FindWallCandidates(const std::vector<WallAcc>& walls, double floor,
+                                              const FloorPlanOptions& o) {
+  // Runs of covered columns (cells between the floor and max_wall_height_m above it) along each
+  // wall line. A gap wider than a door splits a line into separate walls: collinear walls on
+  // either side of a notch (T, U rooms), or a wall's continuation seen through a door.
+  const double cell = o.cell_m;
+  const int max_gap = static_cast<int>(std::ceil(o.max_wall_gap_m / cell));
+  const auto free_over_covered = static_cast<float>(o.free_over_covered);
+  std::vector<WallCandidate> cands;
+  for (const auto& w : walls) {
+    if (w.area < o.min_wall_m2) continue;
     std::map<int, std::pair<int, double>> columns;  // column -> covered cells, top
     for (const auto& [key, c] : w.cells) {
       // Seen covered but also seen through (rays passed on beyond the line): something that
       // moved (a person walking by, a prop taken away), not the wall.
-      if (c.covered <= 0 || (c.free >= kFreeOverCovered && c.free > 2 * c.occluded)) continue;
+      if (c.covered <= 0 || (c.free >= free_over_covered && c.free > 2 * c.occluded)) continue;
       const double h = (KeyH(key) + 0.5) * cell - floor;
-      if (h < 0 || h > 3.5) continue;
+      if (h < 0 || h > o.max_wall_height_m) continue;
       auto& col = columns[KeyS(key)];
       col.first += 1;
       col.second = std::max(col.second, h);
@@ -325,7 +332,10 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       }
       int cells = 0;
       for (const auto& r : run) cells += r.second;
-      if (cells < 20 || cells * cell * cell < s.o.min_wall_m2 || top < s.o.min_wall_top_m) continue;
+      if (cells < o.min_wall_cells || cells * cell * cell < o.min_wall_m2 ||
+          top < o.min_wall_top_m) {
+        continue;
+      }
       // The extent without its outermost 1 % of cells (stray readings).
       int lo_count = 0, hi_count = 0;
       size_t lo = 0, hi = run.size() - 1;
@@ -346,15 +356,13 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
         seen_over += free >= 1 && free > occluded ? 1 : 0;
       }
       if (seen_over > 0.5 * static_cast<double>(run.size())) continue;
-      Candidate cand{&w,
-                     (run[lo].first + 0.5) * cell,
-                     (run[hi].first + 0.5) * cell,
-                     top,
-                     cells * cell * cell,
-                     {},
-                     {},
-                     {}};
-      if (cand.length() < s.o.min_wall_length_m) continue;
+      WallCandidate cand;
+      cand.acc = &w;
+      cand.s0 = (run[lo].first + 0.5) * cell;
+      cand.s1 = (run[hi].first + 0.5) * cell;
+      cand.top = top;
+      cand.seen_m2 = cells * cell * cell;
+      if (cand.length() < o.min_wall_length_m) continue;
       cand.a = base + cand.s0 * t;
       cand.b = base + cand.s1 * t;
       Eigen::Vector2d from(0, 0);
@@ -367,22 +375,33 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       cands.push_back(cand);
     }
   }
-  // Walls rise above furniture (paper 004 keeps the highest large vertical polygons; how high
-  // a wall is seen depends on the camera's tilt, so relative to the highest one).
+  return cands;
+}
+
+std::vector<WallCandidate> KeepTallWalls(const std::vector<WallCandidate>& cands,
+                                         const FloorPlanOptions& o) {
+  // Paper 004 keeps the highest large vertical polygons; how high a wall is seen depends on the
+  // camera's tilt, so relative to the highest one.
   double highest = 0;
   for (const auto& c : cands) highest = std::max(highest, c.top);
-  std::vector<Candidate> tall;
+  std::vector<WallCandidate> tall;
   for (const auto& c : cands) {
-    if (c.top >= s.o.wall_top_share * highest) tall.push_back(c);
+    if (c.top >= o.wall_top_share * highest) tall.push_back(c);
   }
+  return tall;
+}
+
+std::vector<WallCandidate> DropHiddenFaces(const std::vector<WallCandidate>& tall,
+                                           const FloorPlanOptions& o) {
   // Not the outline: (a) of two parallel faces one behind the other, the shorter — a face less
-  // than 0.8 m in front of a longer wall is furniture against it (where the wall was hidden
-  // behind it), a face behind a longer wall was seen through an opening in it; (b) a face wholly
-  // behind another wall kept by (a), seen through it: the sight line from the cameras that saw
-  // the face to its middle crosses that wall away from its ends (through a door or window, e.g.
-  // the next room's side wall; a wall behind another's line but seen past its end is its
-  // neighbour around a reflex corner, as the sides of a U's notch and the walls beside it).
-  auto overlap = [](const Candidate& on, const Candidate& c, double margin) {
+  // than furniture_depth_m in front of a longer wall is furniture against it (where the wall
+  // was hidden behind it), a face behind a longer wall was seen through an opening in it; (b) a
+  // face wholly behind another wall kept by (a), seen through it: the sight line from the
+  // cameras that saw the face to its middle crosses that wall away from its ends (through a
+  // door or window, e.g. the next room's side wall; a wall behind another's line but seen past
+  // its end is its neighbour around a reflex corner, as the sides of a U's notch and the walls
+  // beside it).
+  auto overlap = [](const WallCandidate& on, const WallCandidate& c, double margin) {
     // Share of c's extent, projected onto `on`'s line, within on's extent grown by `margin`
     // metres at either end (shrunk where negative).
     const Eigen::Vector2d t = on.acc->tangent();
@@ -391,47 +410,49 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     if (c1 - c0 < 0.05) return lo <= hi ? 1.0 : 0.0;
     return std::max(0.0, hi - lo) / (c1 - c0);
   };
-  const double gap = s.o.max_wall_gap_m;  // what furniture may hide of a wall, at either end
-  std::vector<Candidate> kept;
+  const double gap = o.max_wall_gap_m;  // what furniture may hide of a wall, at either end
+  std::vector<WallCandidate> kept;
   for (size_t i = 0; i < tall.size(); ++i) {
-    const Candidate& c = tall[i];
+    const WallCandidate& c = tall[i];
     bool hidden = false;
     for (size_t j = 0; j < tall.size() && !hidden; ++j) {
-      const Candidate& o = tall[j];
-      if (j == i || o.acc->n.dot(c.acc->n) <= std::cos(Deg(s.o.merge_angle_deg))) continue;
-      const double in_front = c.acc->offset - o.acc->offset;  // of o, along the normal
-      hidden = c.length() < o.length() &&
-               ((in_front > s.o.merge_offset_m && in_front < 0.8 && overlap(o, c, gap) > 0.5) ||
-                (in_front < -s.o.merge_offset_m && overlap(o, c, 0.2) > 0.5));
+      const WallCandidate& other = tall[j];
+      if (j == i || other.acc->n.dot(c.acc->n) <= std::cos(Deg(o.merge_angle_deg))) continue;
+      const double in_front = c.acc->offset - other.acc->offset;  // of other, along the normal
+      hidden = c.length() < other.length() &&
+               ((in_front > o.merge_offset_m && in_front < o.furniture_depth_m &&
+                 overlap(other, c, gap) > 0.5) ||
+                (in_front < -o.merge_offset_m && overlap(other, c, 0.2) > 0.5));
     }
     if (!hidden) kept.push_back(c);
   }
-  std::vector<Candidate> faces;
-  for (const Candidate& c : kept) {
+  std::vector<WallCandidate> faces;
+  for (const WallCandidate& c : kept) {
     bool hidden = false;
     const Eigen::Vector2d mid = 0.5 * (c.a + c.b);
-    for (const Candidate& o : kept) {
-      if (&o == &c || o.acc->n.dot(c.acc->n) > std::cos(Deg(s.o.merge_angle_deg))) continue;
-      const double at_from = o.acc->side(c.from), at_mid = o.acc->side(mid);
-      if (o.acc->side(c.a) >= -0.2 || o.acc->side(c.b) >= -0.2 || at_from <= 0) continue;
+    for (const WallCandidate& other : kept) {
+      if (&other == &c || other.acc->n.dot(c.acc->n) > std::cos(Deg(o.merge_angle_deg))) continue;
+      const double at_from = other.acc->side(c.from), at_mid = other.acc->side(mid);
+      if (other.acc->side(c.a) >= -0.2 || other.acc->side(c.b) >= -0.2 || at_from <= 0) continue;
       const Eigen::Vector2d cross = c.from + (at_from / (at_from - at_mid)) * (mid - c.from);
-      const double along = o.acc->tangent().dot(cross);
-      hidden = along > o.s0 + 0.3 && along < o.s1 - 0.3;
+      const double along = other.acc->tangent().dot(cross);
+      hidden = along > other.s0 + 0.3 && along < other.s1 - 0.3;
       if (hidden) break;
     }
     if (!hidden) faces.push_back(c);
   }
-  if (faces.size() < 3) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("only ", faces.size(), " walls seen (need 3 or more around the place)"));
-  }
-  // The outline: walls chained end to start, counter-clockwise (the place on their left), into
-  // the closed chain through the largest face that best explains what was seen: the most wall
-  // seen along it, the least extension of walls to their corners, the fewest and shortest unseen
-  // walls. Walls off the chain (seen through a door, furniture) drop out. Where no chain closes,
-  // the walls are ordered by direction from the cameras' centre.
-  constexpr double kMaxJoin = 2.5;  // metres of extension, both walls together
-  auto join = [&](const Candidate& p, const Candidate& q, Eigen::Vector2d* corner) {
+  return faces;
+}
+
+Outline ChainOutline(const std::vector<WallCandidate>& faces, const Eigen::Vector2d& centre,
+                     const FloorPlanOptions& o) {
+  // Walls chained end to start, counter-clockwise (the place on their left), into the closed
+  // chain through the largest face that best explains what was seen: the most wall seen along
+  // it, the least extension of walls to their corners, the fewest and shortest unseen walls.
+  // Walls off the chain (seen through a door, furniture) drop out. Where no chain closes, the
+  // walls are ordered by direction from the cameras' centre.
+  const double max_join = o.max_join_m;  // metres of extension, both walls together
+  auto join = [&](const WallCandidate& p, const WallCandidate& q, Eigen::Vector2d* corner) {
     const Eigen::Vector2d tp = p.acc->tangent(), tq = q.acc->tangent();
     Eigen::Vector2d x;
     if (Intersect(p.a, tp, q.a, tq, &x)) {
@@ -451,16 +472,15 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   // A wall not seen at all (hidden behind furniture or people all along, or out of the
   // cameras' view) is a gap between two walls: the chain may cross it from one wall's end to the
   // other's start when the unseen wall would have the place on its left (facing the cameras that
-  // saw its neighbours), at a cost of its length and a metre.
+  // saw its neighbours), at a cost of its length and unseen_wall_cost_m.
   constexpr double kMaxUnseen = kRayRangeM;  // metres: no evidence is gathered farther
-  constexpr double kUnseenCost = 1.0;
   struct Link {
     int to;       // face index
     double cost;  // metres
     bool unseen;  // across a wall not seen, from `at` to `unseen_end`
     Eigen::Vector2d at, unseen_end;
   };
-  auto across = [&](const Candidate& p, const Candidate& q, Link* link) {
+  auto across = [&](const WallCandidate& p, const WallCandidate& q, Link* link) {
     const Eigen::Vector2d g = q.a - p.b;
     const double len = g.norm();
     if (len < 0.3 || len > kMaxUnseen) return false;
@@ -476,7 +496,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       link->unseen_end = q.a + ((e - tp.dot(q.a)) / tp.dot(tq)) * tq;
     }
     link->cost = (link->at - p.b).norm() + (link->unseen_end - q.a).norm() +
-                 (link->unseen_end - link->at).norm() + kUnseenCost;
+                 (link->unseen_end - link->at).norm() + o.unseen_wall_cost_m;
     return true;
   };
   std::vector<std::vector<Link>> links(faces.size());
@@ -486,7 +506,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       if (j == i) continue;
       Link l{static_cast<int>(j), 0, false, Eigen::Vector2d::Zero(), Eigen::Vector2d::Zero()};
       l.cost = join(faces[i], faces[j], &l.at);
-      if (l.cost < kMaxJoin) {
+      if (l.cost < max_join) {
         links[i].push_back(l);
       } else if (across(faces[i], faces[j], &l)) {
         l.unseen = true;
@@ -553,136 +573,137 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       if (static_cast<size_t>(l->to) != largest) chain.push_back(l->to);
     }
   }
-  std::vector<const Candidate*> outline;  // nullptr: a wall not seen
-  std::vector<Eigen::Vector2d> corners;
+  Outline out;
   if (closed) {
     for (size_t k = 0; k < chain.size(); ++k) {
-      outline.push_back(chain[k] < 0 ? nullptr : &faces[static_cast<size_t>(chain[k])]);
-      corners.push_back(joins[(k + chain.size() - 1) % chain.size()]);  // where it starts
+      out.walls.push_back(chain[k] < 0 ? nullptr : &faces[static_cast<size_t>(chain[k])]);
+      out.corners.push_back(joins[(k + chain.size() - 1) % chain.size()]);  // where it starts
     }
-  } else {
-    for (const auto& f : faces) outline.push_back(&f);
-    auto angle = [&](const Candidate* c) {
-      const Eigen::Vector2d m = 0.5 * (c->a + c->b) - centre;
-      return std::atan2(m.y(), m.x());
-    };
-    std::sort(outline.begin(), outline.end(),
-              [&](const Candidate* x, const Candidate* y) { return angle(x) < angle(y); });
-    const size_t m = outline.size();
-    for (size_t i = 0; i < m; ++i) {
-      const Candidate& prev = *outline[(i + m - 1) % m];
-      Eigen::Vector2d x = Eigen::Vector2d::Zero();
-      corners.push_back(join(prev, *outline[i], &x) < kMaxJoin ? x
-                                                               : 0.5 * (prev.b + outline[i]->a));
-    }
+    return out;
   }
-  const size_t n = outline.size();
-  for (size_t i = 0; i < n; ++i) {
-    Wall wall;
-    wall.start = corners[i];
-    wall.end = corners[(i + 1) % n];
-    if (outline[i] == nullptr) {  // not seen: no area, no openings
-      plan.walls.push_back(std::move(wall));
+  for (const auto& f : faces) out.walls.push_back(&f);
+  auto angle = [&](const WallCandidate* c) {
+    const Eigen::Vector2d m = 0.5 * (c->a + c->b) - centre;
+    return std::atan2(m.y(), m.x());
+  };
+  std::sort(out.walls.begin(), out.walls.end(),
+            [&](const WallCandidate* x, const WallCandidate* y) { return angle(x) < angle(y); });
+  const size_t m = out.walls.size();
+  for (size_t i = 0; i < m; ++i) {
+    const WallCandidate& prev = *out.walls[(i + m - 1) % m];
+    Eigen::Vector2d x = Eigen::Vector2d::Zero();
+    out.corners.push_back(
+        join(prev, *out.walls[i], &x) < max_join ? x : 0.5 * (prev.b + out.walls[i]->a));
+  }
+  return out;
+}
+
+std::vector<WallOpening> FindOpenings(const WallCandidate& c, const Wall& wall, double floor,
+                                      const FloorPlanOptions& o) {
+  // Columns (cells along the wall) whose opening band is open, runs of them.
+  const double cell = o.cell_m;
+  const Eigen::Vector2d t = c.acc->tangent();
+  const double sa = t.dot(wall.start), sb = t.dot(wall.end);
+  const int first = static_cast<int>(std::floor(std::min(sa, sb) / cell));
+  const int last = static_cast<int>(std::floor(std::max(sa, sb) / cell));
+  auto band = [&](int col, double lo, double hi, double* covered_share, bool* open) {
+    int cells = 0, covered = 0;
+    double free = 0, occluded = 0;
+    for (int h = static_cast<int>(std::floor((floor + lo) / cell));
+         h < static_cast<int>(std::floor((floor + hi) / cell)); ++h) {
+      ++cells;
+      auto it = c.acc->cells.find(Key(col, h));
+      if (it == c.acc->cells.end()) continue;
+      covered += it->second.covered > 0;
+      free += it->second.free;
+      occluded += it->second.occluded;
+    }
+    *covered_share = cells ? static_cast<double>(covered) / cells : 0;
+    *open = *covered_share < 0.15 && free > 0 && free > occluded;
+  };
+  std::vector<int> kind(static_cast<size_t>(std::max(0, last - first + 1)), -1);
+  for (int col = first; col <= last; ++col) {
+    double door_cov, sill_cov, win_cov;
+    bool door_open, sill_open, win_open;
+    band(col, 0.15, o.door_top_m - 0.2, &door_cov, &door_open);
+    band(col, o.window_sill_m + 0.1, o.door_top_m - 0.15, &win_cov, &win_open);
+    band(col, 0.3, o.window_sill_m - 0.3, &sill_cov, &sill_open);
+    int k = -1;
+    if (door_open) {
+      k = static_cast<int>(OpeningType::kDoor);
+    } else if (win_open && sill_cov > 0.4) {
+      k = static_cast<int>(OpeningType::kWindow);
+    }
+    kind[static_cast<size_t>(col - first)] = k;
+  }
+  std::vector<WallOpening> openings;
+  for (size_t i0 = 0; i0 < kind.size();) {
+    if (kind[i0] < 0) {
+      ++i0;
       continue;
     }
-    const Candidate& c = *outline[i];
-    wall.observed_m2 = c.seen_m2;
-    // Openings: columns (cells along the wall) whose opening band is open, runs of them.
-    const Eigen::Vector2d t = c.acc->tangent();
-    const double sa = t.dot(wall.start), sb = t.dot(wall.end);
-    const int first = static_cast<int>(std::floor(std::min(sa, sb) / cell));
-    const int last = static_cast<int>(std::floor(std::max(sa, sb) / cell));
-    auto band = [&](int col, double lo, double hi, double* covered_share, bool* open) {
-      int cells = 0, covered = 0;
-      double free = 0, occluded = 0;
-      for (int h = static_cast<int>(std::floor((floor + lo) / cell));
-           h < static_cast<int>(std::floor((floor + hi) / cell)); ++h) {
-        ++cells;
-        auto it = c.acc->cells.find(Key(col, h));
-        if (it == c.acc->cells.end()) continue;
-        covered += it->second.covered > 0;
-        free += it->second.free;
-        occluded += it->second.occluded;
-      }
-      *covered_share = cells ? static_cast<double>(covered) / cells : 0;
-      *open = *covered_share < 0.15 && free > 0 && free > occluded;
-    };
-    std::vector<int> kind(static_cast<size_t>(std::max(0, last - first + 1)), -1);
-    for (int col = first; col <= last; ++col) {
-      double door_cov, sill_cov, win_cov;
-      bool door_open, sill_open, win_open;
-      band(col, 0.15, s.o.door_top_m - 0.2, &door_cov, &door_open);
-      band(col, s.o.window_sill_m + 0.1, s.o.door_top_m - 0.15, &win_cov, &win_open);
-      band(col, 0.3, s.o.window_sill_m - 0.3, &sill_cov, &sill_open);
-      int k = -1;
-      if (door_open) {
-        k = static_cast<int>(OpeningType::kDoor);
-      } else if (win_open && sill_cov > 0.4) {
-        k = static_cast<int>(OpeningType::kWindow);
-      }
-      kind[static_cast<size_t>(col - first)] = k;
+    size_t i1 = i0;
+    while (i1 + 1 < kind.size() && kind[i1 + 1] == kind[i0]) ++i1;
+    const double len = static_cast<double>(i1 - i0 + 1) * cell;
+    if (len >= o.min_opening_m) {
+      WallOpening opening;
+      opening.type = static_cast<OpeningType>(kind[i0]);
+      // Along the wall from its start corner (s grows from start to end).
+      const double from = (first + static_cast<int>(i0)) * cell - sa;
+      opening.from_m = std::max(0.0, sb >= sa ? from : -from - len);
+      opening.to_m = opening.from_m + len;
+      opening.bottom_m = opening.type == OpeningType::kDoor ? 0.0 : o.window_sill_m;
+      opening.top_m = o.door_top_m;
+      openings.push_back(opening);
     }
-    for (size_t i0 = 0; i0 < kind.size();) {
-      if (kind[i0] < 0) {
-        ++i0;
-        continue;
-      }
-      size_t i1 = i0;
-      while (i1 + 1 < kind.size() && kind[i1 + 1] == kind[i0]) ++i1;
-      const double len = static_cast<double>(i1 - i0 + 1) * cell;
-      if (len >= s.o.min_opening_m) {
-        WallOpening o;
-        o.type = static_cast<OpeningType>(kind[i0]);
-        // Along the wall from its start corner (s grows from start to end).
-        const double from = (first + static_cast<int>(i0)) * cell - sa;
-        o.from_m = std::max(0.0, sb >= sa ? from : -from - len);
-        o.to_m = o.from_m + len;
-        o.bottom_m = o.type == OpeningType::kDoor ? 0.0 : s.o.window_sill_m;
-        o.top_m = s.o.door_top_m;
-        wall.openings.push_back(o);
-      }
-      i0 = i1 + 1;
-    }
-    plan.walls.push_back(std::move(wall));
+    i0 = i1 + 1;
   }
+  return openings;
+}
 
+void MergeCollinearWalls(std::vector<Wall>* walls, const FloorPlanOptions& o) {
   // Where a wall was seen only in part, the chain crosses the rest as an unseen wall on the
   // same line, or meets a corner twice: collinear neighbours become one wall (its openings
   // measured from the new start) and walls of no length drop out.
-  for (bool changed = true; changed && plan.walls.size() > 3;) {
+  for (bool changed = true; changed && walls->size() > 3;) {
     changed = false;
-    for (size_t i = 0; i < plan.walls.size() && plan.walls.size() > 3; ++i) {
-      const size_t j = (i + 1) % plan.walls.size();
-      Wall& a = plan.walls[i];
-      const Wall& b = plan.walls[j];
+    for (size_t i = 0; i < walls->size() && walls->size() > 3; ++i) {
+      const size_t j = (i + 1) % walls->size();
+      Wall& a = (*walls)[i];
+      const Wall& b = (*walls)[j];
       const Eigen::Vector2d da = a.end - a.start, db = b.end - b.start;
       const bool tiny = db.norm() < 0.05;
       const bool collinear = da.norm() >= 0.05 && da.normalized().dot(db.normalized()) >
-                                                      std::cos(Deg(s.o.merge_angle_deg));
+                                                      std::cos(Deg(o.merge_angle_deg));
       if (!tiny && !collinear) continue;
       const double shift = da.norm();
-      for (WallOpening o : b.openings) {
-        o.from_m += shift, o.to_m += shift;
-        a.openings.push_back(o);
+      for (WallOpening opening : b.openings) {
+        opening.from_m += shift, opening.to_m += shift;
+        a.openings.push_back(opening);
       }
       a.end = b.end;
       a.observed_m2 += b.observed_m2;
-      plan.walls.erase(plan.walls.begin() + static_cast<std::ptrdiff_t>(j));
+      walls->erase(walls->begin() + static_cast<std::ptrdiff_t>(j));
       changed = true;
       break;
     }
   }
+}
 
-  // Stairs: horizontal patches off the floor, grouped by tread (height, place), chained where
-  // heights step by a riser and positions by a tread.
+std::vector<StairFlight> FindStairs(const std::vector<Patch>& patches, double floor,
+                                    const std::vector<Wall>& walls, const FloorPlanOptions& o) {
+  // Horizontal patches off the floor, grouped by tread (height, place), chained where heights
+  // step by a riser and positions by a tread.
   struct Tread {
     double height, area;
     Eigen::Vector2d centroid;
   };
   std::vector<Tread> treads;
-  for (const auto& p : s.patches) {
+  for (const auto& p : patches) {
     const double h = p.height - floor;
-    if (!p.faces_up || std::abs(h) < 0.08 || std::abs(h) > 2.0 || p.area > 3.0) continue;
+    if (!p.faces_up || std::abs(h) < 0.08 || std::abs(h) > 2.0 || p.area > o.max_tread_m2) {
+      continue;
+    }
     bool merged = false;
     for (auto& t : treads) {
       if (std::abs(t.height - h) < 0.04 && (t.centroid - p.centroid).norm() < 0.3) {
@@ -694,6 +715,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
     }
     if (!merged) treads.push_back({h, p.area, p.centroid});
   }
+  std::vector<StairFlight> flights;
   for (int dir : {1, -1}) {
     std::vector<Tread> side;
     for (const auto& t : treads) {
@@ -710,11 +732,14 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       for (size_t k = first + 1; k < side.size(); ++k) {
         const double rise = std::abs(side[k].height) - std::abs(run_of.back().height);
         const double run = (side[k].centroid - run_of.back().centroid).norm();
-        if (rise > 0.1 && rise < 0.25 && run > 0.15 && run < 0.5) run_of.push_back(side[k]);
+        if (rise > o.min_riser_m && rise < o.max_riser_m && run > o.min_tread_run_m &&
+            run < o.max_tread_run_m) {
+          run_of.push_back(side[k]);
+        }
       }
       if (run_of.size() > flight.size()) flight = std::move(run_of);
     }
-    if (flight.size() < 3) continue;
+    if (static_cast<int>(flight.size()) < o.min_treads) continue;
     const double rise = (std::abs(flight.back().height) - std::abs(flight.front().height)) /
                         static_cast<double>(flight.size() - 1);
     // Steps below the first tread seen: its height in risers, which must be whole.
@@ -737,12 +762,55 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
       f.center -= 0.5 * hidden * run * along;
     }
     f.distance_to_wall_m = 1e9;
-    for (const auto& w : plan.walls) {
+    for (const auto& w : walls) {
       f.distance_to_wall_m =
           std::min(f.distance_to_wall_m, DistanceToSegment(f.center, w.start, w.end));
     }
-    plan.stairs.push_back(f);
+    flights.push_back(f);
   }
+  return flights;
+}
+
+}  // namespace steps
+
+absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
+  const State& s = *s_;
+  if (s.keyframes < 2) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("a floor plan needs several key frames around the place; have ", s.keyframes));
+  }
+  FloorPlan plan;
+  plan.keyframes = s.keyframes;
+  plan.up = s.up, plan.e1 = s.e1, plan.e2 = s.e2;
+  double camera_h = 0;
+  Eigen::Vector2d centre(0, 0);
+  for (const auto& c : s.cameras) camera_h += c.dot(s.up), centre += s.Ground(c);
+  camera_h /= static_cast<double>(s.cameras.size());
+  centre /= static_cast<double>(s.cameras.size());
+
+  auto floor = steps::FindFloor(s.patches, camera_h, s.o);
+  if (!floor.ok()) return floor.status();
+  plan.floor_height_m = *floor;
+  const auto faces = steps::DropHiddenFaces(
+      steps::KeepTallWalls(steps::FindWallCandidates(s.walls, *floor, s.o), s.o), s.o);
+  if (faces.size() < 3) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("only ", faces.size(), " walls seen (need 3 or more around the place)"));
+  }
+  const steps::Outline outline = steps::ChainOutline(faces, centre, s.o);
+  const size_t n = outline.walls.size();
+  for (size_t i = 0; i < n; ++i) {
+    Wall wall;
+    wall.start = outline.corners[i];
+    wall.end = outline.corners[(i + 1) % n];
+    if (const steps::WallCandidate* c = outline.walls[i]; c != nullptr) {
+      wall.observed_m2 = c->seen_m2;
+      wall.openings = steps::FindOpenings(*c, wall, *floor, s.o);
+    }  // else not seen: no area, no openings
+    plan.walls.push_back(std::move(wall));
+  }
+  steps::MergeCollinearWalls(&plan.walls, s.o);
+  plan.stairs = steps::FindStairs(s.patches, *floor, plan.walls, s.o);
   return plan;
 }
 

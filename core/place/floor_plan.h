@@ -84,10 +84,37 @@ struct FloorPlanOptions {
   double window_sill_m = 1.20;
   int ray_stride_px = 8;        // every N-th pixel casts an evidence ray
   double sensor_range_m = 4.0;  // depth beyond which a missing reading says nothing (Kinect: 4.5)
+  // The floor: upward area binned by height; the bin with the most area at least this far
+  // below the cameras' mean height, with at least this much area.
+  double floor_bin_m = 0.02;
+  double floor_below_cameras_m = 0.5;
+  double min_floor_m2 = 1.0;
+  // Wall candidates: evidence up to this height above the floor; a covered cell that this many
+  // rays passed through (and more than twice as many as stopped in front of it) held something
+  // that moved; a run needs this many covered cells.
+  double max_wall_height_m = 3.5;
+  double free_over_covered = 3;  // rays (2–5 give the same plans on the suite)
+  int min_wall_cells = 20;
+  // A shorter face less than this in front of a longer parallel wall is furniture against it.
+  double furniture_depth_m = 0.8;
+  // The outline: joining two walls may extend them this far together (metres); crossing a
+  // wall not seen costs its length and this.
+  double max_join_m = 2.5;
+  double unseen_wall_cost_m = 1.0;
+  // Stairs: treads at most this large, a riser and a run between consecutive treads within
+  // these bounds, at least this many treads seen.
+  double max_tread_m2 = 3.0;
+  double min_riser_m = 0.10, max_riser_m = 0.25;
+  double min_tread_run_m = 0.15, max_tread_run_m = 0.5;
+  int min_treads = 3;
+
+  // InvalidArgument naming the first setting outside its range.
+  absl::Status Validate() const;
 };
 
 class FloorPlanBuilder {
  public:
+  // `options` must be valid (FloorPlanOptions::Validate).
   explicit FloorPlanBuilder(FloorPlanOptions options = {});
   ~FloorPlanBuilder();
   FloorPlanBuilder(FloorPlanBuilder&&) noexcept;
@@ -105,7 +132,9 @@ class FloorPlanBuilder {
 
   // FailedPrecondition when the plan cannot be derived yet, saying why: fewer than 2 key
   // frames, no floor seen (no large horizontal plane facing up below the cameras), or fewer
-  // than 3 walls.
+  // than 3 walls. The steps (core/place/floor_plan_steps.h): the floor, wall candidates, tall
+  // walls, hidden faces dropped, the outline, each wall's openings, collinear walls merged,
+  // stairs.
   absl::StatusOr<FloorPlan> Build() const;
 
   int keyframes() const;
