@@ -47,6 +47,11 @@ AppearanceIndex::~AppearanceIndex() {
   thread_.join();
 }
 
+AppearanceIndex::Snapshot AppearanceIndex::Current() const {
+  absl::MutexLock lock(&mu_);
+  return {vocabulary_, index_, stored_with_features_};
+}
+
 void AppearanceIndex::Push(Job job) {
   absl::MutexLock lock(&queue_mu_);
   queue_.push_back(std::move(job));
@@ -68,15 +73,11 @@ void AppearanceIndex::Run() {
     absl::Status status;
     switch (job.kind) {
       case Job::Kind::kAdd: {
-        std::shared_ptr<const appearance::Vocabulary> vocabulary;
-        std::shared_ptr<appearance::InvertedIndex> index;
-        int64_t stored = 0;
         {
           absl::MutexLock lock(&mu_);
-          vocabulary = vocabulary_;
-          index = index_;
-          stored = ++stored_with_features_;
+          ++stored_with_features_;
         }
+        const auto [vocabulary, index, stored] = Current();
         auto map = MapOfVisit(job.keyframe.visit_id);
         if (!map.ok()) {
           status = map.status();  // the visit is gone (its map deleted meanwhile)
@@ -105,8 +106,8 @@ void AppearanceIndex::Run() {
           absl::MutexLock lock(&mu_);
           has_vocabulary = vocabulary_ != nullptr;
         }
-        status = job.retrain || !has_vocabulary ? TrainLocked(/*asked=*/job.retrain)
-                                                : IndexStored(0);
+        status =
+            job.retrain || !has_vocabulary ? TrainLocked(/*asked=*/job.retrain) : IndexStored(0);
         break;
       }
       case Job::Kind::kFlush:
@@ -299,15 +300,7 @@ absl::StatusOr<appearance::Recognition> AppearanceIndex::Recognize(
     return absl::FailedPreconditionError(
         "appearance is disabled in this server's config (appearance.enabled)");
   }
-  std::shared_ptr<const appearance::Vocabulary> vocabulary;
-  std::shared_ptr<appearance::InvertedIndex> index;
-  int64_t stored = 0;
-  {
-    absl::MutexLock lock(&mu_);
-    vocabulary = vocabulary_;
-    index = index_;
-    stored = stored_with_features_;
-  }
+  const auto [vocabulary, index, stored] = Current();
   if (!vocabulary || !index) {
     return absl::FailedPreconditionError(
         absl::StrCat("no appearance vocabulary yet: one is trained once ",

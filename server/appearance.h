@@ -80,6 +80,13 @@ class AppearanceIndex {
     bool retrain = false;
     std::shared_ptr<std::promise<absl::StatusOr<AppearanceIndexStats>>> done;
   };
+  // What queries and indexing use, taken together under mu_.
+  struct Snapshot {
+    std::shared_ptr<const appearance::Vocabulary> vocabulary;
+    std::shared_ptr<appearance::InvertedIndex> index;
+    int64_t stored_with_features = 0;
+  };
+  Snapshot Current() const;
   void Run();
   void Push(Job job);
   // Worker thread only. Trains a vocabulary on the stored keyframes and re-indexes them; unless
