@@ -129,6 +129,14 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
                           absl::StrCat(req->frames_size(), " frames; send at most ",
                                        kMaxQueryFrames, " (the key frames of a recording)"));
     }
+    if (appearance && req->frames_size() > kMaxAppearanceQueryFrames) {
+      return grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat(req->frames_size(), " frames; appearance matches at most ",
+                       kMaxAppearanceQueryFrames,
+                       " per query (each costs its entropy mask, features and verification): "
+                       "send key frames, or ask for MATCH_METHOD_ARCHITECTURE alone"));
+    }
     // Every frame must decode whichever method is asked: a malformed frame fails the call.
     std::vector<EncodedRgbdFrame> frames;
     for (int i = 0; i < req->frames_size(); ++i) {

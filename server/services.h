@@ -112,6 +112,7 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
   void ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
   void AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
   static constexpr int kMaxQueryFrames = 2000;
+  static constexpr int kMaxAppearanceQueryFrames = 200;
   ServiceContext* ctx_;
 };
 

@@ -72,14 +72,19 @@ absl::StatusOr<std::string> AddRecordingKeyframes(const std::string& dir, uint64
   }
   // Leave a tenth of the message for framing; thin evenly when the key frames do not fit.
   const uint64_t budget = max_bytes - max_bytes / 10;
-  const size_t every = bytes > budget ? static_cast<size_t>((bytes + budget - 1) / budget) : 1;
+  size_t every = bytes > budget ? static_cast<size_t>((bytes + budget - 1) / budget) : 1;
   size_t sent = 0;
-  for (size_t i = 0; i < frames.size() && sent < 2000; i += every, ++sent) {
+  // The server takes at most 2000 frames, and 200 for appearance.
+  const size_t max_frames = with_color ? 200 : 2000;
+  const size_t spread = (frames.size() + max_frames - 1) / max_frames;
+  every = std::max(every, spread);
+  for (size_t i = 0; i < frames.size() && sent < max_frames; i += every, ++sent) {
     *req->add_frames() = std::move(frames[i]);
   }
   return absl::StrFormat(
       "%s: %d frames, %d key frames, sending %d%s", dir, seq->frames.size(), keyframes.size(), sent,
-      every > 1 ? absl::StrFormat(" (every %d-th: message limit %s)", every, HumanBytes(max_bytes))
+      every > 1 ? absl::StrFormat(" (every %d-th: message limit %s, at most %d frames)", every,
+                                  HumanBytes(max_bytes), max_frames)
                 : std::string());
 }
 

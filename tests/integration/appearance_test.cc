@@ -212,6 +212,14 @@ TEST_F(AppearanceTest, ABadIntervalIsRefusedAndNonKeyframesSayHowToAsk) {
   EXPECT_FALSE(r->keyframe().selected());
   EXPECT_NE(PlaceStatus(*r).reason().find("appearance_interval_s"), std::string::npos)
       << PlaceStatus(*r).reason();
+
+  // A query of more frames than appearance takes is refused before any work, saying the cap.
+  v1::QueryPlaceRequest many;
+  many.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  for (int i = 0; i < 201; ++i) *many.add_frames() = lifemap::testing::MakeFrame(64, 48);
+  auto refused = client_->QueryPlace(many);
+  EXPECT_TRUE(absl::IsInvalidArgument(refused.status())) << refused.status();
+  EXPECT_NE(refused.status().message().find("at most 200"), absl::string_view::npos);
 }
 
 }  // namespace
