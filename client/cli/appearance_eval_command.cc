@@ -21,6 +21,7 @@ using nlohmann::json;
 struct AppearanceEvalArgs {
   std::string suite, out, thresholds_from, mosd, tum_reference, tum_query;
   int threads = 0;
+  int query_stride = 1;
 };
 
 const char* const kSubsetNames[8] = {
@@ -71,6 +72,7 @@ int RunAppearanceEval(const CliContext& ctx, const AppearanceEvalArgs& a) {
   if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   eval::AppearanceStudyOptions options;
   options.threads = a.threads;
+  options.query_stride = a.query_stride;
   options.places.threads = a.threads;
   if (!a.thresholds_from.empty()) {
     std::ifstream in(a.thresholds_from);
@@ -247,6 +249,9 @@ void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->check(CLI::ExistingDirectory);
   cmd->add_option("--threads", a->threads, "worker threads (default: one per core)")
       ->check(CLI::Range(0, 256));
+  cmd->add_option("--query-stride", a->query_stride,
+                  "try every N-th query keyframe of each visit (default 1: all; a quicker look)")
+      ->check(CLI::Range(1, 1000));
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunAppearanceEval(*ctx, *a); }; });
 }
 

@@ -223,7 +223,9 @@ absl::StatusOr<AppearanceStudy> RunAppearanceStudy(
     detected += extracted[vi].detected;
     pruned += extracted[vi].pruned;
     for (size_t k = 0; k < extracted[vi].sets.size(); ++k) {
-      (study.visits[vi].role == "reference" ? refs : queries).push_back(study.keyframes.size());
+      const bool reference = study.visits[vi].role == "reference";
+      if (!reference && k % static_cast<size_t>(std::max(1, options.query_stride)) != 0) continue;
+      (reference ? refs : queries).push_back(study.keyframes.size());
       study.keyframes.push_back({vi, extracted[vi].timestamps[k]});
       where.emplace_back(vi, k);
     }

@@ -42,8 +42,9 @@ struct AppearanceStudyOptions {
   // Per method ("pruned", ..., "architecture", "fused"): the score to accept a match at;
   // absent: the best F1 over every subset together (chosen on the suite itself, optimistic).
   std::map<std::string, double> thresholds;
-  uint64_t seed = 1;  // the null variant's random choice
-  int threads = 0;    // 0 = one per core
+  uint64_t seed = 1;     // the null variant's random choice
+  int query_stride = 1;  // every N-th query keyframe of a visit is tried (a quicker look)
+  int threads = 0;       // 0 = one per core
 };
 
 struct AppearanceMethod {

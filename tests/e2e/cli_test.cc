@@ -8,6 +8,7 @@
 
 #include <chrono>
 #include <fstream>
+#include <map>
 #include <set>
 #include <sstream>
 #include <thread>
@@ -489,12 +490,19 @@ TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("NOT_FOUND"), std::string::npos) << r.err;
 
-  // A recording asked about without storing it: its key frames' depth and poses are sent.
+  // A recording asked about without storing it: its key frames are sent; by default both
+  // methods answer, the fused ranking first.
   r = Run({"--json", "places", "query", "--tum", tmp_.File("home/visit_01")});
   ASSERT_EQ(r.code, 0) << r.err;
   const json t = json::parse(r.out);
-  ASSERT_EQ(t["matches"].size(), 2u);
-  EXPECT_GT(t["matches"][1]["score"].get<double>(), 0.5);  // both visits of home
+  std::map<std::string, std::vector<json>> by_method;
+  for (const auto& m : t["matches"]) by_method[m["method"].get<std::string>()].push_back(m);
+  ASSERT_FALSE(t["matches"].empty());
+  EXPECT_EQ(t["matches"][0]["method"], "MATCH_METHOD_FUSED");
+  ASSERT_EQ(by_method["MATCH_METHOD_ARCHITECTURE"].size(), 2u);  // both visits of home
+  EXPECT_GT(by_method["MATCH_METHOD_ARCHITECTURE"][1]["score"].get<double>(), 0.5);
+  EXPECT_FALSE(by_method["MATCH_METHOD_APPEARANCE"].empty()) << r.out.substr(0, 2000);
+  EXPECT_FALSE(t["frames"].empty());
   r = Run({"--json", "visits", "list", "home"});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(json::parse(r.out)["visits"].size(), 2u) << "nothing stored by the query";
@@ -502,9 +510,13 @@ TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("--visit ID or --tum DIR"), std::string::npos) << r.err;
   std::filesystem::remove(tmp_.File("home/visit_01/groundtruth.txt"));
-  r = Run({"places", "query", "--tum", tmp_.File("home/visit_01")});
+  r = Run({"places", "query", "--tum", tmp_.File("home/visit_01"), "--method", "architecture"});
   EXPECT_NE(r.code, 0);
   EXPECT_NE(r.err.find("groundtruth.txt"), std::string::npos) << r.err;
+  // Appearance needs no poses.
+  r = Run({"places", "query", "--tum", tmp_.File("home/visit_01"), "--method", "appearance"});
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("appearance"), std::string::npos) << r.out;
 }
 
 TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
@@ -537,6 +549,25 @@ TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
   r = Run({"eval", "places", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad")});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
+
+  // Appearance on the same suite: every method per subset, the pose error, thresholds.
+  r = Run({"eval", "appearance", "--suite", tmp_.File("suite"), "--out", tmp_.File("app"),
+           "--query-stride", "6"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json a = json::parse(Slurp(tmp_.File("app/summary.json")));
+  for (const char* key :
+       {"f1", "f1_unpruned", "f1_null", "f1_oracle", "f1_architecture", "f1_fused"}) {
+    ASSERT_EQ(a[key].size(), 8u) << key;
+  }
+  EXPECT_GT(a["f1"]["subset1"].get<double>(), 0.0) << "plain revisits are recognised";
+  EXPECT_LT(a["pose_error_cm"].get<double>(), 5.0);
+  EXPECT_EQ(a["threshold"].size(), 6u);
+  for (const char* f : {"report.md", "queries.csv", "pr_curves.png", "f1_subsets.png"}) {
+    EXPECT_TRUE(std::filesystem::exists(tmp_.File(std::string("app/") + f))) << f;
+  }
+  r = Run({"eval", "appearance", "--out", tmp_.File("app2")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--suite"), std::string::npos) << r.err;
 
   // Held out: the thresholds of an earlier run are used as they are, not chosen again.
   json earlier = s;
