@@ -265,8 +265,9 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   }
   if (decision.selected) {
     record = MakeKeyframeRecord(frame, f, visit->visit_id);
-    // Keypoints in zones likely to move were dropped before they are stored for matching.
-    if (record.ok() && analysis->entropy && features.ok()) record->features = *features;
+    // Keypoints in zones likely to move were dropped before they are stored for matching
+    // (with entropy masks disabled, all are kept: appearance still works, unpruned).
+    if (record.ok() && features.ok()) record->features = *features;
     if (!record.ok()) {
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
     }

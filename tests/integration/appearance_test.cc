@@ -195,6 +195,25 @@ TEST_F(AppearanceTest, ALaterVisitRecognisesStoredKeyframesWithTheirPoseAndAnoth
   EXPECT_FALSE(AppearanceMatches(again[0]).empty()) << PlaceStatus(again[0]).reason();
 }
 
+TEST_F(AppearanceTest, WithEntropyMasksDisabledKeyframesKeepEveryFeature) {
+  const std::string xyz_dir = lifemap::testing::SharedDataset("tum_fr1_xyz_subset");
+  if (xyz_dir.empty()) GTEST_SKIP() << "../shared/data TUM fr1 subsets absent";
+  server::ServerConfig config;
+  config.pipeline.entropy_masks = false;
+  StartServer(config);
+  const TumFrames xyz = ReadTum(xyz_dir);
+  ASSERT_TRUE(client_->CreateMap("plain", "").ok());
+  const auto results = Send("plain", {xyz.frames[0], xyz.frames[10]}, std::nullopt);
+  ASSERT_EQ(results.size(), 2u);
+  auto listed = client_->ListKeyframes("plain", 0);
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->keyframes_size(), 2);
+  for (const auto& k : listed->keyframes()) {
+    EXPECT_GT(k.keypoints_stored(), 300u);  // unpruned: nothing masked
+    EXPECT_EQ(k.keypoints_masked(), 0u);
+  }
+}
+
 TEST_F(AppearanceTest, ABadIntervalIsRefusedAndNonKeyframesSayHowToAsk) {
   ASSERT_TRUE(client_->CreateMap("m", "").ok());
   v1::ProcessFrameRequest req;
