@@ -24,8 +24,9 @@ absl::Status AppearanceOptions::Validate() const {
   if (max_frame_matches < 1 || max_frame_matches > 100) {
     return absl::InvalidArgumentError("appearance.max_frame_matches must be in [1, 100]");
   }
-  if (frame_interval_s && !(*frame_interval_s >= 0 && *frame_interval_s <= 3600)) {
-    return absl::InvalidArgumentError("appearance.frame_interval_s must be in [0, 3600] or null");
+  if (frame_interval_s && !(*frame_interval_s >= 0 && *frame_interval_s <= kMaxFrameIntervalS)) {
+    return absl::InvalidArgumentError(absl::StrCat("appearance.frame_interval_s must be in [0, ",
+                                                   kMaxFrameIntervalS, "] or null"));
   }
   if (auto s = vocabulary.Validate(); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat("appearance.vocabulary: ", s.message()));
@@ -110,8 +111,6 @@ void AppearanceIndex::Run() {
             job.retrain || !has_vocabulary ? TrainLocked(/*asked=*/job.retrain) : IndexStored(0);
         break;
       }
-      case Job::Kind::kFlush:
-        break;
     }
     if (!status.ok()) spdlog::warn("appearance index: {}", status.ToString());
     if (job.done) {
@@ -180,15 +179,6 @@ void AppearanceIndex::RemoveMap(int64_t map_id) {
   job.kind = Job::Kind::kRemoveMap;
   job.keyframe.map_id = map_id;
   Push(std::move(job));
-}
-
-void AppearanceIndex::Flush() {
-  Job job;
-  job.kind = Job::Kind::kFlush;
-  job.done = std::make_shared<std::promise<absl::StatusOr<AppearanceIndexStats>>>();
-  auto future = job.done->get_future();
-  Push(std::move(job));
-  future.get().IgnoreError();  // a flush has nothing to fail
 }
 
 absl::StatusOr<AppearanceIndexStats> AppearanceIndex::Rebuild(bool retrain) {

@@ -66,15 +66,12 @@ class AppearanceIndex {
   // vocabulary first. Blocks until done; returns the stats after.
   absl::StatusOr<AppearanceIndexStats> Rebuild(bool retrain);
 
-  // Blocks until every keyframe passed to OnCommitted so far is indexed.
-  void Flush();
-
   AppearanceIndexStats Stats() const;
   const AppearanceOptions& options() const { return options_; }
 
  private:
   struct Job {
-    enum class Kind { kAdd, kRemoveMap, kRebuild, kFlush } kind = Kind::kAdd;
+    enum class Kind { kAdd, kRemoveMap, kRebuild } kind = Kind::kAdd;
     appearance::KeyframeRef keyframe;
     cv::Mat descriptors;
     bool retrain = false;

@@ -28,6 +28,7 @@ struct AppearanceOptions {
   // appearance_interval_s); this is the default for frames that do not say: nullopt =
   // keyframes only; 0 = every frame; t > 0 = at most every t seconds per stream.
   std::optional<double> frame_interval_s;
+  static constexpr double kMaxFrameIntervalS = 3600;  // for it and the per-stream option
 
   absl::Status Validate() const;
 };

@@ -4,7 +4,11 @@
 
 #include <grpcpp/support/status.h>
 
+#include <map>
+#include <string>
+
 #include "absl/status/statusor.h"
+#include "core/appearance/recognizer.h"
 #include "core/common/rgbd_frame.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/tracking/keyframe_selector.h"
@@ -40,6 +44,21 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
 void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out);
 // A match by architecture (paper 004).
 void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out);
+
+// Names of maps by id, each read from the store once (matches carry only ids); "" for a map
+// that is gone.
+class MapNames {
+ public:
+  explicit MapNames(store::Store* store) : store_(store) {}
+  const std::string& Of(int64_t map_id);
+
+ private:
+  store::Store* store_;
+  std::map<int64_t, std::string> names_;
+};
+
+// A verified appearance match (a keyframe) as a PlaceMatch, its map named by `names`.
+PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* names);
 
 // What decides whether each per-frame output is computed, as the services know it.
 struct OutputFacts {

@@ -136,17 +136,10 @@ absl::Status AppearanceMatches(ServiceContext* ctx,
   if (!recognition.ok()) return recognition.status();
   const size_t n = std::min(recognition->matches.size(),
                             static_cast<size_t>(ctx->appearance->options().max_frame_matches));
+  MapNames names(ctx->store);
   for (size_t i = 0; i < n; ++i) {
-    const appearance::AppearanceMatch& m = recognition->matches[i];
-    PlaceMatch match;
-    match.method = PlaceMatch::Method::kAppearance;
-    match.map_id = m.keyframe.map_id;
-    if (auto map = ctx->store->GetMapById(m.keyframe.map_id); map.ok()) match.map = map->name;
-    match.visit_id = m.keyframe.visit_id;
-    match.keyframe_id = m.keyframe.keyframe_id;
-    match.score = m.verification.score;
-    match.T_match_query = m.verification.T_match_query;
-    PlaceMatchToProto(match, r->add_place_matches());
+    PlaceMatchToProto(AppearancePlaceMatch(recognition->matches[i], &names),
+                      r->add_place_matches());
   }
   return absl::OkStatus();
 }
@@ -337,9 +330,10 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
   settings.appearance_interval_s = config.appearance.frame_interval_s;
   if (o.has_appearance_interval_s()) {
     const double t = o.appearance_interval_s();
-    if (!(t >= 0 && t <= 3600)) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "options.appearance_interval_s must be within [0, 3600] s (0 = every frame), got ", t));
+    if (!(t >= 0 && t <= AppearanceOptions::kMaxFrameIntervalS)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("options.appearance_interval_s must be within [0, ",
+                       AppearanceOptions::kMaxFrameIntervalS, "] s (0 = every frame), got ", t));
     }
     settings.appearance_interval_s = t;
   }

@@ -14,36 +14,6 @@
 namespace lifemap::server {
 namespace {
 
-// Map names of matched keyframes, read once per map.
-class MapNames {
- public:
-  explicit MapNames(store::Store* store) : store_(store) {}
-  const std::string& Of(int64_t map_id) {
-    auto it = names_.find(map_id);
-    if (it == names_.end()) {
-      auto m = store_->GetMapById(map_id);
-      it = names_.emplace(map_id, m.ok() ? m->name : std::string()).first;
-    }
-    return it->second;
-  }
-
- private:
-  store::Store* store_;
-  std::map<int64_t, std::string> names_;
-};
-
-PlaceMatch FromAppearance(const appearance::AppearanceMatch& m, MapNames* names) {
-  PlaceMatch out;
-  out.method = PlaceMatch::Method::kAppearance;
-  out.map_id = m.keyframe.map_id;
-  out.map = names->Of(m.keyframe.map_id);
-  out.visit_id = m.keyframe.visit_id;
-  out.keyframe_id = m.keyframe.keyframe_id;
-  out.score = m.verification.score;
-  out.T_match_query = m.verification.T_match_query;
-  return out;
-}
-
 bool Better(const PlaceMatch& a, const PlaceMatch& b) {
   return a.score != b.score ? a.score > b.score : a.visit_id < b.visit_id;
 }
@@ -296,7 +266,7 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
     }
     ++answered;
     for (const auto& m : recognition->matches) {
-      const PlaceMatch match = FromAppearance(m, &names);
+      const PlaceMatch match = AppearancePlaceMatch(m, &names);
       if (entry->matches_size() < static_cast<int>(max_results)) {
         PlaceMatchToProto(match, entry->add_matches());
       }
@@ -336,7 +306,7 @@ void PlaceServiceImpl::AppearanceOfVisit(const store::VisitRecord& visit, size_t
       continue;
     }
     ++answered;
-    for (const auto& m : recognition->matches) all.push_back(FromAppearance(m, &names));
+    for (const auto& m : recognition->matches) all.push_back(AppearancePlaceMatch(m, &names));
   }
   if (answered == 0) {
     out->status = last_failure;

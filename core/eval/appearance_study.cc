@@ -153,27 +153,17 @@ std::map<int64_t, double> BestPerPlace(const appearance::Recognition& r) {
   return best;
 }
 
-void FillSubsetMetrics(AppearanceMethod* m, const std::vector<SuiteVisit>& visits,
-                       const std::vector<StudyKeyframe>& keyframes, double threshold) {
+// The method's summary (SummariseTrials) and its recall at precision 1 per subset.
+void FillSubsetMetrics(AppearanceMethod* m, double threshold) {
   SummariseTrials(threshold, &m->result);
-  std::array<int, 8> known{}, right{};
-  for (const auto& t : m->result.trials) {
-    if (!t.known || t.subset < 1 || t.subset > 8) continue;
-    ++known[static_cast<size_t>(t.subset - 1)];
-    right[static_cast<size_t>(t.subset - 1)] += t.correct ? 1 : 0;
-  }
   for (int k = 0; k < 8; ++k) {
-    const auto i = static_cast<size_t>(k);
-    m->result.top1[i] = known[i] > 0 ? static_cast<double>(right[i]) / known[i] : 0.0;
     double best = 0;
     for (int step = 0; step <= 200; ++step) {
       const PrPoint p = EvaluateTrials(m->result.trials, step / 200.0, k + 1);
       if (p.precision >= 1.0) best = std::max(best, p.recall);
     }
-    m->recall_at_full_precision[i] = best;
+    m->recall_at_full_precision[static_cast<size_t>(k)] = best;
   }
-  (void)visits;
-  (void)keyframes;
 }
 
 }  // namespace
@@ -338,8 +328,7 @@ absl::StatusOr<AppearanceStudy> RunAppearanceStudy(
     method.poses_compared = static_cast<int>(cm.size());
     method.mean_keypoints = queries.empty() ? 0 : keypoints / static_cast<double>(queries.size());
     auto t = options.thresholds.find(method.result.name);
-    FillSubsetMetrics(&method, study.visits, study.keyframes,
-                      t != options.thresholds.end() ? t->second : -1);
+    FillSubsetMetrics(&method, t != options.thresholds.end() ? t->second : -1);
     if (progress) {
       progress(absl::StrFormat("%s: F1 %.3f at %.3f", method.result.name,
                                method.result.operating.f1, method.result.operating.threshold));
@@ -366,8 +355,7 @@ absl::StatusOr<AppearanceStudy> RunAppearanceStudy(
   }
   for (auto* m : {&arch, &fused}) {
     auto t = options.thresholds.find(m->result.name);
-    FillSubsetMetrics(m, study.visits, study.keyframes,
-                      t != options.thresholds.end() ? t->second : -1);
+    FillSubsetMetrics(m, t != options.thresholds.end() ? t->second : -1);
   }
   study.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return study;

@@ -312,7 +312,6 @@ MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& vi
                       const std::vector<std::vector<double>>& scores, double threshold) {
   MethodResult m;
   m.name = name;
-  std::array<int, 8> known{}, top1{};
   for (size_t qi = 0; qi < queries.size(); ++qi) {
     const SuiteVisit& q = visits[queries[qi]];
     for (bool with_own : {true, false}) {
@@ -329,20 +328,10 @@ MethodResult Evaluate(const std::string& name, const std::vector<SuiteVisit>& vi
       if (best <= 0) t.predicted.clear();  // nothing alike: no candidate at all
       t.score = std::max(best, 0.0);
       t.correct = with_own && !t.predicted.empty() && t.predicted == q.place_id;
-      if (with_own && q.subset >= 1 && q.subset <= 8) {
-        ++known[static_cast<size_t>(q.subset - 1)];
-        top1[static_cast<size_t>(q.subset - 1)] += t.correct ? 1 : 0;
-      }
       m.trials.push_back(t);
     }
   }
   SummariseTrials(threshold, &m);
-  for (int k = 0; k < 8; ++k) {
-    m.top1[static_cast<size_t>(k)] =
-        known[static_cast<size_t>(k)] > 0
-            ? static_cast<double>(top1[static_cast<size_t>(k)]) / known[static_cast<size_t>(k)]
-            : 0.0;
-  }
   return m;
 }
 
@@ -357,8 +346,17 @@ void SummariseTrials(double threshold, MethodResult* m) {
     if (p.f1 > m->operating.f1) m->operating = p;
   }
   if (threshold >= 0) m->operating = EvaluateTrials(m->trials, threshold);
+  // Top-1: the known trials whose best reference is their own place, per subset.
+  std::array<int, 8> known{}, right{};
+  for (const auto& t : m->trials) {
+    if (!t.known || t.subset < 1 || t.subset > 8) continue;
+    ++known[static_cast<size_t>(t.subset - 1)];
+    right[static_cast<size_t>(t.subset - 1)] += t.correct ? 1 : 0;
+  }
   for (int k = 0; k < 8; ++k) {
-    m->subsets[static_cast<size_t>(k)] = EvaluateTrials(m->trials, m->operating.threshold, k + 1);
+    const auto i = static_cast<size_t>(k);
+    m->subsets[i] = EvaluateTrials(m->trials, m->operating.threshold, k + 1);
+    m->top1[i] = known[i] > 0 ? static_cast<double>(right[i]) / known[i] : 0.0;
   }
 }
 

@@ -133,7 +133,7 @@ struct PlaceStudy {
 absl::StatusOr<std::vector<SuiteVisit>> ReadSuiteManifest(const std::string& suite_dir);
 
 // Fills m->curve (thresholds 0..1 in steps of 0.005), m->operating (at `threshold`, or the best
-// F1 over every subset when it is negative) and m->subsets from m->trials (top1 untouched).
+// F1 over every subset when it is negative), m->subsets and m->top1 from m->trials.
 void SummariseTrials(double threshold, MethodResult* m);
 
 // Runs job(0..n-1) on `threads` threads (0 = one per core).
