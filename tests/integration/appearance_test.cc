@@ -215,6 +215,11 @@ TEST_F(AppearanceTest, WithEntropyMasksDisabledKeyframesKeepEveryFeature) {
 }
 
 TEST_F(AppearanceTest, ABadIntervalIsRefusedAndNonKeyframesSayHowToAsk) {
+  // Retraining with nothing stored yet says what to do first.
+  auto rebuilt = client_->RebuildAppearanceIndex(/*retrain=*/true);
+  EXPECT_TRUE(absl::IsFailedPrecondition(rebuilt.status())) << rebuilt.status();
+  EXPECT_NE(rebuilt.status().message().find("stream some frames"), absl::string_view::npos);
+
   ASSERT_TRUE(client_->CreateMap("m", "").ok());
   v1::ProcessFrameRequest req;
   req.set_map("m");

@@ -59,6 +59,34 @@ TEST(ConfigFile, RejectsUnknownKeysWrongTypesAndBadJson) {
   EXPECT_TRUE(absl::IsNotFound(LoadConfigFile(tmp.File("none.json"), ServerConfig()).status()));
 }
 
+TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"appearance": {"min_training_keyframes": 5, "frame_interval_s": 2.5,
+             "candidates": 4, "min_inliers": 20}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->appearance.min_training_keyframes, 5);
+  ASSERT_TRUE(c->appearance.frame_interval_s.has_value());
+  EXPECT_DOUBLE_EQ(*c->appearance.frame_interval_s, 2.5);
+  EXPECT_EQ(c->appearance.recognizer.candidates, 4);
+  EXPECT_EQ(c->appearance.recognizer.verify.min_inliers, 20);
+  const std::pair<const char*, const char*> bad[] = {
+      {"train.json", R"({"appearance": {"min_training_keyframes": 1}})"},
+      {"interval.json", R"({"appearance": {"frame_interval_s": -1}})"},
+      {"candidates.json", R"({"appearance": {"candidates": 0}})"},
+      {"inliers.json", R"({"appearance": {"min_inliers": 3}})"},
+      {"levels.json", R"({"appearance": {"vocabulary_levels": 9}})"},
+      {"key.json", R"({"appearance": {"candidate": 4}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file;
+    EXPECT_NE(r.status().message().find("appearance"), std::string::npos) << r.status();
+  }
+}
+
 TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))
