@@ -32,6 +32,7 @@ struct SimArgs {
   bool no_noise = false;
   std::string intrinsics;  // FX,FY,CX,CY
   std::string size = "640x480";
+  std::string world = "rooms";
 };
 
 // The camera of --size WxH and --intrinsics FX,FY,CX,CY (default: Kinect v1's 525 px focal
@@ -57,7 +58,9 @@ absl::StatusOr<CameraIntrinsics> SimCamera(const SimArgs& a) {
 int RunSim(const CliContext& ctx, const SimArgs& a) {
   auto conditions = sim::ParseConditions(a.conditions);
   if (!conditions.ok()) return Fail(conditions.status());
-  auto place = sim::GeneratePlace(a.seed, a.shape);
+  auto style = sim::ParseWorld(a.world, a.seed);
+  if (!style.ok()) return UsageError(std::string(style.status().message()));
+  auto place = sim::GeneratePlace(a.seed, a.shape, *style);
   if (!place.ok()) return Fail(place.status());
   auto visits =
       sim::GenerateVisits(*place, a.seed, a.visits, a.months_apart, *conditions, a.frames);
@@ -70,11 +73,9 @@ int RunSim(const CliContext& ctx, const SimArgs& a) {
     return UsageError(std::string(camera.status().message()));
   }
   options.intrinsics = *camera;
-  nlohmann::json manifest = {{"seed", a.seed},
-                             {"place_id", place->id},
-                             {"shape", a.shape},
-                             {"conditions", a.conditions},
-                             {"visits", nlohmann::json::array()}};
+  nlohmann::json manifest = {
+      {"seed", a.seed},   {"place_id", place->id},      {"shape", a.shape},
+      {"world", a.world}, {"conditions", a.conditions}, {"visits", nlohmann::json::array()}};
   const auto start = std::chrono::steady_clock::now();
   int frames = 0;
   for (size_t i = 0; i < visits->size(); ++i) {
@@ -119,6 +120,7 @@ struct SuiteArgs {
   int frames = 60;
   std::string out;
   bool no_noise = false;
+  std::string world = "building";
 };
 
 // Paper 004's Table 1 subsets: every combination of lighting, dynamic objects and scenery
@@ -129,8 +131,13 @@ const char* const kSubsets[8] = {
 
 int RunSuite(const CliContext& ctx, const SuiteArgs& a) {
   static const char* const kShapes[] = {"rect", "L", "T", "U", "square"};
-  nlohmann::json manifest = {
-      {"seed", a.seed}, {"places", nlohmann::json::array()}, {"visits", nlohmann::json::array()}};
+  // One building per suite: its seed is the suite's.
+  auto style = sim::ParseWorld(a.world, a.seed);
+  if (!style.ok()) return UsageError(std::string(style.status().message()));
+  nlohmann::json manifest = {{"seed", a.seed},
+                             {"world", a.world},
+                             {"places", nlohmann::json::array()},
+                             {"visits", nlohmann::json::array()}};
   sim::WriteOptions options;
   options.sensor.noise = !a.no_noise;
   const auto start = std::chrono::steady_clock::now();
@@ -138,7 +145,7 @@ int RunSuite(const CliContext& ctx, const SuiteArgs& a) {
   for (int p = 0; p < a.places; ++p) {
     const uint64_t place_seed = a.seed * 1000 + static_cast<uint64_t>(p);
     const std::string shape = kShapes[p % 5];
-    auto place = sim::GeneratePlace(place_seed, shape);
+    auto place = sim::GeneratePlace(place_seed, shape, *style);
     if (!place.ok()) return Fail(place.status());
     options.seed = place_seed;
     const std::string place_dir = absl::StrFormat("place_%02d", p);
@@ -219,6 +226,9 @@ void AddSimCommands(CLI::App* app, CliContext* ctx) {
   sim->add_option("--size", a->size, "image size WIDTHxHEIGHT (default 640x480)");
   sim->add_option("--intrinsics", a->intrinsics,
                   "FX,FY,CX,CY in pixels (default 525 px focal length, centred)");
+  sim->add_option("--world", a->world,
+                  "rooms (default: its own textures, boxes and cylinders) | building (shared "
+                  "materials and furniture, curved and crumpled props)");
   sim->callback([ctx, a, sim] {
     if (sim->get_subcommands().empty()) {
       ctx->run = [ctx, a] {
@@ -241,6 +251,11 @@ void AddSimCommands(CLI::App* app, CliContext* ctx) {
       ->check(CLI::Range(2, 100000));
   suite->add_option("--out", b->out, "output folder")->required();
   suite->add_flag("--no-noise", b->no_noise, "exact depth and colour");
+  suite->add_option("--world", b->world,
+                    "building (default: the places are rooms of one building sharing floor "
+                    "covering, paint and furniture models, with curved and crumpled props) | "
+                    "rooms (each place its own textures, boxes and cylinders: the suites before "
+                    "issue 13)");
   suite->callback([ctx, b] { ctx->run = [ctx, b] { return RunSuite(*ctx, *b); }; });
 }
 

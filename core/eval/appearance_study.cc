@@ -70,12 +70,10 @@ cv::Mat SimMovable(const fs::path& visit_dir, const std::string& rgb_path) {
   cv::Mat classes = cv::imread(labels.string(), cv::IMREAD_UNCHANGED);
   if (classes.empty() || classes.type() != CV_8UC1) return cv::Mat();
   cv::Mat movable(classes.size(), CV_8UC1, cv::Scalar(0));
-  const auto lo = static_cast<uint8_t>(sim::SemanticClass::kChair);
-  const auto hi = static_cast<uint8_t>(sim::SemanticClass::kPerson);
   for (int r = 0; r < classes.rows; ++r) {
     for (int c = 0; c < classes.cols; ++c) {
-      const uint8_t k = classes.at<uint8_t>(r, c);
-      if (k >= lo && k <= hi) movable.at<uint8_t>(r, c) = 255;
+      const auto k = static_cast<sim::SemanticClass>(classes.at<uint8_t>(r, c));
+      if (sim::MovableClass(k)) movable.at<uint8_t>(r, c) = 255;
     }
   }
   return movable;

@@ -61,10 +61,11 @@ ClassScheme SimScheme(SimClasses mode) {
          SemanticClass::kWindow, SemanticClass::kStairs},
         0);
   group({SemanticClass::kTable, SemanticClass::kShelf, SemanticClass::kCabinet, SemanticClass::kBed,
-         SemanticClass::kSofa, SemanticClass::kChair},
+         SemanticClass::kSofa, SemanticClass::kChair, SemanticClass::kLamp},
         1);
   group({SemanticClass::kBox, SemanticClass::kCylinder, SemanticClass::kBook, SemanticClass::kMug,
-         SemanticClass::kClutter},
+         SemanticClass::kClutter, SemanticClass::kPlant, SemanticClass::kBag,
+         SemanticClass::kClothes, SemanticClass::kBall, SemanticClass::kBottle},
         2);
   group({SemanticClass::kPerson}, 3);
   return s;

@@ -2,7 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <random>
+#include <set>
+#include <tuple>
+
+#include <Eigen/Geometry>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
@@ -94,6 +99,167 @@ Solid RandomProp(std::mt19937_64* rng, int instance, double base_z) {
   return s;
 }
 
+// The kinds of curved and crumpled props (PlaceStyle::curved_props).
+enum class CurvedKind { kPlant, kBag, kClothes, kBall, kLamp, kBottle, kStack };
+
+Solid Lathe(std::vector<Eigen::Vector2d> profile) {
+  Solid s;
+  s.shape = Solid::Shape::kLathe;
+  double r = 0;
+  for (const auto& p : profile) r = std::max(r, p.y());
+  s.size = {2 * r, 2 * r, profile.back().x()};
+  s.profile = std::move(profile);
+  return s;
+}
+
+Solid Blob(const Eigen::Vector3d& size, double crumple, double frequency, double sink) {
+  Solid s;
+  s.shape = Solid::Shape::kBlob;
+  s.size = size;
+  s.crumple = crumple;
+  s.crumple_frequency = frequency;
+  s.sink_m = sink;
+  return s;
+}
+
+// The parts of one movable curved or crumpled prop at the origin, yaw 0, standing at base_z,
+// scaled by `scale` (smaller on a table). The parts of a plant, a lamp or a bottle share the
+// instance; a stack's pieces are instances instance, instance + 1, ...; all share the group
+// `instance`.
+std::vector<Solid> CurvedProp(std::mt19937_64* rng, CurvedKind kind, int instance, double base_z,
+                              double scale) {
+  auto u = [rng](double lo, double hi) {
+    return std::uniform_real_distribution<double>(lo, hi)(*rng);
+  };
+  std::vector<Solid> parts;
+  switch (kind) {
+    case CurvedKind::kPlant: {
+      const double r = u(0.08, 0.14) * scale, h = u(0.15, 0.28) * scale;
+      Solid pot = Lathe({{0, 0}, {0, 0.8 * r}, {h, r}, {h, 0}});
+      pot.cls = SemanticClass::kPlant;
+      pot.color = {static_cast<float>(u(0.5, 0.75)), static_cast<float>(u(0.25, 0.4)), 0.2f};
+      parts.push_back(pot);
+      Solid foliage =
+          Blob(Eigen::Vector3d(u(0.3, 0.6), u(0.3, 0.6), u(0.35, 0.8)) * scale, 0.3, 6.0, 0);
+      foliage.cls = SemanticClass::kPlant;
+      foliage.base_z = h - 0.03 * scale;
+      foliage.color = {static_cast<float>(u(0.12, 0.3)), static_cast<float>(u(0.4, 0.65)),
+                       static_cast<float>(u(0.1, 0.25))};
+      parts.push_back(foliage);
+      break;
+    }
+    case CurvedKind::kBag:
+      parts.push_back(Blob(Eigen::Vector3d(u(0.3, 0.5), u(0.18, 0.3), u(0.28, 0.45)) * scale, 0.08,
+                           2.5, 0.02 * scale));
+      parts.back().cls = SemanticClass::kBag;
+      break;
+    case CurvedKind::kClothes: {
+      const Eigen::Vector3d size = Eigen::Vector3d(u(0.5, 0.8), u(0.4, 0.7), u(0.3, 0.5)) * scale;
+      parts.push_back(Blob(size, 0.25, 5.0, 0.45 * size.z()));
+      parts.back().cls = SemanticClass::kClothes;
+      break;
+    }
+    case CurvedKind::kBall: {
+      const double d = u(0.15, 0.3) * scale;
+      parts.push_back(Blob(Eigen::Vector3d(d, d, d), 0, 1, 0));
+      parts.back().cls = SemanticClass::kBall;
+      break;
+    }
+    case CurvedKind::kLamp: {
+      const double h = u(1.4, 1.7) * scale, shade = u(0.18, 0.25) * scale;
+      parts.push_back(Lathe({{0, 0},
+                             {0, 0.15 * scale},
+                             {0.03 * scale, 0.15 * scale},
+                             {0.03 * scale, 0.015 * scale},
+                             {h - 0.3 * scale, 0.015 * scale},
+                             {h - 0.3 * scale, shade},
+                             {h, 0.55 * shade},
+                             {h, 0}}));
+      parts.back().cls = SemanticClass::kLamp;
+      break;
+    }
+    case CurvedKind::kBottle: {
+      const double r = u(0.03, 0.045), h = u(0.2, 0.32);
+      parts.push_back(
+          Lathe({{0, 0}, {0, r}, {0.6 * h, r}, {0.78 * h, 0.35 * r}, {h, 0.35 * r}, {h, 0}}));
+      parts.back().cls = SemanticClass::kBottle;
+      break;
+    }
+    case CurvedKind::kStack: {
+      // Irregular clutter piled up: boxes and lumps, each resting on the one below.
+      const int pieces = 2 + static_cast<int>((*rng)() % 3);
+      double z = 0;
+      for (int i = 0; i < pieces; ++i) {
+        const Eigen::Vector3d size =
+            Eigen::Vector3d(u(0.15, 0.35), u(0.15, 0.35), u(0.06, 0.15)) * scale;
+        Solid piece = (*rng)() % 2 == 0 ? Blob(size, 0.15, 4.0, 0) : Solid();
+        if (piece.shape == Solid::Shape::kBox) piece.size = size;
+        piece.cls = SemanticClass::kClutter;
+        piece.instance = instance + i;
+        piece.center = {u(-0.03, 0.03), u(-0.03, 0.03)};
+        piece.yaw = u(-0.4, 0.4);
+        piece.base_z = z;
+        z += size.z();
+        parts.push_back(piece);
+      }
+      break;
+    }
+  }
+  for (auto& part : parts) {
+    if (part.instance == 0) part.instance = instance;
+    part.group = instance;
+    part.movable = true;
+    part.base_z += base_z;
+    part.texture_seed = static_cast<uint32_t>((*rng)());
+    if (part.cls != SemanticClass::kPlant) part.color = RandomColor(rng);
+  }
+  return parts;
+}
+
+// Places the parts of a prop (built at the origin by CurvedProp) clear of `others` inside the
+// room, turned together; false after many tries.
+bool PlacePropIn(const std::vector<Eigen::Vector2d>& room, const std::vector<Solid>& others,
+                 std::vector<Solid>* parts, std::mt19937_64* rng, double margin,
+                 const Eigen::Vector2d& lo, const Eigen::Vector2d& hi) {
+  // A cylinder around every part stands for the prop while it is placed.
+  Solid probe = parts->front();
+  probe.shape = Solid::Shape::kCylinder;
+  double radius = 0;
+  for (const auto& p : *parts) radius = std::max(radius, p.center.norm() + FootprintRadius(p));
+  probe.size = {2 * radius, 2 * radius, 1};
+  if (!PlaceFreelyIn(room, others, &probe, rng, margin, lo, hi)) return false;
+  const Eigen::Rotation2Dd turn(probe.yaw);
+  for (auto& p : *parts) {
+    p.center = probe.center + turn * p.center;
+    p.yaw += probe.yaw;
+  }
+  return true;
+}
+
+// One more next_instance for every instance among the parts.
+int InstancesUsed(const std::vector<Solid>& parts) {
+  int last = 0;
+  for (const auto& p : parts) last = std::max(last, p.instance);
+  return parts.empty() ? 0 : last - parts.front().instance + 1;
+}
+
+// Where a table's top is: the square its props stand in.
+std::pair<Eigen::Vector2d, Eigen::Vector2d> TableTop(const Solid& table) {
+  const double r = std::min(table.size.x(), table.size.y()) / 2 - 0.05;
+  return {table.center - Eigen::Vector2d(r, r), table.center + Eigen::Vector2d(r, r)};
+}
+
+// A curved prop of a random kind for a table (small) or the floor.
+std::vector<Solid> RandomCurvedProp(std::mt19937_64* rng, int instance, double base_z,
+                                    bool on_table) {
+  static const CurvedKind kTable[] = {CurvedKind::kPlant, CurvedKind::kBag, CurvedKind::kBall,
+                                      CurvedKind::kBottle, CurvedKind::kStack};
+  static const CurvedKind kFloor[] = {CurvedKind::kPlant, CurvedKind::kBag,  CurvedKind::kClothes,
+                                      CurvedKind::kBall,  CurvedKind::kLamp, CurvedKind::kStack};
+  const CurvedKind kind = on_table ? kTable[(*rng)() % 5] : kFloor[(*rng)() % 6];
+  return CurvedProp(rng, kind, instance, base_z, on_table ? 0.6 : 1.0);
+}
+
 // Whether the straight line from a to b stays inside the polygon (crosses none of its edges).
 bool InSight(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector2d& a,
              const Eigen::Vector2d& b) {
@@ -176,7 +342,46 @@ absl::StatusOr<Conditions> ParseConditions(const std::string& text) {
   return c;
 }
 
-absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
+Materials RoomMaterials(uint32_t texture_seed) {
+  Materials m;
+  m.floor = {texture_seed * 3 + 11, {0.55f, 0.42f, 0.30f}, 1.0, 1.0f, true, 0};
+  m.ceiling = {texture_seed * 3 + 13, {0.9f, 0.9f, 0.88f}, 0.3, 1.0f, true, 0};
+  m.wall = {texture_seed * 5, {0.82f, 0.80f, 0.74f}, 0.5, 1.0f, true, 0};
+  m.wall_per_segment = true;
+  return m;
+}
+
+Materials BuildingMaterials(uint64_t building_seed) {
+  std::mt19937_64 rng(building_seed * 0xA24BAED4963EE407ULL + 3);
+  auto seed = [&rng] { return static_cast<uint32_t>(rng()); };
+  std::uniform_real_distribution<float> tone(0.35f, 0.7f), paint(0.75f, 0.9f);
+  Materials m;
+  // Carpet or vinyl tiles, 50 cm, the same print on every tile of every room.
+  m.floor = {seed(), {tone(rng), tone(rng) * 0.9f, tone(rng) * 0.8f}, 2.0, 0.8f, true, 0.5};
+  m.ceiling = {seed(), {0.9f, 0.9f, 0.88f}, 0.3, 0.3f, false, 0};
+  // Paint: nearly plain, one colour throughout.
+  const float white = paint(rng);
+  m.wall = {seed(), {white, white * 0.98f, white * 0.93f}, 0.5, 0.15f, false, 0};
+  m.wall_per_segment = false;
+  return m;
+}
+
+absl::StatusOr<PlaceStyle> ParseWorld(const std::string& world, uint64_t building_seed) {
+  PlaceStyle style;
+  if (world == "rooms") return style;
+  if (world == "building") {
+    style.curved_props = true;
+    style.building_seed = building_seed == 0 ? 1 : building_seed;
+    return style;
+  }
+  return absl::InvalidArgumentError(absl::StrCat(
+      "unknown world '", world,
+      "': use building (places sharing materials and furniture, curved props) or rooms (each "
+      "place its own textures, boxes and cylinders)"));
+}
+
+absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape,
+                                    const PlaceStyle& style) {
   std::mt19937_64 rng(seed * 0x9E3779B97F4A7C15ULL + 1);
   std::uniform_real_distribution<double> side(3.5, 7.5);
   Place place;
@@ -426,6 +631,59 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape) {
       }
     }
   }
+  place.style = style;
+  place.materials = style.building_seed != 0 ? BuildingMaterials(style.building_seed)
+                                             : RoomMaterials(place.texture_seed);
+  if (style.building_seed != 0) {
+    // The building's furniture models: one texture and colour per class, in every place.
+    for (auto& s : place.solids) {
+      if (s.cls < SemanticClass::kTable || s.cls > SemanticClass::kChair) continue;
+      std::mt19937_64 model(style.building_seed * 0x9FB21C651E98DF25ULL +
+                            static_cast<uint64_t>(s.cls));
+      s.texture_seed = static_cast<uint32_t>(model());
+      s.color = RandomColor(&model);
+    }
+  }
+  if (style.curved_props) {
+    // Curved and crumpled props: a few small ones on the table, more on the floor of each room.
+    std::mt19937_64 props(seed * 0xC2B2AE3D27D4EB4FULL + 5);
+    const Solid* table_solid = nullptr;
+    for (const auto& s : place.solids) {
+      if (s.cls == SemanticClass::kTable) table_solid = &s;
+    }
+    if (table_solid) {
+      const Solid table_copy = *table_solid;
+      const auto [tlo, thi] = TableTop(table_copy);
+      for (int i = 0; i < 2; ++i) {
+        auto parts =
+            RandomCurvedProp(&props, instance, table_copy.base_z + table_copy.size.z(), true);
+        if (PlacePropIn(place.footprint, place.solids, &parts, &props, 0.0, tlo, thi)) {
+          instance += InstancesUsed(parts);
+          place.solids.insert(place.solids.end(), parts.begin(), parts.end());
+        }
+      }
+    }
+    static const CurvedKind kMainRoom[] = {
+        CurvedKind::kPlant, CurvedKind::kPlant, CurvedKind::kClothes, CurvedKind::kBag,
+        CurvedKind::kBall,  CurvedKind::kLamp,  CurvedKind::kStack};
+    for (CurvedKind kind : kMainRoom) {
+      auto parts = CurvedProp(&props, kind, instance, 0.0, 1.0);
+      if (PlacePropIn(place.footprint, place.solids, &parts, &props, 0.3, lo, hi)) {
+        instance += InstancesUsed(parts);
+        place.solids.insert(place.solids.end(), parts.begin(), parts.end());
+      }
+    }
+    for (const auto& room : place.adjoining_rooms) {
+      const auto [rlo, rhi] = Bounds(room);
+      for (int i = 0; i < 2; ++i) {
+        auto parts = RandomCurvedProp(&props, instance, 0.0, false);
+        if (PlacePropIn(room, place.solids, &parts, &props, 0.2, rlo, rhi)) {
+          instance += InstancesUsed(parts);
+          place.solids.insert(place.solids.end(), parts.begin(), parts.end());
+        }
+      }
+    }
+  }
   return place;
 }
 
@@ -516,28 +774,66 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
       if (conditions.scenery) {
         std::uniform_real_distribution<double> p(0.0, 1.0);
         std::vector<Solid> kept;
+        // What happened to each group (the solids that move together), decided at its first
+        // solid and applied to the rest.
+        struct Fate {
+          bool vanished = false;
+          Eigen::Vector2d from{0, 0}, to{0, 0};
+          double turn = 0;
+        };
+        std::map<int, Fate> fates;
+        std::set<int> reported;
+        auto report = [&](const char* kind, const Solid& s) {
+          if (reported.insert(s.instance).second) {
+            v.changes.push_back({kind, s.instance, ClassName(s.cls)});
+          }
+        };
         for (auto s : v.solids) {
           if (!s.movable) {
             kept.push_back(s);
             continue;
           }
+          if (s.group > 0) {
+            if (auto it = fates.find(s.group); it != fates.end()) {
+              const Fate& fate = it->second;
+              if (fate.vanished) {
+                report("vanished", s);
+                continue;
+              }
+              if (fate.turn != 0 || fate.to != fate.from) {
+                s.center = fate.to + Eigen::Rotation2Dd(fate.turn) * (s.center - fate.from);
+                s.yaw += fate.turn;
+                report("moved", s);
+              }
+              kept.push_back(s);
+              continue;
+            }
+          }
+          Fate fate;
+          fate.from = fate.to = s.center;
           const double r = p(rng);
           if (r < 0.2) {
-            v.changes.push_back({"vanished", s.instance, ClassName(s.cls)});
+            report("vanished", s);
+            fate.vanished = true;
+            if (s.group > 0) fates[s.group] = fate;
             continue;
           }
           if (r < 0.7) {
             std::vector<Solid> others = kept;
             for (const auto& o : v.solids) {
-              if (o.instance != s.instance) others.push_back(o);
+              const bool together = s.group > 0 ? o.group == s.group : o.instance == s.instance;
+              if (!together) others.push_back(o);
             }
             Solid moved = s;
             const Eigen::Vector2d span(0.5, 0.5);
             if (PlaceFreely(place, others, &moved, &rng, 0.0, s.center - span, s.center + span)) {
-              v.changes.push_back({"moved", s.instance, ClassName(s.cls)});
+              report("moved", s);
+              fate.to = moved.center;
+              fate.turn = moved.yaw - s.yaw;
               s = moved;
             }
           }
+          if (s.group > 0) fates[s.group] = fate;
           kept.push_back(s);
         }
         v.solids = kept;
@@ -547,14 +843,25 @@ absl::StatusOr<std::vector<Visit>> GenerateVisits(const Place& place, uint64_t s
         }
         for (int i = 0; i < 2; ++i) {
           const double base = table && (rng() & 1) ? table->base_z + table->size.z() : 0.0;
-          Solid prop = RandomProp(&rng, next_instance, base);
           Eigen::Vector2d plo = lo, phi = hi;
-          if (base > 0) {
-            const double r = std::min(table->size.x(), table->size.y()) / 2 - 0.05;
-            plo = table->center - Eigen::Vector2d(r, r);
-            phi = table->center + Eigen::Vector2d(r, r);
+          if (base > 0) std::tie(plo, phi) = TableTop(*table);
+          const double margin = base > 0 ? 0.0 : 0.3;
+          if (place.style.curved_props && rng() % 2 == 0) {
+            // Half of what appears in a world of curved props is curved.
+            auto parts = RandomCurvedProp(&rng, next_instance, base, base > 0);
+            if (PlacePropIn(place.footprint, v.solids, &parts, &rng, margin, plo, phi)) {
+              for (const auto& part : parts) {
+                if (part.instance >= next_instance) {
+                  v.changes.push_back({"appeared", part.instance, ClassName(part.cls)});
+                  next_instance = part.instance + 1;
+                }
+              }
+              v.solids.insert(v.solids.end(), parts.begin(), parts.end());
+            }
+            continue;
           }
-          if (PlaceFreely(place, v.solids, &prop, &rng, base > 0 ? 0.0 : 0.3, plo, phi)) {
+          Solid prop = RandomProp(&rng, next_instance, base);
+          if (PlaceFreely(place, v.solids, &prop, &rng, margin, plo, phi)) {
             v.changes.push_back({"appeared", next_instance, ClassName(prop.cls)});
             ++next_instance;
             v.solids.push_back(prop);

@@ -57,8 +57,22 @@ struct Visit {
 // The boxes a flight of stairs is made of (class kStairs, not movable), for rendering.
 std::vector<Solid> StairSolids(const Stairs& stairs, int first_instance);
 
-// shape: rect, square, L, T or U. InvalidArgument for other shapes.
-absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape);
+// shape: rect, square, L, T or U. InvalidArgument for other shapes. The default style is the
+// first world (issue 3): the same seed and shape give the same place as then, bit for bit.
+absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape,
+                                    const PlaceStyle& style = {});
+
+// The finishes of a place of the first world: its own floor, ceiling and per-wall textures
+// from its texture seed.
+Materials RoomMaterials(uint32_t texture_seed);
+// The finishes every place of one building shares: a tiled floor covering, one low-contrast
+// wall paint, one ceiling.
+Materials BuildingMaterials(uint64_t building_seed);
+
+// The worlds of `lifemap sim --world`: "building" (curved props, places sharing materials and
+// furniture models; the default of `sim suite`) or "rooms" (the first world). The building
+// seed is the suite's seed. InvalidArgument names the choices.
+absl::StatusOr<PlaceStyle> ParseWorld(const std::string& world, uint64_t building_seed);
 
 // The camera moves at most as fast as a person carrying it: 1 m/s and 60°/s.
 inline constexpr double kMaxWalkSpeedMps = 1.0;

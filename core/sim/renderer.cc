@@ -22,6 +22,18 @@ struct Hit {
   Eigen::Vector3f albedo{0.5f, 0.5f, 0.5f};
   bool has_depth = true;  // false: seen, but no depth reading (glass, far outdoors)
   double texture_scale = 1.0;
+  float contrast = 1.0f;
+  bool prints = true;
+  double tile_m = 0;
+
+  void Paint(const Finish& f) {
+    texture_seed = f.texture_seed;
+    albedo = f.albedo;
+    texture_scale = f.texture_scale;
+    contrast = f.contrast;
+    prints = f.prints;
+    tile_m = f.tile_m;
+  }
 };
 
 uint32_t Hash(uint32_t x) {
@@ -51,20 +63,54 @@ float Noise(uint32_t seed, double u, double v) {
   return (n00 * (1 - sa) + n10 * sa) * (1 - sb) + (n01 * (1 - sa) + n11 * sa) * sb;
 }
 
+// Trilinear value noise in [0, 1] over 3D (the crumple of blobs).
+float Noise3(uint32_t seed, const Eigen::Vector3d& p) {
+  const Eigen::Vector3d f(std::floor(p.x()), std::floor(p.y()), std::floor(p.z()));
+  const Eigen::Vector3d w = p - f;
+  const Eigen::Vector3d s = w.cwiseProduct(w).cwiseProduct(Eigen::Vector3d::Constant(3) - 2 * w);
+  const auto i = static_cast<uint32_t>(static_cast<int32_t>(f.x()));
+  const auto j = static_cast<uint32_t>(static_cast<int32_t>(f.y()));
+  const auto k = static_cast<uint32_t>(static_cast<int32_t>(f.z()));
+  auto at = [&](uint32_t di, uint32_t dj, uint32_t dk) {
+    return static_cast<double>(Hash(seed ^ Hash((i + di) * 73856093U ^ (j + dj) * 19349663U ^
+                                                (k + dk) * 83492791U)) &
+                               0xffffff) /
+           16777215.0;
+  };
+  auto lerp = [](double a, double b, double t) { return a + (b - a) * t; };
+  const double x00 = lerp(at(0, 0, 0), at(1, 0, 0), s.x()),
+               x10 = lerp(at(0, 1, 0), at(1, 1, 0), s.x());
+  const double x01 = lerp(at(0, 0, 1), at(1, 0, 1), s.x()),
+               x11 = lerp(at(0, 1, 1), at(1, 1, 1), s.x());
+  return static_cast<float>(lerp(lerp(x00, x10, s.y()), lerp(x01, x11, s.y()), s.z()));
+}
+
 // Procedural albedo: two octaves of value noise plus, for some surfaces, printed patches, so
-// keypoint detectors find structure everywhere.
+// keypoint detectors find structure everywhere. A tiled finish repeats one tile's pattern with
+// dark grout lines between tiles.
 Eigen::Vector3f Texture(const Hit& h) {
   const double s = h.texture_scale;
-  const float coarse = Noise(h.texture_seed, h.uv.x() * 3 * s, h.uv.y() * 3 * s);
-  const float fine = Noise(h.texture_seed * 7 + 1, h.uv.x() * 25 * s, h.uv.y() * 25 * s);
-  float shade = 0.55f + 0.35f * coarse + 0.2f * (fine - 0.5f);
-  // Printed patches: a coarse grid of cells, some of which carry a dark or bright print.
-  const int32_t ci = static_cast<int32_t>(std::floor(h.uv.x() * 4 * s));
-  const int32_t cj = static_cast<int32_t>(std::floor(h.uv.y() * 4 * s));
-  const uint32_t cell = Hash(
-      h.texture_seed ^ Hash(static_cast<uint32_t>(ci) * 31U + static_cast<uint32_t>(cj) * 977U));
-  if ((cell & 7U) == 0U) shade *= 0.45f;
-  if ((cell & 7U) == 1U) shade = std::min(1.2f, shade * 1.5f);
+  Eigen::Vector2d uv = h.uv;
+  bool grout = false;
+  if (h.tile_m > 0) {
+    const Eigen::Vector2d cell(std::floor(uv.x() / h.tile_m), std::floor(uv.y() / h.tile_m));
+    uv -= h.tile_m * cell;
+    constexpr double kGroutM = 0.006;
+    grout = uv.x() < kGroutM || uv.y() < kGroutM;
+  }
+  const float coarse = Noise(h.texture_seed, uv.x() * 3 * s, uv.y() * 3 * s);
+  const float fine = Noise(h.texture_seed * 7 + 1, uv.x() * 25 * s, uv.y() * 25 * s);
+  float shade = 0.55f + (h.contrast * 0.35f) * coarse + (h.contrast * 0.2f) * (fine - 0.5f);
+  if (h.prints) {
+    // Printed patches: a coarse grid of cells, some of which carry a dark or bright print.
+    const int32_t ci = static_cast<int32_t>(std::floor(uv.x() * 4 * s));
+    const int32_t cj = static_cast<int32_t>(std::floor(uv.y() * 4 * s));
+    const uint32_t cell = Hash(
+        h.texture_seed ^ Hash(static_cast<uint32_t>(ci) * 31U + static_cast<uint32_t>(cj) * 977U));
+    if ((cell & 7U) == 0U) shade *= 0.45f;
+    if ((cell & 7U) == 1U) shade = std::min(1.2f, shade * 1.5f);
+  }
+  if (grout) shade *= 0.4f;
   return h.albedo * shade;
 }
 
@@ -94,10 +140,8 @@ void HitHorizontal(const Place& place, const Eigen::Vector3d& o, const Eigen::Ve
   best->instance = 0;
   best->normal = Eigen::Vector3d(0, 0, floor ? 1 : -1);
   best->uv = p.head<2>();
-  best->texture_seed = place.texture_seed * 3 + (floor ? 11 : 13);
-  best->albedo = floor ? Eigen::Vector3f(0.55f, 0.42f, 0.30f) : Eigen::Vector3f(0.9f, 0.9f, 0.88f);
+  best->Paint(floor ? place.materials.floor : place.materials.ceiling);
   best->has_depth = true;
-  best->texture_scale = floor ? 1.0 : 0.3;
 }
 
 // A wall segment's geometry, computed once per frame.
@@ -143,10 +187,9 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
     h.cls = SemanticClass::kWall;
     h.normal = Eigen::Vector3d(inward.x(), inward.y(), 0);
     h.uv = Eigen::Vector2d(u + 10.0 * w, p.z());
-    h.texture_seed = place.texture_seed * 5 + static_cast<uint32_t>(w);
+    h.Paint(place.materials.wall);
+    if (place.materials.wall_per_segment) h.texture_seed += static_cast<uint32_t>(w);
     bool through = false;
-    h.albedo = Eigen::Vector3f(0.82f, 0.80f, 0.74f);
-    h.texture_scale = 0.5;
     for (const auto& op : place.openings) {
       if (op.room != walls[w].room || op.wall != walls[w].index) continue;
       if (u < op.offset_m || u > op.offset_m + op.width_m || p.z() < op.sill_m ||
@@ -159,6 +202,7 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
         h.has_depth = false;
         h.albedo = Eigen::Vector3f(0.85f, 0.92f, 1.0f);
         h.texture_scale = 0.1;
+        h.tile_m = 0;
       } else if (op.open && op.connects) {
         through = true;  // an open door between rooms: the other room is rendered beyond
       } else if (op.open) {
@@ -170,6 +214,9 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
         h.cls = SemanticClass::kDoor;
         h.albedo = Eigen::Vector3f(0.45f, 0.30f, 0.18f);
         h.texture_scale = 2.0;
+        h.contrast = 1.0f;
+        h.prints = true;
+        h.tile_m = 0;
       }
       break;
     }
@@ -186,11 +233,126 @@ struct SolidFrame {
 };
 
 SolidFrame Prepare(const Solid& s) {
-  const double r_xy =
-      s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+  if (s.shape == Solid::Shape::kBlob) {
+    const double r = 0.5 * s.size.maxCoeff() * 1.02 * (1 + s.crumple);
+    return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + s.size.z() / 2 - s.sink_m),
+            std::cos(s.yaw), std::sin(s.yaw), r * r};
+  }
+  const double r_xy = FootprintRadius(s);
   const double half_h = s.size.z() / 2;
   return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + half_h), std::cos(s.yaw),
           std::sin(s.yaw), r_xy * r_xy + half_h * half_h};
+}
+
+// The first crossing of a ray (local frame, origin lo, direction ld) with a crumpled ellipsoid
+// centred at the origin, or false. Written here (no library ray-casts implicit surfaces): the
+// radius along each direction is displaced by value noise, so the ray is sampled uniformly
+// across the bounding sphere and the first sign change refined by bisection; the normal is
+// the field's gradient by central differences.
+bool HitBlob(const Solid& s, const Eigen::Vector3d& lo, const Eigen::Vector3d& ld, double* t_hit,
+             Eigen::Vector3d* normal, Eigen::Vector2d* uv) {
+  const Eigen::Vector3d inv_semi = (s.size / 2).cwiseInverse();
+  // Signed field in unit-sphere coordinates: > 0 outside.
+  auto field = [&](const Eigen::Vector3d& p) {
+    const Eigen::Vector3d q = p.cwiseProduct(inv_semi);
+    const double r = q.norm();
+    if (r < 1e-9) return -1.0;
+    const Eigen::Vector3d dir = q / r;
+    const double f = s.crumple_frequency;
+    const double n = 0.65 * Noise3(s.texture_seed, dir * f) +
+                     0.35 * Noise3(s.texture_seed * 3 + 5, dir * (2.7 * f));
+    return r - (1 + s.crumple * (2 * n - 1));
+  };
+  // A sphere just outside |q| = 1 + crumple (the farthest the surface reaches), in
+  // unit-sphere coordinates: the march starts outside the surface.
+  const Eigen::Vector3d q0 = lo.cwiseProduct(inv_semi), dq = ld.cwiseProduct(inv_semi);
+  const double bound = 1.02 * (1 + s.crumple);
+  const double a = dq.squaredNorm(), b = q0.dot(dq), c = q0.squaredNorm() - bound * bound;
+  const double disc = b * b - a * c;
+  if (disc < 0 || a < 1e-18) return false;
+  const double enter = std::max((-b - std::sqrt(disc)) / a, 1e-6);
+  const double leave = (-b + std::sqrt(disc)) / a;
+  if (leave <= enter) return false;
+  constexpr int kSteps = 48;
+  const double step = (leave - enter) / kSteps;
+  double t0 = enter;
+  if (field(lo + t0 * ld) <= 0) return false;  // the camera is inside
+  for (int i = 1; i <= kSteps; ++i) {
+    double t1 = enter + i * step;
+    if (field(lo + t1 * ld) <= 0) {
+      for (int k = 0; k < 12; ++k) {
+        const double tm = 0.5 * (t0 + t1);
+        (field(lo + tm * ld) > 0 ? t0 : t1) = tm;
+      }
+      *t_hit = t1;
+      const Eigen::Vector3d p = lo + t1 * ld;
+      constexpr double kEps = 1e-3;
+      Eigen::Vector3d g;
+      for (int axis = 0; axis < 3; ++axis) {
+        Eigen::Vector3d e = Eigen::Vector3d::Zero();
+        e[axis] = kEps;
+        g[axis] = field(p + e) - field(p - e);
+      }
+      *normal = g.norm() > 1e-12 ? g.normalized() : Eigen::Vector3d(p.normalized());
+      *uv = Eigen::Vector2d(std::atan2(p.y(), p.x()) * s.size.x() / 2, p.z());
+      return true;
+    }
+    t0 = t1;
+  }
+  return false;
+}
+
+// The first crossing of a ray (local frame, z = 0 at the solid's base) with a surface of
+// revolution: each profile segment is a cone frustum (or, level, an annulus), intersected
+// exactly.
+bool HitLathe(const Solid& s, const Eigen::Vector3d& lo, const Eigen::Vector3d& ld, double* t_hit,
+              Eigen::Vector3d* normal, Eigen::Vector2d* uv) {
+  double best = kInf;
+  for (size_t i = 0; i + 1 < s.profile.size(); ++i) {
+    const double h0 = s.profile[i].x(), r0 = s.profile[i].y();
+    const double h1 = s.profile[i + 1].x(), r1 = s.profile[i + 1].y();
+    if (h1 - h0 < 1e-9) {
+      // A level annulus between radii r0 and r1: facing up where the profile steps in.
+      if (std::abs(ld.z()) < 1e-12) continue;
+      const double t = (h0 - lo.z()) / ld.z();
+      if (t <= 1e-6 || t >= best) continue;
+      const Eigen::Vector3d p = lo + t * ld;
+      const double rho = std::hypot(p.x(), p.y());
+      if (rho < std::min(r0, r1) || rho > std::max(r0, r1)) continue;
+      best = t;
+      *normal = Eigen::Vector3d(0, 0, r1 < r0 ? 1 : -1);
+      continue;
+    }
+    // x^2 + y^2 = (A + B t)^2 with the radius r(z) = r0 + k (z - h0).
+    const double k = (r1 - r0) / (h1 - h0);
+    const double A = r0 + k * (lo.z() - h0), B = k * ld.z();
+    const double qa = ld.x() * ld.x() + ld.y() * ld.y() - B * B;
+    const double qb = lo.x() * ld.x() + lo.y() * ld.y() - A * B;
+    const double qc = lo.x() * lo.x() + lo.y() * lo.y() - A * A;
+    double roots[2];
+    int n = 0;
+    if (std::abs(qa) < 1e-12) {
+      if (std::abs(qb) > 1e-12) roots[n++] = -qc / (2 * qb);
+    } else {
+      const double disc = qb * qb - qa * qc;
+      if (disc < 0) continue;
+      roots[n++] = (-qb - std::sqrt(disc)) / qa;
+      roots[n++] = (-qb + std::sqrt(disc)) / qa;
+    }
+    for (int r = 0; r < n; ++r) {
+      const double t = roots[r];
+      if (t <= 1e-6 || t >= best) continue;
+      const Eigen::Vector3d p = lo + t * ld;
+      if (p.z() < h0 || p.z() > h1 || A + B * t < 0) continue;
+      best = t;
+      *normal = Eigen::Vector3d(p.x(), p.y(), -k * (A + B * t)).normalized();
+    }
+  }
+  if (best == kInf) return false;
+  const Eigen::Vector3d p = lo + best * ld;
+  *t_hit = best;
+  *uv = Eigen::Vector2d(std::atan2(p.y(), p.x()) * s.size.x() / 2, p.z());
+  return true;
 }
 
 void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vector3d& d, Hit* best) {
@@ -209,7 +371,11 @@ void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vecto
   double t_hit = kInf;
   Eigen::Vector3d local_normal = Eigen::Vector3d::Zero();
   Eigen::Vector2d uv = Eigen::Vector2d::Zero();
-  if (s.shape == Solid::Shape::kBox) {
+  if (s.shape == Solid::Shape::kBlob) {
+    if (!HitBlob(s, lo, ld, &t_hit, &local_normal, &uv)) return;
+  } else if (s.shape == Solid::Shape::kLathe) {
+    if (!HitLathe(s, lo + Eigen::Vector3d(0, 0, half_h), ld, &t_hit, &local_normal, &uv)) return;
+  } else if (s.shape == Solid::Shape::kBox) {
     const Eigen::Vector3d half(s.size.x() / 2, s.size.y() / 2, half_h);
     double t0 = -kInf, t1 = kInf;
     int axis = -1;
@@ -280,17 +446,20 @@ void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vecto
   best->albedo = s.color;
   best->has_depth = true;
   best->texture_scale = 2.0;
+  best->contrast = 1.0f;
+  best->prints = true;
+  best->tile_m = 0;
 }
 
 // The image rectangle a solid can cover (its bounding box's corners projected), or the whole
 // image when a corner is behind the camera.
 cv::Rect ScreenRect(const Solid& s, const CameraIntrinsics& k, const Eigen::Isometry3d& T_cw) {
   const double r = FootprintRadius(s);
+  const auto [bottom, top] = VerticalExtent(s);
   double u0 = kInf, v0 = kInf, u1 = -kInf, v1 = -kInf;
   for (int i = 0; i < 8; ++i) {
     const Eigen::Vector3d corner(s.center.x() + ((i & 1) ? r : -r),
-                                 s.center.y() + ((i & 2) ? r : -r),
-                                 s.base_z + ((i & 4) ? s.size.z() : 0.0));
+                                 s.center.y() + ((i & 2) ? r : -r), (i & 4) ? top : bottom);
     const Eigen::Vector3d pc = T_cw * corner;
     if (pc.z() < 0.05) return cv::Rect(0, 0, k.width, k.height);
     const double u = k.fx * pc.x() / pc.z() + k.cx, v = k.fy * pc.y() / pc.z() + k.cy;

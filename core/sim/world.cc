@@ -29,7 +29,42 @@ double DistanceToEdges(const std::vector<Eigen::Vector2d>& poly, const Eigen::Ve
 }
 
 double FootprintRadius(const Solid& s) {
-  return s.shape == Solid::Shape::kBox ? 0.5 * std::hypot(s.size.x(), s.size.y()) : s.size.x() / 2;
+  switch (s.shape) {
+    case Solid::Shape::kBox:
+      return 0.5 * std::hypot(s.size.x(), s.size.y());
+    case Solid::Shape::kBlob:
+      return 0.5 * std::max(s.size.x(), s.size.y()) * 1.02 * (1 + s.crumple);
+    default:
+      return s.size.x() / 2;
+  }
+}
+
+std::pair<double, double> VerticalExtent(const Solid& s) {
+  if (s.shape != Solid::Shape::kBlob) return {s.base_z, s.base_z + s.size.z()};
+  const double centre = s.base_z + s.size.z() / 2 - s.sink_m;
+  const double half = 0.5 * s.size.z() * 1.02 * (1 + s.crumple);
+  return {centre - half, centre + half};
+}
+
+bool MovableClass(SemanticClass c) {
+  switch (c) {
+    case SemanticClass::kChair:
+    case SemanticClass::kBox:
+    case SemanticClass::kCylinder:
+    case SemanticClass::kBook:
+    case SemanticClass::kMug:
+    case SemanticClass::kClutter:
+    case SemanticClass::kPerson:
+    case SemanticClass::kPlant:
+    case SemanticClass::kBag:
+    case SemanticClass::kClothes:
+    case SemanticClass::kBall:
+    case SemanticClass::kLamp:
+    case SemanticClass::kBottle:
+      return true;
+    default:
+      return false;
+  }
 }
 
 const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index) {
@@ -38,8 +73,9 @@ const std::vector<Eigen::Vector2d>& RoomFootprint(const Place& place, int index)
 
 const char* ClassName(SemanticClass c) {
   static const char* const kNames[] = {
-      "none", "floor", "wall", "ceiling",  "door", "window", "table",   "shelf",  "cabinet", "bed",
-      "sofa", "chair", "box",  "cylinder", "book", "mug",    "clutter", "person", "stairs"};
+      "none",   "floor", "wall",  "ceiling", "door",     "window", "table", "shelf",   "cabinet",
+      "bed",    "sofa",  "chair", "box",     "cylinder", "book",   "mug",   "clutter", "person",
+      "stairs", "plant", "bag",   "clothes", "ball",     "lamp",   "bottle"};
   static_assert(sizeof(kNames) / sizeof(kNames[0]) == kClassCount, "a name for every class");
   const int i = static_cast<int>(c);
   return i >= 0 && i < kClassCount ? kNames[i] : "unknown";

@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Core>
@@ -36,9 +37,20 @@ enum class SemanticClass : uint8_t {
   kClutter = 16,
   kPerson = 17,
   kStairs = 18,
+  // Curved and crumpled props (issue 13): the surfaces whose normals scatter.
+  kPlant = 19,
+  kBag = 20,
+  kClothes = 21,
+  kBall = 22,
+  kLamp = 23,
+  kBottle = 24,
 };
-constexpr int kClassCount = 19;
+constexpr int kClassCount = 25;
 const char* ClassName(SemanticClass c);
+
+// Whether objects of the class get moved between visits (chairs, props, people): the oracle's
+// movable set.
+bool MovableClass(SemanticClass c);
 
 enum class OpeningType { kDoor, kWindow };
 
@@ -57,18 +69,67 @@ struct Opening {
                        // closed doors are a panel flush with the wall
 };
 
-// A solid: an upright box or cylinder standing on `base_z`, rotated by yaw about z.
+// A solid standing on `base_z`, rotated by yaw about z:
+// - kBox: an upright box; size = x, y, height.
+// - kCylinder: an upright cylinder; size = diameter, -, height.
+// - kBlob: an ellipsoid of diameters size.x, size.y and height size.z whose radius is
+//   displaced by up to `crumple` (relative) with 3D value noise of `crumple_frequency` cycles
+//   around it: 0 is a smooth ball or egg, 0.1 a bag, 0.3 foliage or a heap of clothes. Its
+//   centre is `sink_m` lower than resting on base_z (a dome: the surface below hides the rest).
+// - kLathe: a surface of revolution about the vertical axis: `profile` holds (height above
+//   base_z, radius) in metres from (0, 0) to (top, 0), heights never decreasing (a bottle, a
+//   lamp, a pot); size = 2 x largest radius, the same, top height.
 struct Solid {
-  enum class Shape { kBox, kCylinder } shape = Shape::kBox;
+  enum class Shape { kBox, kCylinder, kBlob, kLathe } shape = Shape::kBox;
   SemanticClass cls = SemanticClass::kBox;
-  int instance = 0;      // unique within the place, > 0
+  int instance = 0;      // unique within the place, > 0; the parts of one object share it
+  int group = 0;         // > 0: solids that move, appear and vanish together (a plant's pot and
+                         // foliage, a stack of clutter); 0: on its own
   bool movable = false;  // props move between visits; furniture rarely
   Eigen::Vector2d center{0, 0};
   double base_z = 0;
-  double yaw = 0;                       // radians
-  Eigen::Vector3d size{0.3, 0.3, 0.3};  // box: x, y, height; cylinder: diameter, -, height
+  double yaw = 0;                        // radians
+  Eigen::Vector3d size{0.3, 0.3, 0.3};   // see the shapes above
+  double crumple = 0;                    // kBlob only
+  double crumple_frequency = 3;          // kBlob only
+  double sink_m = 0;                     // kBlob only
+  std::vector<Eigen::Vector2d> profile;  // kLathe only
   uint32_t texture_seed = 1;
   Eigen::Vector3f color{0.6f, 0.5f, 0.4f};  // base albedo, RGB in [0, 1]
+};
+
+// The lowest and highest points a solid can reach (metres, world z): its bounds for culling.
+std::pair<double, double> VerticalExtent(const Solid& s);
+
+// How a surface looks: the procedural texture the renderer paints on it.
+struct Finish {
+  uint32_t texture_seed = 1;
+  Eigen::Vector3f albedo{0.5f, 0.5f, 0.5f};  // RGB in [0, 1]
+  double texture_scale = 1.0;                // pattern frequency, relative (higher: finer)
+  float contrast = 1.0f;                     // of the noise pattern (paint: low)
+  bool prints = true;                        // printed patches (darker and brighter cells)
+  double tile_m = 0;  // > 0: square tiles of this side with grout lines between them,
+                      // every tile the same pattern (a floor covering)
+};
+
+// The finishes of a place's fixed surfaces.
+struct Materials {
+  Finish floor, ceiling, wall;
+  bool wall_per_segment = true;  // each wall segment its own texture seed (wall.texture_seed +
+                                 // its index); false: one paint for every wall
+};
+
+// How places are furnished and finished (`lifemap sim --world`).
+struct PlaceStyle {
+  // Props: false = boxes, cylinders, mugs, books and a clutter heap (the first world, issue 3);
+  // true = also curved and crumpled ones: plants, bags, clothes heaps, balls, lamps, bottles
+  // and stacked clutter.
+  bool curved_props = false;
+  // 0: every place has its own floor, paint and furniture textures. Otherwise places made with
+  // the same building seed share one tiled floor covering, one wall paint and the same
+  // furniture models (tables, chairs, shelves, cabinets, sofas, beds), as rooms of one building
+  // do; they still differ in shape, layout and clutter.
+  uint64_t building_seed = 0;
 };
 
 // A straight flight of stairs. Going up: `steps` boxes on the floor, each `rise_m` higher than
@@ -106,6 +167,8 @@ struct Place {
   std::vector<Solid> solids;  // furniture and props (and the steps of stairs, class kStairs)
   std::vector<Stairs> stairs;
   uint32_t texture_seed = 1;
+  Materials materials;
+  PlaceStyle style;
 };
 
 // Lighting of one visit: global brightness and colour temperature gain.

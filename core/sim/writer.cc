@@ -19,6 +19,20 @@ using nlohmann::json;
 
 const char* OpeningName(OpeningType t) { return t == OpeningType::kDoor ? "door" : "window"; }
 
+const char* ShapeName(Solid::Shape shape) {
+  switch (shape) {
+    case Solid::Shape::kBox:
+      return "box";
+    case Solid::Shape::kCylinder:
+      return "cylinder";
+    case Solid::Shape::kBlob:
+      return "blob";
+    case Solid::Shape::kLathe:
+      return "lathe";
+  }
+  return "unknown";
+}
+
 json SceneJson(const Place& place, const Visit& visit, const WriteOptions& options) {
   json walls = json::array();
   const size_t n = place.footprint.size();
@@ -63,7 +77,8 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
     objects.push_back({{"instance", s.instance},
                        {"class", ClassName(s.cls)},
                        {"class_id", static_cast<int>(s.cls)},
-                       {"shape", s.shape == Solid::Shape::kBox ? "box" : "cylinder"},
+                       {"shape", ShapeName(s.shape)},
+                       {"group", s.group},
                        {"center", {s.center.x(), s.center.y(), s.base_z}},
                        {"yaw_rad", s.yaw},
                        {"size_m", {s.size.x(), s.size.y(), s.size.z()}},
@@ -102,41 +117,44 @@ json SceneJson(const Place& place, const Visit& visit, const WriteOptions& optio
   for (int c = 0; c < kClassCount; ++c)
     classes[std::to_string(c)] = ClassName(static_cast<SemanticClass>(c));
   const auto& k = options.intrinsics;
-  return {{"place_id", place.id},
-          {"shape", place.shape},
-          {"visit", visit.index},
-          {"months_since_first", visit.months_since_first},
-          {"start_time_s", visit.start_time_s},
-          {"frame", "world z up, metres, floor at z = 0; poses T_world_camera (TUM)"},
-          {"floor_plan",
-           {{"footprint",
-             [&] {
-               json f = json::array();
-               for (const auto& p : place.footprint) f.push_back({p.x(), p.y()});
-               return f;
-             }()},
-            {"wall_height_m", place.wall_height_m},
-            {"rooms", rooms},
-            {"walls", walls},
-            {"openings", openings},
-            {"stairs", stairs}}},
-          {"objects", objects},
-          {"people", people},
-          {"changes", changes},
-          {"lighting",
-           {{"brightness", visit.lighting.brightness},
-            {"tint", {visit.lighting.tint.x(), visit.lighting.tint.y(), visit.lighting.tint.z()}},
-            {"lamp_on", visit.lighting.lamp_on},
-            {"lamp", {visit.lighting.lamp.x(), visit.lighting.lamp.y(), visit.lighting.lamp.z()}}}},
-          {"intrinsics",
-           {{"fx", k.fx},
-            {"fy", k.fy},
-            {"cx", k.cx},
-            {"cy", k.cy},
-            {"width", k.width},
-            {"height", k.height}}},
-          {"depth_scale", 5000},
-          {"classes", classes}};
+  return {
+      {"place_id", place.id},
+      {"shape", place.shape},
+      {"world",
+       {{"curved_props", place.style.curved_props}, {"building_seed", place.style.building_seed}}},
+      {"visit", visit.index},
+      {"months_since_first", visit.months_since_first},
+      {"start_time_s", visit.start_time_s},
+      {"frame", "world z up, metres, floor at z = 0; poses T_world_camera (TUM)"},
+      {"floor_plan",
+       {{"footprint",
+         [&] {
+           json f = json::array();
+           for (const auto& p : place.footprint) f.push_back({p.x(), p.y()});
+           return f;
+         }()},
+        {"wall_height_m", place.wall_height_m},
+        {"rooms", rooms},
+        {"walls", walls},
+        {"openings", openings},
+        {"stairs", stairs}}},
+      {"objects", objects},
+      {"people", people},
+      {"changes", changes},
+      {"lighting",
+       {{"brightness", visit.lighting.brightness},
+        {"tint", {visit.lighting.tint.x(), visit.lighting.tint.y(), visit.lighting.tint.z()}},
+        {"lamp_on", visit.lighting.lamp_on},
+        {"lamp", {visit.lighting.lamp.x(), visit.lighting.lamp.y(), visit.lighting.lamp.z()}}}},
+      {"intrinsics",
+       {{"fx", k.fx},
+        {"fy", k.fy},
+        {"cx", k.cx},
+        {"cy", k.cy},
+        {"width", k.width},
+        {"height", k.height}}},
+      {"depth_scale", 5000},
+      {"classes", classes}};
 }
 
 absl::Status Write(const fs::path& path, const cv::Mat& image) {

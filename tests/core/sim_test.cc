@@ -1,5 +1,8 @@
 // Exact checks of the synthetic world where exact answers exist.
 #include <filesystem>
+#include <map>
+#include <optional>
+#include <set>
 
 #include <gtest/gtest.h>
 #include <opencv2/imgcodecs.hpp>
@@ -156,6 +159,177 @@ TEST(Render, SeesTheNextRoomThroughAnOpenConnectingDoor) {
 
 // Fusing noisy views of the same wall whose poses are known brings the reference view's depth
 // closer to the truth: the multi-frame reconstruction the mesh variant is meant for.
+// A ball (a blob without crumple) and a bottle (a lathe) in front of the camera: depth at the
+// principal point is where their near surface is, exactly; class and instance as given.
+TEST(Render, CurvedSolidsAtTheirExactDepth) {
+  Solid ball;
+  ball.shape = Solid::Shape::kBlob;
+  ball.cls = SemanticClass::kBall;
+  ball.instance = 4;
+  ball.center = {2.5, 3.0};
+  ball.base_z = 1.35;
+  ball.size = {0.3, 0.3, 0.3};  // centre at z 1.5, the camera's height: near surface x = 2.35
+  RenderedFrame f = Render(EmptyRoom(), {ball}, {}, kCamera, LookAlongX(1.0, 3.0, 1.5), Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kBall));
+  EXPECT_EQ(f.instance_id.at<uint16_t>(119, 159), 4);
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 1.35f, 2e-3);
+
+  Solid bottle;
+  bottle.shape = Solid::Shape::kLathe;
+  bottle.cls = SemanticClass::kBottle;
+  bottle.instance = 5;
+  bottle.center = {2.5, 3.0};
+  bottle.base_z = 1.3;
+  // A body of radius 0.1 up to 0.3 m, a neck of radius 0.03 above: the camera at 1.5 m sees
+  // the body 0.2 m above the base.
+  bottle.profile = {{0, 0}, {0, 0.1}, {0.3, 0.1}, {0.35, 0.03}, {0.45, 0.03}, {0.45, 0}};
+  bottle.size = {0.2, 0.2, 0.45};
+  f = Render(EmptyRoom(), {bottle}, {}, kCamera, LookAlongX(1.0, 3.0, 1.5), Exact(), 1);
+  EXPECT_EQ(f.class_id.at<uint8_t>(119, 159), static_cast<uint8_t>(SemanticClass::kBottle));
+  EXPECT_NEAR(f.depth_m.at<float>(119, 159), 1.4f, 1e-4);
+  // 0.2 m higher (0.4 m above the base): the neck, 0.07 m further back.
+  const int neck_row = static_cast<int>(std::lround(119.5 - 262.5 * (1.7 - 1.5) / 1.47));
+  EXPECT_NEAR(f.depth_m.at<float>(neck_row, 159), 1.47f, 5e-3);
+  // Above the top (1.75 m) only the wall.
+  EXPECT_EQ(f.class_id.at<uint8_t>(20, 159), static_cast<uint8_t>(SemanticClass::kWall));
+}
+
+// Crumple scatters a surface's normals: the depth across a crumpled blob is rough where a
+// smooth one of the same size is not.
+TEST(Render, CrumpleMakesTheSurfaceRough) {
+  auto roughness = [](double crumple) {
+    Solid heap;
+    heap.shape = Solid::Shape::kBlob;
+    heap.cls = SemanticClass::kClothes;
+    heap.instance = 1;
+    heap.center = {2.5, 3.0};
+    heap.base_z = 1.0;
+    heap.size = {0.8, 0.8, 0.8};
+    heap.crumple = crumple;
+    heap.crumple_frequency = 5;
+    heap.texture_seed = 77;
+    const RenderedFrame f =
+        Render(EmptyRoom(), {heap}, {}, kCamera, LookAlongX(0.5, 3.0, 1.4), Exact(), 1);
+    // Mean absolute second difference of depth along the middle row, on the heap only.
+    double sum = 0;
+    int n = 0;
+    for (int c = 1; c + 1 < kCamera.width; ++c) {
+      bool on = true;
+      for (int d = -1; d <= 1; ++d) {
+        on = on &&
+             f.class_id.at<uint8_t>(119, c + d) == static_cast<uint8_t>(SemanticClass::kClothes);
+      }
+      if (!on) continue;
+      const float z0 = f.depth_m.at<float>(119, c - 1), z1 = f.depth_m.at<float>(119, c),
+                  z2 = f.depth_m.at<float>(119, c + 1);
+      sum += std::abs(z0 - 2 * z1 + z2);
+      ++n;
+    }
+    EXPECT_GT(n, 40) << "the heap covers the middle row (crumple " << crumple << ")";
+    return sum / std::max(n, 1);
+  };
+  EXPECT_GT(roughness(0.3), 5 * roughness(0.0));
+}
+
+TEST(Generator, TheFirstWorldIsTheDefaultAndCurvedPropsComeWithTheBuilding) {
+  auto rooms = ParseWorld("rooms", 7);
+  ASSERT_TRUE(rooms.ok());
+  EXPECT_FALSE(rooms->curved_props);
+  EXPECT_EQ(rooms->building_seed, 0u);
+  auto building = ParseWorld("building", 7);
+  ASSERT_TRUE(building.ok());
+  EXPECT_TRUE(building->curved_props);
+  EXPECT_EQ(building->building_seed, 7u);
+  auto bad = ParseWorld("castle", 7);
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad.status().message().find("building"), std::string::npos);
+
+  auto first = GeneratePlace(3, "rect");
+  auto same = GeneratePlace(3, "rect", *rooms);
+  ASSERT_TRUE(first.ok() && same.ok());
+  ASSERT_EQ(first->solids.size(), same->solids.size());
+  for (const auto& s : first->solids) {
+    EXPECT_NE(s.shape, Solid::Shape::kBlob);
+    EXPECT_NE(s.shape, Solid::Shape::kLathe);
+  }
+  EXPECT_TRUE(first->materials.wall_per_segment);
+}
+
+TEST(Generator, PlacesOfOneBuildingShareMaterialsAndFurnitureButNotLayout) {
+  const PlaceStyle building = *ParseWorld("building", 7);
+  PlaceStyle other = building;
+  other.building_seed = 8;
+  auto a = GeneratePlace(7000, "rect", building);
+  auto b = GeneratePlace(7001, "L", building);
+  auto c = GeneratePlace(7000, "rect", other);
+  ASSERT_TRUE(a.ok() && b.ok() && c.ok());
+  EXPECT_EQ(a->materials.floor.texture_seed, b->materials.floor.texture_seed);
+  EXPECT_EQ(a->materials.wall.texture_seed, b->materials.wall.texture_seed);
+  EXPECT_GT(a->materials.floor.tile_m, 0);
+  EXPECT_FALSE(a->materials.wall_per_segment);
+  EXPECT_NE(a->materials.floor.texture_seed, c->materials.floor.texture_seed);
+  // The same furniture model (texture and colour) for a class in both places.
+  auto model = [](const Place& p, SemanticClass cls) {
+    for (const auto& s : p.solids) {
+      if (s.cls == cls) return std::optional<uint32_t>(s.texture_seed);
+    }
+    return std::optional<uint32_t>();
+  };
+  for (SemanticClass cls : {SemanticClass::kTable, SemanticClass::kChair}) {
+    ASSERT_TRUE(model(*a, cls) && model(*b, cls)) << ClassName(cls);
+    EXPECT_EQ(*model(*a, cls), *model(*b, cls)) << ClassName(cls);
+    EXPECT_NE(*model(*a, cls), *model(*c, cls)) << ClassName(cls);
+  }
+  EXPECT_NE(a->footprint.size(), b->footprint.size());
+}
+
+TEST(Generator, CurvedPropsAreLabelledMovableAndMoveWholeBetweenVisits) {
+  const PlaceStyle building = *ParseWorld("building", 5);
+  auto place = GeneratePlace(5, "rect", building);
+  ASSERT_TRUE(place.ok());
+  std::set<SemanticClass> curved;
+  std::map<int, std::vector<Solid>> groups;
+  for (const auto& s : place->solids) {
+    if (s.cls >= SemanticClass::kPlant) {
+      curved.insert(s.cls);
+      EXPECT_TRUE(s.movable);
+      EXPECT_TRUE(MovableClass(s.cls));
+      EXPECT_GT(s.group, 0);
+    }
+    if (s.group > 0) groups[s.group].push_back(s);
+  }
+  EXPECT_GE(curved.size(), 4u) << "plants, a heap of clothes, a bag, a ball, a lamp";
+  EXPECT_TRUE(curved.count(SemanticClass::kPlant));
+  // Deterministic: the same arguments, the same place.
+  auto again = GeneratePlace(5, "rect", building);
+  ASSERT_EQ(again->solids.size(), place->solids.size());
+  for (size_t i = 0; i < place->solids.size(); ++i) {
+    EXPECT_EQ(again->solids[i].center, place->solids[i].center);
+    EXPECT_EQ(again->solids[i].texture_seed, place->solids[i].texture_seed);
+  }
+  // Over visits with scenery changes, a group's parts keep their offsets: they move as one.
+  auto visits = GenerateVisits(*place, 5, 4, 6, *ParseConditions("scenery"), 10);
+  ASSERT_TRUE(visits.ok());
+  int moved_groups = 0;
+  for (const auto& [group, parts] : groups) {
+    if (parts.size() < 2) continue;
+    for (const auto& v : *visits) {
+      std::vector<Solid> now;
+      for (const auto& s : v.solids) {
+        if (s.group == group) now.push_back(s);
+      }
+      if (now.empty()) continue;  // vanished together
+      ASSERT_EQ(now.size(), parts.size()) << "group " << group << " visit " << v.index;
+      const double spread0 = (parts[1].center - parts[0].center).norm();
+      const double spread1 = (now[1].center - now[0].center).norm();
+      EXPECT_NEAR(spread0, spread1, 1e-9);
+      EXPECT_NEAR(now[1].yaw - now[0].yaw, parts[1].yaw - parts[0].yaw, 1e-9);
+      moved_groups += now[0].center != parts[0].center;
+    }
+  }
+  EXPECT_GT(moved_groups, 0) << "some composite prop moved in four visits";
+}
+
 TEST(FuseDepth, AveragesNoisyViewsWithKnownPoses) {
   const Place room = EmptyRoom();
   SensorOptions noisy;
