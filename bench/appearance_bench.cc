@@ -61,7 +61,9 @@ const RealFrames& GetRealFrames() {
 void BM_KeyframeFeatures(benchmark::State& state) {
   const auto& real = GetRealFrames();
   if (!real.error.empty()) return state.SkipWithError(real.error.c_str());
-  const pipeline::KeyframeFeatureOptions options{static_cast<int>(state.range(0))};
+  pipeline::KeyframeFeatureOptions options;
+  options.max_keypoints = static_cast<int>(state.range(0));
+  options.detect_scale = static_cast<double>(state.range(1)) / 100.0;
   size_t kept = 0;
   for (auto _ : state) {
     auto k = pipeline::ExtractKeyframeFeatures(real.analyses[0], options);
@@ -70,7 +72,13 @@ void BM_KeyframeFeatures(benchmark::State& state) {
   }
   state.counters["kept"] = static_cast<double>(kept);
 }
-BENCHMARK(BM_KeyframeFeatures)->Arg(500)->Arg(1000)->Unit(benchmark::kMillisecond);
+// Args: keypoints, detection scale in per cent (100: full resolution; 50: half).
+BENCHMARK(BM_KeyframeFeatures)
+    ->Args({500, 100})
+    ->Args({1000, 100})
+    ->Args({1000, 50})
+    ->Args({500, 50})
+    ->Unit(benchmark::kMillisecond);
 
 void BM_VerifyCandidate(benchmark::State& state) {
   const auto& real = GetRealFrames();

@@ -34,6 +34,9 @@ absl::Status AppearanceOptions::Validate() const {
   if (auto s = recognizer.Validate(); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat("appearance: ", s.message()));
   }
+  if (auto s = features.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("appearance.", s.message()));
+  }
   return absl::OkStatus();
 }
 

@@ -182,6 +182,10 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             a.vocabulary.branching = v.get<int>();
           } else if (k == "vocabulary_levels") {
             a.vocabulary.levels = v.get<int>();
+          } else if (k == "max_keypoints") {
+            a.features.max_keypoints = v.get<int>();
+          } else if (k == "detect_scale") {
+            a.features.detect_scale = v.get<double>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key appearance.", k));

@@ -9,6 +9,7 @@
 #include "absl/status/statusor.h"
 #include "core/appearance/recognizer.h"
 #include "core/pipeline/frame_pipeline.h"
+#include "core/pipeline/keyframe.h"
 #include "core/tracking/keyframe_selector.h"
 
 namespace lifemap::server {
@@ -20,6 +21,7 @@ struct AppearanceOptions {
   int max_training_keyframes = 3000;  // keyframes a vocabulary is trained on at most
   appearance::VocabularyOptions vocabulary;
   appearance::RecognizerOptions recognizer;
+  pipeline::KeyframeFeatureOptions features;  // ORB per keyframe (and per queried frame)
   // A keyframe of the querying visit is not a match when taken less than this long before or
   // after the query (it is the same view a moment ago, not a recognised place), seconds.
   double exclude_recent_s = 10.0;

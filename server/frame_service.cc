@@ -254,7 +254,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   absl::StatusOr<pipeline::KeyframeFeatures> features =
       absl::FailedPreconditionError("not extracted");
   if (decision.selected || query_appearance) {
-    features = pipeline::ExtractKeyframeFeatures(*analysis, {});
+    features = pipeline::ExtractKeyframeFeatures(*analysis, ctx->config.appearance.features);
   }
   if (decision.selected) {
     record = MakeKeyframeRecord(frame, f, visit->visit_id);

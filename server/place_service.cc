@@ -254,7 +254,7 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                           absl::StrCat("frames[", i, "]: ", analysis.status().message()));
     }
-    auto features = pipeline::ExtractKeyframeFeatures(*analysis, {});
+    auto features = pipeline::ExtractKeyframeFeatures(*analysis, ctx_->config.appearance.features);
     absl::StatusOr<appearance::Recognition> recognition =
         features.ok()
             ? ctx_->appearance->Recognize(features->keypoints, analysis->frame.intrinsics, {})

@@ -55,7 +55,8 @@ RealView MakeView(const std::string& name, const RgbdFrame& f, const cv::Mat& mo
                   const AppearanceStudyOptions& options) {
   RealView v;
   v.name = name;
-  v.all = features::ExtractOrb(f.color_bgr, options.features.max_keypoints);
+  v.all = features::ExtractOrb(f.color_bgr, options.features.max_keypoints,
+                               options.features.detect_scale);
   features::AttachPoints(f.depth_m, f.intrinsics, &v.all);
   v.entropy_mask = EntropyMask(f, options);
   v.movable = movable;
@@ -183,10 +184,14 @@ absl::StatusOr<AppearanceStudy> RunAppearanceStudy(
   std::mutex mu;
   absl::Status failed;
   size_t done = 0;
+  // The floor plans only: the place study's ORB baseline is not needed here (0 keyframes kept
+  // for it, so no colour is decoded for the fold).
+  PlaceStudyOptions fold_options = options.places;
+  fold_options.appearance_keyframes = 0;
   ParallelFor(study.visits.size(), options.threads, [&](size_t i) {
     SuiteVisit& v = study.visits[i];
     auto k = ExtractVisit(root / v.path, options, options.seed + 1000 * i);
-    auto folded = FoldVisit((root / v.path).string(), options.places);
+    auto folded = FoldVisit((root / v.path).string(), fold_options);
     std::lock_guard<std::mutex> lock(mu);
     if (!k.ok() || !folded.ok()) {
       if (failed.ok()) failed = !k.ok() ? k.status() : folded.status();

@@ -27,7 +27,7 @@ struct PlaceStudyOptions {
   tracking::KeyframeOptions keyframes;  // the server's key-frame selection
   place::FloorPlanOptions floor_plan;
   place::MatchWeights weights;
-  int appearance_keyframes = 8;  // evenly spaced key frames per visit the baseline keeps
+  int appearance_keyframes = 8;  // evenly spaced key frames per visit the baseline keeps (0: none)
   int orb_keypoints = 500;
   double ratio_test = 0.8;  // Lowe's ratio for ORB matches
   double ransac_px = 2.0;   // fundamental-matrix RANSAC threshold

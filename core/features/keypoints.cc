@@ -14,18 +14,27 @@ int KeypointSet::with_points() const {
                                         [](const Eigen::Vector3f& p) { return p.allFinite(); }));
 }
 
-KeypointSet ExtractOrb(const cv::Mat& color_bgr, int max_keypoints) {
+KeypointSet ExtractOrb(const cv::Mat& color_bgr, int max_keypoints, double detect_scale) {
   KeypointSet out;
   out.type = "orb";
   cv::Mat gray;
   cv::cvtColor(color_bgr, gray, cv::COLOR_BGR2GRAY);
+  if (detect_scale > 0 && detect_scale < 1) {
+    cv::resize(gray, gray, cv::Size(), detect_scale, detect_scale, cv::INTER_AREA);
+  } else {
+    detect_scale = 1;
+  }
   auto orb = cv::ORB::create(max_keypoints);
   std::vector<cv::KeyPoint> keypoints;
   orb->detectAndCompute(gray, cv::noArray(), keypoints, out.descriptors);
   out.detected = static_cast<int>(keypoints.size());
   out.keypoints.reserve(keypoints.size());
+  // Pixel centres map as (x + 0.5) / scale - 0.5.
+  const auto up = static_cast<float>(1.0 / detect_scale);
+  const float shift = 0.5f * (up - 1.0f);
   for (const auto& k : keypoints) {
-    out.keypoints.push_back({k.pt.x, k.pt.y, k.size, k.angle, k.response});
+    out.keypoints.push_back(
+        {k.pt.x * up + shift, k.pt.y * up + shift, k.size * up, k.angle, k.response});
   }
   return out;
 }

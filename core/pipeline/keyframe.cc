@@ -9,6 +9,10 @@ absl::Status KeyframeFeatureOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("max_keypoints must be in [10, 10000], got ", max_keypoints));
   }
+  if (!(detect_scale > 0.2 && detect_scale <= 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("detect_scale must be in (0.2, 1], got ", detect_scale));
+  }
   return absl::OkStatus();
 }
 
@@ -18,7 +22,8 @@ absl::StatusOr<KeyframeFeatures> ExtractKeyframeFeatures(const FrameAnalysis& an
   if (f.color_bgr.empty()) {
     return absl::FailedPreconditionError("the frame has no colour image to extract features from");
   }
-  features::KeypointSet all = features::ExtractOrb(f.color_bgr, options.max_keypoints);
+  features::KeypointSet all =
+      features::ExtractOrb(f.color_bgr, options.max_keypoints, options.detect_scale);
   features::AttachPoints(f.depth_m, f.intrinsics, &all);
   KeyframeFeatures out;
   if (analysis.entropy) {

@@ -4,6 +4,7 @@
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
 
 #include "core/appearance/recognizer.h"
 #include "core/io/tum_dataset.h"
@@ -167,6 +168,38 @@ TEST(VerifyTest, UnrelatedViewsAndMissingPointsAreNotVerifiedAndSayWhy) {
   v = VerifyMatch(p.query, p.k, p.match);
   EXPECT_FALSE(v.verified);
   EXPECT_THAT(v.reason, ::testing::HasSubstr("no 3D points"));
+}
+
+// Keypoints detected on a resized image come back in the full image's pixels: on a scene of
+// dark squares, those found at half resolution lie where full resolution finds them.
+TEST(FeaturesTest, HalfResolutionKeypointsAreInFullResolutionPixels) {
+  cv::Mat scene(480, 640, CV_8UC3, cv::Scalar::all(210));
+  std::mt19937 rng(3);
+  std::uniform_int_distribution<int> side(24, 60);
+  for (int r = 20; r + 70 < scene.rows; r += 80) {
+    for (int c = 20; c + 70 < scene.cols; c += 80) {
+      cv::rectangle(scene, cv::Rect(c, r, side(rng), side(rng)), cv::Scalar::all(40), cv::FILLED);
+    }
+  }
+  const features::KeypointSet full = features::ExtractOrb(scene, 500, 1.0);
+  const features::KeypointSet half = features::ExtractOrb(scene, 500, 0.5);
+  ASSERT_GT(full.size(), 20u);
+  ASSERT_GT(half.size(), 20u);
+  EXPECT_EQ(half.descriptors.rows, static_cast<int>(half.size()));
+  std::vector<double> nearest;
+  for (const auto& h : half.keypoints) {
+    double best = 1e9;
+    for (const auto& f : full.keypoints)
+      best = std::min(best, static_cast<double>(std::hypot(h.x - f.x, h.y - f.y)));
+    nearest.push_back(best);
+  }
+  std::nth_element(nearest.begin(), nearest.begin() + nearest.size() / 2, nearest.end());
+  EXPECT_LT(nearest[nearest.size() / 2], 3.0) << "median distance to a full-resolution keypoint";
+  pipeline::KeyframeFeatureOptions options;
+  options.detect_scale = 0;
+  EXPECT_EQ(options.Validate().code(), absl::StatusCode::kInvalidArgument);
+  options.detect_scale = 0.5;
+  EXPECT_TRUE(options.Validate().ok());
 }
 
 TEST(RecognizeTest, EmptyIndexAndPrunedQuerySaySo) {
