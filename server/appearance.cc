@@ -198,14 +198,11 @@ absl::StatusOr<AppearanceIndexStats> AppearanceIndex::Rebuild(bool retrain) {
 }
 
 absl::Status AppearanceIndex::TrainLocked(bool asked) {
-  // Count first, then keep every n-th keyframe's descriptors so that at most
-  // max_training_keyframes are held.
-  int64_t stored = 0;
-  if (auto s = store_->ForEachKeyframeDescriptors(
-          0, [&](const store::KeyframeDescriptors&) { return ++stored, absl::OkStatus(); });
-      !s.ok()) {
-    return s;
-  }
+  // Count first (without reading descriptors), then keep every n-th keyframe's descriptors so
+  // that at most max_training_keyframes are held.
+  auto count = store_->CountKeyframesWithFeatures();
+  if (!count.ok()) return count.status();
+  const int64_t stored = *count;
   if (asked && stored == 0) {
     return absl::FailedPreconditionError(
         "no stored keyframe has features to train a vocabulary on: stream some frames into a "

@@ -41,6 +41,16 @@ absl::Status Store::ForEachKeyframeDescriptors(
   return absl::OkStatus();
 }
 
+absl::StatusOr<int64_t> Store::CountKeyframesWithFeatures() {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare("SELECT COUNT(*) FROM keyframe_features");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  return *row ? s->ColumnInt(0) : 0;
+}
+
 absl::StatusOr<int64_t> Store::PutVocabulary(const VocabularyRecord& r) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();

@@ -213,6 +213,8 @@ class Store {
   // status and returns it. The read lock is held throughout: `fn` must not call the store.
   absl::Status ForEachKeyframeDescriptors(
       int64_t map_id, const std::function<absl::Status(const KeyframeDescriptors&)>& fn);
+  // How many stored keyframes have features (every map), without reading them.
+  absl::StatusOr<int64_t> CountKeyframesWithFeatures();
   // The visit's latest keyframe (without images), to resume keyframe selection.
   absl::StatusOr<std::optional<KeyframeRecord>> LastKeyframe(int64_t visit_id);
 
