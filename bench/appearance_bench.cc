@@ -62,8 +62,10 @@ void BM_KeyframeFeatures(benchmark::State& state) {
   const auto& real = GetRealFrames();
   if (!real.error.empty()) return state.SkipWithError(real.error.c_str());
   pipeline::KeyframeFeatureOptions options;
-  options.max_keypoints = static_cast<int>(state.range(0));
-  options.detect_scale = static_cast<double>(state.range(1)) / 100.0;
+  options.orb.max_keypoints = static_cast<int>(state.range(0));
+  options.orb.detect_scale = static_cast<double>(state.range(1)) / 100.0;
+  options.orb.pyramid_levels = static_cast<int>(state.range(2));
+  options.orb.pyramid_scale = static_cast<double>(state.range(3)) / 100.0;
   size_t kept = 0;
   for (auto _ : state) {
     auto k = pipeline::ExtractKeyframeFeatures(real.analyses[0], options);
@@ -72,12 +74,15 @@ void BM_KeyframeFeatures(benchmark::State& state) {
   }
   state.counters["kept"] = static_cast<double>(kept);
 }
-// Args: keypoints, detection scale in per cent (100: full resolution; 50: half).
+// Args: keypoints, detection scale in per cent (100: full resolution; 50: half), pyramid
+// levels, ratio between levels in per cent.
 BENCHMARK(BM_KeyframeFeatures)
-    ->Args({500, 100})
-    ->Args({1000, 100})
-    ->Args({1000, 50})
-    ->Args({500, 50})
+    ->Args({1000, 100, 8, 120})
+    ->Args({500, 100, 8, 120})
+    ->Args({1000, 100, 4, 120})
+    ->Args({1000, 100, 4, 140})
+    ->Args({1000, 100, 3, 150})
+    ->Args({1000, 50, 8, 120})
     ->Unit(benchmark::kMillisecond);
 
 void BM_VerifyCandidate(benchmark::State& state) {

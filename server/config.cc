@@ -183,9 +183,13 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else if (k == "vocabulary_levels") {
             a.vocabulary.levels = v.get<int>();
           } else if (k == "max_keypoints") {
-            a.features.max_keypoints = v.get<int>();
+            a.features.orb.max_keypoints = v.get<int>();
           } else if (k == "detect_scale") {
-            a.features.detect_scale = v.get<double>();
+            a.features.orb.detect_scale = v.get<double>();
+          } else if (k == "pyramid_levels") {
+            a.features.orb.pyramid_levels = v.get<int>();
+          } else if (k == "pyramid_scale") {
+            a.features.orb.pyramid_scale = v.get<double>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key appearance.", k));

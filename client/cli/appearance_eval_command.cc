@@ -22,7 +22,7 @@ struct AppearanceEvalArgs {
   std::string suite, out, thresholds_from, mosd, tum_reference, tum_query;
   int threads = 0;
   int query_stride = 1;
-  double detect_scale = pipeline::KeyframeFeatureOptions{}.detect_scale;
+  features::OrbOptions orb;  // the server's defaults
 };
 
 const char* const kSubsetNames[8] = {
@@ -74,7 +74,8 @@ int RunAppearanceEval(const CliContext& ctx, const AppearanceEvalArgs& a) {
   eval::AppearanceStudyOptions options;
   options.threads = a.threads;
   options.query_stride = a.query_stride;
-  options.features.detect_scale = a.detect_scale;
+  options.features.orb = a.orb;
+  if (auto s = options.features.Validate(); !s.ok()) return UsageError(std::string(s.message()));
   options.places.threads = a.threads;
   if (!a.thresholds_from.empty()) {
     std::ifstream in(a.thresholds_from);
@@ -175,7 +176,10 @@ int RunAppearanceEval(const CliContext& ctx, const AppearanceEvalArgs& a) {
     report += table;
     const auto& pruned = study->methods.at("pruned");
     summary["suite"] = a.suite;
-    summary["detect_scale"] = a.detect_scale;
+    summary["orb"] = {{"max_keypoints", a.orb.max_keypoints},
+                      {"detect_scale", a.orb.detect_scale},
+                      {"pyramid_levels", a.orb.pyramid_levels},
+                      {"pyramid_scale", a.orb.pyramid_scale}};
     summary["threshold"] = threshold;
     summary["top1"] = top1;
     summary["recall_at_full_precision"] = full_precision;
@@ -255,9 +259,12 @@ void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx) {
   cmd->add_option("--query-stride", a->query_stride,
                   "try every N-th query keyframe of each visit (default 1: all; a quicker look)")
       ->check(CLI::Range(1, 1000));
-  cmd->add_option("--detect-scale", a->detect_scale,
-                  "ORB runs on the colour image resized by this factor (default: the server's)")
-      ->check(CLI::Range(0.25, 1.0));
+  cmd->add_option("--detect-scale", a->orb.detect_scale,
+                  "ORB runs on the colour image resized by this factor (default: the server's)");
+  cmd->add_option("--pyramid-levels", a->orb.pyramid_levels,
+                  "ORB's scale pyramid levels (default: the server's)");
+  cmd->add_option("--pyramid-scale", a->orb.pyramid_scale,
+                  "ORB's ratio between pyramid levels (default: the server's)");
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunAppearanceEval(*ctx, *a); }; });
 }
 

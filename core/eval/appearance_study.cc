@@ -55,8 +55,7 @@ RealView MakeView(const std::string& name, const RgbdFrame& f, const cv::Mat& mo
                   const AppearanceStudyOptions& options) {
   RealView v;
   v.name = name;
-  v.all = features::ExtractOrb(f.color_bgr, options.features.max_keypoints,
-                               options.features.detect_scale);
+  v.all = features::ExtractOrb(f.color_bgr, options.features.orb);
   features::AttachPoints(f.depth_m, f.intrinsics, &v.all);
   v.entropy_mask = EntropyMask(f, options);
   v.movable = movable;

@@ -239,7 +239,7 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
                           absl::StrCat(seq->frames[keyframes[j]].depth_path, ": ", s.message()));
     }
     if (keep[j]) {
-      v.appearance.push_back(features::ExtractOrb(frame->color_bgr, options.orb_keypoints));
+      v.appearance.push_back(features::ExtractOrb(frame->color_bgr, {options.orb_keypoints}));
     }
   }
   auto plan = builder.Build();

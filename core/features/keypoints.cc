@@ -14,17 +14,19 @@ int KeypointSet::with_points() const {
                                         [](const Eigen::Vector3f& p) { return p.allFinite(); }));
 }
 
-KeypointSet ExtractOrb(const cv::Mat& color_bgr, int max_keypoints, double detect_scale) {
+KeypointSet ExtractOrb(const cv::Mat& color_bgr, const OrbOptions& options) {
   KeypointSet out;
   out.type = "orb";
   cv::Mat gray;
   cv::cvtColor(color_bgr, gray, cv::COLOR_BGR2GRAY);
+  double detect_scale = options.detect_scale;
   if (detect_scale > 0 && detect_scale < 1) {
     cv::resize(gray, gray, cv::Size(), detect_scale, detect_scale, cv::INTER_AREA);
   } else {
     detect_scale = 1;
   }
-  auto orb = cv::ORB::create(max_keypoints);
+  auto orb = cv::ORB::create(options.max_keypoints, static_cast<float>(options.pyramid_scale),
+                             options.pyramid_levels);
   std::vector<cv::KeyPoint> keypoints;
   orb->detectAndCompute(gray, cv::noArray(), keypoints, out.descriptors);
   out.detected = static_cast<int>(keypoints.size());

@@ -35,11 +35,19 @@ struct KeypointSet {
   int with_points() const;
 };
 
-// ORB keypoints and descriptors (OpenCV, up to max_keypoints) of a BGR image, none pruned.
-// detect_scale < 1 detects on the image resized by that factor (0.5: a quarter of the pixels,
-// about half the time) and returns keypoints in the full image's pixels, sizes scaled alike.
-KeypointSet ExtractOrb(const cv::Mat& color_bgr, int max_keypoints = 1000,
-                       double detect_scale = 1.0);
+// How ORB runs (OpenCV's detector; its defaults but where measured otherwise, see
+// docs/BENCHMARKS.md "Appearance place recognition").
+struct OrbOptions {
+  int max_keypoints = 1000;  // detected at most, [10, 10000]
+  // < 1: detect on the image resized by this factor (0.5: a quarter of the pixels); keypoints
+  // come back in the full image's pixels, sizes scaled alike. (0.2, 1].
+  double detect_scale = 1.0;
+  int pyramid_levels = 8;      // scale pyramid levels, [1, 12]
+  double pyramid_scale = 1.2;  // ratio between levels, (1, 2]
+};
+
+// ORB keypoints and descriptors of a BGR image, none pruned.
+KeypointSet ExtractOrb(const cv::Mat& color_bgr, const OrbOptions& options = {});
 
 // Fills `set->points` from a depth image (CV_32FC1 metres, 0 or NaN = no reading) registered
 // with the colour image the keypoints came from.

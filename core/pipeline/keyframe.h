@@ -14,10 +14,7 @@
 namespace lifemap::pipeline {
 
 struct KeyframeFeatureOptions {
-  int max_keypoints = 1000;  // ORB keypoints detected before pruning, [10, 10000]
-  // ORB runs on the colour image resized by this factor, (0, 1]; keypoints come back in full
-  // resolution pixels (features::ExtractOrb).
-  double detect_scale = 1.0;
+  features::OrbOptions orb;  // detection before pruning
 
   absl::Status Validate() const;
 };

@@ -181,8 +181,8 @@ TEST(FeaturesTest, HalfResolutionKeypointsAreInFullResolutionPixels) {
       cv::rectangle(scene, cv::Rect(c, r, side(rng), side(rng)), cv::Scalar::all(40), cv::FILLED);
     }
   }
-  const features::KeypointSet full = features::ExtractOrb(scene, 500, 1.0);
-  const features::KeypointSet half = features::ExtractOrb(scene, 500, 0.5);
+  const features::KeypointSet full = features::ExtractOrb(scene, {500, 1.0});
+  const features::KeypointSet half = features::ExtractOrb(scene, {500, 0.5});
   ASSERT_GT(full.size(), 20u);
   ASSERT_GT(half.size(), 20u);
   EXPECT_EQ(half.descriptors.rows, static_cast<int>(half.size()));
@@ -196,9 +196,9 @@ TEST(FeaturesTest, HalfResolutionKeypointsAreInFullResolutionPixels) {
   std::nth_element(nearest.begin(), nearest.begin() + nearest.size() / 2, nearest.end());
   EXPECT_LT(nearest[nearest.size() / 2], 3.0) << "median distance to a full-resolution keypoint";
   pipeline::KeyframeFeatureOptions options;
-  options.detect_scale = 0;
+  options.orb.detect_scale = 0;
   EXPECT_EQ(options.Validate().code(), absl::StatusCode::kInvalidArgument);
-  options.detect_scale = 0.5;
+  options.orb.detect_scale = 0.5;
   EXPECT_TRUE(options.Validate().ok());
 }
 

@@ -63,7 +63,8 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))
       << R"({"appearance": {"min_training_keyframes": 5, "frame_interval_s": 2.5,
-             "candidates": 4, "min_inliers": 20, "max_keypoints": 800, "detect_scale": 0.75}})";
+             "candidates": 4, "min_inliers": 20, "max_keypoints": 800, "detect_scale": 0.75, "pyramid_levels": 4,
+             "pyramid_scale": 1.4}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->appearance.min_training_keyframes, 5);
@@ -71,8 +72,10 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   EXPECT_DOUBLE_EQ(*c->appearance.frame_interval_s, 2.5);
   EXPECT_EQ(c->appearance.recognizer.candidates, 4);
   EXPECT_EQ(c->appearance.recognizer.verify.min_inliers, 20);
-  EXPECT_EQ(c->appearance.features.max_keypoints, 800);
-  EXPECT_DOUBLE_EQ(c->appearance.features.detect_scale, 0.75);
+  EXPECT_EQ(c->appearance.features.orb.max_keypoints, 800);
+  EXPECT_DOUBLE_EQ(c->appearance.features.orb.detect_scale, 0.75);
+  EXPECT_EQ(c->appearance.features.orb.pyramid_levels, 4);
+  EXPECT_DOUBLE_EQ(c->appearance.features.orb.pyramid_scale, 1.4);
   const std::pair<const char*, const char*> bad[] = {
       {"train.json", R"({"appearance": {"min_training_keyframes": 1}})"},
       {"interval.json", R"({"appearance": {"frame_interval_s": -1}})"},
@@ -81,6 +84,8 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
       {"levels.json", R"({"appearance": {"vocabulary_levels": 9}})"},
       {"keypoints.json", R"({"appearance": {"max_keypoints": 5}})"},
       {"scale.json", R"({"appearance": {"detect_scale": 1.5}})"},
+      {"levels0.json", R"({"appearance": {"pyramid_levels": 0}})"},
+      {"ratio.json", R"({"appearance": {"pyramid_scale": 1.0}})"},
       {"key.json", R"({"appearance": {"candidate": 4}})"},
   };
   for (const auto& [file, text] : bad) {
