@@ -239,7 +239,9 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
                           absl::StrCat(seq->frames[keyframes[j]].depth_path, ": ", s.message()));
     }
     if (keep[j]) {
-      v.appearance.push_back(features::ExtractOrb(frame->color_bgr, {options.orb_keypoints}));
+      // The baseline keeps OpenCV's own ORB pyramid (8 levels, 1.2), as when it was reported.
+      v.appearance.push_back(
+          features::ExtractOrb(frame->color_bgr, {options.orb_keypoints, 1.0, 8, 1.2}));
     }
   }
   auto plan = builder.Build();
