@@ -239,9 +239,7 @@ absl::StatusOr<FoldedVisit> FoldVisit(const std::string& tum_dir,
                           absl::StrCat(seq->frames[keyframes[j]].depth_path, ": ", s.message()));
     }
     if (keep[j]) {
-      // The baseline keeps OpenCV's own ORB pyramid (8 levels, 1.2), as when it was reported.
-      v.appearance.push_back(
-          features::ExtractOrb(frame->color_bgr, {options.orb_keypoints, 1.0, 8, 1.2}));
+      v.appearance.push_back(features::ExtractOrb(frame->color_bgr, {options.orb_keypoints}));
     }
   }
   auto plan = builder.Build();

@@ -35,17 +35,17 @@ struct KeypointSet {
   int with_points() const;
 };
 
-// How ORB runs (OpenCV's detector). The pyramid is 3 levels 1.5 apart instead of OpenCV's 8
-// levels 1.2 apart: 0.58 of the time per keyframe (7.8 against 13.4 ms, the 8 ms budget of
-// issue 13) for one point of F1 on the building suite (docs/BENCHMARKS.md and docs/RESULTS.md,
-// "Appearance place recognition"); a scale range of 2.25 instead of 3.6.
+// How ORB runs (OpenCV's detector, its defaults). A 3-level pyramid 1.5 apart takes 0.58 of
+// the time per keyframe (7.8 against 13.4 ms in one run) but costs 1-4 points of F1 on the
+// building suites, half-resolution detection 6 points on the rooms suite (docs/BENCHMARKS.md,
+// "Features per keyframe"): both are options, not defaults.
 struct OrbOptions {
   int max_keypoints = 1000;  // detected at most, [10, 10000]
   // < 1: detect on the image resized by this factor (0.5: a quarter of the pixels); keypoints
   // come back in the full image's pixels, sizes scaled alike. (0.2, 1].
   double detect_scale = 1.0;
-  int pyramid_levels = 3;      // scale pyramid levels, [1, 12]
-  double pyramid_scale = 1.5;  // ratio between levels, (1, 2]
+  int pyramid_levels = 8;      // scale pyramid levels, [1, 12]
+  double pyramid_scale = 1.2;  // ratio between levels, (1, 2]
 };
 
 // ORB keypoints and descriptors of a BGR image, none pruned.
