@@ -7,7 +7,10 @@
 //
 // Without --server it starts lifemapd in-process on a temporary database. Frames are the real
 // TUM recording (default ../shared/data/tum_fr1_xyz_subset), loaded into memory first and
-// replayed cyclically with fresh timestamps, so disk reads are not measured.
+// replayed cyclically with fresh timestamps, so disk reads are not measured. Each run also
+// reports the server's CPU per answered frame (GetStats.process_cpu_s before and after; JSON
+// `server_cpu_ms_per_frame`): the server alone with --server, with the generator's own CPU
+// included in-process.
 #include <algorithm>
 #include <chrono>
 #include <ctime>
@@ -48,6 +51,12 @@ struct RunReport {
   double seconds = 0;
   Latencies latency;
   double server_total_p50_ms = 0;
+  double server_cpu_s = -1;  // the server's CPU time over the run (GetStats), < 0 unknown
+
+  // Server CPU per answered frame, milliseconds; < 0 unknown.
+  double CpuMsPerFrame() const {
+    return server_cpu_s < 0 || frames == 0 ? -1.0 : 1000.0 * server_cpu_s / frames;
+  }
 
   nlohmann::json ToJson() const {
     return {{"name", name},
@@ -61,14 +70,17 @@ struct RunReport {
               {"p90", latency.Percentile(90)},
               {"p99", latency.Percentile(99)},
               {"max", latency.Percentile(100)}}},
-            {"server_time_p50_ms", server_total_p50_ms}};
+            {"server_time_p50_ms", server_total_p50_ms},
+            {"server_cpu_ms_per_frame",
+             CpuMsPerFrame() < 0 ? nlohmann::json() : nlohmann::json(CpuMsPerFrame())}};
   }
   void Print() const {
     std::cout << absl::StrFormat(
         "%-34s %6d frames %4d errors %5d keyframes %8.1f frames/s  latency p50 %6.1f  p90 %6.1f  "
-        "p99 %6.1f ms (server %.1f ms)\n",
+        "p99 %6.1f ms (server %.1f ms, CPU %s per frame)\n",
         name, frames, errors, keyframes, frames / std::max(seconds, 1e-9), latency.Percentile(50),
-        latency.Percentile(90), latency.Percentile(99), server_total_p50_ms);
+        latency.Percentile(90), latency.Percentile(99), server_total_p50_ms,
+        CpuMsPerFrame() < 0 ? std::string("?") : absl::StrFormat("%.1f ms", CpuMsPerFrame()));
   }
 };
 
@@ -76,6 +88,24 @@ lifemap::v1::Frame WithTime(lifemap::v1::Frame f, double t, uint64_t seq) {
   f.set_timestamp_s(t);
   f.set_sequence(seq);
   return f;
+}
+
+// The server process's CPU seconds so far (AdminService.GetStats), or -1 when not answered.
+double ServerCpuSeconds(const std::string& target) {
+  auto client = lifemap::client::Client::Connect({target});
+  if (!client.ok()) return -1;
+  auto stats = (*client)->GetStats();
+  return stats.ok() ? stats->process_cpu_s() : -1;
+}
+
+// Runs `run` and sets its report's server CPU time from GetStats before and after.
+template <typename Run>
+RunReport WithServerCpu(const std::string& target, Run run) {
+  const double before = ServerCpuSeconds(target);
+  RunReport report = run();
+  const double after = ServerCpuSeconds(target);
+  if (before >= 0 && after >= before) report.server_cpu_s = after - before;
+  return report;
 }
 
 RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
@@ -257,7 +287,8 @@ int main(int argc, char** argv) {
   std::vector<RunReport> runs;
   if (!model.empty()) {
     // The same-run baseline for labels: one stream before any model is active.
-    runs.push_back(RunStreams(target, loaded, 1, frames, rate));
+    runs.push_back(
+        WithServerCpu(target, [&] { return RunStreams(target, loaded, 1, frames, rate); }));
     runs.back().name += ", no labels";
     auto bytes = lifemap::ReadFileBytes(model);
     auto client = lifemap::client::Client::Connect({target});
@@ -272,9 +303,12 @@ int main(int argc, char** argv) {
       return 1;
     }
   }
-  runs.push_back(RunBaseline(target, loaded, std::min(frames, 200)));
-  runs.push_back(RunStreams(target, loaded, 1, frames, rate));
-  runs.push_back(RunStreams(target, loaded, streams, frames, rate));
+  runs.push_back(
+      WithServerCpu(target, [&] { return RunBaseline(target, loaded, std::min(frames, 200)); }));
+  runs.push_back(
+      WithServerCpu(target, [&] { return RunStreams(target, loaded, 1, frames, rate); }));
+  runs.push_back(
+      WithServerCpu(target, [&] { return RunStreams(target, loaded, streams, frames, rate); }));
   if (!model.empty()) {
     for (size_t i = 1; i < runs.size(); ++i) runs[i].name += ", labels";
   }
@@ -283,6 +317,12 @@ int main(int argc, char** argv) {
     for (const auto& r : runs) reports.push_back(r.ToJson());
     std::cout << nlohmann::json{{"target", target},
                                 {"frame", "640x480 PNG-16 depth + PNG colour (TUM)"},
+                                {"server_cpu",
+                                 server_address.empty()
+                                     ? "in-process server: CPU per frame includes the load "
+                                       "generator's own (an upper bound); use --server for the "
+                                       "server alone"
+                                     : "the server process alone (GetStats.process_cpu_s)"},
                                 {"runs", reports}}
                      .dump(2)
               << "\n";

@@ -1,3 +1,5 @@
+#include <sys/resource.h>
+
 #include <chrono>
 #include <filesystem>
 
@@ -43,6 +45,18 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
   return grpc::Status::OK;
 }
 
+namespace {
+
+// User + system CPU time of this process, seconds.
+double ProcessCpuSeconds() {
+  rusage usage{};
+  if (getrusage(RUSAGE_SELF, &usage) != 0) return 0.0;
+  auto seconds = [](const timeval& t) { return t.tv_sec + t.tv_usec * 1e-6; };
+  return seconds(usage.ru_utime) + seconds(usage.ru_stime);
+}
+
+}  // namespace
+
 grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext*, const v1::GetStatsRequest*,
                                         v1::Stats* resp) {
   auto st = ctx_->store->Stats();
@@ -57,6 +71,7 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext*, const v1::GetStats
   resp->set_frames_rejected(ctx_->frames_rejected.load());
   resp->set_keyframes_committed(ctx_->committer->committed());
   resp->set_uptime_s(NowSeconds() - ctx_->started_time_s);
+  resp->set_process_cpu_s(ProcessCpuSeconds());
   AppearanceInfoToProto(ctx_->appearance->Stats(), resp->mutable_appearance());
   return grpc::Status::OK;
 }

@@ -146,6 +146,24 @@ TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
   EXPECT_FALSE(r->entropy().superjuts(0).masked());
 }
 
+// GetStats reports the process's CPU time, and processing frames adds to it (what the load
+// generator's CPU per frame is made of).
+TEST_F(ServerTest, StatsCountTheServersCpuTime) {
+  auto before = client_->GetStats();
+  ASSERT_TRUE(before.ok()) << before.status();
+  EXPECT_GT(before->process_cpu_s(), 0.0);
+  for (int i = 0; i < 5; ++i) {
+    v1::ProcessFrameRequest req;
+    *req.mutable_frame() = MakeFrame();
+    ASSERT_TRUE(client_->ProcessFrame(req).ok());
+  }
+  auto after = client_->GetStats();
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_GT(after->process_cpu_s(), before->process_cpu_s());
+  EXPECT_LT(after->process_cpu_s() - before->process_cpu_s(), after->uptime_s() * 64)
+      << "no more than every core of a large machine for the whole uptime";
+}
+
 TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
   LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
   auto frame = FirstTumFrame(dir);
