@@ -70,12 +70,12 @@ int RunAppearanceEval(const CliContext& ctx, const AppearanceEvalArgs& a) {
   if (a.tum_reference.empty() != a.tum_query.empty()) {
     return UsageError("--tum-reference and --tum-query go together");
   }
-  if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
   eval::AppearanceStudyOptions options;
-  options.threads = a.threads;
-  options.query_stride = a.query_stride;
   options.features.orb = a.orb;
   if (auto s = options.features.Validate(); !s.ok()) return UsageError(std::string(s.message()));
+  if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
+  options.threads = a.threads;
+  options.query_stride = a.query_stride;
   options.places.threads = a.threads;
   if (!a.thresholds_from.empty()) {
     std::ifstream in(a.thresholds_from);

@@ -547,9 +547,7 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape,
   const int on_table = place.solids.empty() ? 0 : count(rng);
   for (int i = 0; i < on_table; ++i) {
     Solid prop = RandomProp(&rng, instance, table.base_z + table.size.z());
-    const double r = std::min(table.size.x(), table.size.y()) / 2 - 0.05;
-    const Eigen::Vector2d tlo = table.center - Eigen::Vector2d(r, r);
-    const Eigen::Vector2d thi = table.center + Eigen::Vector2d(r, r);
+    const auto [tlo, thi] = TableTop(table);
     if (PlaceFreely(place, place.solids, &prop, &rng, 0.0, tlo, thi)) {
       ++instance;
       place.solids.push_back(prop);
@@ -647,41 +645,33 @@ absl::StatusOr<Place> GeneratePlace(uint64_t seed, const std::string& shape,
   if (style.curved_props) {
     // Curved and crumpled props: a few small ones on the table, more on the floor of each room.
     std::mt19937_64 props(seed * 0xC2B2AE3D27D4EB4FULL + 5);
-    const Solid* table_solid = nullptr;
-    for (const auto& s : place.solids) {
-      if (s.cls == SemanticClass::kTable) table_solid = &s;
-    }
-    if (table_solid) {
-      const Solid table_copy = *table_solid;
-      const auto [tlo, thi] = TableTop(table_copy);
+    // Places a prop's parts in the room (inside lo..hi) and takes its instances, if it fits.
+    auto add = [&](std::vector<Solid> parts, const std::vector<Eigen::Vector2d>& room,
+                   double margin, const Eigen::Vector2d& plo, const Eigen::Vector2d& phi) {
+      if (!PlacePropIn(room, place.solids, &parts, &props, margin, plo, phi)) return;
+      instance += InstancesUsed(parts);
+      place.solids.insert(place.solids.end(), parts.begin(), parts.end());
+    };
+    const bool table_placed =
+        std::any_of(place.solids.begin(), place.solids.end(),
+                    [](const Solid& s) { return s.cls == SemanticClass::kTable; });
+    if (table_placed) {
+      const auto [tlo, thi] = TableTop(table);
       for (int i = 0; i < 2; ++i) {
-        auto parts =
-            RandomCurvedProp(&props, instance, table_copy.base_z + table_copy.size.z(), true);
-        if (PlacePropIn(place.footprint, place.solids, &parts, &props, 0.0, tlo, thi)) {
-          instance += InstancesUsed(parts);
-          place.solids.insert(place.solids.end(), parts.begin(), parts.end());
-        }
+        add(RandomCurvedProp(&props, instance, table.base_z + table.size.z(), true),
+            place.footprint, 0.0, tlo, thi);
       }
     }
     static const CurvedKind kMainRoom[] = {
         CurvedKind::kPlant, CurvedKind::kPlant, CurvedKind::kClothes, CurvedKind::kBag,
         CurvedKind::kBall,  CurvedKind::kLamp,  CurvedKind::kStack};
     for (CurvedKind kind : kMainRoom) {
-      auto parts = CurvedProp(&props, kind, instance, 0.0, 1.0);
-      if (PlacePropIn(place.footprint, place.solids, &parts, &props, 0.3, lo, hi)) {
-        instance += InstancesUsed(parts);
-        place.solids.insert(place.solids.end(), parts.begin(), parts.end());
-      }
+      add(CurvedProp(&props, kind, instance, 0.0, 1.0), place.footprint, 0.3, lo, hi);
     }
     for (const auto& room : place.adjoining_rooms) {
       const auto [rlo, rhi] = Bounds(room);
-      for (int i = 0; i < 2; ++i) {
-        auto parts = RandomCurvedProp(&props, instance, 0.0, false);
-        if (PlacePropIn(room, place.solids, &parts, &props, 0.2, rlo, rhi)) {
-          instance += InstancesUsed(parts);
-          place.solids.insert(place.solids.end(), parts.begin(), parts.end());
-        }
-      }
+      for (int i = 0; i < 2; ++i)
+        add(RandomCurvedProp(&props, instance, 0.0, false), room, 0.2, rlo, rhi);
     }
   }
   return place;

@@ -202,7 +202,6 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
         h.has_depth = false;
         h.albedo = Eigen::Vector3f(0.85f, 0.92f, 1.0f);
         h.texture_scale = 0.1;
-        h.tile_m = 0;
       } else if (op.open && op.connects) {
         through = true;  // an open door between rooms: the other room is rendered beyond
       } else if (op.open) {
@@ -212,11 +211,8 @@ void HitWalls(const Place& place, const std::vector<WallGeometry>& walls, const 
         h.albedo = Eigen::Vector3f(0.35f, 0.35f, 0.38f);
       } else {
         h.cls = SemanticClass::kDoor;
-        h.albedo = Eigen::Vector3f(0.45f, 0.30f, 0.18f);
-        h.texture_scale = 2.0;
-        h.contrast = 1.0f;
-        h.prints = true;
-        h.tile_m = 0;
+        // Painted wood, the wall's texture seed.
+        h.Paint({h.texture_seed, {0.45f, 0.30f, 0.18f}, 2.0, 1.0f, true, 0});
       }
       break;
     }
@@ -234,7 +230,7 @@ struct SolidFrame {
 
 SolidFrame Prepare(const Solid& s) {
   if (s.shape == Solid::Shape::kBlob) {
-    const double r = 0.5 * s.size.maxCoeff() * 1.02 * (1 + s.crumple);
+    const double r = 0.5 * s.size.maxCoeff() * BlobReach(s);
     return {&s, Eigen::Vector3d(s.center.x(), s.center.y(), s.base_z + s.size.z() / 2 - s.sink_m),
             std::cos(s.yaw), std::sin(s.yaw), r * r};
   }
@@ -263,10 +259,9 @@ bool HitBlob(const Solid& s, const Eigen::Vector3d& lo, const Eigen::Vector3d& l
                      0.35 * Noise3(s.texture_seed * 3 + 5, dir * (2.7 * f));
     return r - (1 + s.crumple * (2 * n - 1));
   };
-  // A sphere just outside |q| = 1 + crumple (the farthest the surface reaches), in
-  // unit-sphere coordinates: the march starts outside the surface.
+  // The sphere the surface stays inside, in unit-sphere coordinates: the march starts on it.
   const Eigen::Vector3d q0 = lo.cwiseProduct(inv_semi), dq = ld.cwiseProduct(inv_semi);
-  const double bound = 1.02 * (1 + s.crumple);
+  const double bound = BlobReach(s);
   const double a = dq.squaredNorm(), b = q0.dot(dq), c = q0.squaredNorm() - bound * bound;
   const double disc = b * b - a * c;
   if (disc < 0 || a < 1e-18) return false;
@@ -442,13 +437,8 @@ void HitSolid(const SolidFrame& sf, const Eigen::Vector3d& o, const Eigen::Vecto
   best->normal = Eigen::Vector3d(cw * local_normal.x() - sw * local_normal.y(),
                                  sw * local_normal.x() + cw * local_normal.y(), local_normal.z());
   best->uv = uv;
-  best->texture_seed = s.texture_seed;
-  best->albedo = s.color;
+  best->Paint({s.texture_seed, s.color, 2.0, 1.0f, true, 0});
   best->has_depth = true;
-  best->texture_scale = 2.0;
-  best->contrast = 1.0f;
-  best->prints = true;
-  best->tile_m = 0;
 }
 
 // The image rectangle a solid can cover (its bounding box's corners projected), or the whole

@@ -33,7 +33,7 @@ double FootprintRadius(const Solid& s) {
     case Solid::Shape::kBox:
       return 0.5 * std::hypot(s.size.x(), s.size.y());
     case Solid::Shape::kBlob:
-      return 0.5 * std::max(s.size.x(), s.size.y()) * 1.02 * (1 + s.crumple);
+      return 0.5 * std::max(s.size.x(), s.size.y()) * BlobReach(s);
     default:
       return s.size.x() / 2;
   }
@@ -42,7 +42,7 @@ double FootprintRadius(const Solid& s) {
 std::pair<double, double> VerticalExtent(const Solid& s) {
   if (s.shape != Solid::Shape::kBlob) return {s.base_z, s.base_z + s.size.z()};
   const double centre = s.base_z + s.size.z() / 2 - s.sink_m;
-  const double half = 0.5 * s.size.z() * 1.02 * (1 + s.crumple);
+  const double half = 0.5 * s.size.z() * BlobReach(s);
   return {centre - half, centre + half};
 }
 

@@ -98,6 +98,10 @@ struct Solid {
   Eigen::Vector3f color{0.6f, 0.5f, 0.4f};  // base albedo, RGB in [0, 1]
 };
 
+// How far a kBlob's surface can reach, relative to its unit ellipsoid: 1 + crumple and a 2 %
+// margin, so that a sphere of this radius starts every ray march outside the surface.
+inline double BlobReach(const Solid& s) { return 1.02 * (1 + s.crumple); }
+
 // The lowest and highest points a solid can reach (metres, world z): its bounds for culling.
 std::pair<double, double> VerticalExtent(const Solid& s);
 

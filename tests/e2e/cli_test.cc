@@ -568,6 +568,15 @@ TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
   r = Run({"eval", "appearance", "--out", tmp_.File("app2")});
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("--suite"), std::string::npos) << r.err;
+  // ORB settings out of range are refused before anything is written.
+  r = Run({"eval", "appearance", "--suite", tmp_.File("suite"), "--out", tmp_.File("app3"),
+           "--pyramid-levels", "0"});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("pyramid_levels"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(tmp_.File("app3")));
+  r = Run({"sim", "--world", "castle", "--out", tmp_.File("castle")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("building"), std::string::npos) << r.err;
 
   // Held out: the thresholds of an earlier run are used as they are, not chosen again.
   json earlier = s;
