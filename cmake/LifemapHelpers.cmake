@@ -46,5 +46,12 @@ function(lifemap_test)
   if(NOT L_LABEL)
     set(L_LABEL unit)
   endif()
-  gtest_discover_tests(${L_NAME} PROPERTIES LABELS ${L_LABEL} DISCOVERY_TIMEOUT 60)
+  # End-to-end tests render worlds and stream whole recordings through the CLI: up to 10 min
+  # each (ctest --timeout only sets the default for tests without their own).
+  set(timeout 300)
+  if(L_LABEL STREQUAL "e2e")
+    set(timeout 600)
+  endif()
+  gtest_discover_tests(${L_NAME} PROPERTIES LABELS ${L_LABEL} TIMEOUT ${timeout}
+                       DISCOVERY_TIMEOUT 60)
 endfunction()
