@@ -17,34 +17,57 @@ namespace {
 // A feature whose rectangle leaves the image or holds no valid depth evaluates to this.
 constexpr float kLarge = 1e4f;
 
-// Integral images (rows + 1) x (cols + 1), CV_64F: depth over valid readings, their count, and
-// L*, a*, b*.
+// The largest image whose 8-bit channel sums fit the integral image's uint32 cells.
+constexpr int64_t kMaxPixels = (int64_t{1} << 32) / 256;
+
+// One integral image, (rows + 1) x (cols + 1) cells, with every channel of a corner side by
+// side: a rectangle's mean reads 4 cells (4 cache lines) whichever channel it is on. Written
+// here rather than with cv::integral: five separate CV_64F integral images (12 MB a VGA frame)
+// cost 4 cache misses per corner pair of a depth feature and made the trees' lookups 30 % of
+// the server's CPU. Sums are exact: depth in double, the count of valid readings and the 8-bit
+// L*, a*, b* sums in uint32 (images up to kMaxPixels).
+struct Cell {
+  double depth_sum;
+  uint32_t depth_count;
+  uint32_t lab[3];
+};
+
 struct Channels {
-  cv::Mat depth_sum, depth_count, lab[3];
+  std::vector<Cell> cells;
   int rows = 0, cols = 0;
+  const Cell& at(int y, int x) const {
+    return cells[static_cast<size_t>(y) * static_cast<size_t>(cols + 1) + static_cast<size_t>(x)];
+  }
 };
 
 Channels MakeChannels(const cv::Mat& depth_m, const cv::Mat& color_bgr) {
   Channels ch;
   ch.rows = depth_m.rows;
   ch.cols = depth_m.cols;
-  cv::Mat depth = depth_m.clone();
-  depth.setTo(0.0f, ~(depth_m > 0));  // NaN and negative count as missing
-  cv::Mat valid;
-  cv::Mat(depth > 0).convertTo(valid, CV_32FC1, 1.0 / 255.0);
-  cv::integral(depth, ch.depth_sum, CV_64F);
-  cv::integral(valid, ch.depth_count, CV_64F);
   cv::Mat lab;
   cv::cvtColor(color_bgr, lab, cv::COLOR_BGR2Lab);
-  std::vector<cv::Mat> planes;
-  cv::split(lab, planes);
-  for (int i = 0; i < 3; ++i) cv::integral(planes[i], ch.lab[i], CV_64F);
+  const size_t width = static_cast<size_t>(ch.cols) + 1;
+  ch.cells.assign(width * (static_cast<size_t>(ch.rows) + 1), Cell{0.0, 0, {0, 0, 0}});
+  for (int y = 0; y < ch.rows; ++y) {
+    const float* depth = depth_m.ptr<float>(y);
+    const uint8_t* colour = lab.ptr<uint8_t>(y);
+    const Cell* above = &ch.cells[static_cast<size_t>(y) * width];
+    Cell* out = &ch.cells[static_cast<size_t>(y + 1) * width];
+    Cell row{0.0, 0, {0, 0, 0}};  // sums over this row up to x
+    for (int x = 0; x < ch.cols; ++x) {
+      // NaN and negative count as missing.
+      if (depth[x] > 0) {
+        row.depth_sum += depth[x];
+        ++row.depth_count;
+      }
+      for (int i = 0; i < 3; ++i) row.lab[i] += colour[3 * x + i];
+      Cell& c = out[x + 1];
+      c.depth_sum = above[x + 1].depth_sum + row.depth_sum;
+      c.depth_count = above[x + 1].depth_count + row.depth_count;
+      for (int i = 0; i < 3; ++i) c.lab[i] = above[x + 1].lab[i] + row.lab[i];
+    }
+  }
   return ch;
-}
-
-inline double Box(const cv::Mat& integral, int x0, int y0, int x1, int y1) {
-  return integral.at<double>(y1, x1) - integral.at<double>(y0, x1) - integral.at<double>(y1, x0) +
-         integral.at<double>(y0, x0);
 }
 
 // Mean of a channel over the rectangle centred at (cx, cy) of size (w, h), clipped to the
@@ -58,12 +81,19 @@ float RectMean(const Channels& ch, int channel, float cx, float cy, float w, flo
   const int y0 = static_cast<int>(std::max(0.0f, cy - h / 2));
   const int x1 = std::max(x0 + 1, static_cast<int>(std::min<float>(ch.cols - 1, cx + w / 2)) + 1);
   const int y1 = std::max(y0 + 1, static_cast<int>(std::min<float>(ch.rows - 1, cy + h / 2)) + 1);
+  const Cell& a = ch.at(y0, x0);
+  const Cell& b = ch.at(y0, x1);
+  const Cell& c = ch.at(y1, x0);
+  const Cell& d = ch.at(y1, x1);
   if (channel == 0) {
-    const double n = Box(ch.depth_count, x0, y0, x1, y1);
-    return n > 0 ? static_cast<float>(Box(ch.depth_sum, x0, y0, x1, y1) / n) : kLarge;
+    const uint32_t n = d.depth_count - b.depth_count - c.depth_count + a.depth_count;
+    return n > 0 ? static_cast<float>((d.depth_sum - b.depth_sum - c.depth_sum + a.depth_sum) / n)
+                 : kLarge;
   }
+  const int i = channel - 1;
+  const uint32_t sum = d.lab[i] - b.lab[i] - c.lab[i] + a.lab[i];
   const double area = static_cast<double>(x1 - x0) * (y1 - y0);
-  return static_cast<float>(Box(ch.lab[channel - 1], x0, y0, x1, y1) / area);
+  return static_cast<float>(sum / area);
 }
 
 // Eq. 1 at pixel (x, y) whose depth is `depth` (> 0).
@@ -163,6 +193,10 @@ absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, in
       return absl::InvalidArgumentError(
           absl::StrCat("training image ", i,
                        ": needs CV_32FC1 depth, CV_8UC3 colour, CV_8UC1 labels of one size"));
+    }
+    if (im.depth_m.total() > static_cast<size_t>(kMaxPixels)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("training image ", i, " is larger than ", kMaxPixels, " pixels"));
     }
     for (int r = 0; r < im.labels.rows; ++r) {
       const uint8_t* l = im.labels.ptr<uint8_t>(r);
@@ -319,51 +353,85 @@ absl::StatusOr<Prediction> Forest::Predict(const cv::Mat& depth_m, const cv::Mat
     return absl::InvalidArgumentError(absl::StrCat("stride must be within [1, 16], got ", stride));
   }
   if (trees_.empty()) return absl::FailedPreconditionError("the forest has no trees");
+  if (depth_m.total() > static_cast<size_t>(kMaxPixels)) {
+    return absl::InvalidArgumentError(absl::StrCat("prediction takes images of at most ",
+                                                   kMaxPixels, " pixels, got ", depth_m.cols, "x",
+                                                   depth_m.rows));
+  }
   const Channels ch = MakeChannels(depth_m, color_bgr);
   Prediction out;
   out.labels = cv::Mat(depth_m.size(), CV_8UC1, cv::Scalar(kIgnore));
   for (int c = 0; c < class_count_; ++c) {
     out.probabilities.emplace_back(depth_m.size(), CV_32FC1, cv::Scalar(0.0f));
   }
+  // Pixels go down each tree in batches, one level at a time for the whole batch: a node's
+  // feature reads 4-8 integral-image cells far apart, and one pixel's path is a chain of such
+  // misses; a batch lets the core overlap the misses of independent pixels (measured in
+  // bench_forest BM_PredictFrame).
+  constexpr int kBatch = 16;
+  const size_t classes = static_cast<size_t>(class_count_);
   auto predict_rows = [&](int first_row_block, int step) {
-    std::vector<double> p(static_cast<size_t>(class_count_));
+    std::vector<double> votes(kBatch * classes);
+    int xs[kBatch];
+    float ds[kBatch];
+    int32_t at[kBatch];
     for (int y = first_row_block * stride; y < depth_m.rows; y += step * stride) {
-      for (int x = 0; x < depth_m.cols; x += stride) {
-        const float d = depth_m.at<float>(y, x);
-        if (!(d > 0)) continue;
-        std::fill(p.begin(), p.end(), 0.0);
+      const float* depth_row = depth_m.ptr<float>(y);
+      for (int x_next = 0; x_next < depth_m.cols;) {
+        int m = 0;
+        for (; x_next < depth_m.cols && m < kBatch; x_next += stride) {
+          if (!(depth_row[x_next] > 0)) continue;
+          xs[m] = x_next;
+          ds[m] = depth_row[x_next];
+          ++m;
+        }
+        if (m == 0) break;
+        std::fill(votes.begin(), votes.begin() + static_cast<ptrdiff_t>(m * classes), 0.0);
         for (const auto& tree : trees_) {
-          int n = 0;
-          while (tree.nodes[static_cast<size_t>(n)].left >= 0) {
-            const Node& node = tree.nodes[static_cast<size_t>(n)];
-            n = Evaluate(ch, node.feature, x, y, d) < node.threshold ? node.left : node.right;
+          std::fill(at, at + m, 0);
+          for (bool descending = true; descending;) {
+            descending = false;
+            for (int i = 0; i < m; ++i) {
+              const Node& node = tree.nodes[static_cast<size_t>(at[i])];
+              if (node.left < 0) continue;
+              at[i] = Evaluate(ch, node.feature, xs[i], y, ds[i]) < node.threshold ? node.left
+                                                                                   : node.right;
+              descending = true;
+            }
           }
-          const float* leaf =
-              &tree.leaves[static_cast<size_t>(tree.nodes[static_cast<size_t>(n)].leaf) *
-                           static_cast<size_t>(class_count_)];
-          for (int c = 0; c < class_count_; ++c) p[static_cast<size_t>(c)] += leaf[c];
+          for (int i = 0; i < m; ++i) {
+            const float* leaf =
+                &tree.leaves[static_cast<size_t>(tree.nodes[static_cast<size_t>(at[i])].leaf) *
+                             classes];
+            double* p = &votes[static_cast<size_t>(i) * classes];
+            for (size_t c = 0; c < classes; ++c) p[c] += leaf[c];
+          }
         }
-        double sum = 0;
-        for (int c = 0; c < class_count_; ++c) {
-          // Eq. 9: balanced training makes p(c|Q) uniform, so re-weighting is by p(c).
-          if (decision == Decision::kPriorWeighted)
-            p[static_cast<size_t>(c)] *= prior_[static_cast<size_t>(c)];
-          sum += p[static_cast<size_t>(c)];
-        }
-        int best = 0;
-        for (int c = 0; c < class_count_; ++c) {
-          p[static_cast<size_t>(c)] = sum > 0 ? p[static_cast<size_t>(c)] / sum : 0.0;
-          if (p[static_cast<size_t>(c)] > p[static_cast<size_t>(best)]) best = c;
-        }
-        // The stride cell copies the prediction; plain loops (cv::Mat ROI + setTo per cell cost
-        // more than the trees at stride 4).
-        const int y1 = std::min(depth_m.rows, y + stride), x1 = std::min(depth_m.cols, x + stride);
-        for (int yy = y; yy < y1; ++yy) {
-          std::fill(out.labels.ptr<uint8_t>(yy) + x, out.labels.ptr<uint8_t>(yy) + x1,
-                    static_cast<uint8_t>(best));
-          for (int c = 0; c < class_count_; ++c) {
-            float* row = out.probabilities[static_cast<size_t>(c)].ptr<float>(yy);
-            std::fill(row + x, row + x1, static_cast<float>(p[static_cast<size_t>(c)]));
+        for (int i = 0; i < m; ++i) {
+          double* p = &votes[static_cast<size_t>(i) * classes];
+          double sum = 0;
+          for (size_t c = 0; c < classes; ++c) {
+            // Eq. 9: balanced training makes p(c|Q) uniform, so re-weighting is by p(c).
+            if (decision == Decision::kPriorWeighted) p[c] *= prior_[c];
+            sum += p[c];
+          }
+          size_t best = 0;
+          for (size_t c = 0; c < classes; ++c) {
+            p[c] = sum > 0 ? p[c] / sum : 0.0;
+            if (p[c] > p[best]) best = c;
+          }
+          // The stride cell copies the prediction; plain loops (cv::Mat ROI + setTo per cell
+          // cost more than the trees at stride 4).
+          const int x = xs[i];
+          const int y1 = std::min(depth_m.rows, y + stride);
+          const int x1 = std::min(depth_m.cols, x + stride);
+          for (int yy = y; yy < y1; ++yy) {
+            std::fill(out.labels.ptr<uint8_t>(yy) + x, out.labels.ptr<uint8_t>(yy) + x1,
+                      static_cast<uint8_t>(best));
+            for (size_t c = 0; c < classes; ++c) {
+              float* row = out.probabilities[c].ptr<float>(yy);
+              std::fill(row + x, row + x1, static_cast<float>(p[c]));
+            }
           }
         }
       }
