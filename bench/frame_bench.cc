@@ -101,6 +101,71 @@ void BM_EncodeDepthPng16(benchmark::State& state) {
 }
 BENCHMARK(BM_EncodeDepthPng16)->Unit(benchmark::kMillisecond);
 
+// Stored keyframe depth, one codec per argument: 0 PNG-16 (level 1, what the store wrote
+// before schema 7), 1 RVL, 2 paletted (the store's codec since). Encode time, and depth_kb: the
+// mean size over every frame of the TUM subset (the first frame only without it).
+const std::vector<cv::Mat>& TumDepths() {
+  static const std::vector<cv::Mat> depths = [] {
+    std::vector<cv::Mat> out;
+    const std::string dir = std::string(LIFEMAP_SOURCE_DIR) + "/../shared/data/tum_fr1_xyz_subset";
+    if (auto seq = io::ReadTumSequence(dir); seq.ok()) {
+      for (const auto& f : seq->frames) {
+        cv::Mat d = cv::imread(f.depth_path, cv::IMREAD_ANYDEPTH);
+        cv::Mat metres;
+        d.convertTo(metres, CV_32FC1, 1.0 / 5000.0);
+        out.push_back(metres);
+      }
+    } else {
+      out.push_back(DecodeRgbdFrame(Encoded(GetSample(), true))->depth_m);
+    }
+    return out;
+  }();
+  return depths;
+}
+
+absl::StatusOr<std::string> EncodeStoredDepth(int codec, const cv::Mat& depth_m) {
+  if (codec == 0) return EncodeDepthPng16(depth_m, 5000.0);
+  if (codec == 1) return EncodeDepthRvl(depth_m, 5000.0);
+  return EncodeDepthPaletted(depth_m, 5000.0);
+}
+
+void BM_StoredDepthEncode(benchmark::State& state) {
+  const auto& depths = TumDepths();
+  const int codec = static_cast<int>(state.range(0));
+  size_t i = 0;
+  for (auto _ : state)
+    benchmark::DoNotOptimize(EncodeStoredDepth(codec, depths[i++ % depths.size()]));
+  double bytes = 0;
+  for (const auto& d : depths) bytes += static_cast<double>(EncodeStoredDepth(codec, d)->size());
+  state.counters["depth_kb"] = bytes / depths.size() / 1000.0;
+}
+BENCHMARK(BM_StoredDepthEncode)->Arg(0)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+
+void BM_StoredDepthDecode(benchmark::State& state) {
+  const auto& d = TumDepths()[0];
+  const int codec = static_cast<int>(state.range(0));
+  const std::string bytes = *EncodeStoredDepth(codec, d);
+  const DepthEncoding encoding = codec == 0   ? DepthEncoding::kPng16
+                                 : codec == 1 ? DepthEncoding::kRvl
+                                              : DepthEncoding::kPaletted;
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(DecodeDepthMetres({encoding, bytes, d.cols, d.rows, 5000.0}));
+  }
+}
+BENCHMARK(BM_StoredDepthDecode)->Arg(0)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+
+// Keyframe colour sent as PNG, re-encoded as JPEG at the quality given (the server's
+// storage.color_jpeg_quality, default 90); color_kb against the PNG's size.
+void BM_StoredColorJpeg(benchmark::State& state) {
+  const auto& s = GetSample();
+  const cv::Mat bgr = *DecodeColorBgr({ColorEncoding::kPng, s.color_png, s.k.width, s.k.height});
+  const int quality = static_cast<int>(state.range(0));
+  for (auto _ : state) benchmark::DoNotOptimize(EncodeJpeg(bgr, quality));
+  state.counters["color_kb"] = static_cast<double>(EncodeJpeg(bgr, quality)->size()) / 1000.0;
+  state.counters["png_kb"] = static_cast<double>(s.color_png.size()) / 1000.0;
+}
+BENCHMARK(BM_StoredColorJpeg)->Arg(75)->Arg(85)->Arg(90)->Arg(95)->Unit(benchmark::kMillisecond);
+
 // One keyframe (real image sizes, ~600 KB) per transaction; arg 1 = synchronous FULL (the
 // default, power-loss safe), arg 0 = NORMAL (baseline: safe against process crashes only).
 void BM_CommitKeyframe(benchmark::State& state) {
@@ -120,7 +185,7 @@ void BM_CommitKeyframe(benchmark::State& state) {
     batch[0].timestamp_s = (t += 1.0);
     batch[0].intrinsics = s.k;
     batch[0].depth_scale = 5000;
-    batch[0].depth_png = s.depth_png;
+    batch[0].depth = s.depth_png;
     batch[0].color = s.color_jpeg;
     if (!(*st)->InsertKeyframes(&batch, {}).ok()) state.SkipWithError("insert failed");
   }

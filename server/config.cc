@@ -20,6 +20,10 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "max message size must be within [1, 256] MiB, got ", max_message_bytes >> 20, " MiB"));
   }
+  if (keyframe_color_jpeg_quality < 1 || keyframe_color_jpeg_quality > 100) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "storage.color_jpeg_quality must be within [1, 100], got ", keyframe_color_jpeg_quality));
+  }
   if (max_streams < 1 || max_streams > 1024) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_streams must be within [1, 1024], got ", max_streams));
@@ -193,6 +197,15 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key appearance.", k));
+          }
+        }
+      } else if (key == "storage") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "color_jpeg_quality") {
+            c.keyframe_color_jpeg_quality = v.get<int>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key storage.", k));
           }
         }
       } else {

@@ -50,6 +50,9 @@ struct ServerConfig {
   tracking::KeyframeOptions keyframe;
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
   AppearanceOptions appearance;
+  // Keyframe colour the client sent as PNG or raw is stored as JPEG at this quality, [1, 100]
+  // (unless its map keeps originals); JPEG from the client is stored as it came.
+  int keyframe_color_jpeg_quality = 85;
 
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
@@ -65,7 +68,7 @@ struct ServerConfig {
 // labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb},
 // appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
 // max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
-// vocabulary_branching, vocabulary_levels}.
+// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

@@ -75,10 +75,17 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
     case v1::DEPTH_RAW_F32:
       out.depth.encoding = DepthEncoding::kRawF32;
       break;
+    case v1::DEPTH_RVL:
+      out.depth.encoding = DepthEncoding::kRvl;
+      break;
+    case v1::DEPTH_PALETTED:
+      out.depth.encoding = DepthEncoding::kPaletted;
+      break;
     default:
-      return absl::InvalidArgumentError(
-          absl::StrCat("frame.depth.encoding ", d.encoding(),
-                       " is not supported; use DEPTH_PNG16, DEPTH_RAW_U16 or DEPTH_RAW_F32"));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "frame.depth.encoding ", d.encoding(),
+          " is not supported; use DEPTH_PNG16, DEPTH_RAW_U16, DEPTH_RAW_F32, DEPTH_RVL or "
+          "DEPTH_PALETTED"));
   }
   out.depth.data = d.data();
   out.depth.width = static_cast<int>(std::min<uint32_t>(d.width(), 1u << 20));
@@ -140,6 +147,7 @@ void MapToProto(const store::MapRecord& map, v1::Map* out) {
   out->set_keyframe_count(static_cast<uint64_t>(map.keyframe_count));
   out->set_stored_bytes(static_cast<uint64_t>(map.stored_bytes));
   out->set_entropy_threshold(map.entropy_threshold.value_or(0.0));
+  out->set_keep_original_color(map.keep_original_color);
 }
 
 void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {

@@ -21,10 +21,9 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-// Depth of keyframes received as raw values is stored as PNG-16 at this scale (0.2 mm steps,
-// up to 13.1 m: covers indoor Kinect-class sensors).
+// Depth of keyframes received as float metres is stored at this scale (0.2 mm steps, up to
+// 13.1 m: covers indoor Kinect-class sensors).
 constexpr double kStoredDepthScale = 5000.0;
-constexpr int kStoredJpegQuality = 90;
 
 double MsBetween(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double, std::milli>(b - a).count();
@@ -41,41 +40,51 @@ struct PendingResult {
   absl::Status visit_closed;
 };
 
-// Builds what the store keeps of a keyframe: the client's PNG-16 depth and JPEG/PNG colour
-// bytes as they came (no re-encoding), raw images compressed.
+// Builds what the store keeps of a keyframe. Depth: paletted (core/common/depth_codec.h) at the
+// client's own scale, so the sensor's values are kept exactly (float metres at
+// kStoredDepthScale). Colour: JPEG as it came; PNG and raw re-encoded as JPEG at
+// `jpeg_quality`, unless the map keeps originals (PNG as it came, raw as PNG).
 absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
-                                                         const RgbdFrame& decoded,
-                                                         int64_t visit_id) {
+                                                         const RgbdFrame& decoded, int64_t visit_id,
+                                                         bool keep_original_color,
+                                                         int jpeg_quality) {
   store::KeyframeRecord k;
   k.visit_id = visit_id;
   k.sequence = decoded.sequence;
   k.timestamp_s = decoded.timestamp_s;
   k.T_world_camera = decoded.T_world_camera;
   k.intrinsics = decoded.intrinsics;
-  if (frame.depth().encoding() == v1::DEPTH_PNG16) {
-    k.depth_png = frame.depth().data();
-    k.depth_scale = frame.depth().depth_scale();
-  } else {
-    auto png = EncodeDepthPng16(decoded.depth_m, kStoredDepthScale);
-    if (!png.ok()) return png.status();
-    k.depth_png = *std::move(png);
-    k.depth_scale = kStoredDepthScale;
+  k.depth_encoding = store::StoredDepthEncoding::kPaletted;
+  switch (frame.depth().encoding()) {
+    case v1::DEPTH_PNG16:
+    case v1::DEPTH_RAW_U16:
+    case v1::DEPTH_RVL:
+    case v1::DEPTH_PALETTED:
+      k.depth_scale = frame.depth().depth_scale();
+      break;
+    default:
+      k.depth_scale = kStoredDepthScale;
   }
-  switch (frame.color().encoding()) {
-    case v1::COLOR_JPEG:
-      k.color = frame.color().data();
-      k.color_encoding = store::StoredColorEncoding::kJpeg;
-      break;
-    case v1::COLOR_PNG:
-      k.color = frame.color().data();
-      k.color_encoding = store::StoredColorEncoding::kPng;
-      break;
-    default: {
-      auto jpeg = EncodeJpeg(decoded.color_bgr, kStoredJpegQuality);
-      if (!jpeg.ok()) return jpeg.status();
-      k.color = *std::move(jpeg);
-      k.color_encoding = store::StoredColorEncoding::kJpeg;
-    }
+  auto depth = EncodeDepthPaletted(decoded.depth_m, k.depth_scale);
+  if (!depth.ok()) return depth.status();
+  k.depth = *std::move(depth);
+  const auto encoding = frame.color().encoding();
+  if (encoding == v1::COLOR_JPEG) {
+    k.color = frame.color().data();
+    k.color_encoding = store::StoredColorEncoding::kJpeg;
+  } else if (keep_original_color && encoding == v1::COLOR_PNG) {
+    k.color = frame.color().data();
+    k.color_encoding = store::StoredColorEncoding::kPng;
+  } else if (keep_original_color) {
+    auto png = EncodePng(decoded.color_bgr);
+    if (!png.ok()) return png.status();
+    k.color = *std::move(png);
+    k.color_encoding = store::StoredColorEncoding::kPng;
+  } else {
+    auto jpeg = EncodeJpeg(decoded.color_bgr, jpeg_quality);
+    if (!jpeg.ok()) return jpeg.status();
+    k.color = *std::move(jpeg);
+    k.color_encoding = store::StoredColorEncoding::kJpeg;
   }
   return k;
 }
@@ -166,9 +175,9 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   pipeline::FrameRequest effective = settings.request;
   if (visit != nullptr && !effective.entropy_threshold) {
     // The map's own threshold, when it has one, comes before the server's default.
-    auto map_threshold = ctx->visits->MapEntropyThreshold(visit->map_id);
-    if (map_threshold.ok() && *map_threshold) {
-      effective.entropy_threshold = static_cast<float>(**map_threshold);
+    auto map_settings = ctx->visits->SettingsOfMap(visit->map_id);
+    if (map_settings.ok() && map_settings->entropy_threshold) {
+      effective.entropy_threshold = static_cast<float>(*map_settings->entropy_threshold);
     }
   }
   // The model for the visit's map (else the server default) labels the frame; the reference
@@ -257,7 +266,10 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     features = pipeline::ExtractKeyframeFeatures(*analysis, ctx->config.appearance.features);
   }
   if (decision.selected) {
-    record = MakeKeyframeRecord(frame, f, visit->visit_id);
+    auto map_settings = ctx->visits->SettingsOfMap(visit->map_id);
+    record = MakeKeyframeRecord(frame, f, visit->visit_id,
+                                map_settings.ok() && map_settings->keep_original_color,
+                                ctx->config.keyframe_color_jpeg_quality);
     // Keypoints in zones likely to move were dropped before they are stored for matching
     // (with entropy masks disabled, all are kept: appearance still works, unpruned).
     if (record.ok() && features.ok()) record->features = *features;

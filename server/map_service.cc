@@ -53,7 +53,8 @@ grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext*, const v1::CreateMap
   }
   auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
   if (!threshold.ok()) return ToGrpcStatus(threshold.status());
-  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds(), *threshold);
+  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds(), *threshold,
+                                    req->keep_original_color());
   if (!map.ok()) return ToGrpcStatus(map.status());
   spdlog::info("created map '{}' (id {})", map->name, map->id);
   MapToProto(*map, resp);
@@ -130,6 +131,7 @@ grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext*, const v1::UpdateMap
     update.set_entropy_threshold = true;
     update.entropy_threshold = *threshold;
   }
+  if (req->has_keep_original_color()) update.keep_original_color = req->keep_original_color();
   auto updated = ctx_->store->UpdateMap(req->name(), update);
   if (!updated.ok()) return ToGrpcStatus(updated.status());
   ctx_->visits->ForgetMapSettings(map->id);
@@ -165,8 +167,10 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyf
   if (!k.ok()) return ToGrpcStatus(k.status());
   KeyframeSummaryToProto(*k, resp->mutable_summary());
   auto* depth = resp->mutable_depth();
-  depth->set_encoding(v1::DEPTH_PNG16);
-  depth->set_data(k->depth_png);
+  depth->set_encoding(k->depth_encoding == store::StoredDepthEncoding::kPaletted
+                          ? v1::DEPTH_PALETTED
+                          : v1::DEPTH_PNG16);
+  depth->set_data(k->depth);
   depth->set_width(static_cast<uint32_t>(k->intrinsics.width));
   depth->set_height(static_cast<uint32_t>(k->intrinsics.height));
   depth->set_depth_scale(k->depth_scale);
@@ -235,11 +239,8 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
             EncodedRgbdFrame encoded;
             encoded.timestamp_s = k.timestamp_s;
             encoded.intrinsics = k.intrinsics;
-            encoded.depth = {DepthEncoding::kPng16, k.depth_png, 0, 0, k.depth_scale};
-            encoded.color = {k.color_encoding == store::StoredColorEncoding::kPng
-                                 ? ColorEncoding::kPng
-                                 : ColorEncoding::kJpeg,
-                             k.color, 0, 0};
+            encoded.depth = store::StoredDepth(k);
+            encoded.color = store::StoredColor(k);
             auto frame = DecodeRgbdFrame(encoded);
             if (!frame.ok()) {
               return absl::DataLossError(absl::StrCat(

@@ -97,9 +97,7 @@ void VisitRegistry::RebuildArchitecture(VisitState* state) {
   auto s = store_->ForEachKeyframeWithImages(
       state->map_id, state->visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
         if (!k.T_world_camera) return absl::OkStatus();
-        EncodedDepth depth{DepthEncoding::kPng16, k.depth_png, k.intrinsics.width,
-                           k.intrinsics.height, k.depth_scale};
-        auto d = DecodeDepthMetres(depth);
+        auto d = DecodeDepthMetres(store::StoredDepth(k));
         // A damaged image does not stop the others.
         if (d.ok() && FoldArchitectureKeyframe(*d, k.intrinsics, *k.T_world_camera, &arch)) {
           ++folded;
@@ -134,7 +132,7 @@ void VisitRegistry::CloseMap(int64_t map_id, const absl::Status& why) {
   std::vector<std::shared_ptr<VisitState>> closing;
   {
     absl::MutexLock lock(&mu_);
-    map_thresholds_.erase(map_id);
+    map_settings_.erase(map_id);
     for (auto it = visits_.begin(); it != visits_.end();) {
       if (it->second->map_id != map_id) {
         ++it;
@@ -159,22 +157,23 @@ void VisitRegistry::RenameMap(int64_t map_id, const std::string& new_name) {
   }
 }
 
-absl::StatusOr<std::optional<double>> VisitRegistry::MapEntropyThreshold(int64_t map_id) {
+absl::StatusOr<VisitRegistry::MapSettings> VisitRegistry::SettingsOfMap(int64_t map_id) {
   {
     absl::MutexLock lock(&mu_);
-    auto it = map_thresholds_.find(map_id);
-    if (it != map_thresholds_.end()) return it->second;
+    auto it = map_settings_.find(map_id);
+    if (it != map_settings_.end()) return it->second;
   }
   auto map = store_->GetMapById(map_id);
   if (!map.ok()) return map.status();
+  const MapSettings settings{map->entropy_threshold, map->keep_original_color};
   absl::MutexLock lock(&mu_);
-  map_thresholds_[map_id] = map->entropy_threshold;
-  return map->entropy_threshold;
+  map_settings_[map_id] = settings;
+  return settings;
 }
 
 void VisitRegistry::ForgetMapSettings(int64_t map_id) {
   absl::MutexLock lock(&mu_);
-  map_thresholds_.erase(map_id);
+  map_settings_.erase(map_id);
 }
 
 }  // namespace lifemap::server

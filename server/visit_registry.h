@@ -90,8 +90,12 @@ class VisitRegistry {
   // Forgets a map's cached settings (updated).
   void ForgetMapSettings(int64_t map_id);
 
-  // The map's own entropy threshold (nullopt = the server default), cached.
-  absl::StatusOr<std::optional<double>> MapEntropyThreshold(int64_t map_id);
+  // What a map's settings ask of its frames, cached.
+  struct MapSettings {
+    std::optional<double> entropy_threshold;  // nullopt = the server default
+    bool keep_original_color = false;
+  };
+  absl::StatusOr<MapSettings> SettingsOfMap(int64_t map_id);
 
  private:
   // Folds the visit's stored posed key frames into its architecture (a resumed visit), before
@@ -102,7 +106,7 @@ class VisitRegistry {
   PlaceIndex* const places_;
   absl::Mutex mu_;
   std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
-  std::unordered_map<int64_t, std::optional<double>> map_thresholds_ ABSL_GUARDED_BY(mu_);
+  std::unordered_map<int64_t, MapSettings> map_settings_ ABSL_GUARDED_BY(mu_);
   uint64_t next_writer_ ABSL_GUARDED_BY(mu_) = 1;
 };
 

@@ -69,12 +69,13 @@ absl::Status WriteFileAtomically(const std::string& path,
 void PrintMap(const v1::Map& m) {
   std::cout << absl::StrFormat(
       "name:        %s\nid:          %d\ndescription: %s\ncreated:     %s\nvisits:      %d\n"
-      "keyframes:   %d\nstored:      %s\nentropy threshold: %s\n",
+      "keyframes:   %d\nstored:      %s\nentropy threshold: %s\nkeyframe colour:   %s\n",
       m.name(), m.id(), m.description().empty() ? "-" : m.description(),
       HumanTime(m.created_time_s()), m.visit_count(), m.keyframe_count(),
       HumanBytes(m.stored_bytes()),
       m.entropy_threshold() > 0 ? absl::StrFormat("%.2f", m.entropy_threshold())
-                                : std::string("server default"));
+                                : std::string("server default"),
+      m.keep_original_color() ? "as the client sent it" : "JPEG (PNG and raw re-encoded)");
 }
 
 const char* OutputName(v1::FrameOutput o) {
@@ -242,6 +243,7 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   struct SetArgs {
     std::string name, description;
     double entropy_threshold = 0;
+    bool keep_original_color = false;
   };
   auto set_args = std::make_shared<SetArgs>();
   set->add_option("NAME", set_args->name, "map name")->required();
@@ -250,14 +252,21 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   auto* threshold_flag = set->add_option(
       "--entropy-threshold", set_args->entropy_threshold,
       "neg-entropy below which superjuts are masked for this map, [0, 1]; 0 = server default");
-  set->callback([ctx, set_args, description_flag, threshold_flag] {
-    ctx->run = [ctx, set_args, description_flag, threshold_flag] {
+  auto* keep_flag = set->add_option(
+      "--keep-original-color", set_args->keep_original_color,
+      "true: store keyframe colour as the client sent it (PNG stays PNG); false: re-encode PNG "
+      "and raw colour as JPEG (the default, a fraction of the bytes)");
+  set->callback([ctx, set_args, description_flag, threshold_flag, keep_flag] {
+    ctx->run = [ctx, set_args, description_flag, threshold_flag, keep_flag] {
       v1::UpdateMapRequest req;
       req.set_name(set_args->name);
       if (description_flag->count() > 0) req.set_description(set_args->description);
       if (threshold_flag->count() > 0) req.set_entropy_threshold(set_args->entropy_threshold);
-      if (!req.has_description() && !req.has_entropy_threshold()) {
-        return UsageError("nothing to change: give --description or --entropy-threshold");
+      if (keep_flag->count() > 0) req.set_keep_original_color(set_args->keep_original_color);
+      if (!req.has_description() && !req.has_entropy_threshold() &&
+          !req.has_keep_original_color()) {
+        return UsageError(
+            "nothing to change: give --description, --entropy-threshold or --keep-original-color");
       }
       return RunCall<v1::Map>(
           *ctx, [&](client::Client& c) { return c.UpdateMap(req); }, PrintMap);

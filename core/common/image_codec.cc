@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/depth_codec.h"
 #include "core/common/types.h"
 
 namespace lifemap {
@@ -224,6 +225,20 @@ absl::StatusOr<cv::Mat> DecodeDepthUnranged(const EncodedDepth& depth) {
       raw->convertTo(out, CV_32FC1, 1.0 / depth.depth_scale);
       return out;
     }
+    case DepthEncoding::kRvl:
+    case DepthEncoding::kPaletted: {
+      auto raw = depth.encoding == DepthEncoding::kRvl ? DecodeRvl(depth.data)
+                                                       : DecodePalettedDepth(depth.data);
+      if (!raw.ok()) {
+        return absl::InvalidArgumentError(absl::StrCat("depth: ", raw.status().message()));
+      }
+      if (auto s = CheckSize("depth image", raw->cols, raw->rows, depth.width, depth.height);
+          !s.ok()) {
+        return s;
+      }
+      raw->convertTo(out, CV_32FC1, 1.0 / depth.depth_scale);
+      return out;
+    }
     case DepthEncoding::kRawU16: {
       if (depth.data.size() != pixels * 2) {
         return absl::InvalidArgumentError(absl::StrCat("raw uint16 depth has ", depth.data.size(),
@@ -295,9 +310,12 @@ absl::StatusOr<cv::Mat> DecodeColorBgr(const EncodedColor& color) {
   return Imdecode(color.data, cv::IMREAD_COLOR, "colour image");
 }
 
-absl::StatusOr<std::string> EncodeDepthPng16(const cv::Mat& depth_m, double depth_scale) {
+namespace {
+
+// Depth in metres to uint16 units at `depth_scale`; readings that do not fit are 0.
+absl::StatusOr<cv::Mat> QuantiseDepth(const cv::Mat& depth_m, double depth_scale) {
   if (depth_m.type() != CV_32FC1 || depth_m.empty()) {
-    return absl::InvalidArgumentError("EncodeDepthPng16 needs a non-empty CV_32FC1 image");
+    return absl::InvalidArgumentError("depth encoding needs a non-empty CV_32FC1 image");
   }
   if (!(depth_scale > 0.0) || !std::isfinite(depth_scale)) {
     return absl::InvalidArgumentError("depth_scale must be > 0");
@@ -313,7 +331,27 @@ absl::StatusOr<std::string> EncodeDepthPng16(const cv::Mat& depth_m, double dept
                    : 0;
     }
   }
-  return EncodePng(u16);
+  return u16;
+}
+
+}  // namespace
+
+absl::StatusOr<std::string> EncodeDepthPng16(const cv::Mat& depth_m, double depth_scale) {
+  auto u16 = QuantiseDepth(depth_m, depth_scale);
+  if (!u16.ok()) return u16.status();
+  return EncodePng(*u16);
+}
+
+absl::StatusOr<std::string> EncodeDepthRvl(const cv::Mat& depth_m, double depth_scale) {
+  auto u16 = QuantiseDepth(depth_m, depth_scale);
+  if (!u16.ok()) return u16.status();
+  return EncodeRvl(*u16);
+}
+
+absl::StatusOr<std::string> EncodeDepthPaletted(const cv::Mat& depth_m, double depth_scale) {
+  auto u16 = QuantiseDepth(depth_m, depth_scale);
+  if (!u16.ok()) return u16.status();
+  return EncodePalettedDepth(*u16);
 }
 
 absl::StatusOr<std::string> EncodePng(const cv::Mat& image) {

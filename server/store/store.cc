@@ -195,6 +195,13 @@ CREATE TABLE appearance_vocabularies (
   data BLOB NOT NULL
 );
 )sql",
+    // 6 -> 7: keyframe depth paletted (earlier keyframes keep their PNG-16, depth_encoding 1);
+    // maps may ask to keep the colour bytes a client sent instead of a JPEG re-encoding.
+    R"sql(
+ALTER TABLE keyframes ADD COLUMN depth_encoding INTEGER NOT NULL DEFAULT 1;
+ALTER TABLE keyframe_images RENAME COLUMN depth_png TO depth;
+ALTER TABLE maps ADD COLUMN keep_original_color INTEGER NOT NULL DEFAULT 0;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -202,8 +209,8 @@ static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVers
 constexpr char kKeyframeColumns[] =
     "k.id, k.visit_id, k.sequence, k.timestamp_s, k.has_pose, k.tx, k.ty, k.tz, k.qx, k.qy, "
     "k.qz, k.qw, k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale, k.color_encoding, "
-    "k.depth_bytes, k.color_bytes";
-constexpr int kKeyframeColumnCount = 22;
+    "k.depth_bytes, k.color_bytes, k.depth_encoding";
+constexpr int kKeyframeColumnCount = 23;
 
 // Superjut records: int32 id, int32 size_px, float32 entropy, planarity, horizontality,
 // textureness, neg_entropy (28 bytes). Keypoints: float32 x, y, size, angle, response (20 bytes).
@@ -290,6 +297,7 @@ KeyframeRecord ReadKeyframe(const Statement& s) {
   k.color_encoding = static_cast<StoredColorEncoding>(s.ColumnInt(19));
   k.depth_bytes = s.ColumnInt(20);
   k.color_bytes = s.ColumnInt(21);
+  k.depth_encoding = static_cast<StoredDepthEncoding>(s.ColumnInt(22));
   return k;
 }
 
@@ -325,7 +333,8 @@ constexpr char kMapSelect[] =
     "(SELECT COUNT(*) FROM visits v WHERE v.map_id = m.id), "
     "(SELECT COUNT(*) FROM keyframes k JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), "
     "(SELECT COALESCE(SUM(k.depth_bytes + k.color_bytes), 0) FROM keyframes k "
-    " JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), m.entropy_threshold "
+    " JOIN visits v ON v.id = k.visit_id WHERE v.map_id = m.id), m.entropy_threshold, "
+    "m.keep_original_color "
     "FROM maps m ";
 
 MapRecord ReadMap(const Statement& s) {
@@ -338,6 +347,7 @@ MapRecord ReadMap(const Statement& s) {
   m.keyframe_count = s.ColumnInt(5);
   m.stored_bytes = s.ColumnInt(6);
   if (!s.ColumnIsNull(7)) m.entropy_threshold = s.ColumnDouble(7);
+  m.keep_original_color = s.ColumnInt(8) != 0;
   return m;
 }
 
@@ -479,12 +489,13 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
 
 absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::string& description,
                                            double created_time_s,
-                                           std::optional<double> entropy_threshold) {
+                                           std::optional<double> entropy_threshold,
+                                           bool keep_original_color) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
   auto stmt = db->Prepare(
-      "INSERT INTO maps (name, description, created_time_s, entropy_threshold) "
-      "VALUES (?1, ?2, ?3, ?4)");
+      "INSERT INTO maps (name, description, created_time_s, entropy_threshold, "
+      "keep_original_color) VALUES (?1, ?2, ?3, ?4, ?5)");
   if (!stmt.ok()) return stmt.status();
   {
     StatementScope s(*stmt);
@@ -494,6 +505,7 @@ absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::s
     } else {
       s->BindNull(4);
     }
+    s->Bind(5, int64_t{keep_original_color});
     if (auto st = s->Run(); !st.ok()) {
       if (absl::IsFailedPrecondition(st)) {
         return absl::AlreadyExistsError(absl::StrCat("map '", name, "' already exists"));
@@ -528,6 +540,13 @@ absl::StatusOr<MapRecord> Store::UpdateMap(const std::string& name, const MapUpd
     } else {
       s->BindNull(2);
     }
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (update.keep_original_color) {
+    auto stmt = db->Prepare("UPDATE maps SET keep_original_color = ?2 WHERE id = ?1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, map->id).Bind(2, int64_t{*update.keep_original_color});
     if (auto st = s->Run(); !st.ok()) return st;
   }
   if (auto s = tx.Commit(); !s.ok()) return s;
@@ -679,6 +698,18 @@ absl::StatusOr<std::optional<VisitRecord>> Store::LatestOpenVisit(const std::str
   return std::optional<VisitRecord>(ReadVisit(*s));
 }
 
+EncodedDepth StoredDepth(const KeyframeRecord& k) {
+  return {k.depth_encoding == StoredDepthEncoding::kPaletted ? DepthEncoding::kPaletted
+                                                             : DepthEncoding::kPng16,
+          k.depth, k.intrinsics.width, k.intrinsics.height, k.depth_scale};
+}
+
+EncodedColor StoredColor(const KeyframeRecord& k) {
+  return {
+      k.color_encoding == StoredColorEncoding::kPng ? ColorEncoding::kPng : ColorEncoding::kJpeg,
+      k.color, k.intrinsics.width, k.intrinsics.height};
+}
+
 absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
                                     const std::vector<VisitFrameCount>& frame_counts) {
   absl::MutexLock lock(&impl_->write_mu);
@@ -687,12 +718,12 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   if (auto s = tx.Begin(); !s.ok()) return s;
   auto insert = db->Prepare(
       "INSERT INTO keyframes (visit_id, sequence, timestamp_s, has_pose, tx, ty, tz, qx, qy, qz, "
-      "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18, "
-      "?19, ?20, ?21)");
+      "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes, "
+      "depth_encoding) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, "
+      "?16, ?17, ?18, ?19, ?20, ?21, ?22)");
   if (!insert.ok()) return insert.status();
-  auto insert_images = db->Prepare(
-      "INSERT INTO keyframe_images (keyframe_id, depth_png, color) VALUES (?1, ?2, ?3)");
+  auto insert_images =
+      db->Prepare("INSERT INTO keyframe_images (keyframe_id, depth, color) VALUES (?1, ?2, ?3)");
   if (!insert_images.ok()) return insert_images.status();
   auto visit_exists = db->Prepare("SELECT ended FROM visits WHERE id = ?1");
   if (!visit_exists.ok()) return visit_exists.status();
@@ -728,15 +759,16 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(14, k.intrinsics.cx).Bind(15, k.intrinsics.cy);
       s->Bind(16, int64_t{k.intrinsics.width}).Bind(17, int64_t{k.intrinsics.height});
       s->Bind(18, k.depth_scale).Bind(19, static_cast<int64_t>(k.color_encoding));
-      k.depth_bytes = static_cast<int64_t>(k.depth_png.size());
+      k.depth_bytes = static_cast<int64_t>(k.depth.size());
       k.color_bytes = static_cast<int64_t>(k.color.size());
       s->Bind(20, k.depth_bytes).Bind(21, k.color_bytes);
+      s->Bind(22, static_cast<int64_t>(k.depth_encoding));
       if (auto st = s->Run(); !st.ok()) return st;
     }
     k.id = db->LastInsertRowId();
     {
       StatementScope s(*insert_images);
-      s->Bind(1, k.id).BindBlob(2, k.depth_png).BindBlob(3, k.color);
+      s->Bind(1, k.id).BindBlob(2, k.depth).BindBlob(3, k.color);
       if (auto st = s->Run(); !st.ok()) return st;
     }
     if (k.features) {
@@ -826,7 +858,7 @@ absl::StatusOr<KeyframeRecord> Store::GetKeyframe(int64_t map_id, int64_t keyfra
   absl::MutexLock lock(&impl_->read_mu);
   auto stmt = impl_->read_db->Prepare(absl::StrCat(
       "SELECT ", kKeyframeColumns,
-      ", i.depth_png, i.color FROM keyframes k JOIN visits v ON v.id = k.visit_id "
+      ", i.depth, i.color FROM keyframes k JOIN visits v ON v.id = k.visit_id "
       "JOIN keyframe_images i ON i.keyframe_id = k.id WHERE v.map_id = ?1 AND k.id = ?2"));
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
@@ -837,7 +869,7 @@ absl::StatusOr<KeyframeRecord> Store::GetKeyframe(int64_t map_id, int64_t keyfra
     return absl::NotFoundError(absl::StrCat("keyframe ", keyframe_id, " is not in this map"));
   }
   KeyframeRecord k = ReadKeyframe(*s);
-  k.depth_png = s->ColumnBlob(kKeyframeColumnCount);
+  k.depth = s->ColumnBlob(kKeyframeColumnCount);
   k.color = s->ColumnBlob(kKeyframeColumnCount + 1);
   auto features = impl_->read_db->Prepare(
       "SELECT superjut_count, entropy_threshold, keypoint_type, keypoints_stored, "

@@ -17,6 +17,7 @@
 
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
+#include "core/common/image_codec.h"
 #include "core/common/types.h"
 #include "core/entropy/superjut_scores.h"
 #include "core/features/keypoints.h"
@@ -41,6 +42,9 @@ struct MapRecord {
   int64_t keyframe_count = 0;
   int64_t stored_bytes = 0;                 // keyframe image bytes
   std::optional<double> entropy_threshold;  // nullopt = the server's default
+  // Keyframe colour kept as the client sent it (PNG or JPEG; raw as PNG) instead of re-encoded
+  // as JPEG at the server's storage.color_jpeg_quality.
+  bool keep_original_color = false;
 };
 
 // Fields of a map to change; unset ones keep their values.
@@ -48,6 +52,7 @@ struct MapUpdate {
   std::optional<std::string> description;
   bool set_entropy_threshold = false;
   std::optional<double> entropy_threshold;  // with set_entropy_threshold: nullopt = default
+  std::optional<bool> keep_original_color;
 };
 
 struct VisitRecord {
@@ -64,6 +69,8 @@ struct VisitRecord {
 };
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
+// Keyframes stored before schema 7 are PNG-16; later ones paletted (core/common/depth_codec.h).
+enum class StoredDepthEncoding : int { kPng16 = 1, kPaletted = 2 };
 
 // What the keyframe step made of a keyframe (core/pipeline/keyframe.h), stored with it.
 using KeyframeFeatures = pipeline::KeyframeFeatures;
@@ -84,8 +91,9 @@ struct KeyframeRecord {
   double timestamp_s = 0.0;
   std::optional<Pose> T_world_camera;
   CameraIntrinsics intrinsics;
-  double depth_scale = 0.0;  // units per metre of depth_png
-  std::string depth_png;     // 16-bit PNG (empty when listed without images)
+  double depth_scale = 0.0;  // units per metre of `depth`'s uint16 values
+  StoredDepthEncoding depth_encoding = StoredDepthEncoding::kPaletted;
+  std::string depth;  // PNG-16 or RVL bytes (empty when listed without images)
   StoredColorEncoding color_encoding = StoredColorEncoding::kJpeg;
   std::string color;  // JPEG or PNG bytes (empty when listed without images)
   int64_t depth_bytes = 0;
@@ -95,6 +103,10 @@ struct KeyframeRecord {
   std::optional<KeyframeFeatures> features;
   std::optional<KeyframeFeatureCounts> feature_counts;
 };
+
+// A stored keyframe's images as the codecs take them (views into `k`, which must outlive them).
+EncodedDepth StoredDepth(const KeyframeRecord& k);
+EncodedColor StoredColor(const KeyframeRecord& k);
 
 // A visit's frame counter, written in the same transaction as its keyframes.
 struct VisitFrameCount {
@@ -166,14 +178,15 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 6;
+  static constexpr int kSchemaVersion = 7;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
   // Maps. Names are validated by the caller (ValidateMapName). ALREADY_EXISTS / NOT_FOUND.
   absl::StatusOr<MapRecord> CreateMap(const std::string& name, const std::string& description,
                                       double created_time_s,
-                                      std::optional<double> entropy_threshold = std::nullopt);
+                                      std::optional<double> entropy_threshold = std::nullopt,
+                                      bool keep_original_color = false);
   absl::StatusOr<MapRecord> UpdateMap(const std::string& name, const MapUpdate& update);
   absl::StatusOr<std::vector<MapRecord>> ListMaps();
   absl::StatusOr<MapRecord> GetMap(const std::string& name);

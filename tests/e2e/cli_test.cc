@@ -387,8 +387,7 @@ void ExpectDurable(const std::string& db, const std::set<uint64_t>& acked) {
   for (uint64_t id : acked) {
     auto k = (*store)->GetKeyframe(map->id, static_cast<int64_t>(id));
     ASSERT_TRUE(k.ok()) << "acknowledged keyframe " << id << " lost: " << k.status();
-    auto depth = DecodeDepthMetres({DepthEncoding::kPng16, k->depth_png, k->intrinsics.width,
-                                    k->intrinsics.height, k->depth_scale});
+    auto depth = DecodeDepthMetres(store::StoredDepth(*k));
     EXPECT_TRUE(depth.ok()) << "keyframe " << id << ": " << depth.status();
   }
 }

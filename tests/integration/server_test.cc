@@ -7,6 +7,7 @@
 #include <thread>
 
 #include <gtest/gtest.h>
+#include <opencv2/core.hpp>
 
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
@@ -88,11 +89,27 @@ TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
     EXPECT_NEAR(summary.pose().tx(), e.T_world_camera->translation.x(), 1e-9);
     EXPECT_NEAR(summary.pose().qw(), e.T_world_camera->rotation.w(), 1e-9);
     EXPECT_DOUBLE_EQ(summary.timestamp_s(), e.timestamp_s);
-    // The stored images are the recording's own files, byte for byte.
+    // Depth is stored losslessly (paletted: the sensor's own values); the PNG colour is stored
+    // as JPEG at the server's quality (85), a fraction of the bytes.
     auto kf = client_->GetKeyframe("office", summary.id());
     ASSERT_TRUE(kf.ok()) << kf.status();
-    EXPECT_EQ(kf->depth().data(), *ReadFileBytes(e.depth_path));
-    EXPECT_EQ(kf->color().data(), *ReadFileBytes(e.rgb_path));
+    ASSERT_EQ(kf->depth().encoding(), v1::DEPTH_PALETTED);
+    const std::string depth_png = *ReadFileBytes(e.depth_path);
+    auto stored = DecodeDepthMetres(
+        {DepthEncoding::kPaletted, kf->depth().data(), 640, 480, kf->depth().depth_scale()});
+    auto sent = DecodeDepthMetres({DepthEncoding::kPng16, depth_png, 640, 480, 5000.0});
+    ASSERT_TRUE(stored.ok() && sent.ok()) << stored.status() << sent.status();
+    EXPECT_EQ(cv::countNonZero(*stored != *sent), 0) << "depth kept exactly";
+    EXPECT_LT(kf->depth().data().size(), depth_png.size() * 2 / 3);
+    const std::string color_png = *ReadFileBytes(e.rgb_path);
+    ASSERT_EQ(kf->color().encoding(), v1::COLOR_JPEG);
+    EXPECT_LT(kf->color().data().size(), color_png.size() / 3);
+    auto jpeg = DecodeColorBgr({ColorEncoding::kJpeg, kf->color().data(), 640, 480});
+    auto png = DecodeColorBgr({ColorEncoding::kPng, color_png, 640, 480});
+    ASSERT_TRUE(jpeg.ok() && png.ok());
+    EXPECT_LT(cv::norm(*jpeg, *png, cv::NORM_L1) / (640.0 * 480 * 3), 4.0);
+    EXPECT_EQ(summary.depth_bytes(), kf->depth().data().size());
+    EXPECT_EQ(summary.color_bytes(), kf->color().data().size());
   }
   auto visits = client_->ListVisits("office");
   ASSERT_TRUE(visits.ok());
@@ -119,6 +136,34 @@ TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
   ASSERT_TRUE(points.ok()) << points.status();
   EXPECT_GT(*points, 5000u);
   EXPECT_EQ(cloud.str().rfind("ply\n", 0), 0u);
+}
+
+TEST_F(ServerTest, AMapThatKeepsOriginalColourStoresThePngAsItCame) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_TRUE(client_->CreateMap("archive", "").ok());
+  v1::UpdateMapRequest update;
+  update.set_name("archive");
+  update.set_keep_original_color(true);
+  auto map = client_->UpdateMap(update);
+  ASSERT_TRUE(map.ok()) << map.status();
+  EXPECT_TRUE(map->keep_original_color());
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  v1::ProcessFrameRequest req;
+  req.set_map("archive");
+  auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+  ASSERT_TRUE(f.ok()) << f.status();
+  *req.mutable_frame() = *f;
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_TRUE(r->keyframe().committed());
+  auto kf = client_->GetKeyframe("archive", r->keyframe().keyframe_id());
+  ASSERT_TRUE(kf.ok()) << kf.status();
+  EXPECT_EQ(kf->color().encoding(), v1::COLOR_PNG);
+  EXPECT_EQ(kf->color().data(), *ReadFileBytes(e.rgb_path));
 }
 
 TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {

@@ -23,7 +23,7 @@ KeyframeRecord Keyframe(int64_t visit_id, double t, bool posed = true) {
   }
   k.intrinsics = {525, 525, 319.5, 239.5, 640, 480};
   k.depth_scale = 5000;
-  k.depth_png = "depth-bytes";
+  k.depth = "depth-bytes";
   k.color = "color-bytes";
   return k;
 }
@@ -75,11 +75,11 @@ TEST_F(StoreTest, KeyframesRoundTripWithPosesAndImages) {
   ASSERT_EQ(list->size(), 2u);
   EXPECT_DOUBLE_EQ((*list)[0].timestamp_s, 1.0) << "time order";
   EXPECT_FALSE((*list)[0].T_world_camera.has_value());
-  EXPECT_TRUE((*list)[0].depth_png.empty()) << "listing carries no images";
+  EXPECT_TRUE((*list)[0].depth.empty()) << "listing carries no images";
 
   auto k = store_->GetKeyframe(map->id, batch[0].id);
   ASSERT_TRUE(k.ok());
-  EXPECT_EQ(k->depth_png, "depth-bytes");
+  EXPECT_EQ(k->depth, "depth-bytes");
   EXPECT_EQ(k->color, "color-bytes");
   ASSERT_TRUE(k->T_world_camera.has_value());
   EXPECT_DOUBLE_EQ(k->T_world_camera->translation.z(), 6.0);
@@ -333,7 +333,9 @@ PRAGMA user_version = 1;
   EXPECT_EQ(map->keyframe_count, 1);
   auto k = (*store)->GetKeyframe(map->id, 1);
   ASSERT_TRUE(k.ok()) << k.status();
-  EXPECT_EQ(k->depth_png, "dep");
+  EXPECT_EQ(k->depth, "dep");
+  EXPECT_EQ(k->depth_encoding, StoredDepthEncoding::kPng16) << "stored before RVL: PNG-16";
+  EXPECT_FALSE(map->keep_original_color);
   EXPECT_FALSE(k->features.has_value());
   auto problems = (*store)->CheckIntegrity();
   EXPECT_TRUE(problems.ok() && problems->empty());
