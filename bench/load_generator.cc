@@ -109,7 +109,7 @@ RunReport WithServerCpu(const std::string& target, Run run) {
 }
 
 RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
-                      int count) {
+                      int count, const lifemap::v1::FrameOptions& options) {
   RunReport report;
   report.name = "baseline: ProcessFrame, no store";
   auto client = lifemap::client::Client::Connect({target});
@@ -121,6 +121,7 @@ RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::
   const auto start = Clock::now();
   for (int i = 0; i < count; ++i) {
     lifemap::v1::ProcessFrameRequest req;
+    *req.mutable_options() = options;
     *req.mutable_frame() = WithTime(frames[i % frames.size()], 1000.0 + i / 30.0, i);
     const auto t0 = Clock::now();
     auto r = (*client)->ProcessFrame(req);
@@ -139,7 +140,8 @@ RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::
 }
 
 RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
-                     int streams, int count, double rate_hz) {
+                     int streams, int count, double rate_hz,
+                     const lifemap::v1::FrameOptions& options) {
   RunReport report;
   report.name = absl::StrFormat("%d stream(s) at %s, keyframes stored", streams,
                                 rate_hz > 0 ? absl::StrFormat("%.0f Hz", rate_hz) : "max rate");
@@ -153,6 +155,7 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
       if (!client.ok()) return;
       lifemap::v1::StreamStart st;
       st.set_map("load");
+      *st.mutable_options() = options;
       st.set_robot(absl::StrFormat("load-%d", s));
       auto stream = (*client)->OpenStream(st);
       if (!stream.ok()) {
@@ -222,7 +225,15 @@ int main(int argc, char** argv) {
                  "model file (lifemap train): one stream runs without labels, then the model is "
                  "uploaded and activated as the server default and the runs repeat with labels")
       ->check(CLI::ExistingFile);
+  std::string result_images = "png";
+  app.add_option("--result-images", result_images,
+                 "how results carry their per-pixel images (FrameOptions.result_images)")
+      ->check(CLI::IsMember({"png", "raw", "none"}));
   CLI11_PARSE(app, argc, argv);
+  lifemap::v1::FrameOptions options;
+  options.set_result_images(result_images == "raw"    ? lifemap::v1::RESULT_IMAGES_RAW
+                            : result_images == "none" ? lifemap::v1::RESULT_IMAGES_NONE
+                                                      : lifemap::v1::RESULT_IMAGES_PNG);
 
   auto seq = lifemap::io::ReadTumSequence(tum);
   if (!seq.ok()) {
@@ -287,8 +298,8 @@ int main(int argc, char** argv) {
   std::vector<RunReport> runs;
   if (!model.empty()) {
     // The same-run baseline for labels: one stream before any model is active.
-    runs.push_back(
-        WithServerCpu(target, [&] { return RunStreams(target, loaded, 1, frames, rate); }));
+    runs.push_back(WithServerCpu(
+        target, [&] { return RunStreams(target, loaded, 1, frames, rate, options); }));
     runs.back().name += ", no labels";
     auto bytes = lifemap::ReadFileBytes(model);
     auto client = lifemap::client::Client::Connect({target});
@@ -303,12 +314,12 @@ int main(int argc, char** argv) {
       return 1;
     }
   }
+  runs.push_back(WithServerCpu(
+      target, [&] { return RunBaseline(target, loaded, std::min(frames, 200), options); }));
   runs.push_back(
-      WithServerCpu(target, [&] { return RunBaseline(target, loaded, std::min(frames, 200)); }));
-  runs.push_back(
-      WithServerCpu(target, [&] { return RunStreams(target, loaded, 1, frames, rate); }));
-  runs.push_back(
-      WithServerCpu(target, [&] { return RunStreams(target, loaded, streams, frames, rate); }));
+      WithServerCpu(target, [&] { return RunStreams(target, loaded, 1, frames, rate, options); }));
+  runs.push_back(WithServerCpu(
+      target, [&] { return RunStreams(target, loaded, streams, frames, rate, options); }));
   if (!model.empty()) {
     for (size_t i = 1; i < runs.size(); ++i) runs[i].name += ", labels";
   }
@@ -317,6 +328,7 @@ int main(int argc, char** argv) {
     for (const auto& r : runs) reports.push_back(r.ToJson());
     std::cout << nlohmann::json{{"target", target},
                                 {"frame", "640x480 PNG-16 depth + PNG colour (TUM)"},
+                                {"result_images", result_images},
                                 {"server_cpu",
                                  server_address.empty()
                                      ? "in-process server: CPU per frame includes the load "

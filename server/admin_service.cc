@@ -42,6 +42,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
   resp->set_db_path(std::filesystem::absolute(ctx_->config.db_path).string());
   resp->set_schema_version(static_cast<uint32_t>(ctx_->store->schema_version()));
   resp->set_started_time_s(ctx_->started_time_s);
+  resp->set_default_result_images(kDefaultResultImages);
   return grpc::Status::OK;
 }
 

@@ -92,20 +92,35 @@ absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
 // Decodes and analyses one frame; with a visit, decides whether it is a keyframe and queues
 // its commit. Never blocks on the store.
 // Fills the entropy output: score image and mask as PNG, the per-superjut table.
-void EntropyToProto(const entropy::EntropyMaskResult& e, v1::EntropyOutput* out) {
+// An 8-bit image as the request asked: into `png` (PNG), `raw` (row-major bytes) or nowhere.
+void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string* png,
+                        std::string* raw) {
+  if (how == v1::RESULT_IMAGES_NONE) return;
+  if (how == v1::RESULT_IMAGES_RAW) {
+    const cv::Mat continuous = image.isContinuous() ? image : image.clone();
+    raw->assign(reinterpret_cast<const char*>(continuous.data), continuous.total());
+    return;
+  }
+  if (auto encoded = EncodePng(image); encoded.ok()) *png = *std::move(encoded);
+}
+
+void EntropyToProto(const entropy::EntropyMaskResult& e, v1::ResultImages images,
+                    v1::EntropyOutput* out) {
   out->set_threshold(e.threshold);
-  if (auto png = EncodePng(e.score_image); png.ok()) out->set_score_png(*std::move(png));
-  if (auto png = EncodePng(e.mask); png.ok()) out->set_mask_png(*std::move(png));
+  ResultImageToProto(e.score_image, images, out->mutable_score_png(), out->mutable_score_raw());
+  ResultImageToProto(e.mask, images, out->mutable_mask_png(), out->mutable_mask_raw());
   for (const auto& s : e.superjuts) SuperjutToProto(s, e.threshold, out->add_superjuts());
 }
 
 // Fills the label output: label and confidence PNGs, classes present by pixel share.
-void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model, v1::LabelOutput* out) {
+void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model,
+                   v1::ResultImages images, v1::LabelOutput* out) {
   out->set_model(model.name);
   out->set_stride(static_cast<uint32_t>(l.stride));
   out->set_mean_confidence(static_cast<float>(l.mean_confidence));
-  if (auto png = EncodePng(l.labels); png.ok()) out->set_label_png(*std::move(png));
-  if (auto png = EncodePng(l.confidence); png.ok()) out->set_confidence_png(*std::move(png));
+  ResultImageToProto(l.labels, images, out->mutable_label_png(), out->mutable_label_raw());
+  ResultImageToProto(l.confidence, images, out->mutable_confidence_png(),
+                     out->mutable_confidence_raw());
   std::vector<size_t> order;
   for (size_t c = 0; c < l.class_pixels.size(); ++c) {
     if (l.class_pixels[c] > 0) order.push_back(c);
@@ -127,6 +142,7 @@ struct FrameSettings {
   tracking::KeyframeOptions keyframe;
   pipeline::FrameRequest request;
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
+  v1::ResultImages result_images = kDefaultResultImages;
 };
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
@@ -227,8 +243,12 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     r.set_pose_source(v1::POSE_SOURCE_NONE);
   }
   facts.analysis = &*analysis;
-  if (analysis->entropy) EntropyToProto(*analysis->entropy, r.mutable_entropy());
-  if (analysis->labels) LabelsToProto(*analysis->labels, *model, r.mutable_labels());
+  if (analysis->entropy) {
+    EntropyToProto(*analysis->entropy, settings.result_images, r.mutable_entropy());
+  }
+  if (analysis->labels) {
+    LabelsToProto(*analysis->labels, *model, settings.result_images, r.mutable_labels());
+  }
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
 
@@ -348,6 +368,19 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
                        AppearanceOptions::kMaxFrameIntervalS, "] s (0 = every frame), got ", t));
     }
     settings.appearance_interval_s = t;
+  }
+  switch (o.result_images()) {
+    case v1::RESULT_IMAGES_DEFAULT:
+      break;
+    case v1::RESULT_IMAGES_PNG:
+    case v1::RESULT_IMAGES_RAW:
+    case v1::RESULT_IMAGES_NONE:
+      settings.result_images = o.result_images();
+      break;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat("options.result_images ", o.result_images(),
+                       " is not one of RESULT_IMAGES_PNG, RESULT_IMAGES_RAW, RESULT_IMAGES_NONE"));
   }
   return settings;
 }

@@ -22,6 +22,9 @@
 
 namespace lifemap::server {
 
+// What FrameOptions.result_images RESULT_IMAGES_DEFAULT means (GetServerInfo says it).
+inline constexpr v1::ResultImages kDefaultResultImages = v1::RESULT_IMAGES_PNG;
+
 // Everything the services share; owned by LifemapServer.
 struct ServiceContext {
   ServerConfig config;

@@ -8,6 +8,7 @@
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
@@ -207,6 +208,48 @@ TEST_F(ServerTest, StatsCountTheServersCpuTime) {
   EXPECT_GT(after->process_cpu_s(), before->process_cpu_s());
   EXPECT_LT(after->process_cpu_s() - before->process_cpu_s(), after->uptime_s() * 64)
       << "no more than every core of a large machine for the whole uptime";
+}
+
+TEST_F(ServerTest, ResultImagesTravelAsPngRawOrNotAtAll) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto frame = FirstTumFrame(dir);
+  ASSERT_TRUE(frame.ok()) << frame.status();
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = *frame;
+  auto png = client_->ProcessFrame(req);
+  ASSERT_TRUE(png.ok()) << png.status();
+  EXPECT_TRUE(png->entropy().score_raw().empty()) << "PNG unless asked";
+
+  req.mutable_options()->set_result_images(v1::RESULT_IMAGES_RAW);
+  auto raw = client_->ProcessFrame(req);
+  ASSERT_TRUE(raw.ok()) << raw.status();
+  EXPECT_TRUE(raw->entropy().mask_png().empty());
+  const std::pair<const std::string*, const std::string*> pairs[] = {
+      {&png->entropy().score_png(), &raw->entropy().score_raw()},
+      {&png->entropy().mask_png(), &raw->entropy().mask_raw()}};
+  for (const auto& [png_bytes, raw_bytes] : pairs) {
+    ASSERT_EQ(raw_bytes->size(), 640u * 480u);
+    const cv::Mat decoded = cv::imdecode(std::vector<uint8_t>(png_bytes->begin(), png_bytes->end()),
+                                         cv::IMREAD_UNCHANGED);
+    const cv::Mat from_raw(480, 640, CV_8UC1, const_cast<char*>(raw_bytes->data()));
+    EXPECT_EQ(cv::countNonZero(decoded != from_raw), 0) << "the same pixels either way";
+  }
+  EXPECT_EQ(raw->entropy().superjuts_size(), png->entropy().superjuts_size());
+
+  req.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  auto none = client_->ProcessFrame(req);
+  ASSERT_TRUE(none.ok()) << none.status();
+  EXPECT_TRUE(none->entropy().mask_png().empty() && none->entropy().mask_raw().empty());
+  EXPECT_EQ(none->entropy().superjuts_size(), png->entropy().superjuts_size()) << "tables stay";
+
+  req.mutable_options()->set_result_images(static_cast<v1::ResultImages>(17));
+  auto bad = client_->ProcessFrame(req);
+  ASSERT_TRUE(absl::IsInvalidArgument(bad.status())) << bad.status();
+  EXPECT_NE(bad.status().message().find("result_images"), std::string::npos);
+
+  auto info = client_->GetServerInfo();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->default_result_images(), v1::RESULT_IMAGES_PNG);
 }
 
 TEST_F(ServerTest, ServesEntropyMasksOfARealFrame) {
