@@ -199,6 +199,15 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("already exists"), std::string::npos) << r.err;
   EXPECT_EQ(Lines(r.err).size(), 1u) << "errors are one line: " << r.err;
+  r = Run({"maps", "set", "lab", "--keep-original-color", "true"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("as the client sent it"), std::string::npos) << r.out;
+  r = Run({"maps", "set", "lab", "--keep-original-color", "false"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("JPEG"), std::string::npos) << r.out;
+  r = Run({"maps", "set", "lab"});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--keep-original-color"), std::string::npos) << r.err;
 
   r = Run({"--json", "stream", "--map", "lab", "--tum", tum, "--use-groundtruth", "--rate", "0",
            "--visit-label", "morning"});
