@@ -2,6 +2,9 @@
 
 #include <sqlite3.h>
 
+#include <cmath>
+#include <limits>
+
 #include <fstream>
 
 #include <gtest/gtest.h>
@@ -237,7 +240,10 @@ TEST_F(StoreTest, KeyframeFeaturesRoundTrip) {
   f.superjuts = {{0, 1200, 0.1f, 0.9f, 0.95f, 0.01f, 0.97f},
                  {1, 300, 3.0f, 0.1f, 0.2f, 0.3f, 0.3f}};
   f.keypoints.type = "orb";
-  f.keypoints.keypoints = {{10.5f, 20.25f, 31, 90, 0.5f}, {100, 200, 31, 45, 0.25f}};
+  f.keypoints.keypoints = {{10.5f, 20.25f, 31, 90, 0.5f}, {100.3f, 200.7f, 44.6f, 45.37f, 0.25f}};
+  // A point 1.2 m ahead, and one without depth.
+  f.keypoints.points = {{0.1234f, -0.5f, 1.2f},
+                        Eigen::Vector3f::Constant(std::numeric_limits<float>::quiet_NaN())};
   f.keypoints.descriptors = cv::Mat(2, 32, CV_8UC1);
   cv::randu(f.keypoints.descriptors, 0, 255);
   f.keypoints.masked = 5;
@@ -265,9 +271,47 @@ TEST_F(StoreTest, KeyframeFeaturesRoundTrip) {
   EXPECT_DOUBLE_EQ(features->entropy_threshold, 0.4);
   ASSERT_EQ(features->keypoints.keypoints.size(), 2u);
   EXPECT_FLOAT_EQ(features->keypoints.keypoints[0].y, 20.25f);
+  // Compact records: 1/8 px and 1/100 degree, response exact; points to the millimetre.
+  const auto& second = features->keypoints.keypoints[1];
+  EXPECT_NEAR(second.x, 100.3f, 1.0f / 16);
+  EXPECT_NEAR(second.y, 200.7f, 1.0f / 16);
+  EXPECT_NEAR(second.size, 44.6f, 1.0f / 16);
+  EXPECT_NEAR(second.angle, 45.37f, 0.005f);
+  EXPECT_FLOAT_EQ(second.response, 0.25f);
+  ASSERT_EQ(features->keypoints.points.size(), 2u);
+  EXPECT_LT((features->keypoints.points[0] - f.keypoints.points[0]).norm(), 0.001f);
+  EXPECT_TRUE(std::isnan(features->keypoints.points[1].z())) << "no depth stays no depth";
   EXPECT_EQ(cv::norm(features->keypoints.descriptors, f.keypoints.descriptors, cv::NORM_L1), 0);
   EXPECT_EQ(features->keypoints.detected, 7);
   EXPECT_TRUE(absl::IsNotFound(store_->GetKeyframeFeatures(batch[1].id).status()));
+
+  // Rows written before schema 7 (float32 records, record_format 1) are read as they were.
+  store_.reset();
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(tmp_.File("lifemap.db").c_str(), &db), SQLITE_OK);
+  const float old_keypoints[10] = {1.5f, 2.5f, 31, 90, 0.5f, 3.25f, 4.75f, 31, 45, 0.25f};
+  const float old_points[6] = {0.1f, 0.2f, 1.5f, 0.3f, 0.4f, 2.5f};
+  sqlite3_stmt* stmt = nullptr;
+  ASSERT_EQ(sqlite3_prepare_v2(db,
+                               "UPDATE keyframe_features SET record_format = 1, keypoints = ?1, "
+                               "points = ?2 WHERE keyframe_id = ?3",
+                               -1, &stmt, nullptr),
+            SQLITE_OK);
+  sqlite3_bind_blob(stmt, 1, old_keypoints, sizeof(old_keypoints), SQLITE_STATIC);
+  sqlite3_bind_blob(stmt, 2, old_points, sizeof(old_points), SQLITE_STATIC);
+  sqlite3_bind_int64(stmt, 3, batch[0].id);
+  ASSERT_EQ(sqlite3_step(stmt), SQLITE_DONE);
+  sqlite3_finalize(stmt);
+  sqlite3_close(db);
+  auto reopened = Store::Open(tmp_.File("lifemap.db"));
+  ASSERT_TRUE(reopened.ok()) << reopened.status();
+  auto old = (*reopened)->GetKeyframeFeatures(batch[0].id);
+  ASSERT_TRUE(old.ok()) << old.status();
+  ASSERT_EQ(old->keypoints.keypoints.size(), 2u);
+  EXPECT_FLOAT_EQ(old->keypoints.keypoints[1].x, 3.25f);
+  EXPECT_FLOAT_EQ(old->keypoints.keypoints[1].y, 4.75f);
+  ASSERT_EQ(old->keypoints.points.size(), 2u);
+  EXPECT_FLOAT_EQ(old->keypoints.points[1].z(), 2.5f);
 }
 
 TEST_F(StoreTest, MapEntropyThresholdIsSetAndReset) {
