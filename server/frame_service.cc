@@ -189,12 +189,14 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   auto encoded = FrameFromProto(frame);
   if (!encoded.ok()) return reject(encoded.status());
   pipeline::FrameRequest effective = settings.request;
-  if (visit != nullptr && !effective.entropy_threshold) {
-    // The map's own threshold, when it has one, comes before the server's default.
-    auto map_settings = ctx->visits->SettingsOfMap(visit->map_id);
-    if (map_settings.ok() && map_settings->entropy_threshold) {
-      effective.entropy_threshold = static_cast<float>(*map_settings->entropy_threshold);
-    }
+  // The map's own settings (cached); unreadable, the server's defaults apply.
+  VisitRegistry::MapSettings map_settings;
+  if (visit != nullptr) {
+    if (auto s = ctx->visits->SettingsOfMap(visit->map_id); s.ok()) map_settings = *s;
+  }
+  // The map's own threshold, when it has one, comes before the server's default.
+  if (!effective.entropy_threshold && map_settings.entropy_threshold) {
+    effective.entropy_threshold = static_cast<float>(*map_settings.entropy_threshold);
   }
   // The model for the visit's map (else the server default) labels the frame; the reference
   // keeps it alive even if it is deactivated meanwhile.
@@ -286,9 +288,7 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
     features = pipeline::ExtractKeyframeFeatures(*analysis, ctx->config.appearance.features);
   }
   if (decision.selected) {
-    auto map_settings = ctx->visits->SettingsOfMap(visit->map_id);
-    record = MakeKeyframeRecord(frame, f, visit->visit_id,
-                                map_settings.ok() && map_settings->keep_original_color,
+    record = MakeKeyframeRecord(frame, f, visit->visit_id, map_settings.keep_original_color,
                                 ctx->config.keyframe_color_jpeg_quality);
     // Keypoints in zones likely to move were dropped before they are stored for matching
     // (with entropy masks disabled, all are kept: appearance still works, unpruned).

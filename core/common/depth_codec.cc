@@ -88,6 +88,17 @@ class NibbleReader {
   int nibbles_ = 0;
 };
 
+// The image size a header declares, refused when it is empty or over `max_pixels`.
+absl::Status CheckDeclaredSize(const char* what, uint32_t width, uint32_t height,
+                               int64_t max_pixels) {
+  if (width == 0 || height == 0 || width > 65535 || height > 65535 ||
+      static_cast<int64_t>(width) * height > max_pixels) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        what, " of ", width, "x", height, " pixels is refused (at most ", max_pixels, " pixels)"));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 bool LooksLikeRvl(std::string_view bytes) {
@@ -128,11 +139,8 @@ absl::StatusOr<cv::Mat> DecodeRvl(std::string_view bytes, int64_t max_pixels) {
     return absl::InvalidArgumentError("not an RVL depth image (no RVL1 header)");
   }
   const uint32_t width = GetU32(bytes, 4), height = GetU32(bytes, 8);
-  if (width == 0 || height == 0 || width > 65535 || height > 65535 ||
-      static_cast<int64_t>(width) * height > max_pixels) {
-    return absl::InvalidArgumentError(absl::StrCat("RVL depth image of ", width, "x", height,
-                                                   " pixels is refused (at most ", max_pixels,
-                                                   " pixels)"));
+  if (auto s = CheckDeclaredSize("RVL depth image", width, height, max_pixels); !s.ok()) {
+    return s;
   }
   cv::Mat out(static_cast<int>(height), static_cast<int>(width), CV_16UC1);
   uint16_t* p = out.ptr<uint16_t>(0);
@@ -237,11 +245,8 @@ absl::StatusOr<cv::Mat> DecodePalettedDepth(std::string_view bytes, int64_t max_
   }
   const uint32_t width = GetU32(bytes, 4), height = GetU32(bytes, 8);
   const uint32_t palette_size = GetU32(bytes, 12);
-  if (width == 0 || height == 0 || width > 65535 || height > 65535 ||
-      static_cast<int64_t>(width) * height > max_pixels) {
-    return absl::InvalidArgumentError(absl::StrCat("paletted depth image of ", width, "x", height,
-                                                   " pixels is refused (at most ", max_pixels,
-                                                   " pixels)"));
+  if (auto s = CheckDeclaredSize("paletted depth image", width, height, max_pixels); !s.ok()) {
+    return s;
   }
   if (palette_size > 65536 || kPalettedHeaderBytes + 2 * size_t{palette_size} > bytes.size()) {
     return absl::InvalidArgumentError("paletted depth image: palette is truncated");
