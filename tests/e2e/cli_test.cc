@@ -208,6 +208,9 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
   r = Run({"maps", "set", "lab"});
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("--keep-original-color"), std::string::npos) << r.err;
+  r = Run({"maps", "set", "lab", "--keep-original-color", "maybe"});
+  EXPECT_EQ(r.code, 2) << "not a boolean";
+  EXPECT_NE(r.err.find("keep-original-color"), std::string::npos) << r.err;
 
   r = Run({"--json", "stream", "--map", "lab", "--tum", tum, "--use-groundtruth", "--rate", "0",
            "--visit-label", "morning"});

@@ -210,6 +210,30 @@ TEST_F(ServerTest, StatsCountTheServersCpuTime) {
       << "no more than every core of a large machine for the whole uptime";
 }
 
+TEST_F(ServerTest, AcceptsRvlAndPalettedDepthAndRefusesDamagedOnes) {
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = MakeFrame();
+  auto png_depth = DecodeDepthMetres({DepthEncoding::kPng16, req.frame().depth().data(), 640, 480,
+                                      req.frame().depth().depth_scale()});
+  ASSERT_TRUE(png_depth.ok()) << png_depth.status();
+  const double scale = req.frame().depth().depth_scale();
+  const std::pair<v1::DepthEncoding, absl::StatusOr<std::string>> encodings[] = {
+      {v1::DEPTH_RVL, EncodeDepthRvl(*png_depth, scale)},
+      {v1::DEPTH_PALETTED, EncodeDepthPaletted(*png_depth, scale)}};
+  for (const auto& [encoding, bytes] : encodings) {
+    ASSERT_TRUE(bytes.ok()) << bytes.status();
+    req.mutable_frame()->mutable_depth()->set_encoding(encoding);
+    req.mutable_frame()->mutable_depth()->set_data(*bytes);
+    auto r = client_->ProcessFrame(req);
+    ASSERT_TRUE(r.ok()) << encoding << ": " << r.status();
+    EXPECT_GT(r->valid_depth_fraction(), 0.9f);
+    req.mutable_frame()->mutable_depth()->set_data(bytes->substr(0, bytes->size() / 2));
+    auto damaged = client_->ProcessFrame(req);
+    ASSERT_TRUE(absl::IsInvalidArgument(damaged.status())) << encoding << ": " << damaged.status();
+    EXPECT_NE(damaged.status().message().find("depth"), std::string::npos);
+  }
+}
+
 TEST_F(ServerTest, ResultImagesTravelAsPngRawOrNotAtAll) {
   LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
   auto frame = FirstTumFrame(dir);

@@ -129,6 +129,36 @@ TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
             std::string::npos);
 }
 
+TEST(ConfigFile, ReadsAndChecksTheStorageSection) {
+  testing::TempDir tmp;
+  EXPECT_EQ(ServerConfig().keyframe_color_jpeg_quality, 85);
+  std::ofstream(tmp.File("ok.json")) << R"({"storage": {"color_jpeg_quality": 70}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->keyframe_color_jpeg_quality, 70);
+  const std::pair<const char*, const char*> bad[] = {
+      {"zero.json", R"({"storage": {"color_jpeg_quality": 0}})"},
+      {"high.json", R"({"storage": {"color_jpeg_quality": 101}})"},
+      {"type.json", R"({"storage": {"color_jpeg_quality": "high"}})"},
+      {"key.json", R"({"storage": {"jpeg_quality": 80}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file << ": " << r.status();
+  }
+  EXPECT_NE(LoadConfigFile(tmp.File("high.json"), ServerConfig())
+                .status()
+                .message()
+                .find("color_jpeg_quality must be within [1, 100]"),
+            std::string::npos);
+  EXPECT_NE(LoadConfigFile(tmp.File("key.json"), ServerConfig())
+                .status()
+                .message()
+                .find("storage.jpeg_quality"),
+            std::string::npos);
+}
+
 TEST(ConfigFile, ReadsAndChecksTheFramesSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))
