@@ -11,6 +11,7 @@
 #include "absl/cleanup/cleanup.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
+#include "core/common/task_pool.h"
 #include "core/pipeline/keyframe.h"
 #include "server/bounded_queue.h"
 #include "server/convert.h"
@@ -89,9 +90,6 @@ absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
   return k;
 }
 
-// Decodes and analyses one frame; with a visit, decides whether it is a keyframe and queues
-// its commit. Never blocks on the store.
-// Fills the entropy output: score image and mask as PNG, the per-superjut table.
 // An 8-bit image as the request asked: into `png` (PNG), `raw` (row-major bytes) or nowhere.
 void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string* png,
                         std::string* raw) {
@@ -104,6 +102,7 @@ void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string*
   if (auto encoded = EncodePng(image); encoded.ok()) *png = *std::move(encoded);
 }
 
+// Fills the entropy output: score image and mask as asked, the per-superjut table.
 void EntropyToProto(const entropy::EntropyMaskResult& e, v1::ResultImages images,
                     v1::EntropyOutput* out) {
   out->set_threshold(e.threshold);
@@ -112,7 +111,7 @@ void EntropyToProto(const entropy::EntropyMaskResult& e, v1::ResultImages images
   for (const auto& s : e.superjuts) SuperjutToProto(s, e.threshold, out->add_superjuts());
 }
 
-// Fills the label output: label and confidence PNGs, classes present by pixel share.
+// Fills the label output: label and confidence images as asked, classes present by pixel share.
 void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model,
                    v1::ResultImages images, v1::LabelOutput* out) {
   out->set_model(model.name);
@@ -169,65 +168,74 @@ absl::Status AppearanceMatches(ServiceContext* ctx,
   return absl::OkStatus();
 }
 
-// `writer` is the stream's claim on the visit (0 for a unary ProcessFrame).
-PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
-                          const std::shared_ptr<VisitState>& visit_state, uint64_t writer,
-                          const FrameSettings& settings) {
-  VisitState* visit = visit_state.get();
-  PendingResult p;
+// A frame analysed but not yet placed in its visit: the part of a frame's work that needs no
+// visit state, run on the task pool, several frames of a stream at once.
+struct AnalysedFrame {
+  v1::Frame frame;  // as received: a keyframe's record keeps its bytes
+  PendingResult pending;
+  // Unset when the frame was rejected (pending.result.error says why).
+  std::optional<pipeline::FrameAnalysis> analysis;
+  std::shared_ptr<const LoadedModel> model;  // keeps the labelling model alive
+  absl::Status labeller;                     // OK when the model labelled it; else why not
+  bool keep_original_color = false;          // the map's setting, for a keyframe's record
+};
+
+// Reads the visit's writability and map name (a unary frame has neither to check).
+absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_name) {
+  if (visit == nullptr) return absl::OkStatus();
+  absl::MutexLock lock(&visit->mu);
+  if (auto s = visit->CheckWritable(writer); !s.ok()) return s;
+  *map_name = visit->map_name;
+  return absl::OkStatus();
+}
+
+// Decodes and analyses one frame (masks, labels, result images) with its map's settings and
+// model. Reads no visit state but the map: safe on any thread, in any order.
+AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
+                           const std::string& map_name, const FrameSettings& settings) {
+  AnalysedFrame a;
+  a.frame = std::move(frame);
+  PendingResult& p = a.pending;
   p.received = Clock::now();
   v1::FrameResult& r = p.result;
-  r.set_sequence(frame.sequence());
-  r.set_timestamp_s(frame.timestamp_s());
+  r.set_sequence(a.frame.sequence());
+  r.set_timestamp_s(a.frame.timestamp_s());
   auto reject = [&](const absl::Status& s) {
     ctx->frames_rejected.fetch_add(1);
     r.mutable_error()->set_code(static_cast<int>(s.code()));
     r.mutable_error()->set_message(std::string(s.message()));
-    spdlog::debug("frame {} rejected: {}", frame.sequence(), std::string(s.message()));
-    return std::move(p);
+    spdlog::debug("frame {} rejected: {}", a.frame.sequence(), std::string(s.message()));
+    return std::move(a);
   };
-  auto encoded = FrameFromProto(frame);
+  auto encoded = FrameFromProto(a.frame);
   if (!encoded.ok()) return reject(encoded.status());
   pipeline::FrameRequest effective = settings.request;
   // The map's own settings (cached); unreadable, the server's defaults apply.
   VisitRegistry::MapSettings map_settings;
-  if (visit != nullptr) {
-    if (auto s = ctx->visits->SettingsOfMap(visit->map_id); s.ok()) map_settings = *s;
+  if (map_id != 0) {
+    if (auto s = ctx->visits->SettingsOfMap(map_id); s.ok()) map_settings = *s;
   }
+  a.keep_original_color = map_settings.keep_original_color;
   // The map's own threshold, when it has one, comes before the server's default.
   if (!effective.entropy_threshold && map_settings.entropy_threshold) {
     effective.entropy_threshold = static_cast<float>(*map_settings.entropy_threshold);
   }
   // The model for the visit's map (else the server default) labels the frame; the reference
   // keeps it alive even if it is deactivated meanwhile.
-  std::shared_ptr<const LoadedModel> model;
-  std::string map_name;
-  if (visit != nullptr) {
-    absl::MutexLock lock(&visit->mu);
-    // Refused before any work when it cannot be added (the same check holds below, where it
-    // is added).
-    if (auto s = visit->CheckWritable(writer); !s.ok()) {
-      p.visit_closed = s;
-      return p;
-    }
-    map_name = visit->map_name;
-  }
-  OutputFacts facts;
-  facts.has_map = visit != nullptr;
   if (!ctx->config.labels_enabled) {
-    facts.labeller = absl::FailedPreconditionError(kLabelsDisabled);
-  } else if (auto m = ctx->models->ForMap(visit != nullptr ? visit->map_id : 0); !m.ok()) {
-    facts.labeller = absl::FailedPreconditionError(
+    a.labeller = absl::FailedPreconditionError(kLabelsDisabled);
+  } else if (auto m = ctx->models->ForMap(map_id); !m.ok()) {
+    a.labeller = absl::FailedPreconditionError(
         absl::StrCat("the active model failed: ", m.status().message()));
   } else if (!*m) {
-    facts.labeller = absl::FailedPreconditionError(absl::StrCat(
+    a.labeller = absl::FailedPreconditionError(absl::StrCat(
         "no model is active for ",
-        visit != nullptr ? "map '" + map_name + "'" : std::string("frames without a map"),
+        map_id != 0 ? "map '" + map_name + "'" : std::string("frames without a map"),
         " or as the server default: lifemap models upload FILE NAME; lifemap models activate "
         "NAME"));
   } else {
-    model = *std::move(m);
-    effective.labeller = &model->forest;
+    a.model = *std::move(m);
+    effective.labeller = &a.model->forest;
   }
   auto analysis = ctx->pipeline->Process(*encoded, effective);
   if (!analysis.ok()) return reject(analysis.status());
@@ -244,22 +252,40 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   } else {
     r.set_pose_source(v1::POSE_SOURCE_NONE);
   }
-  facts.analysis = &*analysis;
   if (analysis->entropy) {
     EntropyToProto(*analysis->entropy, settings.result_images, r.mutable_entropy());
   }
   if (analysis->labels) {
-    LabelsToProto(*analysis->labels, *model, settings.result_images, r.mutable_labels());
+    LabelsToProto(*analysis->labels, *a.model, settings.result_images, r.mutable_labels());
   }
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
+  a.analysis = *std::move(analysis);
+  return a;
+}
 
+// Places an analysed frame in its visit, in the visit's frame order: the keyframe decision, the
+// keyframe's features, record and appearance query, the commit and the floor-plan fold, and
+// the output statuses. `writer` is the stream's claim on the visit (0 for a unary
+// ProcessFrame). A rejected frame passes through untouched.
+PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
+                           const std::shared_ptr<VisitState>& visit_state, uint64_t writer,
+                           const FrameSettings& settings) {
+  PendingResult p = std::move(a.pending);
+  if (!a.analysis) return p;
+  v1::FrameResult& r = p.result;
+  VisitState* visit = visit_state.get();
+  OutputFacts facts;
+  facts.has_map = visit != nullptr;
+  facts.labeller = a.labeller;
+  facts.analysis = &*a.analysis;
   if (visit == nullptr) {
     FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
     return p;
   }
+  const RgbdFrame& f = a.analysis->frame;
   // Decided under the visit's lock; the keyframe's features and appearance query run outside it
-  // (a visit has one writer, so its frames still arrive here one at a time, in order).
+  // (a visit has one writer and its frames come here one at a time, in order).
   tracking::KeyframeDecision decision;
   bool query_appearance = false;
   {
@@ -284,12 +310,21 @@ PendingResult HandleFrame(ServiceContext* ctx, const v1::Frame& frame,
   absl::StatusOr<store::KeyframeRecord> record = absl::FailedPreconditionError("not a keyframe");
   absl::StatusOr<pipeline::KeyframeFeatures> features =
       absl::FailedPreconditionError("not extracted");
+  // The features and the stored images are independent: two tasks of the pool.
+  std::vector<std::function<void()>> tasks;
   if (decision.selected || query_appearance) {
-    features = pipeline::ExtractKeyframeFeatures(*analysis, ctx->config.appearance.features);
+    tasks.push_back([&] {
+      features = pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
+    });
   }
   if (decision.selected) {
-    record = MakeKeyframeRecord(frame, f, visit->visit_id, map_settings.keep_original_color,
-                                ctx->config.keyframe_color_jpeg_quality);
+    tasks.push_back([&] {
+      record = MakeKeyframeRecord(a.frame, f, visit->visit_id, a.keep_original_color,
+                                  ctx->config.keyframe_color_jpeg_quality);
+    });
+  }
+  TaskPool::Shared().RunAll(std::move(tasks));
+  if (decision.selected) {
     // Keypoints in zones likely to move were dropped before they are stored for matching
     // (with entropy masks disabled, all are kept: appearance still works, unpruned).
     if (record.ok() && features.ok()) record->features = *features;
@@ -464,12 +499,29 @@ grpc::Status FrameServiceImpl::StreamFrames(
     return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
   }
 
-  // Reading and processing here; answering in order on a second thread, which waits for
-  // keyframe commits so that no acknowledgement precedes its commit.
-  BoundedQueue<PendingResult> queue(ctx_->config.max_inflight_frames);
+  // Three stages, so that consecutive frames are analysed side by side while a visit still
+  // sees its frames one at a time, in order:
+  //  - this thread reads frames and queues each one's analysis on the task pool (decode, masks,
+  //    labels, result images: no visit state);
+  //  - `placer` takes the analyses in the order read and places each in the visit (keyframe
+  //    decision, features, record, appearance, commit submission);
+  //  - `writer` answers in that order, waiting for keyframe commits so that no acknowledgement
+  //    precedes its commit.
+  // Both queues hold at most max_inflight_frames: when they are full this thread stops
+  // reading, and gRPC's flow control holds back the robot.
+  VisitState* visit_state = state->get();
+  const int64_t map_id = visit_state->map_id;
+  BoundedQueue<std::future<AnalysedFrame>> analysing(ctx_->config.max_inflight_frames);
+  BoundedQueue<PendingResult> answering(ctx_->config.max_inflight_frames);
   std::atomic<bool> client_gone{false};
+  // Set by `placer` when the visit could no longer be written (ended, its map deleted); this
+  // thread ends the stream with it at its next read.
+  absl::Mutex closed_mu;
+  absl::Status closed;  // guarded by closed_mu
+  std::atomic<bool> visit_closed{false};
+  uint64_t last_architecture_ticket = 0;  // written by `placer`, read after it is joined
   std::thread writer([&] {
-    while (auto p = queue.Pop()) {
+    while (auto p = answering.Pop()) {
       FinishResult(&*p);
       if (client_gone.load()) continue;  // still wait for commits: they complete regardless
       v1::StreamFramesResponse response;
@@ -477,29 +529,64 @@ grpc::Status FrameServiceImpl::StreamFrames(
       if (!stream->Write(response)) client_gone.store(true);
     }
   });
+  std::thread placer([&] {
+    while (auto analysed = analysing.Pop()) {
+      AnalysedFrame a = analysed->get();
+      if (visit_closed.load()) continue;  // the stream is ending: nothing more is placed
+      PendingResult p = PlaceInVisit(ctx_, std::move(a), *state, claim->id(), *settings);
+      last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
+      if (!p.visit_closed.ok()) {
+        // The frame was read before the visit closed: it is answered with the error (a robot
+        // that waits for each result is not left waiting), and the stream ends with it.
+        spdlog::info("stream for visit {} ends: {}", visit->id,
+                     std::string(p.visit_closed.message()));
+        {
+          absl::MutexLock lock(&closed_mu);
+          closed = p.visit_closed;
+        }
+        visit_closed.store(true);
+        v1::FrameResult refused;
+        refused.set_sequence(p.result.sequence());
+        refused.set_timestamp_s(p.result.timestamp_s());
+        refused.mutable_error()->set_code(static_cast<int>(p.visit_closed.code()));
+        refused.mutable_error()->set_message(std::string(p.visit_closed.message()));
+        p.result = std::move(refused);
+      }
+      answering.Push(std::move(p));
+    }
+    answering.Close();
+  });
 
   grpc::Status status = grpc::Status::OK;
   uint64_t frames = 0;
-  uint64_t last_architecture_ticket = 0;
-  while (stream->Read(&request)) {
+  while (!visit_closed.load() && stream->Read(&request)) {
     if (!request.has_frame()) {
       status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
-    PendingResult p = HandleFrame(ctx_, request.frame(), *state, claim->id(), *settings);
-    last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
-    if (!p.visit_closed.ok()) {
-      status = ToGrpcStatus(p.visit_closed);
-      spdlog::info("stream for visit {} ends: {}", visit->id,
-                   std::string(p.visit_closed.message()));
+    // Refused before any work when the visit can no longer be written (`placer` checks again
+    // where the frame is added).
+    std::string map_name;
+    if (auto s = CheckWritable(visit_state, claim->id(), &map_name); !s.ok()) {
+      status = ToGrpcStatus(s);
+      spdlog::info("stream for visit {} ends: {}", visit->id, std::string(s.message()));
       break;
     }
-    queue.Push(std::move(p));
+    analysing.Push(
+        TaskPool::Shared().Submit([this, frame = std::move(*request.mutable_frame()), map_id,
+                                   map_name = std::move(map_name), &settings]() mutable {
+          return AnalyseFrame(ctx_, std::move(frame), map_id, map_name, *settings);
+        }));
     ++frames;
   }
-  queue.Close();
+  analysing.Close();
+  placer.join();
   writer.join();
+  if (visit_closed.load() && status.ok()) {
+    absl::MutexLock lock(&closed_mu);
+    status = ToGrpcStatus(closed);
+  }
   // A stream that ends has its visit's floor plan folded, stored and ranked: a robot (or an
   // operator) that asks right after sees every key frame it sent.
   if (last_architecture_ticket > 0) ctx_->architecture->Wait(last_architecture_ticket);
@@ -538,7 +625,13 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
   } else if (req->visit_id() != 0) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id needs map");
   }
-  PendingResult p = HandleFrame(ctx_, req->frame(), state, /*writer=*/0, *settings);
+  std::string map_name;
+  if (auto s = CheckWritable(state.get(), /*writer=*/0, &map_name); !s.ok()) {
+    return ToGrpcStatus(s);
+  }
+  PendingResult p = PlaceInVisit(
+      ctx_, AnalyseFrame(ctx_, req->frame(), state ? state->map_id : 0, map_name, *settings), state,
+      /*writer=*/0, *settings);
   if (!p.visit_closed.ok()) return ToGrpcStatus(p.visit_closed);
   if (p.result.has_error()) {
     return grpc::Status(static_cast<grpc::StatusCode>(p.result.error().code()),

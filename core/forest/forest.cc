@@ -10,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/task_pool.h"
 
 namespace lifemap::forest {
 namespace {
@@ -437,9 +438,8 @@ absl::StatusOr<Prediction> Forest::Predict(const cv::Mat& depth_m, const cv::Mat
       }
     }
   };
-  std::thread second([&] { predict_rows(1, 2); });
-  predict_rows(0, 2);
-  second.join();
+  // Rows split over two tasks of the shared pool (the caller runs both when the pool is busy).
+  TaskPool::Shared().RunAll({[&] { predict_rows(0, 2); }, [&] { predict_rows(1, 2); }});
   return out;
 }
 

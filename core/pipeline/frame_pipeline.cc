@@ -2,9 +2,12 @@
 
 #include <chrono>
 #include <cmath>
-#include <future>
+#include <functional>
+#include <optional>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/task_pool.h"
 
 namespace lifemap::pipeline {
 namespace {
@@ -86,16 +89,21 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
   out.decode_ms = MsSince(start);
   const auto process_start = std::chrono::steady_clock::now();
   out.depth_stats = ComputeDepthStats(out.frame.depth_m);
-  // Labels run beside the entropy masks (the forest splits its rows over two threads of its
-  // own); both read the decoded frame only.
-  std::future<absl::StatusOr<FrameLabels>> labels;
+  // Labels run beside the entropy masks as two tasks of the shared pool (the forest splits its
+  // rows over two more); both read the decoded frame only.
+  std::optional<absl::StatusOr<FrameLabels>> labels;
+  std::vector<std::function<void()>> tasks;
   if (request.labeller != nullptr) {
-    labels = std::async(std::launch::async, [&] {
-      return LabelFrame(*request.labeller, out.frame, options_.label_decision,
-                        options_.label_stride);
+    tasks.push_back([&] {
+      labels =
+          LabelFrame(*request.labeller, out.frame, options_.label_decision, options_.label_stride);
     });
   }
-  if (options_.entropy_masks) {
+  tasks.push_back([&] {
+    if (!options_.entropy_masks) {
+      out.entropy_status = absl::FailedPreconditionError("entropy masks are disabled");
+      return;
+    }
     entropy::EntropyMaskOptions options = options_.entropy;
     if (request.entropy_threshold) options.threshold = *request.entropy_threshold;
     auto result = entropy::ComputeEntropyMask(
@@ -106,15 +114,13 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
     } else {
       out.entropy_status = result.status();
     }
-  } else {
-    out.entropy_status = absl::FailedPreconditionError("entropy masks are disabled");
-  }
-  if (labels.valid()) {
-    auto result = labels.get();
-    if (result.ok()) {
-      out.labels = *std::move(result);
+  });
+  TaskPool::Shared().RunAll(std::move(tasks));
+  if (labels) {
+    if (labels->ok()) {
+      out.labels = *std::move(*labels);
     } else {
-      out.labels_status = result.status();
+      out.labels_status = labels->status();
     }
   }
   out.process_ms = MsSince(process_start);

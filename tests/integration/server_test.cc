@@ -4,6 +4,7 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/impl/codegen/client_unary_call.h>
 
+#include <set>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -516,6 +517,114 @@ TEST_F(ServerTest, BadFrameInAStreamGetsAnErrorResultAndTheStreamGoesOn) {
   EXPECT_TRUE(r1.keyframe().committed()) << "first good frame of the visit";
   EXPECT_FALSE((*stream)->Receive(&r1));
   EXPECT_TRUE((*stream)->Finish().ok());
+}
+
+// Frames of a stream are analysed side by side; the visit must still see them in order. A
+// fast stream with bad frames among posed ones gets one result per frame in order, each bad
+// frame its own error, and the keyframes a robot waiting for every result would get.
+TEST_F(ServerTest, FramesAnalysedInParallelAreAnsweredAndDecidedInOrder) {
+  constexpr int kFrames = 48;
+  const std::set<int> bad = {3, 4, 17, 30, 47};
+  auto frame = [&](int i) {
+    v1::Frame f = MakeFrame(160, 120, 1.2 + 0.01 * (i % 7), 1000.0 + i / 30.0, i);
+    // Walks 3 cm per frame: a keyframe every fourth frame or so (0.10 m), unless the frame
+    // before was bad.
+    f.mutable_pose()->set_tx(0.03 * i);
+    f.mutable_pose()->set_qw(1.0);
+    if (bad.count(i)) f.mutable_intrinsics()->set_fx(-1);
+    return f;
+  };
+  auto run = [&](const std::string& map, bool lockstep) {
+    EXPECT_TRUE(client_->CreateMap(map, "").ok());
+    v1::StreamStart start;
+    start.set_map(map);
+    auto stream = client_->OpenStream(start);
+    EXPECT_TRUE(stream.ok()) << stream.status();
+    std::vector<v1::FrameResult> results;
+    v1::FrameResult r;
+    if (lockstep) {
+      for (int i = 0; i < kFrames; ++i) {
+        EXPECT_TRUE((*stream)->Send(frame(i)) && (*stream)->Receive(&r));
+        results.push_back(r);
+      }
+      (*stream)->CloseSend();
+    } else {
+      for (int i = 0; i < kFrames; ++i) EXPECT_TRUE((*stream)->Send(frame(i)));
+      (*stream)->CloseSend();
+    }
+    while ((*stream)->Receive(&r)) results.push_back(r);
+    EXPECT_TRUE((*stream)->Finish().ok());
+    return results;
+  };
+  const auto fast = run("fast", false);
+  const auto lockstep = run("lockstep", true);
+  ASSERT_EQ(fast.size(), static_cast<size_t>(kFrames));
+  ASSERT_EQ(lockstep.size(), static_cast<size_t>(kFrames));
+  int keyframes = 0;
+  for (int i = 0; i < kFrames; ++i) {
+    const auto& f = fast[static_cast<size_t>(i)];
+    EXPECT_EQ(f.sequence(), static_cast<uint64_t>(i)) << "in order";
+    EXPECT_EQ(f.has_error(), bad.count(i) > 0) << "frame " << i;
+    if (bad.count(i)) {
+      EXPECT_NE(f.error().message().find("fx"), std::string::npos);
+    }
+    EXPECT_EQ(f.keyframe().selected(), lockstep[static_cast<size_t>(i)].keyframe().selected())
+        << "frame " << i;
+    EXPECT_EQ(f.keyframe().committed(), f.keyframe().selected()) << "frame " << i;
+    keyframes += f.keyframe().committed();
+  }
+  EXPECT_TRUE(fast[5].keyframe().selected()) << "the first good frame after a bad keyframe";
+  EXPECT_GE(keyframes, 10);
+  EXPECT_EQ(client_->GetMap("fast")->keyframe_count(), static_cast<uint64_t>(keyframes));
+  auto visits = client_->ListVisits("fast");
+  ASSERT_TRUE(visits.ok());
+  EXPECT_EQ(visits->visits(0).frame_count(), static_cast<uint64_t>(kFrames - bad.size()))
+      << "good frames counted once each";
+}
+
+// A visit ended while its stream's frames are in flight: every frame read before that is
+// answered in order (a frame caught in between with the error), nothing is committed after it,
+// and the stream ends with FAILED_PRECONDITION.
+TEST_F(ServerTest, AVisitEndedWhileFramesAreInFlightEndsTheStreamInOrder) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok());
+  const auto visit = (*stream)->started().visit_id();
+  std::thread sender([&] {
+    for (int i = 0; i < 400 && (*stream)->Send(MakeFrame(320, 240, 1.5, 1000.0 + i, i)); ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    (*stream)->CloseSend();
+  });
+  std::vector<v1::FrameResult> results;
+  v1::FrameResult r;
+  bool ended = false;
+  while ((*stream)->Receive(&r)) {
+    results.push_back(r);
+    if (results.size() == 10) ended = client_->EndVisit(visit).ok();
+  }
+  sender.join();
+  const absl::Status s = (*stream)->Finish();
+  ASSERT_TRUE(ended);
+  EXPECT_TRUE(absl::IsFailedPrecondition(s)) << s;
+  ASSERT_GE(results.size(), 10u);
+  ASSERT_LT(results.size(), 400u) << "the stream ended early";
+  uint64_t committed = 0;
+  bool refused = false;
+  for (size_t i = 0; i < results.size(); ++i) {
+    EXPECT_EQ(results[i].sequence(), i) << "in order";
+    if (results[i].has_error()) {
+      refused = true;
+      EXPECT_EQ(results[i].error().code(), static_cast<int>(absl::StatusCode::kFailedPrecondition));
+      EXPECT_NE(results[i].error().message().find("ended"), std::string::npos);
+    } else {
+      EXPECT_FALSE(refused) << "no frame is placed after one was refused";
+      committed += results[i].keyframe().committed();
+    }
+  }
+  EXPECT_EQ(client_->GetMap("m")->keyframe_count(), committed);
 }
 
 TEST_F(ServerTest, SeveralRobotsStreamAtOnceToTheSameAndDifferentMaps) {
