@@ -229,6 +229,12 @@ int main(int argc, char** argv) {
   app.add_option("--result-images", result_images,
                  "how results carry their per-pixel images (FrameOptions.result_images)")
       ->check(CLI::IsMember({"png", "raw", "none"}));
+  std::string send = "as-recorded";
+  app.add_option("--send", send,
+                 "how frames travel: as-recorded (the TUM files: PNG colour, PNG-16 depth) or "
+                 "compact (JPEG 90 colour, paletted depth: client::CompactFrame, on the robot "
+                 "before the run)")
+      ->check(CLI::IsMember({"as-recorded", "compact"}));
   CLI11_PARSE(app, argc, argv);
   lifemap::v1::FrameOptions options;
   options.set_result_images(result_images == "raw"    ? lifemap::v1::RESULT_IMAGES_RAW
@@ -259,6 +265,13 @@ int main(int argc, char** argv) {
       p->set_qy(e.T_world_camera->rotation.y());
       p->set_qz(e.T_world_camera->rotation.z());
       p->set_qw(e.T_world_camera->rotation.w());
+    }
+    if (send == "compact") {
+      f = lifemap::client::CompactFrame(*f);
+      if (!f.ok()) {
+        std::cerr << "load_generator: " << f.status().message() << "\n";
+        return 1;
+      }
     }
     loaded.push_back(*std::move(f));
   }
@@ -323,11 +336,13 @@ int main(int argc, char** argv) {
   if (!model.empty()) {
     for (size_t i = 1; i < runs.size(); ++i) runs[i].name += ", labels";
   }
+  const std::string sent = send == "compact" ? "JPEG 90 colour + paletted depth (compact)"
+                                             : "PNG colour + PNG-16 depth (as recorded)";
   if (json) {
     nlohmann::json reports = nlohmann::json::array();
     for (const auto& r : runs) reports.push_back(r.ToJson());
     std::cout << nlohmann::json{{"target", target},
-                                {"frame", "640x480 PNG-16 depth + PNG colour (TUM)"},
+                                {"frame", "640x480 TUM, " + sent},
                                 {"result_images", result_images},
                                 {"server_cpu",
                                  server_address.empty()
@@ -339,8 +354,8 @@ int main(int argc, char** argv) {
                      .dump(2)
               << "\n";
   } else {
-    std::cout << "target " << target << ", " << loaded.size()
-              << " distinct 640x480 TUM frames (PNG-16 depth + PNG colour)\n";
+    std::cout << "target " << target << ", " << loaded.size() << " distinct 640x480 TUM frames, "
+              << sent << "\n";
     for (const auto& r : runs) r.Print();
   }
   server.reset();

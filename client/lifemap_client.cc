@@ -3,8 +3,10 @@
 #include <chrono>
 
 #include <grpcpp/grpcpp.h>
+#include <opencv2/imgcodecs.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/depth_codec.h"
 #include "core/common/image_codec.h"
 #include "lifemap/v1/admin_service.grpc.pb.h"
 #include "lifemap/v1/frame_service.grpc.pb.h"
@@ -358,6 +360,50 @@ absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std:
   c->set_height(static_cast<uint32_t>(rgb_header->height));
   c->set_data(*std::move(rgb));
   return frame;
+}
+
+absl::StatusOr<v1::Frame> CompactFrame(const v1::Frame& frame, int jpeg_quality) {
+  v1::Frame out = frame;
+  const auto& color = frame.color();
+  if (color.encoding() == v1::COLOR_PNG || color.encoding() == v1::COLOR_RAW_RGB8) {
+    auto bgr = DecodeColorBgr(
+        {color.encoding() == v1::COLOR_PNG ? ColorEncoding::kPng : ColorEncoding::kRawRgb8,
+         color.data(), static_cast<int>(color.width()), static_cast<int>(color.height())});
+    if (!bgr.ok()) return bgr.status();
+    auto jpeg = EncodeJpeg(*bgr, jpeg_quality);
+    if (!jpeg.ok()) return jpeg.status();
+    out.mutable_color()->set_encoding(v1::COLOR_JPEG);
+    out.mutable_color()->set_width(static_cast<uint32_t>(bgr->cols));
+    out.mutable_color()->set_height(static_cast<uint32_t>(bgr->rows));
+    out.mutable_color()->set_data(*std::move(jpeg));
+  }
+  const auto& depth = frame.depth();
+  cv::Mat u16;
+  if (depth.encoding() == v1::DEPTH_PNG16) {
+    auto header = ProbeImage(depth.data());
+    if (!header.ok()) return header.status();
+    if (header->bit_depth != 16 || header->channels != 1) {
+      return absl::InvalidArgumentError("depth PNG must be 16-bit single-channel");
+    }
+    const std::vector<uchar> bytes(depth.data().begin(), depth.data().end());
+    u16 = cv::imdecode(bytes, cv::IMREAD_UNCHANGED);
+    if (u16.type() != CV_16UC1) return absl::InvalidArgumentError("depth PNG could not be decoded");
+  } else if (depth.encoding() == v1::DEPTH_RAW_U16) {
+    const size_t n = size_t{depth.width()} * depth.height();
+    if (n == 0 || depth.data().size() != 2 * n) {
+      return absl::InvalidArgumentError("raw depth size does not match width x height");
+    }
+    u16 = cv::Mat(static_cast<int>(depth.height()), static_cast<int>(depth.width()), CV_16UC1,
+                  const_cast<char*>(depth.data().data()))
+              .clone();
+  }
+  if (!u16.empty()) {
+    out.mutable_depth()->set_encoding(v1::DEPTH_PALETTED);
+    out.mutable_depth()->set_width(static_cast<uint32_t>(u16.cols));
+    out.mutable_depth()->set_height(static_cast<uint32_t>(u16.rows));
+    out.mutable_depth()->set_data(EncodePalettedDepth(u16));
+  }
+  return out;
 }
 
 }  // namespace lifemap::client

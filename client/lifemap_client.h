@@ -112,4 +112,11 @@ absl::StatusOr<v1::Frame> FrameFromFiles(const std::string& rgb_path, const std:
                                          double depth_scale, const v1::CameraIntrinsics& intrinsics,
                                          double timestamp_s, uint64_t sequence);
 
+// Re-encodes a frame the way a robot should send it: PNG or raw colour as JPEG at
+// `jpeg_quality` (JPEG kept as it is), PNG-16 or raw 16-bit depth as DEPTH_PALETTED (lossless:
+// the same values). The server then decodes a 640x480 frame in ~1.5 ms instead of ~9 ms for
+// PNG colour and PNG-16 depth, and the frame is ~4x smaller on the wire (docs/API.md, "Frame
+// encodings"). Float depth is left as it is. InvalidArgument if an image cannot be decoded.
+absl::StatusOr<v1::Frame> CompactFrame(const v1::Frame& frame, int jpeg_quality = 90);
+
 }  // namespace lifemap::client

@@ -173,3 +173,32 @@ TEST(ComputeDepthStats, CountsValidPixelsAndMedian) {
 
 }  // namespace
 }  // namespace lifemap
+
+namespace lifemap {
+namespace {
+
+// Grey 8-bit images (the per-frame result images) take lifemap's own libpng path: any PNG
+// decoder must read back exactly the same pixels, from a view into a larger image too.
+TEST(EncodePng, GreyImagesRoundTripExactlyThroughAnyDecoder) {
+  cv::Mat big(300, 400, CV_8UC1);
+  cv::RNG rng(7);
+  rng.fill(big, cv::RNG::UNIFORM, 0, 256);
+  big(cv::Rect(0, 0, 200, 100)).setTo(3);  // a run of one value, as label images have
+  for (const cv::Mat& image :
+       {big, cv::Mat(big(cv::Rect(17, 23, 301, 199))), cv::Mat(1, 1, CV_8UC1, cv::Scalar(255))}) {
+    auto png = EncodePng(image);
+    ASSERT_TRUE(png.ok()) << png.status();
+    auto header = ProbeImage(*png);
+    ASSERT_TRUE(header.ok()) << header.status();
+    EXPECT_EQ(header->width, image.cols);
+    EXPECT_EQ(header->height, image.rows);
+    EXPECT_EQ(header->channels, 1);
+    const cv::Mat back =
+        cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_UNCHANGED);
+    ASSERT_EQ(back.type(), CV_8UC1);
+    EXPECT_EQ(cv::norm(back, image, cv::NORM_INF), 0.0);
+  }
+}
+
+}  // namespace
+}  // namespace lifemap

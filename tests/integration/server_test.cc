@@ -193,6 +193,37 @@ TEST_F(ServerTest, ProcessFrameAcceptsAValidFrameAndStoresNothingWithoutMap) {
   EXPECT_FALSE(r->entropy().superjuts(0).masked());
 }
 
+// What a robot should send (client::CompactFrame): JPEG colour and paletted depth, a fraction
+// of the recorded PNGs' bytes, with the same depth values.
+TEST_F(ServerTest, ACompactFrameIsServedWithTheSameDepth) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  const auto& e = seq->frames[0];
+  auto recorded = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
+  ASSERT_TRUE(recorded.ok()) << recorded.status();
+  auto compact = client::CompactFrame(*recorded);
+  ASSERT_TRUE(compact.ok()) << compact.status();
+  EXPECT_EQ(compact->color().encoding(), v1::COLOR_JPEG);
+  EXPECT_EQ(compact->depth().encoding(), v1::DEPTH_PALETTED);
+  EXPECT_DOUBLE_EQ(compact->depth().depth_scale(), 5000.0);
+  EXPECT_LT(compact->ByteSizeLong(), recorded->ByteSizeLong() / 3);
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = *recorded;
+  auto a = client_->ProcessFrame(req);
+  *req.mutable_frame() = *compact;
+  auto b = client_->ProcessFrame(req);
+  ASSERT_TRUE(a.ok() && b.ok()) << a.status() << b.status();
+  EXPECT_EQ(a->valid_depth_fraction(), b->valid_depth_fraction());
+  EXPECT_EQ(a->median_depth_m(), b->median_depth_m());
+  // A frame the robot could not decode is refused on the robot, with the reason.
+  v1::Frame damaged = *recorded;
+  damaged.mutable_depth()->mutable_data()->resize(100);
+  EXPECT_TRUE(absl::IsInvalidArgument(client::CompactFrame(damaged).status()));
+}
+
 // GetStats reports the process's CPU time, and processing frames adds to it (what the load
 // generator's CPU per frame is made of).
 TEST_F(ServerTest, StatsCountTheServersCpuTime) {
