@@ -50,6 +50,8 @@ struct RunReport {
   size_t keyframes = 0;
   double seconds = 0;
   Latencies latency;
+  Latencies keyframe_latency;      // the robot's latency of frames that became keyframes
+  Latencies keyframe_commit_wait;  // server time keyframes waited for their commit
   double server_total_p50_ms = 0;
   double server_cpu_s = -1;  // the server's CPU time over the run (GetStats), < 0 unknown
 
@@ -70,6 +72,9 @@ struct RunReport {
               {"p90", latency.Percentile(90)},
               {"p99", latency.Percentile(99)},
               {"max", latency.Percentile(100)}}},
+            {"keyframe_latency_ms",
+             {{"p50", keyframe_latency.Percentile(50)}, {"p99", keyframe_latency.Percentile(99)}}},
+            {"keyframe_commit_wait_p50_ms", keyframe_commit_wait.Percentile(50)},
             {"server_time_p50_ms", server_total_p50_ms},
             {"server_cpu_ms_per_frame",
              CpuMsPerFrame() < 0 ? nlohmann::json() : nlohmann::json(CpuMsPerFrame())}};
@@ -176,13 +181,17 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
         (*stream)->CloseSend();
       });
       lifemap::v1::FrameResult r;
-      std::vector<double> local, local_server;
+      std::vector<double> local, local_server, local_keyframe, local_commit_wait;
       size_t errors = 0, keyframes = 0;
       while ((*stream)->Receive(&r)) {
         local.push_back(std::chrono::duration<double, std::milli>(
                             Clock::now() - sent[static_cast<size_t>(r.sequence())])
                             .count());
         local_server.push_back(r.timing().total_ms());
+        if (r.keyframe().selected()) {
+          local_keyframe.push_back(local.back());
+          local_commit_wait.push_back(r.timing().commit_wait_ms());
+        }
         errors += r.has_error();
         keyframes += r.keyframe().committed();
       }
@@ -195,6 +204,10 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
       report.keyframes += keyframes;
       report.latency.ms.insert(report.latency.ms.end(), local.begin(), local.end());
       server.ms.insert(server.ms.end(), local_server.begin(), local_server.end());
+      report.keyframe_latency.ms.insert(report.keyframe_latency.ms.end(), local_keyframe.begin(),
+                                        local_keyframe.end());
+      report.keyframe_commit_wait.ms.insert(report.keyframe_commit_wait.ms.end(),
+                                            local_commit_wait.begin(), local_commit_wait.end());
     });
   }
   for (auto& t : threads) t.join();

@@ -1,8 +1,12 @@
 #include "core/appearance/recognizer.h"
 
 #include <algorithm>
+#include <functional>
+#include <optional>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/task_pool.h"
 
 namespace lifemap::appearance {
 
@@ -36,18 +40,25 @@ absl::StatusOr<Recognition> Recognize(const features::KeypointSet& query,
   }
   Recognition out;
   out.candidates = static_cast<int>(candidates.size());
-  for (const Candidate& c : candidates) {
-    auto stored = load(c.keyframe);
-    if (!stored.ok()) {
+  // Candidates are loaded and verified side by side on the shared pool (each is independent;
+  // PnP RANSAC seeds its own generator, so the outcome does not depend on the thread), then
+  // taken in the index's order.
+  std::vector<std::optional<Verification>> verified(candidates.size());
+  std::vector<std::function<void()>> tasks;
+  tasks.reserve(candidates.size());
+  for (size_t i = 0; i < candidates.size(); ++i) {
+    tasks.push_back([&, i] {
+      auto stored = load(candidates[i].keyframe);
+      if (stored.ok()) verified[i] = VerifyMatch(query, query_intrinsics, *stored, options.verify);
+    });
+  }
+  TaskPool::Shared().RunAll(std::move(tasks));
+  for (size_t i = 0; i < candidates.size(); ++i) {
+    if (!verified[i] || !verified[i]->verified) {
       ++out.rejected;
       continue;
     }
-    Verification v = VerifyMatch(query, query_intrinsics, *stored, options.verify);
-    if (!v.verified) {
-      ++out.rejected;
-      continue;
-    }
-    out.matches.push_back({c.keyframe, c.score, std::move(v)});
+    out.matches.push_back({candidates[i].keyframe, candidates[i].score, *std::move(verified[i])});
   }
   std::stable_sort(out.matches.begin(), out.matches.end(),
                    [](const AppearanceMatch& a, const AppearanceMatch& b) {

@@ -33,7 +33,8 @@ struct Recognition {
   int rejected = 0;                      // candidates that failed verification
 };
 
-// The candidate keyframe's stored features (with 3D points).
+// The candidate keyframe's stored features (with 3D points). Called from several threads at once
+// (candidates are verified side by side): it must be thread-safe.
 using FeatureLoader = std::function<absl::StatusOr<features::KeypointSet>(const KeyframeRef&)>;
 using KeyframeFilter = std::function<bool(const KeyframeRef&)>;
 
