@@ -248,11 +248,18 @@ int main(int argc, char** argv) {
                  "compact (JPEG 90 colour, paletted depth: client::CompactFrame, on the robot "
                  "before the run)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
+  std::vector<std::string> skip;
+  app.add_option("--skip", skip, "outputs the robot does not want (FrameOptions.skip_outputs)")
+      ->check(CLI::IsMember({"entropy", "labels"}));
   CLI11_PARSE(app, argc, argv);
   lifemap::v1::FrameOptions options;
   options.set_result_images(result_images == "raw"    ? lifemap::v1::RESULT_IMAGES_RAW
                             : result_images == "none" ? lifemap::v1::RESULT_IMAGES_NONE
                                                       : lifemap::v1::RESULT_IMAGES_PNG);
+  for (const auto& s : skip) {
+    options.add_skip_outputs(s == "entropy" ? lifemap::v1::FRAME_OUTPUT_ENTROPY_MASK
+                                            : lifemap::v1::FRAME_OUTPUT_CLASS_LABELS);
+  }
 
   auto seq = lifemap::io::ReadTumSequence(tum);
   if (!seq.ok()) {

@@ -255,13 +255,17 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
       "no map given: the frame is processed but nothing is stored");
   if (!options.entropy_masks) {
     add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, "disabled in this server's config (entropy.enabled)");
+  } else if (facts.entropy_skipped) {
+    add(v1::FRAME_OUTPUT_ENTROPY_MASK, false, kNotRequested);
   } else if (a != nullptr && !a->entropy) {
     add(v1::FRAME_OUTPUT_ENTROPY_MASK, false,
         absl::StrCat("not computed for this frame: ", a->entropy_status.message()));
   } else {
     add(v1::FRAME_OUTPUT_ENTROPY_MASK, true, "");
   }
-  if (!facts.labeller.ok()) {
+  if (facts.labels_skipped) {
+    add(v1::FRAME_OUTPUT_CLASS_LABELS, false, kNotRequested);
+  } else if (!facts.labeller.ok()) {
     add(v1::FRAME_OUTPUT_CLASS_LABELS, false, facts.labeller.message());
   } else if (a != nullptr && !a->labels) {
     add(v1::FRAME_OUTPUT_CLASS_LABELS, false,

@@ -73,7 +73,12 @@ struct OutputFacts {
   // Whether appearance matches were sought for this frame (nullopt: not asked) and, if they
   // could not be, why (an empty list of verified matches is OK: nothing recognised).
   std::optional<absl::Status> appearance;
+  // The client skipped these outputs (FrameOptions.skip_outputs): "not requested", whatever
+  // was computed for the server's own use.
+  bool entropy_skipped = false;
+  bool labels_skipped = false;
 };
+inline constexpr char kNotRequested[] = "not requested (FrameOptions.skip_outputs)";
 inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";
 
 // The one place that decides each FrameOutput's status: computed, or why not.

@@ -142,6 +142,7 @@ struct FrameSettings {
   pipeline::FrameRequest request;
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
   v1::ResultImages result_images = kDefaultResultImages;
+  bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
 };
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
@@ -178,6 +179,7 @@ struct AnalysedFrame {
   std::shared_ptr<const LoadedModel> model;  // keeps the labelling model alive
   absl::Status labeller;                     // OK when the model labelled it; else why not
   bool keep_original_color = false;          // the map's setting, for a keyframe's record
+  std::optional<float> entropy_threshold;    // the threshold in effect (request, map, server)
 };
 
 // Reads the visit's writability and map name (a unary frame has neither to check).
@@ -220,9 +222,12 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   if (!effective.entropy_threshold && map_settings.entropy_threshold) {
     effective.entropy_threshold = static_cast<float>(*map_settings.entropy_threshold);
   }
+  a.entropy_threshold = effective.entropy_threshold;
   // The model for the visit's map (else the server default) labels the frame; the reference
   // keeps it alive even if it is deactivated meanwhile.
-  if (!ctx->config.labels_enabled) {
+  if (settings.skip_labels) {
+    a.labeller = absl::FailedPreconditionError(kNotRequested);
+  } else if (!ctx->config.labels_enabled) {
     a.labeller = absl::FailedPreconditionError(kLabelsDisabled);
   } else if (auto m = ctx->models->ForMap(map_id); !m.ok()) {
     a.labeller = absl::FailedPreconditionError(
@@ -279,6 +284,8 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   facts.has_map = visit != nullptr;
   facts.labeller = a.labeller;
   facts.analysis = &*a.analysis;
+  facts.entropy_skipped = !settings.request.entropy_masks;
+  facts.labels_skipped = settings.skip_labels;
   if (visit == nullptr) {
     FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
     return p;
@@ -314,6 +321,12 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   std::vector<std::function<void()>> tasks;
   if (decision.selected || query_appearance) {
     tasks.push_back([&] {
+      // A client that skipped the masks still gets features pruned by them (not reported).
+      if (!a.analysis->entropy && facts.entropy_skipped) {
+        pipeline::FrameRequest masks;
+        masks.entropy_threshold = a.entropy_threshold;
+        ctx->pipeline->ComputeEntropy(&*a.analysis, masks);
+      }
       features = pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
     });
   }
@@ -403,6 +416,18 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
                        AppearanceOptions::kMaxFrameIntervalS, "] s (0 = every frame), got ", t));
     }
     settings.appearance_interval_s = t;
+  }
+  for (const int output : o.skip_outputs()) {
+    if (output == v1::FRAME_OUTPUT_ENTROPY_MASK) {
+      settings.request.entropy_masks = false;
+    } else if (output == v1::FRAME_OUTPUT_CLASS_LABELS) {
+      settings.skip_labels = true;
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "options.skip_outputs: ",
+          v1::FrameOutput_IsValid(output) ? v1::FrameOutput_Name(output) : std::to_string(output),
+          " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK and FRAME_OUTPUT_CLASS_LABELS can"));
+    }
   }
   switch (o.result_images()) {
     case v1::RESULT_IMAGES_DEFAULT:

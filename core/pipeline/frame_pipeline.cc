@@ -79,6 +79,25 @@ Eigen::Vector3f UpInCamera(const std::optional<Pose>& T_world_camera,
   return (T_world_camera->rotation.conjugate().cast<float>() * world_up).normalized();
 }
 
+void FramePipeline::ComputeEntropy(FrameAnalysis* analysis, const FrameRequest& request) const {
+  if (!options_.entropy_masks) {
+    analysis->entropy_status = absl::FailedPreconditionError("entropy masks are disabled");
+    return;
+  }
+  entropy::EntropyMaskOptions options = options_.entropy;
+  if (request.entropy_threshold) options.threshold = *request.entropy_threshold;
+  const RgbdFrame& f = analysis->frame;
+  auto result =
+      entropy::ComputeEntropyMask(f.depth_m, f.color_bgr, f.intrinsics,
+                                  UpInCamera(f.T_world_camera, options_.world_up), options);
+  if (result.ok()) {
+    analysis->entropy = *std::move(result);
+    analysis->entropy_status = absl::OkStatus();
+  } else {
+    analysis->entropy_status = result.status();
+  }
+}
+
 absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
                                                      const FrameRequest& request) const {
   const auto start = std::chrono::steady_clock::now();
@@ -99,22 +118,11 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
           LabelFrame(*request.labeller, out.frame, options_.label_decision, options_.label_stride);
     });
   }
-  tasks.push_back([&] {
-    if (!options_.entropy_masks) {
-      out.entropy_status = absl::FailedPreconditionError("entropy masks are disabled");
-      return;
-    }
-    entropy::EntropyMaskOptions options = options_.entropy;
-    if (request.entropy_threshold) options.threshold = *request.entropy_threshold;
-    auto result = entropy::ComputeEntropyMask(
-        out.frame.depth_m, out.frame.color_bgr, out.frame.intrinsics,
-        UpInCamera(out.frame.T_world_camera, options_.world_up), options);
-    if (result.ok()) {
-      out.entropy = *std::move(result);
-    } else {
-      out.entropy_status = result.status();
-    }
-  });
+  if (request.entropy_masks) {
+    tasks.push_back([&] { ComputeEntropy(&out, request); });
+  } else {
+    out.entropy_status = absl::FailedPreconditionError(kEntropyNotRequested);
+  }
   TaskPool::Shared().RunAll(std::move(tasks));
   if (labels) {
     if (labels->ok()) {

@@ -38,7 +38,11 @@ struct FrameRequest {
   // The model that labels this frame (the caller keeps it alive during Process); null = no
   // labels (the caller knows why).
   const forest::Forest* labeller = nullptr;
+  // False: no entropy mask for this frame (the client skipped it); entropy_status says so.
+  bool entropy_masks = true;
 };
+// What entropy_status says for a frame whose client skipped the masks.
+inline constexpr char kEntropyNotRequested[] = "not requested (FrameOptions.skip_outputs)";
 
 // A frame's class labels and what the server reports of them. The per-class probabilities
 // are kept for 3D semantic fusion, which accumulates them per voxel.
@@ -76,6 +80,11 @@ class FramePipeline {
   // why the masks are missing.
   absl::StatusOr<FrameAnalysis> Process(const EncodedRgbdFrame& in,
                                         const FrameRequest& request = {}) const;
+
+  // Computes the entropy mask of an analysed frame that has none yet because its request
+  // skipped it (a keyframe still prunes its features by it). Sets analysis->entropy or
+  // entropy_status, as Process does; nothing when masks are disabled in the options.
+  void ComputeEntropy(FrameAnalysis* analysis, const FrameRequest& request) const;
 
   const PipelineOptions& options() const { return options_; }
 

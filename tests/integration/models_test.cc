@@ -178,3 +178,63 @@ TEST_F(ServerTest, LabelsCanBeDisabledInTheConfig) {
 
 }  // namespace
 }  // namespace lifemap
+
+namespace lifemap {
+namespace {
+
+using testing::ServerTest;
+
+const v1::OutputStatus* StatusOf(const v1::FrameResult& r, v1::FrameOutput output) {
+  for (const auto& o : r.outputs()) {
+    if (o.output() == output) return &o;
+  }
+  return nullptr;
+}
+
+// A robot that wants labels only (or masks only) skips the other output's cost; its result
+// says "not requested", and a keyframe still stores features pruned by its mask.
+TEST_F(ServerTest, ClientsSkipOutputsTheyDoNotWant) {
+  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  *req.mutable_frame() = testing::TwoColorFrame(0);
+  req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_ENTROPY_MASK);
+  auto labels_only = client_->ProcessFrame(req);
+  ASSERT_TRUE(labels_only.ok()) << labels_only.status();
+  EXPECT_TRUE(labels_only->has_labels());
+  EXPECT_FALSE(labels_only->has_entropy());
+  const auto* entropy = StatusOf(*labels_only, v1::FRAME_OUTPUT_ENTROPY_MASK);
+  ASSERT_NE(entropy, nullptr);
+  EXPECT_FALSE(entropy->computed());
+  EXPECT_NE(entropy->reason().find("not requested"), std::string::npos) << entropy->reason();
+  ASSERT_TRUE(labels_only->keyframe().committed()) << "the visit's first frame";
+  auto keyframes = client_->ListKeyframes("m", 0);
+  ASSERT_TRUE(keyframes.ok()) << keyframes.status();
+  ASSERT_EQ(keyframes->keyframes_size(), 1);
+  EXPECT_GE(keyframes->keyframes(0).superjut_count(), 1u) << "the mask was computed to prune";
+
+  req.mutable_options()->clear_skip_outputs();
+  req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_CLASS_LABELS);
+  req.clear_map();
+  auto masks_only = client_->ProcessFrame(req);
+  ASSERT_TRUE(masks_only.ok()) << masks_only.status();
+  EXPECT_TRUE(masks_only->has_entropy());
+  EXPECT_FALSE(masks_only->has_labels());
+  const auto* labels = StatusOf(*masks_only, v1::FRAME_OUTPUT_CLASS_LABELS);
+  ASSERT_NE(labels, nullptr);
+  EXPECT_NE(labels->reason().find("not requested"), std::string::npos) << labels->reason();
+
+  req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_KEYFRAME);
+  auto bad = client_->ProcessFrame(req);
+  EXPECT_TRUE(absl::IsInvalidArgument(bad.status())) << bad.status();
+  EXPECT_NE(bad.status().message().find("FRAME_OUTPUT_KEYFRAME cannot be skipped"),
+            std::string::npos)
+      << bad.status();
+  req.mutable_options()->set_skip_outputs(1, static_cast<v1::FrameOutput>(99));
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->ProcessFrame(req).status()));
+}
+
+}  // namespace
+}  // namespace lifemap
