@@ -318,6 +318,13 @@ TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
   r = Run({"stream", "--map", "m", "--tum", tum, "--rate", "0"});
   EXPECT_NE(r.err.find("2 files named in rgb.txt/depth.txt are not on disk"), std::string::npos)
       << r.err;
+  // Sent compact (JPEG colour, paletted depth), the same frames are all answered.
+  r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--send", "compact"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  summary = json::parse(Lines(r.out).back())["summary"];
+  EXPECT_EQ(summary["frames_sent"], 38);
+  EXPECT_EQ(summary["frames_rejected"], 0) << summary.dump();
+  EXPECT_EQ(Run({"stream", "--map", "m", "--tum", tum, "--send", "jpeg"}).code, 2);
 
   // The map deleted while a stream runs: the stream ends non-zero, saying what was stored.
   const std::string long_tum = tmp_.File("long");
