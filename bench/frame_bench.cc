@@ -275,6 +275,30 @@ BENCHMARK(BM_ComputeEntropyMask)
     ->Args({2, 1})
     ->Unit(benchmark::kMillisecond);
 
+// The two result images of the entropy output (score, mask) of a real frame as PNG: arg 0 =
+// cv::imencode at level 1 (what the server used before session 9), arg 1 = EncodePng (libpng,
+// up filter, zlib RLE: what it uses now). png_kb: both images' bytes.
+void BM_EncodeResultPngs(benchmark::State& state) {
+  const auto& f = DecodedSample();
+  const auto r = *entropy::ComputeEntropyMask(f.depth_m, f.color_bgr, f.intrinsics, {0, -1, 0});
+  const cv::Mat images[] = {r.score_image, r.mask};
+  size_t bytes = 0;
+  for (auto _ : state) {
+    bytes = 0;
+    for (const cv::Mat& image : images) {
+      if (state.range(0) == 0) {
+        std::vector<unsigned char> buf;
+        cv::imencode(".png", image, buf, {cv::IMWRITE_PNG_COMPRESSION, 1});
+        bytes += buf.size();
+      } else {
+        bytes += EncodePng(image)->size();
+      }
+    }
+  }
+  state.counters["png_kb"] = static_cast<double>(bytes) / 1000.0;
+}
+BENCHMARK(BM_EncodeResultPngs)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+
 // The synthetic world's renderer, one 640x480 frame of an L-shaped furnished room, with the
 // sensor model (arg 1) and exact (arg 0).
 void BM_SimRender(benchmark::State& state) {
