@@ -171,12 +171,6 @@ TEST(ComputeDepthStats, CountsValidPixelsAndMedian) {
   EXPECT_FLOAT_EQ(s.median_m, 2.0f);
 }
 
-}  // namespace
-}  // namespace lifemap
-
-namespace lifemap {
-namespace {
-
 // Grey 8-bit images (the per-frame result images) take lifemap's own libpng path: any PNG
 // decoder must read back exactly the same pixels, from a view into a larger image too.
 TEST(EncodePng, GreyImagesRoundTripExactlyThroughAnyDecoder) {

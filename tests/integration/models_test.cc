@@ -23,11 +23,15 @@ cv::Mat Labels(const v1::FrameResult& r) {
   return cv::imdecode(std::vector<uint8_t>(png.begin(), png.end()), cv::IMREAD_UNCHANGED);
 }
 
-const v1::OutputStatus* LabelStatus(const v1::FrameResult& r) {
+const v1::OutputStatus* StatusOf(const v1::FrameResult& r, v1::FrameOutput output) {
   for (const auto& o : r.outputs()) {
-    if (o.output() == v1::FRAME_OUTPUT_CLASS_LABELS) return &o;
+    if (o.output() == output) return &o;
   }
   return nullptr;
+}
+
+const v1::OutputStatus* LabelStatus(const v1::FrameResult& r) {
+  return StatusOf(r, v1::FRAME_OUTPUT_CLASS_LABELS);
 }
 
 TEST_F(ServerTest, FramesSayWhyTheyHaveNoLabelsUntilAModelIsActive) {
@@ -174,21 +178,6 @@ TEST_F(ServerTest, LabelsCanBeDisabledInTheConfig) {
   ASSERT_TRUE(r.ok());
   EXPECT_FALSE(r->has_labels());
   EXPECT_NE(LabelStatus(*r)->reason().find("labels.enabled"), std::string::npos);
-}
-
-}  // namespace
-}  // namespace lifemap
-
-namespace lifemap {
-namespace {
-
-using testing::ServerTest;
-
-const v1::OutputStatus* StatusOf(const v1::FrameResult& r, v1::FrameOutput output) {
-  for (const auto& o : r.outputs()) {
-    if (o.output() == output) return &o;
-  }
-  return nullptr;
 }
 
 // A robot that wants labels only (or masks only) skips the other output's cost; its result
