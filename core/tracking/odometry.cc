@@ -1,0 +1,217 @@
+#include "core/tracking/odometry.h"
+
+#include <cmath>
+
+#include <opencv2/core/eigen.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/rgbd.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace lifemap::tracking {
+namespace {
+
+// cv::Mat 4x4 CV_64F <-> Eigen isometry.
+Eigen::Isometry3d ToIsometry(const cv::Mat& Rt) {
+  Eigen::Matrix4d m;
+  cv::cv2eigen(Rt, m);
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = m.topLeftCorner<3, 3>();
+  T.translation() = m.topRightCorner<3, 1>();
+  return T;
+}
+
+cv::Mat ToMat(const Eigen::Isometry3d& T) {
+  cv::Mat Rt;
+  const Eigen::Matrix4d m = T.matrix();
+  cv::eigen2cv(m, Rt);
+  return Rt;
+}
+
+double AngleOf(const Eigen::Isometry3d& T) {
+  return Eigen::AngleAxisd(T.rotation()).angle();
+}
+
+}  // namespace
+
+absl::Status OdometryOptions::Validate() const {
+  if (downscale < 1 || downscale > 4) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry downscale must be within [1, 4], got ", downscale));
+  }
+  if (!(min_depth_m >= 0 && max_depth_m > min_depth_m && max_depth_m <= 50)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry depth range must satisfy 0 <= min < max <= 50 m, got ",
+                     min_depth_m, "-", max_depth_m));
+  }
+  if (!(max_depth_diff_m > 0 && max_depth_diff_m <= 1)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry max_depth_diff_m must be within (0, 1], got ", max_depth_diff_m));
+  }
+  if (!(max_translation_m > 0 && max_translation_m <= 10 && max_rotation_deg > 0 &&
+        max_rotation_deg <= 180)) {
+    return absl::InvalidArgumentError(
+        "odometry max_translation_m must be within (0, 10] and max_rotation_deg within (0, 180]");
+  }
+  if (!(max_jump_m > 0 && max_jump_m <= 10 && max_jump_rad > 0 && max_jump_rad <= M_PI)) {
+    return absl::InvalidArgumentError(
+        "odometry max_jump_m must be within (0, 10] and max_jump_rad within (0, pi]");
+  }
+  return absl::OkStatus();
+}
+
+struct Tracker::Impl {
+  OdometryOptions options;
+  cv::Ptr<cv::rgbd::RgbdICPOdometry> odometry;
+  CameraIntrinsics intrinsics;  // of the frames the odometry was set up for (full size)
+
+  // The reference keyframe: its prepared frame and pose.
+  cv::Ptr<cv::rgbd::OdometryFrame> reference;
+  Eigen::Isometry3d T_world_reference = Eigen::Isometry3d::Identity();
+  // The last frame tracked, prepared, and its pose relative to the reference.
+  cv::Ptr<cv::rgbd::OdometryFrame> last;
+  Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
+  bool last_tracked = false;
+  // Constant-velocity prediction: the motion between the last two tracked frames.
+  Eigen::Isometry3d T_previous_last = Eigen::Isometry3d::Identity();
+  int lost_frames = 0;
+
+  void SetUp(const CameraIntrinsics& k) {
+    intrinsics = k;
+    const double s = 1.0 / options.downscale;
+    cv::Mat K = (cv::Mat_<double>(3, 3) << k.fx * s, 0, (k.cx + 0.5) * s - 0.5, 0, k.fy * s,
+                 (k.cy + 0.5) * s - 0.5, 0, 0, 1);
+    odometry = cv::rgbd::RgbdICPOdometry::create(K, options.min_depth_m, options.max_depth_m,
+                                                 options.max_depth_diff_m);
+    odometry->setMaxTranslation(options.max_translation_m);
+    odometry->setMaxRotation(options.max_rotation_deg);
+  }
+
+  // The frame at the odometry's resolution; null when it has no usable depth.
+  cv::Ptr<cv::rgbd::OdometryFrame> Prepare(const RgbdFrame& f, std::string* why) const {
+    cv::Mat gray, depth;
+    if (f.color_bgr.empty()) {
+      *why = "the frame has no colour (odometry needs it)";
+      return nullptr;
+    }
+    cv::cvtColor(f.color_bgr, gray, cv::COLOR_BGR2GRAY);
+    if (options.downscale > 1) {
+      const cv::Size size(f.depth_m.cols / options.downscale, f.depth_m.rows / options.downscale);
+      cv::resize(gray, gray, size, 0, 0, cv::INTER_AREA);
+      cv::resize(f.depth_m, depth, size, 0, 0, cv::INTER_NEAREST);
+    } else {
+      depth = f.depth_m.clone();
+    }
+    const size_t usable = static_cast<size_t>(
+        cv::countNonZero((depth > options.min_depth_m) & (depth < options.max_depth_m)));
+    if (usable < depth.total() / 20) {
+      *why = absl::StrCat("too little depth within ", options.min_depth_m, "-", options.max_depth_m,
+                          " m to track (", usable * 100 / std::max<size_t>(1, depth.total()),
+                          " % of the pixels)");
+      return nullptr;
+    }
+    return cv::rgbd::OdometryFrame::create(gray, depth);
+  }
+};
+
+Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
+  impl_->options = options;
+}
+Tracker::~Tracker() = default;
+Tracker::Tracker(Tracker&&) noexcept = default;
+Tracker& Tracker::operator=(Tracker&&) noexcept = default;
+
+Pose Tracker::FirstPose() {
+  Eigen::Matrix3d R;
+  // Columns: the camera's x (right), y (down), z (forward) in the world (x forward, z up).
+  R << 0, 0, 1,  //
+      -1, 0, 0,  //
+      0, -1, 0;
+  Pose p;
+  p.rotation = Eigen::Quaterniond(R);
+  return p;
+}
+
+bool Tracker::started() const { return impl_->reference != nullptr; }
+
+TrackedPose Tracker::Track(const RgbdFrame& frame) {
+  Impl& m = *impl_;
+  TrackedPose out;
+  auto lose = [&](std::string why) {
+    m.last_tracked = false;
+    out.state = TrackingState::kLost;
+    out.reason = std::move(why);
+    out.lost_frames = ++m.lost_frames;
+    return out;
+  };
+  std::string why;
+  const CameraIntrinsics& k = frame.intrinsics;
+  if (m.odometry == nullptr || k.fx != m.intrinsics.fx || k.fy != m.intrinsics.fy ||
+      k.cx != m.intrinsics.cx || k.cy != m.intrinsics.cy || k.width != m.intrinsics.width ||
+      k.height != m.intrinsics.height) {
+    if (m.reference != nullptr) return lose("the camera's intrinsics changed within the visit");
+    m.SetUp(k);
+  }
+  auto current = m.Prepare(frame, &why);
+  if (current == nullptr) return lose(why);
+  if (m.reference == nullptr) {
+    // The visit's first trackable frame defines its frame.
+    m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
+    m.reference = current;
+    m.T_world_reference = FirstPose().ToIsometry();
+    m.last = current;
+    m.T_reference_last = Eigen::Isometry3d::Identity();
+    m.last_tracked = true;
+    m.lost_frames = 0;
+    out.state = TrackingState::kStarted;
+    out.T_world_camera = Pose::FromIsometry(m.T_world_reference);
+    return out;
+  }
+  // Prediction: the last pose moved on by the last frame-to-frame motion (none after a loss).
+  const Eigen::Isometry3d predicted =
+      m.lost_frames == 0 ? m.T_reference_last * m.T_previous_last : m.T_reference_last;
+  cv::Mat Rt;
+  // src = the current frame, dst = the reference: Rt maps current-camera points into the
+  // reference camera, i.e. T_reference_current.
+  bool ok = false;
+  try {
+    ok = m.odometry->compute(current, m.reference, Rt, ToMat(predicted));
+  } catch (const cv::Exception& e) {
+    return lose(absl::StrCat("odometry failed: ", e.what()));
+  }
+  if (!ok || Rt.empty()) {
+    return lose("the view could not be aligned to the reference keyframe (too little overlap, "
+                "texture or geometry)");
+  }
+  const Eigen::Isometry3d T_reference_current = ToIsometry(Rt);
+  // After lost frames the camera may have moved on: the allowed jump grows with them (OpenCV's
+  // own limits still bound it).
+  const Eigen::Isometry3d jump = predicted.inverse() * T_reference_current;
+  const double allowance = 1.0 + m.lost_frames;
+  if (jump.translation().norm() > m.options.max_jump_m * allowance ||
+      AngleOf(jump) > m.options.max_jump_rad * allowance) {
+    return lose(absl::StrCat("the alignment jumped ", jump.translation().norm(), " m / ",
+                             AngleOf(jump) * 180 / M_PI, " deg from the prediction"));
+  }
+  m.T_previous_last = m.lost_frames == 0 ? m.T_reference_last.inverse() * T_reference_current
+                                         : Eigen::Isometry3d::Identity();
+  m.T_reference_last = T_reference_current;
+  m.last = current;
+  m.last_tracked = true;
+  m.lost_frames = 0;
+  out.state = TrackingState::kTracking;
+  out.T_world_camera = Pose::FromIsometry(m.T_world_reference * T_reference_current);
+  return out;
+}
+
+void Tracker::PromoteLastToReference() {
+  Impl& m = *impl_;
+  if (!m.last_tracked || m.last == nullptr || m.last == m.reference) return;
+  m.odometry->prepareFrameCache(m.last, cv::rgbd::OdometryFrame::CACHE_ALL);
+  m.T_world_reference = m.T_world_reference * m.T_reference_last;
+  m.reference = m.last;
+  // The velocity stays as it was; the last frame is now the reference itself.
+  m.T_reference_last = Eigen::Isometry3d::Identity();
+}
+
+}  // namespace lifemap::tracking

@@ -1,0 +1,78 @@
+// The server's own poses for frames sent without one (issue 15): frame-to-keyframe RGB-D
+// odometry. Each frame is aligned to its visit's reference keyframe by OpenCV contrib's
+// RgbdICPOdometry (the photometric term of Steinbrücker et al. plus point-to-plane ICP on the
+// depth, so that a texture-poor view keeps the geometric term) at reduced resolution, starting
+// from a constant-velocity prediction.
+#pragma once
+
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "absl/status/status.h"
+#include "core/common/rgbd_frame.h"
+#include "core/common/types.h"
+
+namespace lifemap::tracking {
+
+struct OdometryOptions {
+  // Frames are aligned at 1/downscale of their size (640x480 -> 320x240 at 2), [1, 4].
+  int downscale = 2;
+  // Depth readings used, metres; pairs of points whose depths differ more are not matched.
+  float min_depth_m = 0.3f;
+  float max_depth_m = 4.0f;
+  float max_depth_diff_m = 0.07f;
+  // Motion from the reference keyframe beyond which an alignment is refused (OpenCV's check).
+  float max_translation_m = 0.5f;
+  float max_rotation_deg = 40.0f;
+  // An aligned pose this far from the constant-velocity prediction is refused as a jump.
+  double max_jump_m = 0.15;
+  double max_jump_rad = 0.35;
+
+  // InvalidArgument naming the first field out of range.
+  absl::Status Validate() const;
+};
+
+enum class TrackingState {
+  kStarted,   // the visit's first tracked frame: it defines the visit's frame
+  kTracking,  // aligned to the reference keyframe
+  kLost,      // could not be aligned; later frames try again against the same reference
+};
+
+struct TrackedPose {
+  TrackingState state = TrackingState::kLost;
+  std::optional<Pose> T_world_camera;  // unset when lost
+  std::string reason;                  // why lost, for people reading results
+  int lost_frames = 0;                 // consecutive frames lost, this one included
+};
+
+// One visit's camera, frame after frame. Thread-compatible: call from one thread (or under a
+// lock), frames in order.
+class Tracker {
+ public:
+  explicit Tracker(OdometryOptions options = {});
+  ~Tracker();
+  Tracker(Tracker&&) noexcept;
+  Tracker& operator=(Tracker&&) noexcept;
+
+  // The visit's frame. The first frame of a visit is placed at the origin, level, looking
+  // along +x with z up (world_x = camera z, world_y = -camera x, world_z = -camera y): floor
+  // plans assume z up, and a robot's camera starts level (see docs/API.md).
+  static Pose FirstPose();
+
+  // Tracks a decoded frame (depth metres, colour BGR). A frame without any usable depth is
+  // lost, with the reason.
+  TrackedPose Track(const RgbdFrame& frame);
+
+  // Makes the last frame tracked (not lost) the reference that later frames are aligned to:
+  // call when it became a keyframe. Nothing when the last frame was lost.
+  void PromoteLastToReference();
+
+  bool started() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace lifemap::tracking

@@ -1,0 +1,135 @@
+// RGB-D odometry (issue 15) on real recordings, and the trajectory metrics it is scored by.
+#include "core/tracking/odometry.h"
+
+#include <gtest/gtest.h>
+
+#include "core/eval/trajectory.h"
+#include "core/io/tum_dataset.h"
+#include "core/tracking/keyframe_selector.h"
+#include "tests/testing/test_util.h"
+
+namespace lifemap {
+namespace {
+
+Pose At(double x, double y, double z, double yaw_rad = 0.0) {
+  Pose p;
+  p.translation = {x, y, z};
+  p.rotation = Eigen::Quaterniond(Eigen::AngleAxisd(yaw_rad, Eigen::Vector3d::UnitZ()));
+  return p;
+}
+
+TEST(CompareTrajectories, ARigidlyMovedCopyHasNoErrorAndNoiseShowsAsAte) {
+  std::vector<eval::TimedPose> truth, moved, noisy;
+  const Eigen::Isometry3d T = At(1.0, -2.0, 0.5, 0.7).ToIsometry();
+  for (int i = 0; i < 50; ++i) {
+    const Pose p = At(0.02 * i, 0.01 * i * i / 50.0, 0.0, 0.01 * i);
+    truth.push_back({100.0 + i / 30.0, p});
+    moved.push_back({100.0 + i / 30.0, Pose::FromIsometry(T * p.ToIsometry())});
+    Pose q = p;
+    q.translation.z() += (i % 2 == 0 ? 0.01 : -0.01);
+    noisy.push_back({100.0 + i / 30.0, q});
+  }
+  auto same = eval::CompareTrajectories(moved, truth);
+  ASSERT_TRUE(same.ok()) << same.status();
+  EXPECT_EQ(same->associated, 50);
+  EXPECT_LT(same->ate_rmse_m, 1e-9);
+  EXPECT_LT(same->rpe_trans_m, 1e-9);
+  EXPECT_LT(same->rpe_rot_deg, 1e-6);
+  auto off = eval::CompareTrajectories(noisy, truth);
+  ASSERT_TRUE(off.ok()) << off.status();
+  EXPECT_NEAR(off->ate_rmse_m, 0.01, 1e-3);
+  // Fewer than three associated poses: no alignment.
+  std::vector<eval::TimedPose> late = {{500.0, At(0, 0, 0)}, {501.0, At(1, 0, 0)}};
+  EXPECT_TRUE(absl::IsInvalidArgument(eval::CompareTrajectories(late, truth).status()));
+}
+
+TEST(OdometryOptions, RefusesValuesOutOfRange) {
+  tracking::OdometryOptions o;
+  EXPECT_TRUE(o.Validate().ok());
+  o.downscale = 0;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.max_depth_m = o.min_depth_m;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.max_jump_rad = 4.0;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+}
+
+// Tracks every frame of a TUM recording the way the server does (keyframes by the estimated
+// motion), returns the estimated trajectory and the ground truth.
+struct Tracked {
+  std::vector<eval::TimedPose> estimate, truth;
+  int lost = 0;
+};
+Tracked TrackRecording(const std::string& dir) {
+  Tracked out;
+  auto seq = io::ReadTumSequence(dir);
+  EXPECT_TRUE(seq.ok()) << seq.status();
+  if (!seq.ok()) return out;
+  tracking::Tracker tracker;
+  tracking::KeyframeSelector selector;
+  for (const auto& e : seq->frames) {
+    auto frame = io::DecodeTumFrame(*seq, e);
+    EXPECT_TRUE(frame.ok()) << frame.status();
+    if (!frame.ok()) continue;
+    const auto tracked = tracker.Track(*frame);
+    if (e.T_world_camera) out.truth.push_back({e.timestamp_s, *e.T_world_camera});
+    if (!tracked.T_world_camera) {
+      ++out.lost;
+      continue;
+    }
+    out.estimate.push_back({e.timestamp_s, *tracked.T_world_camera});
+    if (selector.Decide(e.timestamp_s, tracked.T_world_camera).selected) {
+      selector.Accept(e.timestamp_s, tracked.T_world_camera);
+      tracker.PromoteLastToReference();
+    }
+  }
+  return out;
+}
+
+TEST(Tracker, TracksTumFr1XyzWithinMillimetres) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  const Tracked t = TrackRecording(dir);
+  EXPECT_EQ(t.lost, 0) << "no frame lost";
+  auto errors = eval::CompareTrajectories(t.estimate, t.truth);
+  ASSERT_TRUE(errors.ok()) << errors.status();
+  EXPECT_EQ(errors->associated, static_cast<int>(t.estimate.size()));
+  std::cerr << "fr1_xyz: " << t.estimate.size() << " frames, ATE " << errors->ate_rmse_m * 1000
+            << " mm, RPE " << errors->rpe_trans_m * 1000 << " mm / " << errors->rpe_rot_deg
+            << " deg over " << errors->rpe_delta_s << " s\n";
+  EXPECT_LT(errors->ate_rmse_m, 0.01);
+}
+
+TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  tracking::Tracker tracker;
+  auto first = io::DecodeTumFrame(*seq, seq->frames[0]);
+  auto second = io::DecodeTumFrame(*seq, seq->frames[1]);
+  ASSERT_TRUE(first.ok() && second.ok());
+  const auto started = tracker.Track(*first);
+  EXPECT_EQ(started.state, tracking::TrackingState::kStarted);
+  ASSERT_TRUE(started.T_world_camera);
+  EXPECT_LT(started.T_world_camera->translation.norm(), 1e-12) << "the visit's origin";
+  // Level, looking along +x: the camera's z axis is the world's x, its -y the world's z.
+  const Eigen::Matrix3d R = started.T_world_camera->rotation.toRotationMatrix();
+  EXPECT_NEAR(R(0, 2), 1.0, 1e-12);
+  EXPECT_NEAR(R(2, 1), -1.0, 1e-12);
+
+  RgbdFrame empty = *second;
+  empty.depth_m = cv::Mat(second->depth_m.size(), CV_32FC1, cv::Scalar(0.0f));  // a new buffer
+  const auto lost = tracker.Track(empty);
+  EXPECT_EQ(lost.state, tracking::TrackingState::kLost);
+  EXPECT_FALSE(lost.T_world_camera);
+  EXPECT_NE(lost.reason.find("too little depth"), std::string::npos) << lost.reason;
+  EXPECT_EQ(lost.lost_frames, 1);
+  const auto back = tracker.Track(*second);
+  EXPECT_EQ(back.state, tracking::TrackingState::kTracking) << back.reason;
+  ASSERT_TRUE(back.T_world_camera);
+  EXPECT_LT(back.T_world_camera->translation.norm(), 0.05) << "a frame later, a few mm away";
+}
+
+}  // namespace
+}  // namespace lifemap
