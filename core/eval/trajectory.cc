@@ -72,9 +72,9 @@ absl::StatusOr<TrajectoryErrors> CompareTrajectories(const std::vector<TimedPose
   int pairs = 0;
   for (int i = 0; i < n; ++i) {
     int j = i + 1;
-    while (j < n && est[static_cast<size_t>(j)]->timestamp_s -
-                            est[static_cast<size_t>(i)]->timestamp_s <
-                        out.rpe_delta_s - 1e-9) {
+    while (j < n &&
+           est[static_cast<size_t>(j)]->timestamp_s - est[static_cast<size_t>(i)]->timestamp_s <
+               out.rpe_delta_s - 1e-9) {
       ++j;
     }
     if (j >= n) break;

@@ -17,12 +17,12 @@ namespace lifemap::eval {
 using io::TimedPose;
 
 struct TrajectoryErrors {
-  int associated = 0;        // estimated poses with a ground-truth pose within max_dt_s
-  double ate_rmse_m = 0.0;   // after the rigid alignment
+  int associated = 0;       // estimated poses with a ground-truth pose within max_dt_s
+  double ate_rmse_m = 0.0;  // after the rigid alignment
   double ate_max_m = 0.0;
   double rpe_trans_m = 0.0;  // RMSE over pairs `rpe_delta_s` apart (or the longest span there is)
   double rpe_rot_deg = 0.0;
-  double rpe_delta_s = 0.0;  // the step the RPE used
+  double rpe_delta_s = 0.0;                                            // the step the RPE used
   Eigen::Isometry3d T_truth_estimate = Eigen::Isometry3d::Identity();  // the alignment
   std::vector<double> position_errors_m;  // per associated pose, in estimate order
 };

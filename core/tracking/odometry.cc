@@ -28,9 +28,7 @@ cv::Mat ToMat(const Eigen::Isometry3d& T) {
   return Rt;
 }
 
-double AngleOf(const Eigen::Isometry3d& T) {
-  return Eigen::AngleAxisd(T.rotation()).angle();
-}
+double AngleOf(const Eigen::Isometry3d& T) { return Eigen::AngleAxisd(T.rotation()).angle(); }
 
 }  // namespace
 
@@ -41,8 +39,8 @@ absl::Status OdometryOptions::Validate() const {
   }
   if (!(min_depth_m >= 0 && max_depth_m > min_depth_m && max_depth_m <= 50)) {
     return absl::InvalidArgumentError(
-        absl::StrCat("odometry depth range must satisfy 0 <= min < max <= 50 m, got ",
-                     min_depth_m, "-", max_depth_m));
+        absl::StrCat("odometry depth range must satisfy 0 <= min < max <= 50 m, got ", min_depth_m,
+                     "-", max_depth_m));
   }
   if (!(max_depth_diff_m > 0 && max_depth_diff_m <= 1)) {
     return absl::InvalidArgumentError(
@@ -180,8 +178,9 @@ TrackedPose Tracker::Track(const RgbdFrame& frame) {
     return lose(absl::StrCat("odometry failed: ", e.what()));
   }
   if (!ok || Rt.empty()) {
-    return lose("the view could not be aligned to the reference keyframe (too little overlap, "
-                "texture or geometry)");
+    return lose(
+        "the view could not be aligned to the reference keyframe (too little overlap, "
+        "texture or geometry)");
   }
   const Eigen::Isometry3d T_reference_current = ToIsometry(Rt);
   // After lost frames the camera may have moved on: the allowed jump grows with them (OpenCV's
