@@ -240,6 +240,20 @@ PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* 
   return out;
 }
 
+v1::TrackingState TrackingStateToProto(tracking::TrackingState state) {
+  switch (state) {
+    case tracking::TrackingState::kStarted:
+      return v1::TRACKING_STARTED;
+    case tracking::TrackingState::kTracking:
+      return v1::TRACKING_OK;
+    case tracking::TrackingState::kLost:
+      return v1::TRACKING_LOST;
+    case tracking::TrackingState::kRegained:
+      return v1::TRACKING_REGAINED;
+  }
+  return v1::TRACKING_STATE_UNSPECIFIED;
+}
+
 void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,
                         google::protobuf::RepeatedPtrField<v1::OutputStatus>* out) {
   auto add = [out](v1::FrameOutput o, bool computed, absl::string_view reason) {
@@ -249,8 +263,10 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
     if (!computed) s->set_reason(std::string(reason));
   };
   const pipeline::FrameAnalysis* a = facts.analysis;
-  add(v1::FRAME_OUTPUT_POSE, a != nullptr && a->frame.T_world_camera.has_value(),
-      "no odometry in this server yet: send the robot's pose in Frame.pose");
+  add(v1::FRAME_OUTPUT_POSE, a == nullptr || a->frame.T_world_camera.has_value(),
+      facts.tracked ? absl::StrCat("tracking lost: ", facts.tracking_lost_reason)
+                    : std::string("frames without a map are not tracked: send them into a "
+                                  "visit (with a map), or with Frame.pose"));
   add(v1::FRAME_OUTPUT_KEYFRAME, facts.has_map,
       "no map given: the frame is processed but nothing is stored");
   if (!options.entropy_masks) {

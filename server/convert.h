@@ -12,6 +12,7 @@
 #include "core/common/rgbd_frame.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/tracking/keyframe_selector.h"
+#include "core/tracking/odometry.h"
 #include "lifemap/v1/admin_service.pb.h"
 #include "lifemap/v1/common.pb.h"
 #include "lifemap/v1/frame_service.pb.h"
@@ -31,6 +32,7 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
 
 absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
 void PoseToProto(const Pose& pose, v1::Pose* out);
+v1::TrackingState TrackingStateToProto(tracking::TrackingState state);
 CameraIntrinsics IntrinsicsFromProto(const v1::CameraIntrinsics& k);
 void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out);
 
@@ -75,6 +77,9 @@ struct OutputFacts {
   std::optional<absl::Status> appearance;
   // The client skipped these outputs (FrameOptions.skip_outputs): "not requested", whatever
   // was computed for the server's own use.
+  // The server's tracking of a frame sent without a pose (unset: a client pose, or no visit).
+  std::optional<tracking::TrackingState> tracked;
+  std::string tracking_lost_reason;
   bool entropy_skipped = false;
   bool labels_skipped = false;
 };

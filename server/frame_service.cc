@@ -290,7 +290,27 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     FillOutputStatuses(ctx->pipeline->options(), facts, r.mutable_outputs());
     return p;
   }
-  const RgbdFrame& f = a.analysis->frame;
+  absl::MutexLock placing(&visit->place_mu);
+  RgbdFrame& f = a.analysis->frame;
+  if (!f.T_world_camera) {
+    // No client pose: the server tracks the camera (issue 15); the estimate then stands for
+    // the pose in keyframe selection, storage and the floor plan.
+    const auto track_start = Clock::now();
+    const tracking::TrackedPose tracked = visit->tracker.Track(f);
+    auto* t = r.mutable_tracking();
+    t->set_track_ms(MsBetween(track_start, Clock::now()));
+    t->set_state(TrackingStateToProto(tracked.state));
+    t->set_lost_frames(static_cast<uint32_t>(tracked.lost_frames));
+    if (tracked.T_world_camera) {
+      f.T_world_camera = tracked.T_world_camera;
+      r.set_pose_source(v1::POSE_SOURCE_ESTIMATED);
+      PoseToProto(*f.T_world_camera, r.mutable_pose());
+    } else {
+      t->set_reason(tracked.reason);
+      facts.tracking_lost_reason = tracked.reason;
+    }
+    facts.tracked = tracked.state;
+  }
   // Decided under the visit's lock; the keyframe's features and appearance query run outside it
   // (a visit has one writer and its frames come here one at a time, in order).
   tracking::KeyframeDecision decision;
@@ -355,6 +375,8 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   }
   if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
+    // Later frames are aligned to this keyframe (a no-op for posed frames and lost ones).
+    if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) visit->tracker.PromoteLastToReference();
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
     if (f.T_world_camera) {

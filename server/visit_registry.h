@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "core/tracking/keyframe_selector.h"
+#include "core/tracking/odometry.h"
 #include "server/architecture.h"
 #include "server/store/store.h"
 
@@ -36,6 +37,11 @@ struct VisitState {
   // Timestamp of the last frame whose appearance matches were sought (FrameOptions.
   // appearance_interval_s), seconds.
   std::optional<double> last_appearance_query_s ABSL_GUARDED_BY(mu);
+  // Frames are placed in the visit one at a time (PlaceInVisit holds this throughout): a stream
+  // places them in order; concurrent unary ProcessFrame calls into one visit take turns.
+  absl::Mutex place_mu ABSL_ACQUIRED_BEFORE(mu);
+  // The camera of frames sent without a pose (issue 15): frame-to-keyframe odometry.
+  tracking::Tracker tracker ABSL_GUARDED_BY(place_mu);
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;

@@ -192,13 +192,13 @@ TrackedPose Tracker::Track(const RgbdFrame& frame) {
     return lose(absl::StrCat("the alignment jumped ", jump.translation().norm(), " m / ",
                              AngleOf(jump) * 180 / M_PI, " deg from the prediction"));
   }
+  out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   m.T_previous_last = m.lost_frames == 0 ? m.T_reference_last.inverse() * T_reference_current
                                          : Eigen::Isometry3d::Identity();
   m.T_reference_last = T_reference_current;
   m.last = current;
   m.last_tracked = true;
   m.lost_frames = 0;
-  out.state = TrackingState::kTracking;
   out.T_world_camera = Pose::FromIsometry(m.T_world_reference * T_reference_current);
   return out;
 }

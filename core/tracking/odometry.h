@@ -37,6 +37,7 @@ enum class TrackingState {
   kStarted,   // the visit's first tracked frame: it defines the visit's frame
   kTracking,  // aligned to the reference keyframe
   kLost,      // could not be aligned; later frames try again against the same reference
+  kRegained,  // aligned again after lost frames
 };
 
 struct TrackedPose {

@@ -126,7 +126,7 @@ TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {
   EXPECT_NE(lost.reason.find("too little depth"), std::string::npos) << lost.reason;
   EXPECT_EQ(lost.lost_frames, 1);
   const auto back = tracker.Track(*second);
-  EXPECT_EQ(back.state, tracking::TrackingState::kTracking) << back.reason;
+  EXPECT_EQ(back.state, tracking::TrackingState::kRegained) << back.reason;
   ASSERT_TRUE(back.T_world_camera);
   EXPECT_LT(back.T_world_camera->translation.norm(), 0.05) << "a frame later, a few mm away";
 }

@@ -1,0 +1,98 @@
+// The server's own poses (issue 15): a recording streamed without poses is tracked, keyframes
+// are stored with the estimates, and a frame that cannot be tracked says so.
+#include <thread>
+
+#include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include "client/lifemap_client.h"
+#include "core/common/image_codec.h"
+#include "core/eval/trajectory.h"
+#include "core/io/tum_dataset.h"
+#include "tests/integration/server_fixture.h"
+#include "tests/testing/test_util.h"
+
+namespace lifemap {
+namespace {
+
+using testing::ServerTest;
+
+Pose FromProto(const v1::Pose& p) {
+  return *Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
+}
+
+TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRegained) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_TRUE(client_->CreateMap("office", "").ok());
+  v1::StreamStart start;
+  start.set_map("office");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  constexpr size_t kBlind = 12;  // this frame's depth is all "no reading"
+  const std::string no_depth = *EncodeDepthPng16(cv::Mat(480, 640, CV_32FC1, 0.0f), 5000.0);
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  std::thread sender([&] {
+    for (size_t i = 0; i < seq->frames.size(); ++i) {
+      const auto& e = seq->frames[i];
+      auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, i);
+      ASSERT_TRUE(f.ok()) << f.status();
+      if (i == kBlind) f->mutable_depth()->set_data(no_depth);
+      ASSERT_TRUE((*stream)->Send(*f));
+    }
+    (*stream)->CloseSend();
+  });
+  std::vector<v1::FrameResult> results;
+  v1::FrameResult r;
+  while ((*stream)->Receive(&r)) results.push_back(r);
+  sender.join();
+  ASSERT_TRUE((*stream)->Finish().ok());
+  ASSERT_EQ(results.size(), seq->frames.size());
+
+  std::vector<eval::TimedPose> estimate, truth;
+  std::map<uint64_t, Pose> keyframe_pose;
+  for (size_t i = 0; i < results.size(); ++i) {
+    const auto& res = results[i];
+    ASSERT_FALSE(res.has_error()) << i << ": " << res.error().message();
+    ASSERT_TRUE(res.has_tracking()) << i;
+    if (i == kBlind) {
+      EXPECT_EQ(res.tracking().state(), v1::TRACKING_LOST);
+      EXPECT_EQ(res.pose_source(), v1::POSE_SOURCE_NONE);
+      EXPECT_NE(res.tracking().reason().find("too little depth"), std::string::npos)
+          << res.tracking().reason();
+      for (const auto& o : res.outputs()) {
+        if (o.output() == v1::FRAME_OUTPUT_POSE) {
+          EXPECT_FALSE(o.computed());
+          EXPECT_NE(o.reason().find("tracking lost"), std::string::npos) << o.reason();
+        }
+      }
+      continue;
+    }
+    EXPECT_EQ(res.tracking().state(), i == 0            ? v1::TRACKING_STARTED
+                                      : i == kBlind + 1 ? v1::TRACKING_REGAINED
+                                                        : v1::TRACKING_OK)
+        << i << ": " << res.tracking().reason();
+    ASSERT_EQ(res.pose_source(), v1::POSE_SOURCE_ESTIMATED) << i;
+    estimate.push_back({res.timestamp_s(), FromProto(res.pose())});
+    truth.push_back({seq->frames[i].timestamp_s, *seq->frames[i].T_world_camera});
+    if (res.keyframe().committed())
+      keyframe_pose[res.keyframe().keyframe_id()] = estimate.back().pose;
+  }
+  auto errors = eval::CompareTrajectories(estimate, truth);
+  ASSERT_TRUE(errors.ok()) << errors.status();
+  EXPECT_LT(errors->ate_rmse_m, 0.01) << "the tracked trajectory within a centimetre";
+  // Keyframes were chosen by the estimated motion (not by time alone) and stored with it.
+  EXPECT_GE(keyframe_pose.size(), 3u);
+  auto listed = client_->ListKeyframes("office", 0);
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(static_cast<size_t>(listed->keyframes_size()), keyframe_pose.size());
+  for (const auto& kf : listed->keyframes()) {
+    ASSERT_TRUE(kf.has_pose());
+    EXPECT_NEAR(kf.pose().tx(), keyframe_pose[kf.id()].translation.x(), 1e-9);
+  }
+}
+
+}  // namespace
+}  // namespace lifemap
