@@ -53,4 +53,27 @@ class BoundedQueue {
   bool closed_ ABSL_GUARDED_BY(mu_) = false;
 };
 
+// A count of slots shared by several threads: the frame service takes one for each frame it
+// reads and gives it back once the frame is answered, so a stream holds at most `capacity`
+// frames across all its stages. Thread-safe.
+class Slots {
+ public:
+  explicit Slots(size_t capacity) : free_(capacity) {}
+  // Blocks until a slot is free, and takes it.
+  void Acquire() {
+    absl::MutexLock lock(&mu_);
+    mu_.Await(absl::Condition(
+        +[](size_t* free) { return *free > 0; }, &free_));
+    --free_;
+  }
+  void Release() {
+    absl::MutexLock lock(&mu_);
+    ++free_;
+  }
+
+ private:
+  absl::Mutex mu_;
+  size_t free_ ABSL_GUARDED_BY(mu_);
+};
+
 }  // namespace lifemap::server

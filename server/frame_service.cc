@@ -554,12 +554,15 @@ grpc::Status FrameServiceImpl::StreamFrames(
   //    decision, features, record, appearance, commit submission);
   //  - `writer` answers in that order, waiting for keyframe commits so that no acknowledgement
   //    precedes its commit.
-  // Both queues hold at most max_inflight_frames: when they are full this thread stops
-  // reading, and gRPC's flow control holds back the robot.
+  // A frame takes one of max_inflight_frames slots when it is read and gives it back once
+  // answered: with none free this thread stops reading, and gRPC's flow control holds back the
+  // robot, so a stream holds at most that many frames in all its stages together.
   VisitState* visit_state = state->get();
   const int64_t map_id = visit_state->map_id;
-  BoundedQueue<std::future<AnalysedFrame>> analysing(ctx_->config.max_inflight_frames);
-  BoundedQueue<PendingResult> answering(ctx_->config.max_inflight_frames);
+  const auto inflight = static_cast<size_t>(ctx_->config.max_inflight_frames);
+  Slots slots(inflight);
+  BoundedQueue<std::future<AnalysedFrame>> analysing(inflight);
+  BoundedQueue<PendingResult> answering(inflight);
   std::atomic<bool> client_gone{false};
   // Set by `placer` when the visit could no longer be written (ended, its map deleted); this
   // thread ends the stream with it at its next read.
@@ -570,16 +573,21 @@ grpc::Status FrameServiceImpl::StreamFrames(
   std::thread writer([&] {
     while (auto p = answering.Pop()) {
       FinishResult(&*p);
-      if (client_gone.load()) continue;  // still wait for commits: they complete regardless
-      v1::StreamFramesResponse response;
-      *response.mutable_result() = std::move(p->result);
-      if (!stream->Write(response)) client_gone.store(true);
+      if (!client_gone.load()) {  // else still wait for commits: they complete regardless
+        v1::StreamFramesResponse response;
+        *response.mutable_result() = std::move(p->result);
+        if (!stream->Write(response)) client_gone.store(true);
+      }
+      slots.Release();
     }
   });
   std::thread placer([&] {
     while (auto analysed = analysing.Pop()) {
       AnalysedFrame a = analysed->get();
-      if (visit_closed.load()) continue;  // the stream is ending: nothing more is placed
+      if (visit_closed.load()) {  // the stream is ending: nothing more is placed
+        slots.Release();
+        continue;
+      }
       PendingResult p = PlaceInVisit(ctx_, std::move(a), *state, claim->id(), *settings);
       last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
       if (!p.visit_closed.ok()) {
@@ -606,8 +614,14 @@ grpc::Status FrameServiceImpl::StreamFrames(
 
   grpc::Status status = grpc::Status::OK;
   uint64_t frames = 0;
-  while (!visit_closed.load() && stream->Read(&request)) {
+  for (;;) {
+    slots.Acquire();
+    if (visit_closed.load() || !stream->Read(&request)) {
+      slots.Release();
+      break;
+    }
     if (!request.has_frame()) {
+      slots.Release();
       status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                             "only the first message of a stream may be StreamStart; send frames");
       break;
@@ -616,6 +630,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
     // where the frame is added).
     std::string map_name;
     if (auto s = CheckWritable(visit_state, claim->id(), &map_name); !s.ok()) {
+      slots.Release();
       status = ToGrpcStatus(s);
       spdlog::info("stream for visit {} ends: {}", visit->id, std::string(s.message()));
       break;

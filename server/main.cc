@@ -3,8 +3,6 @@
 //   lifemapd --listen 127.0.0.1:50051 --db /var/lib/lifemap/lifemap.db [--config FILE]
 //
 // SIGTERM / SIGINT: stop accepting calls, let streams drain, commit pending keyframes, exit 0.
-#include <malloc.h>
-
 #include <csignal>
 #include <iostream>
 #include <thread>
@@ -17,13 +15,6 @@
 #include "server/server.h"
 
 int main(int argc, char** argv) {
-  // Each frame allocates and frees several MB of buffers (decoded images, normal maps, the
-  // forest's integral image), 30 times a second per stream. By default glibc hands freed memory
-  // above 128 KB back to the kernel, and the next frame page-faults it in again (~5 % of the
-  // server's CPU under load, perf). Keeping up to 256 MB of freed memory in the process saves
-  // 1-3 ms of CPU per frame (docs/BENCHMARKS.md); resident memory grows by that much at most.
-  mallopt(M_MMAP_THRESHOLD, 32 << 20);  // glibc's largest allowed value
-  mallopt(M_TRIM_THRESHOLD, 256 << 20);
   using lifemap::server::ServerConfig;
   CLI::App app{"lifemapd — lifelong indoor maps for robots (gRPC server)"};
   app.set_version_flag("--version", std::string(LIFEMAP_VERSION));
