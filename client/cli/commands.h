@@ -75,5 +75,7 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx);
 // `lifemap eval places` (paper 004's evaluation on a synthetic suite).
 void AddPlaceEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx);
+// `lifemap eval trajectory` (issue 15: the server's tracking against ground truth).
+void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx);
 
 }  // namespace lifemap::cli

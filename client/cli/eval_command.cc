@@ -533,6 +533,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   AddForestCommands(app, ev, ctx);
   AddPlaceEvalCommand(ev, ctx);
   AddAppearanceEvalCommand(ev, ctx);
+  AddTrajectoryEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -480,6 +480,36 @@ TEST_F(CliTest, SigtermDrainsStreamsAndCommitsPendingKeyframes) {
 // The synthetic world's folders stream into lifemapd unchanged, with their exact poses.
 // Paper 004 served: two visits of a synthetic room streamed with their poses; the second is
 // recognised as the first by architecture, and `places show` writes the floor plan as SVG.
+// Issue 15: a recording streamed without poses, its tracked trajectory scored against the
+// ground truth; the scratch map is deleted afterwards; a folder without ground truth is refused.
+TEST_F(CliTest, EvalTrajectoryScoresTheServersTrackingOfARecording) {
+  LIFEMAP_REQUIRE_DATASET(tum, "tum_fr1_xyz_subset");
+  const std::string out = tmp_.File("trajectory");
+  auto r = Run({"--json", "eval", "trajectory", "--tum", tum, "--out", out});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json summary = json::parse(Lines(r.out).back());
+  EXPECT_EQ(summary["frames"], 32);
+  EXPECT_EQ(summary["lost_frames"], 0);
+  EXPECT_EQ(summary["scored"], "keyframes");
+  EXPECT_LT(summary["ate_rmse_m"].get<double>(), 0.01) << summary.dump();
+  EXPECT_LT(summary["all_frames"]["ate_rmse_m"].get<double>(), 0.015) << summary.dump();
+  EXPECT_GT(summary["rpe_trans_m"].get<double>(), 0.0);
+  for (const char* file : {"summary.json", "trajectory.csv", "trajectory.svg"}) {
+    EXPECT_TRUE(std::filesystem::exists(out + "/" + file)) << file;
+  }
+  EXPECT_EQ(Lines(*ReadFileBytes(out + "/trajectory.csv")).size(), 33u) << "a header and 32 frames";
+  r = Run({"--json", "maps", "list"});
+  EXPECT_EQ(r.out.find("eval-trajectory"), std::string::npos) << "the scratch map is deleted";
+
+  const std::string no_truth = tmp_.File("no-truth");
+  testing::WriteSyntheticTum(no_truth, 4);
+  std::filesystem::remove(no_truth + "/groundtruth.txt");
+  r = Run({"eval", "trajectory", "--tum", no_truth, "--out", tmp_.File("nt")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("groundtruth.txt"), std::string::npos) << r.err;
+  EXPECT_EQ(Run({"eval", "trajectory", "--tum", tum}).code, 2) << "--out is required";
+}
+
 TEST_F(CliTest, PlacesShowAndQueryRecogniseAVisitedRoom) {
   auto r = Run({"sim", "--seed", "3", "--place-shape", "rect", "--visits", "2", "--frames", "60",
                 "--out", tmp_.File("home")});
