@@ -2,7 +2,7 @@
 // odometry. Each frame is aligned to its visit's reference keyframe by OpenCV contrib's
 // RgbdICPOdometry (the photometric term of Steinbrücker et al. plus point-to-plane ICP on the
 // depth, so that a texture-poor view keeps the geometric term) at reduced resolution, starting
-// from a constant-velocity prediction.
+// from the last tracked pose.
 #pragma once
 
 #include <memory>
@@ -25,7 +25,8 @@ struct OdometryOptions {
   // Motion from the reference keyframe beyond which an alignment is refused (OpenCV's check).
   float max_translation_m = 0.5f;
   float max_rotation_deg = 40.0f;
-  // An aligned pose this far from the constant-velocity prediction is refused as a jump.
+  // An aligned pose this far from the last tracked pose is refused as a jump (the allowance
+  // grows with the frames lost since).
   double max_jump_m = 0.15;
   double max_jump_rad = 0.35;
 
