@@ -248,6 +248,9 @@ int main(int argc, char** argv) {
                  "compact (JPEG 90 colour, paletted depth: client::CompactFrame, on the robot "
                  "before the run)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
+  bool no_poses = false;
+  app.add_flag("--no-poses", no_poses,
+               "send frames without the ground-truth pose: the server tracks the camera");
   std::vector<std::string> skip;
   app.add_option("--skip", skip, "outputs the robot does not want (FrameOptions.skip_outputs)")
       ->check(CLI::IsMember({"entropy", "labels"}));
@@ -276,7 +279,7 @@ int main(int argc, char** argv) {
       std::cerr << "load_generator: " << f.status().message() << "\n";
       return 1;
     }
-    if (e.T_world_camera) {
+    if (e.T_world_camera && !no_poses) {
       auto* p = f->mutable_pose();
       p->set_tx(e.T_world_camera->translation.x());
       p->set_ty(e.T_world_camera->translation.y());
@@ -356,8 +359,10 @@ int main(int argc, char** argv) {
   if (!model.empty()) {
     for (size_t i = 1; i < runs.size(); ++i) runs[i].name += ", labels";
   }
-  const std::string sent = send == "compact" ? "JPEG 90 colour + paletted depth (compact)"
-                                             : "PNG colour + PNG-16 depth (as recorded)";
+  const std::string sent =
+      std::string(send == "compact" ? "JPEG 90 colour + paletted depth (compact)"
+                                    : "PNG colour + PNG-16 depth (as recorded)") +
+      (no_poses ? ", no poses (tracked by the server)" : ", posed (ground truth)");
   if (json) {
     nlohmann::json reports = nlohmann::json::array();
     for (const auto& r : runs) reports.push_back(r.ToJson());
