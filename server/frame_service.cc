@@ -180,6 +180,8 @@ struct AnalysedFrame {
   absl::Status labeller;                     // OK when the model labelled it; else why not
   bool keep_original_color = false;          // the map's setting, for a keyframe's record
   std::optional<float> entropy_threshold;    // the threshold in effect (request, map, server)
+  // A frame of a visit sent without a pose, prepared for the visit's tracker (issue 15).
+  std::shared_ptr<tracking::TrackingInput> tracking_input;
 };
 
 // Reads the visit's writability and map name (a unary frame has neither to check).
@@ -265,6 +267,11 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   }
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
+  if (map_id != 0 && !f.T_world_camera) {
+    // What tracking needs of the frame alone, made here beside other frames' analyses; the
+    // visit's tracker then only aligns it, in order.
+    a.tracking_input = tracking::PrepareForTracking(f, tracking::OdometryOptions{});
+  }
   a.analysis = *std::move(analysis);
   return a;
 }
@@ -296,7 +303,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     // No client pose: the server tracks the camera (issue 15); the estimate then stands for
     // the pose in keyframe selection, storage and the floor plan.
     const auto track_start = Clock::now();
-    const tracking::TrackedPose tracked = visit->tracker.Track(f);
+    const tracking::TrackedPose tracked = visit->tracker.Track(f, a.tracking_input);
     auto* t = r.mutable_tracking();
     t->set_track_ms(MsBetween(track_start, Clock::now()));
     t->set_state(TrackingStateToProto(tracked.state));

@@ -58,6 +58,76 @@ absl::Status OdometryOptions::Validate() const {
   return absl::OkStatus();
 }
 
+namespace {
+
+cv::Mat CameraMatrix(const CameraIntrinsics& k, int downscale) {
+  const double s = 1.0 / downscale;
+  return (cv::Mat_<double>(3, 3) << k.fx * s, 0, (k.cx + 0.5) * s - 0.5, 0, k.fy * s,
+          (k.cy + 0.5) * s - 0.5, 0, 0, 1);
+}
+
+cv::Ptr<cv::rgbd::RgbdICPOdometry> MakeOdometry(const CameraIntrinsics& k,
+                                                const OdometryOptions& options) {
+  auto odometry =
+      cv::rgbd::RgbdICPOdometry::create(CameraMatrix(k, options.downscale), options.min_depth_m,
+                                        options.max_depth_m, options.max_depth_diff_m);
+  odometry->setMaxTranslation(options.max_translation_m);
+  odometry->setMaxRotation(options.max_rotation_deg);
+  return odometry;
+}
+
+bool SameCamera(const CameraIntrinsics& a, const CameraIntrinsics& b) {
+  return a.fx == b.fx && a.fy == b.fy && a.cx == b.cx && a.cy == b.cy && a.width == b.width &&
+         a.height == b.height;
+}
+
+}  // namespace
+
+struct TrackingInput {
+  CameraIntrinsics intrinsics;
+  int downscale = 0;
+  cv::Ptr<cv::rgbd::OdometryFrame> frame;  // null when the frame cannot be tracked
+  std::string why_not;
+};
+
+std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& f,
+                                                  const OdometryOptions& options) {
+  auto in = std::make_shared<TrackingInput>();
+  in->intrinsics = f.intrinsics;
+  in->downscale = options.downscale;
+  if (f.color_bgr.empty()) {
+    in->why_not = "the frame has no colour (odometry needs it)";
+    return in;
+  }
+  cv::Mat gray, depth;
+  cv::cvtColor(f.color_bgr, gray, cv::COLOR_BGR2GRAY);
+  if (options.downscale > 1) {
+    const cv::Size size(f.depth_m.cols / options.downscale, f.depth_m.rows / options.downscale);
+    cv::resize(gray, gray, size, 0, 0, cv::INTER_AREA);
+    cv::resize(f.depth_m, depth, size, 0, 0, cv::INTER_NEAREST);
+  } else {
+    depth = f.depth_m.clone();
+  }
+  const size_t usable = static_cast<size_t>(
+      cv::countNonZero((depth > options.min_depth_m) & (depth < options.max_depth_m)));
+  if (usable < depth.total() / 20) {
+    in->why_not = absl::StrCat(
+        "too little depth within ", options.min_depth_m, "-", options.max_depth_m, " m to track (",
+        usable * 100 / std::max<size_t>(1, depth.total()), " % of the pixels)");
+    return in;
+  }
+  in->frame = cv::rgbd::OdometryFrame::create(gray, depth);
+  try {
+    // The source-side cache (pyramids, gradients, normals) of the coming alignment.
+    MakeOdometry(f.intrinsics, options)
+        ->prepareFrameCache(in->frame, cv::rgbd::OdometryFrame::CACHE_SRC);
+  } catch (const cv::Exception& e) {
+    in->frame = nullptr;
+    in->why_not = absl::StrCat("the frame could not be prepared for odometry: ", e.what());
+  }
+  return in;
+}
+
 struct Tracker::Impl {
   OdometryOptions options;
   cv::Ptr<cv::rgbd::RgbdICPOdometry> odometry;
@@ -71,43 +141,6 @@ struct Tracker::Impl {
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
   bool last_tracked = false;
   int lost_frames = 0;
-
-  void SetUp(const CameraIntrinsics& k) {
-    intrinsics = k;
-    const double s = 1.0 / options.downscale;
-    cv::Mat K = (cv::Mat_<double>(3, 3) << k.fx * s, 0, (k.cx + 0.5) * s - 0.5, 0, k.fy * s,
-                 (k.cy + 0.5) * s - 0.5, 0, 0, 1);
-    odometry = cv::rgbd::RgbdICPOdometry::create(K, options.min_depth_m, options.max_depth_m,
-                                                 options.max_depth_diff_m);
-    odometry->setMaxTranslation(options.max_translation_m);
-    odometry->setMaxRotation(options.max_rotation_deg);
-  }
-
-  // The frame at the odometry's resolution; null when it has no usable depth.
-  cv::Ptr<cv::rgbd::OdometryFrame> Prepare(const RgbdFrame& f, std::string* why) const {
-    cv::Mat gray, depth;
-    if (f.color_bgr.empty()) {
-      *why = "the frame has no colour (odometry needs it)";
-      return nullptr;
-    }
-    cv::cvtColor(f.color_bgr, gray, cv::COLOR_BGR2GRAY);
-    if (options.downscale > 1) {
-      const cv::Size size(f.depth_m.cols / options.downscale, f.depth_m.rows / options.downscale);
-      cv::resize(gray, gray, size, 0, 0, cv::INTER_AREA);
-      cv::resize(f.depth_m, depth, size, 0, 0, cv::INTER_NEAREST);
-    } else {
-      depth = f.depth_m.clone();
-    }
-    const size_t usable = static_cast<size_t>(
-        cv::countNonZero((depth > options.min_depth_m) & (depth < options.max_depth_m)));
-    if (usable < depth.total() / 20) {
-      *why = absl::StrCat("too little depth within ", options.min_depth_m, "-", options.max_depth_m,
-                          " m to track (", usable * 100 / std::max<size_t>(1, depth.total()),
-                          " % of the pixels)");
-      return nullptr;
-    }
-    return cv::rgbd::OdometryFrame::create(gray, depth);
-  }
 };
 
 Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
@@ -130,7 +163,7 @@ Pose Tracker::FirstPose() {
 
 bool Tracker::started() const { return impl_->reference != nullptr; }
 
-TrackedPose Tracker::Track(const RgbdFrame& frame) {
+TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared) {
   Impl& m = *impl_;
   TrackedPose out;
   auto lose = [&](std::string why) {
@@ -140,16 +173,18 @@ TrackedPose Tracker::Track(const RgbdFrame& frame) {
     out.lost_frames = ++m.lost_frames;
     return out;
   };
-  std::string why;
   const CameraIntrinsics& k = frame.intrinsics;
-  if (m.odometry == nullptr || k.fx != m.intrinsics.fx || k.fy != m.intrinsics.fy ||
-      k.cx != m.intrinsics.cx || k.cy != m.intrinsics.cy || k.width != m.intrinsics.width ||
-      k.height != m.intrinsics.height) {
+  if (m.odometry == nullptr || !SameCamera(k, m.intrinsics)) {
     if (m.reference != nullptr) return lose("the camera's intrinsics changed within the visit");
-    m.SetUp(k);
+    m.intrinsics = k;
+    m.odometry = MakeOdometry(k, m.options);
   }
-  auto current = m.Prepare(frame, &why);
-  if (current == nullptr) return lose(why);
+  if (prepared == nullptr || prepared->downscale != m.options.downscale ||
+      !SameCamera(prepared->intrinsics, k)) {
+    prepared = PrepareForTracking(frame, m.options);
+  }
+  if (prepared->frame == nullptr) return lose(prepared->why_not);
+  cv::Ptr<cv::rgbd::OdometryFrame> current = prepared->frame;
   if (m.reference == nullptr) {
     // The visit's first trackable frame defines its frame.
     m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);

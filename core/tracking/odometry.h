@@ -48,6 +48,17 @@ struct TrackedPose {
   int lost_frames = 0;                 // consecutive frames lost, this one included
 };
 
+// A frame made ready for alignment: grey and depth at the odometry's resolution, and the image
+// pyramids and gradients of the photometric and ICP terms. It does not depend on the visit, so
+// it can be made on any thread before the frame's turn (the frame service makes it beside the
+// frame's other analyses); Track then only aligns.
+struct TrackingInput;
+
+// Prepares `frame` for Tracker::Track with the same options as the tracker. Never null: a frame
+// that cannot be tracked carries the reason, and Track reports it as lost.
+std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& frame,
+                                                  const OdometryOptions& options);
+
 // One visit's camera, frame after frame. Thread-compatible: call from one thread (or under a
 // lock), frames in order.
 class Tracker {
@@ -62,9 +73,10 @@ class Tracker {
   // plans assume z up, and a robot's camera starts level (see docs/API.md).
   static Pose FirstPose();
 
-  // Tracks a decoded frame (depth metres, colour BGR). A frame without any usable depth is
-  // lost, with the reason.
-  TrackedPose Track(const RgbdFrame& frame);
+  // Tracks a decoded frame (depth metres, colour BGR), prepared here unless `prepared` (from
+  // PrepareForTracking for this frame) is given. A frame without any usable depth is lost, with
+  // the reason.
+  TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr);
 
   // Makes the last frame tracked (not lost) the reference that later frames are aligned to:
   // call when it became a keyframe. Nothing when the last frame was lost.
