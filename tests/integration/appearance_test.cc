@@ -12,27 +12,8 @@ namespace {
 
 using testing::ServerTest;
 
-struct TumFrames {
-  std::vector<v1::Frame> frames;  // without poses: appearance does not need them
-  std::vector<std::optional<Pose>> truth;
-};
-
-TumFrames ReadTum(const std::string& dir) {
-  TumFrames out;
-  auto seq = io::ReadTumSequence(dir);
-  EXPECT_TRUE(seq.ok()) << seq.status();
-  if (!seq.ok()) return out;
-  v1::CameraIntrinsics k;
-  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
-  uint64_t sequence = 0;
-  for (const auto& e : seq->frames) {
-    auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, sequence++);
-    EXPECT_TRUE(f.ok()) << f.status();
-    out.frames.push_back(*f);
-    out.truth.push_back(e.T_world_camera);
-  }
-  return out;
-}
+using testing::ReadTumFrames;
+using testing::TumFrames;
 
 std::vector<v1::PlaceMatch> AppearanceMatches(const v1::FrameResult& r) {
   std::vector<v1::PlaceMatch> out;
@@ -82,8 +63,8 @@ TEST_F(AppearanceTest, ALaterVisitRecognisesStoredKeyframesWithTheirPoseAndAnoth
   const std::string xyz_dir = lifemap::testing::SharedDataset("tum_fr1_xyz_subset");
   const std::string desk_dir = lifemap::testing::SharedDataset("tum_fr1_desk_subset");
   if (xyz_dir.empty() || desk_dir.empty()) GTEST_SKIP() << "../shared/data TUM fr1 subsets absent";
-  const TumFrames xyz = ReadTum(xyz_dir);
-  const TumFrames desk = ReadTum(desk_dir);
+  const TumFrames xyz = ReadTumFrames(xyz_dir);
+  const TumFrames desk = ReadTumFrames(desk_dir);
   ASSERT_GE(xyz.frames.size(), 30u);
   ASSERT_TRUE(client_->CreateMap("office", "").ok());
 
@@ -201,7 +182,7 @@ TEST_F(AppearanceTest, WithEntropyMasksDisabledKeyframesKeepEveryFeature) {
   server::ServerConfig config;
   config.pipeline.entropy_masks = false;
   StartServer(config);
-  const TumFrames xyz = ReadTum(xyz_dir);
+  const TumFrames xyz = ReadTumFrames(xyz_dir);
   ASSERT_TRUE(client_->CreateMap("plain", "").ok());
   const auto results = Send("plain", {xyz.frames[0], xyz.frames[10]}, std::nullopt);
   ASSERT_EQ(results.size(), 2u);

@@ -24,6 +24,30 @@ inline absl::StatusOr<v1::Frame> FirstTumFrame(const std::string& dir) {
   return client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, 0);
 }
 
+// A TUM fr1 recording's frames as a robot without localisation sends them (fr1 calibration,
+// PNG bytes as on disk, no pose; sequence numbers from 0), and each frame's ground truth.
+struct TumFrames {
+  std::vector<v1::Frame> frames;
+  std::vector<std::optional<Pose>> truth;
+};
+inline TumFrames ReadTumFrames(const std::string& dir) {
+  TumFrames out;
+  auto seq = io::ReadTumSequence(dir);
+  EXPECT_TRUE(seq.ok()) << seq.status();
+  if (!seq.ok()) return out;
+  v1::CameraIntrinsics k;
+  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
+  uint64_t sequence = 0;
+  for (const auto& e : seq->frames) {
+    auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, sequence++);
+    EXPECT_TRUE(f.ok()) << f.status();
+    if (!f.ok()) continue;
+    out.frames.push_back(*f);
+    out.truth.push_back(e.T_world_camera);
+  }
+  return out;
+}
+
 class ServerTest : public ::testing::Test {
  protected:
   // Starts a server on the fixture's database, stopping the running one first (one server

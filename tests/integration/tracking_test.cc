@@ -9,6 +9,7 @@
 #include "core/common/image_codec.h"
 #include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
+#include "server/convert.h"
 #include "tests/integration/server_fixture.h"
 #include "tests/testing/test_util.h"
 
@@ -17,14 +18,10 @@ namespace {
 
 using testing::ServerTest;
 
-Pose FromProto(const v1::Pose& p) {
-  return *Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
-}
-
 TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRegained) {
   LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
-  auto seq = io::ReadTumSequence(dir);
-  ASSERT_TRUE(seq.ok()) << seq.status();
+  const testing::TumFrames tum = testing::ReadTumFrames(dir);
+  ASSERT_FALSE(tum.frames.empty());
   ASSERT_TRUE(client_->CreateMap("office", "").ok());
   v1::StreamStart start;
   start.set_map("office");
@@ -32,15 +29,11 @@ TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRe
   ASSERT_TRUE(stream.ok()) << stream.status();
   constexpr size_t kBlind = 12;  // this frame's depth is all "no reading"
   const std::string no_depth = *EncodeDepthPng16(cv::Mat(480, 640, CV_32FC1, 0.0f), 5000.0);
-  v1::CameraIntrinsics k;
-  k.set_fx(517.3), k.set_fy(516.5), k.set_cx(318.6), k.set_cy(255.3);
   std::thread sender([&] {
-    for (size_t i = 0; i < seq->frames.size(); ++i) {
-      const auto& e = seq->frames[i];
-      auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, i);
-      ASSERT_TRUE(f.ok()) << f.status();
-      if (i == kBlind) f->mutable_depth()->set_data(no_depth);
-      ASSERT_TRUE((*stream)->Send(*f));
+    for (size_t i = 0; i < tum.frames.size(); ++i) {
+      v1::Frame f = tum.frames[i];
+      if (i == kBlind) f.mutable_depth()->set_data(no_depth);
+      ASSERT_TRUE((*stream)->Send(f));
     }
     (*stream)->CloseSend();
   });
@@ -49,7 +42,7 @@ TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRe
   while ((*stream)->Receive(&r)) results.push_back(r);
   sender.join();
   ASSERT_TRUE((*stream)->Finish().ok());
-  ASSERT_EQ(results.size(), seq->frames.size());
+  ASSERT_EQ(results.size(), tum.frames.size());
 
   std::vector<eval::TimedPose> estimate, truth;
   std::map<uint64_t, Pose> keyframe_pose;
@@ -75,8 +68,8 @@ TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRe
                                                         : v1::TRACKING_OK)
         << i << ": " << res.tracking().reason();
     ASSERT_EQ(res.pose_source(), v1::POSE_SOURCE_ESTIMATED) << i;
-    estimate.push_back({res.timestamp_s(), FromProto(res.pose())});
-    truth.push_back({seq->frames[i].timestamp_s, *seq->frames[i].T_world_camera});
+    estimate.push_back({res.timestamp_s(), *server::PoseFromProto(res.pose())});
+    truth.push_back({tum.frames[i].timestamp_s(), *tum.truth[i]});
     if (res.keyframe().committed())
       keyframe_pose[res.keyframe().keyframe_id()] = estimate.back().pose;
   }
