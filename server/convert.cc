@@ -168,6 +168,17 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
   out->set_sequence(k.sequence);
   out->set_timestamp_s(k.timestamp_s);
   if (k.T_world_camera) PoseToProto(*k.T_world_camera, out->mutable_pose());
+  switch (k.pose_source) {
+    case store::StoredPoseSource::kClient:
+      out->set_pose_source(v1::POSE_SOURCE_CLIENT);
+      break;
+    case store::StoredPoseSource::kEstimated:
+      out->set_pose_source(v1::POSE_SOURCE_ESTIMATED);
+      break;
+    case store::StoredPoseSource::kNone:
+      out->set_pose_source(v1::POSE_SOURCE_NONE);
+      break;
+  }
   IntrinsicsToProto(k.intrinsics, out->mutable_intrinsics());
   out->set_color_bytes(static_cast<uint32_t>(k.color_bytes));
   out->set_depth_bytes(static_cast<uint32_t>(k.depth_bytes));

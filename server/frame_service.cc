@@ -54,6 +54,10 @@ absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
   k.sequence = decoded.sequence;
   k.timestamp_s = decoded.timestamp_s;
   k.T_world_camera = decoded.T_world_camera;
+  // Decoded without a pose from the client: any pose now is the server's estimate.
+  k.pose_source = !decoded.T_world_camera ? store::StoredPoseSource::kNone
+                  : frame.has_pose()      ? store::StoredPoseSource::kClient
+                                          : store::StoredPoseSource::kEstimated;
   k.intrinsics = decoded.intrinsics;
   k.depth_encoding = store::StoredDepthEncoding::kPaletted;
   switch (frame.depth().encoding()) {

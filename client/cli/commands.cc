@@ -345,16 +345,19 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
       return RunCall<v1::ListKeyframesResponse>(
           *ctx, [&](client::Client& c) { return c.ListKeyframes(*map, *visit); },
           [](const v1::ListKeyframesResponse& r) {
-            std::cout << absl::StrFormat("%8s %6s %8s %18s %28s %10s\n", "ID", "VISIT", "SEQ",
-                                         "TIMESTAMP", "POSITION (m)", "BYTES");
+            std::cout << absl::StrFormat("%8s %6s %8s %18s %28s %-9s %10s\n", "ID", "VISIT", "SEQ",
+                                         "TIMESTAMP", "POSITION (m)", "POSE", "BYTES");
             for (const auto& k : r.keyframes()) {
               const std::string position = k.has_pose()
                                                ? absl::StrFormat("%8.3f %8.3f %8.3f", k.pose().tx(),
                                                                  k.pose().ty(), k.pose().tz())
                                                : std::string("-");
-              std::cout << absl::StrFormat("%8d %6d %8d %18.6f %28s %10s\n", k.id(), k.visit_id(),
-                                           k.sequence(), k.timestamp_s(), position,
-                                           HumanBytes(k.color_bytes() + k.depth_bytes()));
+              const char* source = k.pose_source() == v1::POSE_SOURCE_ESTIMATED ? "estimated"
+                                   : k.pose_source() == v1::POSE_SOURCE_CLIENT  ? "client"
+                                                                                : "-";
+              std::cout << absl::StrFormat("%8d %6d %8d %18.6f %28s %-9s %10s\n", k.id(),
+                                           k.visit_id(), k.sequence(), k.timestamp_s(), position,
+                                           source, HumanBytes(k.color_bytes() + k.depth_bytes()));
             }
             std::cout << r.keyframes_size() << " keyframes\n";
           });

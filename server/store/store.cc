@@ -207,6 +207,13 @@ ALTER TABLE keyframe_images RENAME COLUMN depth_png TO depth;
 ALTER TABLE maps ADD COLUMN keep_original_color INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE keyframe_features ADD COLUMN record_format INTEGER NOT NULL DEFAULT 1;
 )sql",
+    // 7 -> 8: where a keyframe's pose came from (issue 15: the server tracks frames sent
+    // without one): 0 none, 1 the client, 2 the server's odometry. Earlier poses were the
+    // client's.
+    R"sql(
+ALTER TABLE keyframes ADD COLUMN pose_source INTEGER NOT NULL DEFAULT 1;
+UPDATE keyframes SET pose_source = 0 WHERE has_pose = 0;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -214,8 +221,8 @@ static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVers
 constexpr char kKeyframeColumns[] =
     "k.id, k.visit_id, k.sequence, k.timestamp_s, k.has_pose, k.tx, k.ty, k.tz, k.qx, k.qy, "
     "k.qz, k.qw, k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale, k.color_encoding, "
-    "k.depth_bytes, k.color_bytes, k.depth_encoding";
-constexpr int kKeyframeColumnCount = 23;
+    "k.depth_bytes, k.color_bytes, k.depth_encoding, k.pose_source";
+constexpr int kKeyframeColumnCount = 24;
 
 // Superjut records: int32 id, int32 size_px, float32 entropy, planarity, horizontality,
 // textureness, neg_entropy (28 bytes). Keypoints: float32 x, y, size, angle, response (20 bytes).
@@ -326,6 +333,8 @@ KeyframeRecord ReadKeyframe(const Statement& s) {
   k.depth_bytes = s.ColumnInt(20);
   k.color_bytes = s.ColumnInt(21);
   k.depth_encoding = static_cast<StoredDepthEncoding>(s.ColumnInt(22));
+  k.pose_source =
+      k.T_world_camera ? static_cast<StoredPoseSource>(s.ColumnInt(23)) : StoredPoseSource::kNone;
   return k;
 }
 
@@ -747,8 +756,8 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   auto insert = db->Prepare(
       "INSERT INTO keyframes (visit_id, sequence, timestamp_s, has_pose, tx, ty, tz, qx, qy, qz, "
       "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes, "
-      "depth_encoding) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, "
-      "?16, ?17, ?18, ?19, ?20, ?21, ?22)");
+      "depth_encoding, pose_source) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
+      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23)");
   if (!insert.ok()) return insert.status();
   auto insert_images =
       db->Prepare("INSERT INTO keyframe_images (keyframe_id, depth, color) VALUES (?1, ?2, ?3)");
@@ -791,6 +800,7 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       k.color_bytes = static_cast<int64_t>(k.color.size());
       s->Bind(20, k.depth_bytes).Bind(21, k.color_bytes);
       s->Bind(22, static_cast<int64_t>(k.depth_encoding));
+      s->Bind(23, static_cast<int64_t>(k.T_world_camera ? k.pose_source : StoredPoseSource::kNone));
       if (auto st = s->Run(); !st.ok()) return st;
     }
     k.id = db->LastInsertRowId();

@@ -84,12 +84,16 @@ struct KeyframeFeatureCounts {
   int keypoints_masked = 0;
 };
 
+// Where a stored keyframe's pose came from (keyframes.pose_source).
+enum class StoredPoseSource { kNone = 0, kClient = 1, kEstimated = 2 };
+
 struct KeyframeRecord {
   int64_t id = 0;  // assigned by InsertKeyframes
   int64_t visit_id = 0;
   uint64_t sequence = 0;
   double timestamp_s = 0.0;
   std::optional<Pose> T_world_camera;
+  StoredPoseSource pose_source = StoredPoseSource::kClient;  // kNone without a pose
   CameraIntrinsics intrinsics;
   double depth_scale = 0.0;  // units per metre of `depth`'s uint16 values
   StoredDepthEncoding depth_encoding = StoredDepthEncoding::kPaletted;
@@ -178,7 +182,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 7;
+  static constexpr int kSchemaVersion = 8;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 

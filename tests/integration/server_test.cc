@@ -88,6 +88,7 @@ TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
     const auto& e = seq->frames[summary.sequence()];
     EXPECT_EQ(keyframe_by_sequence[summary.sequence()], summary.id());
     ASSERT_TRUE(summary.has_pose());
+    EXPECT_EQ(summary.pose_source(), v1::POSE_SOURCE_CLIENT);
     EXPECT_NEAR(summary.pose().tx(), e.T_world_camera->translation.x(), 1e-9);
     EXPECT_NEAR(summary.pose().qw(), e.T_world_camera->rotation.w(), 1e-9);
     EXPECT_DOUBLE_EQ(summary.timestamp_s(), e.timestamp_s);

@@ -83,6 +83,7 @@ TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRe
   ASSERT_EQ(static_cast<size_t>(listed->keyframes_size()), keyframe_pose.size());
   for (const auto& kf : listed->keyframes()) {
     ASSERT_TRUE(kf.has_pose());
+    EXPECT_EQ(kf.pose_source(), v1::POSE_SOURCE_ESTIMATED);
     EXPECT_NEAR(kf.pose().tx(), keyframe_pose[kf.id()].translation.x(), 1e-9);
   }
 }

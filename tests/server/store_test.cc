@@ -64,20 +64,25 @@ TEST_F(StoreTest, KeyframesRoundTripWithPosesAndImages) {
   ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
   auto visit = store_->StartVisit("m", "robot-1", "morning", 50.0);
   ASSERT_TRUE(visit.ok());
-  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 2.0), Keyframe(visit->id, 1.0, false)};
+  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 2.0), Keyframe(visit->id, 1.0, false),
+                                       Keyframe(visit->id, 3.0)};
+  batch[2].pose_source = StoredPoseSource::kEstimated;
   ASSERT_TRUE(store_->InsertKeyframes(&batch, {{visit->id, 17}}).ok());
   EXPECT_GT(batch[0].id, 0);
   EXPECT_GT(batch[1].id, batch[0].id);
 
   auto map = store_->GetMap("m");
   ASSERT_TRUE(map.ok());
-  EXPECT_EQ(map->keyframe_count, 2);
+  EXPECT_EQ(map->keyframe_count, 3);
   EXPECT_EQ(map->visit_count, 1);
   auto list = store_->ListKeyframes(map->id, 0);
   ASSERT_TRUE(list.ok());
-  ASSERT_EQ(list->size(), 2u);
+  ASSERT_EQ(list->size(), 3u);
   EXPECT_DOUBLE_EQ((*list)[0].timestamp_s, 1.0) << "time order";
   EXPECT_FALSE((*list)[0].T_world_camera.has_value());
+  EXPECT_EQ((*list)[0].pose_source, StoredPoseSource::kNone);
+  EXPECT_EQ((*list)[1].pose_source, StoredPoseSource::kClient);
+  EXPECT_EQ((*list)[2].pose_source, StoredPoseSource::kEstimated) << "the server's estimate";
   EXPECT_TRUE((*list)[0].depth.empty()) << "listing carries no images";
 
   auto k = store_->GetKeyframe(map->id, batch[0].id);
@@ -90,10 +95,10 @@ TEST_F(StoreTest, KeyframesRoundTripWithPosesAndImages) {
   auto v = store_->GetVisit(visit->id);
   ASSERT_TRUE(v.ok());
   EXPECT_EQ(v->frame_count, 17);
-  EXPECT_EQ(v->keyframe_count, 2);
+  EXPECT_EQ(v->keyframe_count, 3);
   auto last = store_->LastKeyframe(visit->id);
   ASSERT_TRUE(last.ok() && last->has_value());
-  EXPECT_DOUBLE_EQ((*last)->timestamp_s, 2.0);
+  EXPECT_DOUBLE_EQ((*last)->timestamp_s, 3.0);
 }
 
 TEST_F(StoreTest, KeyframeOfDeletedVisitIsNotFoundAndWritesNothing) {
@@ -379,6 +384,7 @@ PRAGMA user_version = 1;
   ASSERT_TRUE(k.ok()) << k.status();
   EXPECT_EQ(k->depth, "dep");
   EXPECT_EQ(k->depth_encoding, StoredDepthEncoding::kPng16) << "stored before RVL: PNG-16";
+  EXPECT_EQ(k->pose_source, StoredPoseSource::kNone) << "stored without a pose";
   EXPECT_FALSE(map->keep_original_color);
   EXPECT_FALSE(k->features.has_value());
   auto problems = (*store)->CheckIntegrity();
