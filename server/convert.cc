@@ -123,6 +123,16 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
     if (!pose.ok()) return prefixed(pose.status(), "pose");
     out.T_world_camera = *pose;
   }
+  if (frame.has_gravity()) {
+    const Eigen::Vector3d g(frame.gravity().x(), frame.gravity().y(), frame.gravity().z());
+    if (!g.allFinite() || !(g.norm() > 1e-6) || g.norm() > 1e6) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "frame.gravity must be a finite, non-zero vector (gravity in the camera frame, e.g. an "
+          "IMU's accelerometer at rest; any length up to 1e6), got (",
+          g.x(), ", ", g.y(), ", ", g.z(), ")"));
+    }
+    out.gravity_camera = g.normalized();
+  }
   return out;
 }
 

@@ -73,6 +73,7 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decod
   out.timestamp_s = in.timestamp_s;
   out.intrinsics = in.intrinsics;
   out.T_world_camera = in.T_world_camera;
+  out.gravity_camera = in.gravity_camera;
   auto d = DecodeDepthMetres(depth, limits.depth_range);
   if (!d.ok()) return d.status();
   out.depth_m = *std::move(d);

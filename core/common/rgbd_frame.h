@@ -20,6 +20,9 @@ struct EncodedRgbdFrame {
   EncodedDepth depth;
   EncodedColor color;
   std::optional<Pose> T_world_camera;  // from the client, already validated
+  // Gravity in the camera frame, unit length (an IMU's reading, normalised), when the client
+  // sent one.
+  std::optional<Eigen::Vector3d> gravity_camera;
 };
 
 // A decoded frame. depth_m is CV_32FC1 metres (0 = no reading); color_bgr CV_8UC3; both of the
@@ -31,6 +34,7 @@ struct RgbdFrame {
   cv::Mat depth_m;
   cv::Mat color_bgr;
   std::optional<Pose> T_world_camera;
+  std::optional<Eigen::Vector3d> gravity_camera;  // unit length, when the client sent it
 };
 
 // What a frame may hold (config section `frames`).

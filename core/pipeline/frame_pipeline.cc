@@ -73,7 +73,9 @@ absl::Status PipelineOptions::Validate() const {
 }
 
 Eigen::Vector3f UpInCamera(const std::optional<Pose>& T_world_camera,
-                           const Eigen::Vector3f& world_up) {
+                           const Eigen::Vector3f& world_up,
+                           const std::optional<Eigen::Vector3d>& gravity_camera) {
+  if (!T_world_camera && gravity_camera) return (-*gravity_camera).normalized().cast<float>();
   if (!T_world_camera) return Eigen::Vector3f(0, -1, 0);
   // R_world_camera^T maps world directions into the camera frame.
   return (T_world_camera->rotation.conjugate().cast<float>() * world_up).normalized();
@@ -87,9 +89,9 @@ void FramePipeline::ComputeEntropy(FrameAnalysis* analysis, const FrameRequest& 
   entropy::EntropyMaskOptions options = options_.entropy;
   if (request.entropy_threshold) options.threshold = *request.entropy_threshold;
   const RgbdFrame& f = analysis->frame;
-  auto result =
-      entropy::ComputeEntropyMask(f.depth_m, f.color_bgr, f.intrinsics,
-                                  UpInCamera(f.T_world_camera, options_.world_up), options);
+  auto result = entropy::ComputeEntropyMask(
+      f.depth_m, f.color_bgr, f.intrinsics,
+      UpInCamera(f.T_world_camera, options_.world_up, f.gravity_camera), options);
   if (result.ok()) {
     analysis->entropy = *std::move(result);
     analysis->entropy_status = absl::OkStatus();

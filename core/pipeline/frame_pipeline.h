@@ -92,9 +92,10 @@ class FramePipeline {
   PipelineOptions options_;
 };
 
-// The unit up direction in the camera frame: from T_world_camera when known, else the image's
-// up (-y).
+// The unit up direction in the camera frame: from T_world_camera when known, else against the
+// frame's gravity (an IMU's), else the image's up (-y).
 Eigen::Vector3f UpInCamera(const std::optional<Pose>& T_world_camera,
-                           const Eigen::Vector3f& world_up);
+                           const Eigen::Vector3f& world_up,
+                           const std::optional<Eigen::Vector3d>& gravity_camera = std::nullopt);
 
 }  // namespace lifemap::pipeline

@@ -150,14 +150,21 @@ Tracker::~Tracker() = default;
 Tracker::Tracker(Tracker&&) noexcept = default;
 Tracker& Tracker::operator=(Tracker&&) noexcept = default;
 
-Pose Tracker::FirstPose() {
-  Eigen::Matrix3d R;
-  // Columns: the camera's x (right), y (down), z (forward) in the world (x forward, z up).
-  R << 0, 0, 1,  //
-      -1, 0, 0,  //
-      0, -1, 0;
+Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
+  // The world's axes in camera coordinates: z against gravity, x the camera's forward made
+  // horizontal (its right, turned, when it looks straight up or down), y = z × x.
+  const Eigen::Vector3d up = gravity_camera && gravity_camera->norm() > 0
+                                 ? Eigen::Vector3d(-gravity_camera->normalized())
+                                 : Eigen::Vector3d(0, -1, 0);
+  Eigen::Vector3d forward = Eigen::Vector3d::UnitZ() - up.z() * up;
+  if (forward.norm() < 1e-6) forward = Eigen::Vector3d::UnitX() - up.x() * up;
+  forward.normalize();
+  Eigen::Matrix3d R;  // rows: the world's x, y, z axes in the camera frame
+  R.row(0) = forward;
+  R.row(1) = up.cross(forward);
+  R.row(2) = up;
   Pose p;
-  p.rotation = Eigen::Quaterniond(R);
+  p.rotation = Eigen::Quaterniond(R).normalized();
   return p;
 }
 
@@ -189,7 +196,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     // The visit's first trackable frame defines its frame.
     m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
     m.reference = current;
-    m.T_world_reference = FirstPose().ToIsometry();
+    m.T_world_reference = FirstPose(frame.gravity_camera).ToIsometry();
     m.last = current;
     m.T_reference_last = Eigen::Isometry3d::Identity();
     m.last_tracked = true;

@@ -68,10 +68,11 @@ class Tracker {
   Tracker(Tracker&&) noexcept;
   Tracker& operator=(Tracker&&) noexcept;
 
-  // The visit's frame. The first frame of a visit is placed at the origin, level, looking
-  // along +x with z up (world_x = camera z, world_y = -camera x, world_z = -camera y): floor
-  // plans assume z up, and a robot's camera starts level (see docs/API.md).
-  static Pose FirstPose();
+  // The visit's frame. The first frame of a visit is placed at the origin looking along +x
+  // (its forward direction made horizontal) with z up: against `gravity_camera` (unit, camera
+  // frame) when the frame has it, else the camera is taken as level (world_x = camera z,
+  // world_y = -camera x, world_z = -camera y). Floor plans assume z up (docs/API.md).
+  static Pose FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera = std::nullopt);
 
   // Tracks a decoded frame (depth metres, colour BGR), prepared here unless `prepared` (from
   // PrepareForTracking for this frame) is given. A frame without any usable depth is lost, with

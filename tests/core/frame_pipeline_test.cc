@@ -58,6 +58,21 @@ float ExtremeFloat(std::mt19937* rng) {
   }
 }
 
+// "Up" for the masks' horizontality: the pose's, else against the IMU's gravity, else the
+// image's up.
+TEST(UpInCamera, ComesFromThePoseThenGravityThenTheImage) {
+  const Eigen::Vector3f z = Eigen::Vector3f::UnitZ();
+  EXPECT_TRUE(pipeline::UpInCamera(std::nullopt, z).isApprox(Eigen::Vector3f(0, -1, 0)));
+  const Eigen::Vector3d gravity(0.0, 3.0, 4.0);  // any length
+  EXPECT_TRUE(
+      pipeline::UpInCamera(std::nullopt, z, gravity).isApprox(Eigen::Vector3f(0, -0.6f, -0.8f)));
+  Pose level;  // camera z forward along world x, y down: up is -y whatever the IMU says
+  Eigen::Matrix3d R;
+  R << 0, 0, 1, -1, 0, 0, 0, -1, 0;
+  level.rotation = Eigen::Quaterniond(R);
+  EXPECT_TRUE(pipeline::UpInCamera(level, z, gravity).isApprox(Eigen::Vector3f(0, -1, 0)));
+}
+
 TEST(FramePipeline, ExtremeButFiniteFramesGiveAResultOrAStatusNeverACrash) {
   const forest::Forest labeller = FarReachingForest();
   std::mt19937 rng(12);

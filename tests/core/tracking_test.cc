@@ -45,6 +45,31 @@ TEST(CompareTrajectories, ARigidlyMovedCopyHasNoErrorAndNoiseShowsAsAte) {
   EXPECT_TRUE(absl::IsInvalidArgument(eval::CompareTrajectories(late, truth).status()));
 }
 
+// A camera pitched 30° down at the floor, with gravity from its IMU: the visit's frame is level
+// anyway (z against gravity) and looks along +x, 30° down.
+TEST(Tracker, TheFirstPoseIsLevelledByGravity) {
+  const double pitch = 30.0 * M_PI / 180.0;
+  const Eigen::Vector3d gravity(0.0, std::cos(pitch), std::sin(pitch));
+  const Eigen::Matrix3d R =
+      tracking::Tracker::FirstPose(gravity * 9.81).rotation.toRotationMatrix();
+  EXPECT_NEAR((R * -gravity - Eigen::Vector3d::UnitZ()).norm(), 0.0, 1e-9) << "up is world z";
+  const Eigen::Vector3d forward = R * Eigen::Vector3d::UnitZ();
+  EXPECT_NEAR(forward.x(), std::cos(pitch), 1e-9);
+  EXPECT_NEAR(forward.y(), 0.0, 1e-9);
+  EXPECT_NEAR(forward.z(), -std::sin(pitch), 1e-9);
+  EXPECT_NEAR(R.determinant(), 1.0, 1e-9);
+  // Without gravity the camera is taken as level: the same as a level IMU.
+  const Eigen::Matrix3d level = tracking::Tracker::FirstPose().rotation.toRotationMatrix();
+  const Eigen::Matrix3d level_imu =
+      tracking::Tracker::FirstPose(Eigen::Vector3d(0, 1, 0)).rotation.toRotationMatrix();
+  EXPECT_NEAR((level - level_imu).norm(), 0.0, 1e-12);
+  // Looking straight down, the camera's up-image direction is taken as forward: still a rotation.
+  const Eigen::Matrix3d down =
+      tracking::Tracker::FirstPose(Eigen::Vector3d(0, 0, 1)).rotation.toRotationMatrix();
+  EXPECT_NEAR(down.determinant(), 1.0, 1e-9);
+  EXPECT_NEAR((down * Eigen::Vector3d(0, 0, -1) - Eigen::Vector3d::UnitZ()).norm(), 0.0, 1e-9);
+}
+
 TEST(OdometryOptions, RefusesValuesOutOfRange) {
   tracking::OdometryOptions o;
   EXPECT_TRUE(o.Validate().ok());

@@ -88,5 +88,33 @@ TEST_F(ServerTest, AStreamWithoutPosesIsTrackedAndAFrameWithoutDepthIsLostThenRe
   }
 }
 
+// Gravity from the robot's IMU levels a tracked visit; a zero-length one is refused, naming it.
+TEST_F(ServerTest, GravityLevelsATrackedVisitAndAZeroVectorIsRefused) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto frame = testing::FirstTumFrame(dir);
+  ASSERT_TRUE(frame.ok()) << frame.status();
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::ProcessFrameRequest req;
+  req.set_map("m");
+  *req.mutable_frame() = *frame;
+  req.mutable_frame()->mutable_gravity()->set_y(0.5 * 9.81);  // pitched 60 degrees down
+  req.mutable_frame()->mutable_gravity()->set_z(std::sqrt(0.75) * 9.81);
+  auto r = client_->ProcessFrame(req);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->tracking().state(), v1::TRACKING_STARTED);
+  ASSERT_EQ(r->pose_source(), v1::POSE_SOURCE_ESTIMATED);
+  const Pose pose = *server::PoseFromProto(r->pose());
+  const Eigen::Vector3d forward = pose.rotation * Eigen::Vector3d::UnitZ();
+  EXPECT_NEAR(forward.z(), -std::sqrt(0.75), 1e-6) << "the camera looks 60 degrees down";
+  EXPECT_NEAR(forward.y(), 0.0, 1e-6);
+
+  req.mutable_frame()->mutable_gravity()->Clear();
+  req.mutable_frame()->mutable_gravity()->set_x(0.0);
+  req.mutable_frame()->set_timestamp_s(frame->timestamp_s() + 1);
+  auto zero = client_->ProcessFrame(req);
+  EXPECT_TRUE(absl::IsInvalidArgument(zero.status())) << zero.status();
+  EXPECT_NE(zero.status().message().find("frame.gravity"), std::string::npos) << zero.status();
+}
+
 }  // namespace
 }  // namespace lifemap
