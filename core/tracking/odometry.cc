@@ -7,6 +7,7 @@
 #include <opencv2/rgbd.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 
 namespace lifemap::tracking {
 namespace {
@@ -141,6 +142,7 @@ struct Tracker::Impl {
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
   bool last_tracked = false;
   int lost_frames = 0;
+  double last_timestamp_s = 0.0;  // of the last frame tracked or lost
 };
 
 Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
@@ -180,6 +182,16 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     out.lost_frames = ++m.lost_frames;
     return out;
   };
+  if (m.reference != nullptr && !(frame.timestamp_s > m.last_timestamp_s)) {
+    // A frame from the past (reordered or replayed) is not tracked, and changes nothing.
+    out.state = TrackingState::kLost;
+    out.lost_frames = m.lost_frames;
+    out.reason = absl::StrFormat(
+        "the frame's time %.6f s is not after the last tracked frame's %.6f s: not tracked",
+        frame.timestamp_s, m.last_timestamp_s);
+    return out;
+  }
+  m.last_timestamp_s = frame.timestamp_s;
   const CameraIntrinsics& k = frame.intrinsics;
   if (m.odometry == nullptr || !SameCamera(k, m.intrinsics)) {
     if (m.reference != nullptr) return lose("the camera's intrinsics changed within the visit");

@@ -76,7 +76,8 @@ class Tracker {
 
   // Tracks a decoded frame (depth metres, colour BGR), prepared here unless `prepared` (from
   // PrepareForTracking for this frame) is given. A frame without any usable depth is lost, with
-  // the reason.
+  // the reason; a frame whose time is not after the last one's is not tracked and changes
+  // nothing (reported lost, with the reason).
   TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr);
 
   // Makes the last frame tracked (not lost) the reference that later frames are aligned to:

@@ -168,12 +168,19 @@ TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {
   EXPECT_NEAR(R(2, 1), -1.0, 1e-12);
 
   RgbdFrame empty = *second;
+  empty.timestamp_s = 0.5 * (first->timestamp_s + second->timestamp_s);         // between the two
   empty.depth_m = cv::Mat(second->depth_m.size(), CV_32FC1, cv::Scalar(0.0f));  // a new buffer
   const auto lost = tracker.Track(empty);
   EXPECT_EQ(lost.state, tracking::TrackingState::kLost);
   EXPECT_FALSE(lost.T_world_camera);
   EXPECT_NE(lost.reason.find("too little depth"), std::string::npos) << lost.reason;
   EXPECT_EQ(lost.lost_frames, 1);
+  RgbdFrame past = *first;
+  past.timestamp_s -= 1.0;
+  const auto reordered = tracker.Track(past);
+  EXPECT_EQ(reordered.state, tracking::TrackingState::kLost);
+  EXPECT_NE(reordered.reason.find("not after the last tracked frame"), std::string::npos)
+      << reordered.reason;
   const auto back = tracker.Track(*second);
   EXPECT_EQ(back.state, tracking::TrackingState::kRegained) << back.reason;
   ASSERT_TRUE(back.T_world_camera);
