@@ -185,6 +185,9 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
     case store::StoredPoseSource::kEstimated:
       out->set_pose_source(v1::POSE_SOURCE_ESTIMATED);
       break;
+    case store::StoredPoseSource::kRefined:
+      out->set_pose_source(v1::POSE_SOURCE_REFINED);
+      break;
     case store::StoredPoseSource::kNone:
       out->set_pose_source(v1::POSE_SOURCE_NONE);
       break;

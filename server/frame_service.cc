@@ -53,11 +53,7 @@ absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const v1::Frame& frame,
   k.visit_id = visit_id;
   k.sequence = decoded.sequence;
   k.timestamp_s = decoded.timestamp_s;
-  k.T_world_camera = decoded.T_world_camera;
-  // Decoded without a pose from the client: any pose now is the server's estimate.
-  k.pose_source = !decoded.T_world_camera ? store::StoredPoseSource::kNone
-                  : frame.has_pose()      ? store::StoredPoseSource::kClient
-                                          : store::StoredPoseSource::kEstimated;
+  k.T_world_camera = decoded.T_world_camera;  // pose_source: set by the caller
   k.intrinsics = decoded.intrinsics;
   k.depth_encoding = store::StoredDepthEncoding::kPaletted;
   switch (frame.depth().encoding()) {
@@ -147,6 +143,7 @@ struct FrameSettings {
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
   v1::ResultImages result_images = kDefaultResultImages;
   bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
+  bool refine_pose = false;  // FrameOptions.refine_pose: client poses refined by the tracker
 };
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
@@ -271,7 +268,7 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   }
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
-  if (map_id != 0 && !f.T_world_camera) {
+  if (map_id != 0 && (!f.T_world_camera || settings.refine_pose)) {
     // What tracking needs of the frame alone, made here beside other frames' analyses; the
     // visit's tracker then only aligns it, in order.
     a.tracking_input = tracking::PrepareForTracking(f, tracking::OdometryOptions{});
@@ -303,18 +300,20 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   }
   absl::MutexLock placing(&visit->place_mu);
   RgbdFrame& f = a.analysis->frame;
-  if (!f.T_world_camera) {
-    // No client pose: the server tracks the camera (issue 15); the estimate then stands for
-    // the pose in keyframe selection, storage and the floor plan.
+  if (!f.T_world_camera || settings.refine_pose) {
+    // No client pose (or one to refine): the server tracks the camera (issue 15); the estimate
+    // then stands for the pose in keyframe selection, storage and the floor plan. A client pose
+    // that cannot be refined is kept as it came.
     const auto track_start = Clock::now();
-    const tracking::TrackedPose tracked = visit->tracker.Track(f, a.tracking_input);
+    const tracking::TrackedPose tracked =
+        visit->tracker.Track(f, a.tracking_input, f.T_world_camera);
     auto* t = r.mutable_tracking();
     t->set_track_ms(MsBetween(track_start, Clock::now()));
     t->set_state(TrackingStateToProto(tracked.state));
     t->set_lost_frames(static_cast<uint32_t>(tracked.lost_frames));
     if (tracked.T_world_camera) {
+      r.set_pose_source(f.T_world_camera ? v1::POSE_SOURCE_REFINED : v1::POSE_SOURCE_ESTIMATED);
       f.T_world_camera = tracked.T_world_camera;
-      r.set_pose_source(v1::POSE_SOURCE_ESTIMATED);
       PoseToProto(*f.T_world_camera, r.mutable_pose());
     } else {
       t->set_reason(tracked.reason);
@@ -322,6 +321,11 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     }
     facts.tracked = tracked.state;
   }
+  const store::StoredPoseSource pose_source =
+      r.pose_source() == v1::POSE_SOURCE_CLIENT      ? store::StoredPoseSource::kClient
+      : r.pose_source() == v1::POSE_SOURCE_ESTIMATED ? store::StoredPoseSource::kEstimated
+      : r.pose_source() == v1::POSE_SOURCE_REFINED   ? store::StoredPoseSource::kRefined
+                                                     : store::StoredPoseSource::kNone;
   // Decided under the visit's lock; the keyframe's features and appearance query run outside it
   // (a visit has one writer and its frames come here one at a time, in order).
   tracking::KeyframeDecision decision;
@@ -365,6 +369,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     tasks.push_back([&] {
       record = MakeKeyframeRecord(a.frame, f, visit->visit_id, a.keep_original_color,
                                   ctx->config.keyframe_color_jpeg_quality);
+      if (record.ok()) record->pose_source = pose_source;
     });
   }
   TaskPool::Shared().RunAll(std::move(tasks));
@@ -387,7 +392,10 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
     // Later frames are aligned to this keyframe (a no-op for posed frames and lost ones).
-    if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) visit->tracker.PromoteLastToReference();
+    if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED ||
+        r.pose_source() == v1::POSE_SOURCE_REFINED) {
+      visit->tracker.PromoteLastToReference();
+    }
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
     if (f.T_world_camera) {
@@ -462,6 +470,7 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
           " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK and FRAME_OUTPUT_CLASS_LABELS can"));
     }
   }
+  settings.refine_pose = o.refine_pose();
   switch (o.result_images()) {
     case v1::RESULT_IMAGES_DEFAULT:
       break;

@@ -172,7 +172,8 @@ Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
 
 bool Tracker::started() const { return impl_->reference != nullptr; }
 
-TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared) {
+TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared,
+                           const std::optional<Pose>& prior) {
   Impl& m = *impl_;
   TrackedPose out;
   auto lose = [&](std::string why) {
@@ -208,7 +209,8 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     // The visit's first trackable frame defines its frame.
     m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
     m.reference = current;
-    m.T_world_reference = FirstPose(frame.gravity_camera).ToIsometry();
+    m.T_world_reference =
+        prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry();
     m.last = current;
     m.T_reference_last = Eigen::Isometry3d::Identity();
     m.last_tracked = true;
@@ -221,7 +223,9 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   // texture-poor synthetic views an alignment that slid along a wall fed the next prediction,
   // and the estimate ran away (sim seed 3, 300 frames: ATE 5.6 m against 6 mm from the last
   // pose; TUM fr1_xyz unchanged; docs/RESULTS.md).
-  const Eigen::Isometry3d& predicted = m.T_reference_last;
+  // A frame with a pose of its own (a client's pose to refine) starts from that instead.
+  const Eigen::Isometry3d predicted =
+      prior ? m.T_world_reference.inverse() * prior->ToIsometry() : m.T_reference_last;
   cv::Mat Rt;
   // src = the current frame, dst = the reference: Rt maps current-camera points into the
   // reference camera, i.e. T_reference_current.

@@ -75,10 +75,13 @@ class Tracker {
   static Pose FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera = std::nullopt);
 
   // Tracks a decoded frame (depth metres, colour BGR), prepared here unless `prepared` (from
-  // PrepareForTracking for this frame) is given. A frame without any usable depth is lost, with
-  // the reason; a frame whose time is not after the last one's is not tracked and changes
-  // nothing (reported lost, with the reason).
-  TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr);
+  // PrepareForTracking for this frame) is given. With a `prior` (a client's pose to refine) that
+  // pose is the starting guess instead of the last tracked one, and on the visit's first frame
+  // it is kept as the visit's frame. The frame's own T_world_camera is not read. A frame without
+  // any usable depth is lost, with the reason; a frame whose time is not after the last one's is
+  // not tracked and changes nothing (reported lost, with the reason).
+  TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr,
+                    const std::optional<Pose>& prior = std::nullopt);
 
   // Makes the last frame tracked (not lost) the reference that later frames are aligned to:
   // call when it became a keyframe. Nothing when the last frame was lost.

@@ -209,7 +209,7 @@ ALTER TABLE keyframe_features ADD COLUMN record_format INTEGER NOT NULL DEFAULT 
 )sql",
     // 7 -> 8: where a keyframe's pose came from (issue 15: the server tracks frames sent
     // without one): 0 none, 1 the client, 2 the server's odometry. Earlier poses were the
-    // client's.
+    // client's. 3: the client's pose refined by the server (FrameOptions.refine_pose).
     R"sql(
 ALTER TABLE keyframes ADD COLUMN pose_source INTEGER NOT NULL DEFAULT 1;
 UPDATE keyframes SET pose_source = 0 WHERE has_pose = 0;

@@ -85,7 +85,7 @@ struct KeyframeFeatureCounts {
 };
 
 // Where a stored keyframe's pose came from (keyframes.pose_source).
-enum class StoredPoseSource { kNone = 0, kClient = 1, kEstimated = 2 };
+enum class StoredPoseSource { kNone = 0, kClient = 1, kEstimated = 2, kRefined = 3 };
 
 struct KeyframeRecord {
   int64_t id = 0;  // assigned by InsertKeyframes

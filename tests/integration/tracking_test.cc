@@ -116,5 +116,53 @@ TEST_F(ServerTest, GravityLevelsATrackedVisitAndAZeroVectorIsRefused) {
   EXPECT_NE(zero.status().message().find("frame.gravity"), std::string::npos) << zero.status();
 }
 
+// A robot whose own poses are noisy asks for them to be refined (FrameOptions.refine_pose):
+// the results say REFINED and lie closer to the ground truth than what was sent.
+TEST_F(ServerTest, ClientPosesAreRefinedWhenAsked) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  const testing::TumFrames tum = testing::ReadTumFrames(dir);
+  ASSERT_FALSE(tum.frames.empty());
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  start.mutable_options()->set_refine_pose(true);
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  std::vector<eval::TimedPose> sent, refined, truth;
+  std::thread sender([&] {
+    for (size_t i = 0; i < tum.frames.size(); ++i) {
+      v1::Frame f = tum.frames[i];
+      Pose noisy = *tum.truth[i];
+      // 2 cm of noise, alternating in sign along each axis: a drifting, jittery odometry.
+      noisy.translation += 0.02 * Eigen::Vector3d(i % 2 ? 1 : -1, i % 3 ? 1 : -1, i % 5 ? -1 : 1);
+      server::PoseToProto(noisy, f.mutable_pose());
+      sent.push_back({f.timestamp_s(), noisy});
+      ASSERT_TRUE((*stream)->Send(f));
+    }
+    (*stream)->CloseSend();
+  });
+  v1::FrameResult r;
+  size_t i = 0;
+  while ((*stream)->Receive(&r)) {
+    ASSERT_FALSE(r.has_error()) << r.error().message();
+    EXPECT_EQ(r.pose_source(), v1::POSE_SOURCE_REFINED) << i << ": " << r.tracking().reason();
+    refined.push_back({r.timestamp_s(), *server::PoseFromProto(r.pose())});
+    truth.push_back({r.timestamp_s(), *tum.truth[i++]});
+  }
+  sender.join();
+  ASSERT_TRUE((*stream)->Finish().ok());
+  ASSERT_EQ(refined.size(), tum.frames.size());
+  auto before = eval::CompareTrajectories(sent, truth);
+  auto after = eval::CompareTrajectories(refined, truth);
+  ASSERT_TRUE(before.ok() && after.ok());
+  std::cerr << "fr1_xyz, 2 cm of pose noise: sent ATE " << before->ate_rmse_m * 1000
+            << " mm, refined " << after->ate_rmse_m * 1000 << " mm\n";
+  EXPECT_LT(after->ate_rmse_m, 0.5 * before->ate_rmse_m)
+      << "refined " << after->ate_rmse_m << " m against " << before->ate_rmse_m << " m sent";
+  auto listed = client_->ListKeyframes("m", 0);
+  ASSERT_TRUE(listed.ok() && listed->keyframes_size() > 0);
+  for (const auto& kf : listed->keyframes()) EXPECT_EQ(kf.pose_source(), v1::POSE_SOURCE_REFINED);
+}
+
 }  // namespace
 }  // namespace lifemap
