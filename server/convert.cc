@@ -178,20 +178,7 @@ void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary*
   out->set_sequence(k.sequence);
   out->set_timestamp_s(k.timestamp_s);
   if (k.T_world_camera) PoseToProto(*k.T_world_camera, out->mutable_pose());
-  switch (k.pose_source) {
-    case store::StoredPoseSource::kClient:
-      out->set_pose_source(v1::POSE_SOURCE_CLIENT);
-      break;
-    case store::StoredPoseSource::kEstimated:
-      out->set_pose_source(v1::POSE_SOURCE_ESTIMATED);
-      break;
-    case store::StoredPoseSource::kRefined:
-      out->set_pose_source(v1::POSE_SOURCE_REFINED);
-      break;
-    case store::StoredPoseSource::kNone:
-      out->set_pose_source(v1::POSE_SOURCE_NONE);
-      break;
-  }
+  out->set_pose_source(StoredPoseSourceToProto(k.pose_source));
   IntrinsicsToProto(k.intrinsics, out->mutable_intrinsics());
   out->set_color_bytes(static_cast<uint32_t>(k.color_bytes));
   out->set_depth_bytes(static_cast<uint32_t>(k.depth_bytes));
@@ -262,6 +249,33 @@ PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* 
   out.score = m.verification.score;
   out.T_match_query = m.verification.T_match_query;
   return out;
+}
+
+store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source) {
+  switch (source) {
+    case v1::POSE_SOURCE_CLIENT:
+      return store::StoredPoseSource::kClient;
+    case v1::POSE_SOURCE_ESTIMATED:
+      return store::StoredPoseSource::kEstimated;
+    case v1::POSE_SOURCE_REFINED:
+      return store::StoredPoseSource::kRefined;
+    default:
+      return store::StoredPoseSource::kNone;
+  }
+}
+
+v1::PoseSource StoredPoseSourceToProto(store::StoredPoseSource source) {
+  switch (source) {
+    case store::StoredPoseSource::kClient:
+      return v1::POSE_SOURCE_CLIENT;
+    case store::StoredPoseSource::kEstimated:
+      return v1::POSE_SOURCE_ESTIMATED;
+    case store::StoredPoseSource::kRefined:
+      return v1::POSE_SOURCE_REFINED;
+    case store::StoredPoseSource::kNone:
+      break;
+  }
+  return v1::POSE_SOURCE_NONE;
 }
 
 v1::TrackingState TrackingStateToProto(tracking::TrackingState state) {

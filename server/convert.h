@@ -33,6 +33,9 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
 absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
 void PoseToProto(const Pose& pose, v1::Pose* out);
 v1::TrackingState TrackingStateToProto(tracking::TrackingState state);
+// A frame result's pose source as the store keeps it, and back (KeyframeSummary).
+store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source);
+v1::PoseSource StoredPoseSourceToProto(store::StoredPoseSource source);
 CameraIntrinsics IntrinsicsFromProto(const v1::CameraIntrinsics& k);
 void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out);
 
@@ -75,15 +78,15 @@ struct OutputFacts {
   // Whether appearance matches were sought for this frame (nullopt: not asked) and, if they
   // could not be, why (an empty list of verified matches is OK: nothing recognised).
   std::optional<absl::Status> appearance;
-  // The client skipped these outputs (FrameOptions.skip_outputs): "not requested", whatever
-  // was computed for the server's own use.
-  // The server's tracking of a frame sent without a pose (unset: a client pose, or no visit).
+  // The server's tracking of a frame (unset: a client pose used as sent, or no visit).
   std::optional<tracking::TrackingState> tracked;
   std::string tracking_lost_reason;
+  // The client skipped these outputs (FrameOptions.skip_outputs): "not requested", whatever
+  // was computed for the server's own use.
   bool entropy_skipped = false;
   bool labels_skipped = false;
 };
-inline constexpr char kNotRequested[] = "not requested (FrameOptions.skip_outputs)";
+using pipeline::kNotRequested;
 inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";
 
 // The one place that decides each FrameOutput's status: computed, or why not.

@@ -321,11 +321,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     }
     facts.tracked = tracked.state;
   }
-  const store::StoredPoseSource pose_source =
-      r.pose_source() == v1::POSE_SOURCE_CLIENT      ? store::StoredPoseSource::kClient
-      : r.pose_source() == v1::POSE_SOURCE_ESTIMATED ? store::StoredPoseSource::kEstimated
-      : r.pose_source() == v1::POSE_SOURCE_REFINED   ? store::StoredPoseSource::kRefined
-                                                     : store::StoredPoseSource::kNone;
+  const store::StoredPoseSource pose_source = StoredPoseSourceFromProto(r.pose_source());
   // Decided under the visit's lock; the keyframe's features and appearance query run outside it
   // (a visit has one writer and its frames come here one at a time, in order).
   tracking::KeyframeDecision decision;

@@ -144,14 +144,15 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
       }
       auto frame =
           client::FrameFromFiles(e.rgb_path, e.depth_path, a.depth_scale, k, e.timestamp_s, i);
+      if (frame.ok() && a.compact) {
+        frame = client::CompactFrame(*frame);
+        if (!frame.ok()) {
+          frame = absl::Status(frame.status().code(),
+                               absl::StrCat(e.rgb_path, ": ", frame.status().message()));
+        }
+      }
       if (!frame.ok()) {
         send_error = std::string(frame.status().message());
-        (*stream)->Cancel();
-        break;
-      }
-      if (a.compact) frame = client::CompactFrame(*frame);
-      if (!frame.ok()) {
-        send_error = absl::StrCat(e.rgb_path, ": ", frame.status().message());
         (*stream)->Cancel();
         break;
       }

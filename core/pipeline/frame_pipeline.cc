@@ -123,7 +123,7 @@ absl::StatusOr<FrameAnalysis> FramePipeline::Process(const EncodedRgbdFrame& in,
   if (request.entropy_masks) {
     tasks.push_back([&] { ComputeEntropy(&out, request); });
   } else {
-    out.entropy_status = absl::FailedPreconditionError(kEntropyNotRequested);
+    out.entropy_status = absl::FailedPreconditionError(kNotRequested);
   }
   TaskPool::Shared().RunAll(std::move(tasks));
   if (labels) {

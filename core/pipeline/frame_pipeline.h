@@ -41,8 +41,8 @@ struct FrameRequest {
   // False: no entropy mask for this frame (the client skipped it); entropy_status says so.
   bool entropy_masks = true;
 };
-// What entropy_status says for a frame whose client skipped the masks.
-inline constexpr char kEntropyNotRequested[] = "not requested (FrameOptions.skip_outputs)";
+// Why an output a client skipped is absent (entropy_status here; the server's output statuses).
+inline constexpr char kNotRequested[] = "not requested (FrameOptions.skip_outputs)";
 
 // A frame's class labels and what the server reports of them. The per-class probabilities
 // are kept for 3D semantic fusion, which accumulates them per voxel.

@@ -82,11 +82,18 @@ bool SameCamera(const CameraIntrinsics& a, const CameraIntrinsics& b) {
          a.height == b.height;
 }
 
+// Whether a frame prepared with `a` can be aligned by an odometry set up with `b`: the
+// options that shape a prepared frame (resolution, depth range) agree.
+bool SamePreparation(const OdometryOptions& a, const OdometryOptions& b) {
+  return a.downscale == b.downscale && a.min_depth_m == b.min_depth_m &&
+         a.max_depth_m == b.max_depth_m && a.max_depth_diff_m == b.max_depth_diff_m;
+}
+
 }  // namespace
 
 struct TrackingInput {
   CameraIntrinsics intrinsics;
-  int downscale = 0;
+  OdometryOptions options;                 // prepared with these
   cv::Ptr<cv::rgbd::OdometryFrame> frame;  // null when the frame cannot be tracked
   std::string why_not;
 };
@@ -95,7 +102,7 @@ std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& f,
                                                   const OdometryOptions& options) {
   auto in = std::make_shared<TrackingInput>();
   in->intrinsics = f.intrinsics;
-  in->downscale = options.downscale;
+  in->options = options;
   if (f.color_bgr.empty()) {
     in->why_not = "the frame has no colour (odometry needs it)";
     return in;
@@ -170,8 +177,6 @@ Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
   return p;
 }
 
-bool Tracker::started() const { return impl_->reference != nullptr; }
-
 TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared,
                            const std::optional<Pose>& prior) {
   Impl& m = *impl_;
@@ -199,7 +204,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     m.intrinsics = k;
     m.odometry = MakeOdometry(k, m.options);
   }
-  if (prepared == nullptr || prepared->downscale != m.options.downscale ||
+  if (prepared == nullptr || !SamePreparation(prepared->options, m.options) ||
       !SameCamera(prepared->intrinsics, k)) {
     prepared = PrepareForTracking(frame, m.options);
   }
@@ -223,7 +228,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   // texture-poor synthetic views an alignment that slid along a wall fed the next prediction,
   // and the estimate ran away (sim seed 3, 300 frames: ATE 5.6 m against 6 mm from the last
   // pose; TUM fr1_xyz unchanged; docs/RESULTS.md).
-  // A frame with a pose of its own (a client's pose to refine) starts from that instead.
+  // With a prior (a client's pose to refine) it starts from that instead.
   const Eigen::Isometry3d predicted =
       prior ? m.T_world_reference.inverse() * prior->ToIsometry() : m.T_reference_last;
   cv::Mat Rt;

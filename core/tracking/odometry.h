@@ -54,8 +54,9 @@ struct TrackedPose {
 // frame's other analyses); Track then only aligns.
 struct TrackingInput;
 
-// Prepares `frame` for Tracker::Track with the same options as the tracker. Never null: a frame
-// that cannot be tracked carries the reason, and Track reports it as lost.
+// Prepares `frame` for Tracker::Track, which prepares it again if the tracker's options differ
+// in resolution or depth range. Never null: a frame that cannot be tracked carries the reason,
+// and Track reports it as lost.
 std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& frame,
                                                   const OdometryOptions& options);
 
@@ -86,8 +87,6 @@ class Tracker {
   // Makes the last frame tracked (not lost) the reference that later frames are aligned to:
   // call when it became a keyframe. Nothing when the last frame was lost.
   void PromoteLastToReference();
-
-  bool started() const;
 
  private:
   struct Impl;

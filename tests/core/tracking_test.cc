@@ -70,6 +70,28 @@ TEST(Tracker, TheFirstPoseIsLevelledByGravity) {
   EXPECT_NEAR((down * Eigen::Vector3d(0, 0, -1) - Eigen::Vector3d::UnitZ()).norm(), 0.0, 1e-9);
 }
 
+// A frame prepared with other options (here a depth range that leaves out the desk) is
+// prepared again by the tracker with its own, not judged by the other's.
+TEST(Tracker, AFramePreparedWithOtherOptionsIsPreparedAgain) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  auto first = io::DecodeTumFrame(*seq, seq->frames[0]);
+  auto second = io::DecodeTumFrame(*seq, seq->frames[2]);
+  ASSERT_TRUE(first.ok() && second.ok());
+  tracking::OdometryOptions near;
+  near.max_depth_m = 0.8f;  // the desk is ~1.2 m away: nothing to track with these
+  auto pose_with = [&](std::shared_ptr<tracking::TrackingInput> prepared) {
+    tracking::Tracker tracker;  // half resolution
+    tracker.Track(*first);
+    return tracker.Track(*second, std::move(prepared)).T_world_camera;
+  };
+  const auto own = pose_with(nullptr);
+  const auto mismatched = pose_with(tracking::PrepareForTracking(*second, near));
+  ASSERT_TRUE(own && mismatched);
+  EXPECT_LT((own->translation - mismatched->translation).norm(), 1e-3);
+}
+
 TEST(OdometryOptions, RefusesValuesOutOfRange) {
   tracking::OdometryOptions o;
   EXPECT_TRUE(o.Validate().ok());
