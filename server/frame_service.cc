@@ -268,6 +268,18 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   }
   r.mutable_timing()->set_decode_ms(analysis->decode_ms);
   r.mutable_timing()->set_process_ms(analysis->process_ms);
+  // The frame waits for its turn in the visit holding only what placing it needs: the sent
+  // depth bytes never (the record encodes the decoded depth), the sent colour bytes only when a
+  // keyframe's record would keep them as they came, the per-class probabilities not at all
+  // (nothing reads them yet). A stream holds up to max_inflight_frames such frames.
+  // (Swapped with an empty string: clearing keeps the capacity.)
+  std::string().swap(*a.frame.mutable_depth()->mutable_data());
+  const auto color_encoding = a.frame.color().encoding();
+  if (!(color_encoding == v1::COLOR_JPEG ||
+        (a.keep_original_color && color_encoding == v1::COLOR_PNG))) {
+    std::string().swap(*a.frame.mutable_color()->mutable_data());
+  }
+  if (analysis->labels) analysis->labels->probabilities = {};
   if (map_id != 0 && (!f.T_world_camera || settings.refine_pose)) {
     // What tracking needs of the frame alone, made here beside other frames' analyses; the
     // visit's tracker then only aligns it, in order.
