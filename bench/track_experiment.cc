@@ -1,5 +1,6 @@
 #include <cstdlib>
 #include <iostream>
+#include <opencv2/imgcodecs.hpp>
 #include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
 #include "core/tracking/keyframe_selector.h"
@@ -17,12 +18,26 @@ int main(int argc, char** argv) {
   for (const auto& e : seq->frames) {
     if (n++ >= limit) break;
     auto f = io::DecodeTumFrame(*seq, e);
+    if (argc > 4 && std::atoi(argv[4]) > 0) {
+      std::vector<uchar> buf;
+      cv::imencode(".jpg", f->color_bgr, buf, {cv::IMWRITE_JPEG_QUALITY, std::atoi(argv[4])});
+      f->color_bgr = cv::imdecode(buf, cv::IMREAD_COLOR);
+    }
     auto t = tracker.Track(*f);
     if (e.T_world_camera) truth.push_back({e.timestamp_s, *e.T_world_camera});
-    if (!t.T_world_camera) { ++lost; continue; }
+    if (!t.T_world_camera) {
+      ++lost;
+      continue;
+    }
     est.push_back({e.timestamp_s, *t.T_world_camera});
-    if (selector.Decide(e.timestamp_s, t.T_world_camera).selected) { selector.Accept(e.timestamp_s, t.T_world_camera); tracker.PromoteLastToReference(); ++kf; }
+    if (selector.Decide(e.timestamp_s, t.T_world_camera).selected) {
+      selector.Accept(e.timestamp_s, t.T_world_camera);
+      tracker.PromoteLastToReference();
+      ++kf;
+    }
   }
   auto err = eval::CompareTrajectories(est, truth);
-  std::cout << "frames " << n << " lost " << lost << " kf " << kf << " ATE " << (err.ok() ? err->ate_rmse_m : -1) << " RPE " << (err.ok() ? err->rpe_trans_m : -1) << "\n";
+  std::cout << "frames " << n << " lost " << lost << " kf " << kf << " ATE "
+            << (err.ok() ? err->ate_rmse_m : -1) << " RPE " << (err.ok() ? err->rpe_trans_m : -1)
+            << "\n";
 }

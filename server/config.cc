@@ -52,7 +52,35 @@ absl::Status ServerConfig::Validate() const {
   }
   if (auto s = pipeline.Validate(); !s.ok()) return s;
   if (auto s = appearance.Validate(); !s.ok()) return s;
+  if (auto s = pose_graph.Validate(); !s.ok()) return s;
   return keyframe.Validate();
+}
+
+absl::Status PoseGraphOptions::Validate() const {
+  if (loop_min_inliers < 6 || loop_min_inliers > 10000) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "pose_graph.loop_min_inliers must be within [6, 10000], got ", loop_min_inliers));
+  }
+  const std::pair<const char*, double> positive[] = {
+      {"loop_max_reprojection_px", loop_max_reprojection_px},
+      {"loop_max_disagreement_m", loop_max_disagreement_m},
+      {"loop_max_disagreement_deg", loop_max_disagreement_deg}};
+  for (const auto& [name, v] : positive) {
+    if (!(v > 0) || !std::isfinite(v)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("pose_graph.", name, " must be a positive number, got ", v));
+    }
+  }
+  const std::pair<const char*, double> non_negative[] = {
+      {"loop_max_disagreement_per_m", loop_max_disagreement_per_m},
+      {"loop_max_disagreement_deg_per_m", loop_max_disagreement_deg_per_m}};
+  for (const auto& [name, v] : non_negative) {
+    if (!(v >= 0) || !std::isfinite(v)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("pose_graph.", name, " must be a number >= 0, got ", v));
+    }
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base) {
@@ -197,6 +225,28 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key appearance.", k));
+          }
+        }
+      } else if (key == "pose_graph") {
+        for (const auto& [k, v] : value.items()) {
+          auto& g = c.pose_graph;
+          if (k == "enabled") {
+            g.enabled = v.get<bool>();
+          } else if (k == "loop_min_inliers") {
+            g.loop_min_inliers = v.get<int>();
+          } else if (k == "loop_max_reprojection_px") {
+            g.loop_max_reprojection_px = v.get<double>();
+          } else if (k == "loop_max_disagreement_m") {
+            g.loop_max_disagreement_m = v.get<double>();
+          } else if (k == "loop_max_disagreement_per_m") {
+            g.loop_max_disagreement_per_m = v.get<double>();
+          } else if (k == "loop_max_disagreement_deg") {
+            g.loop_max_disagreement_deg = v.get<double>();
+          } else if (k == "loop_max_disagreement_deg_per_m") {
+            g.loop_max_disagreement_deg_per_m = v.get<double>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key pose_graph.", k));
           }
         }
       } else if (key == "storage") {

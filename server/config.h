@@ -35,6 +35,24 @@ struct AppearanceOptions {
   absl::Status Validate() const;
 };
 
+// Loop closure and the pose graph of tracked visits (issue 15; config key `pose_graph`).
+struct PoseGraphOptions {
+  bool enabled = true;  // verified appearance matches within a tracked visit close loops
+  // A loop candidate (a verified appearance match to an earlier keyframe of the same visit)
+  // needs at least this many PnP inliers and at most this RMS reprojection error (pixels at
+  // 640 columns), stricter than a place match: a wrong loop bends the map.
+  int loop_min_inliers = 25;
+  double loop_max_reprojection_px = 2.5;
+  // ... and must agree with the odometry up to the drift it can have accumulated since the
+  // matched keyframe: base + per_m * (path length in between, metres).
+  double loop_max_disagreement_m = 0.15;
+  double loop_max_disagreement_per_m = 0.05;
+  double loop_max_disagreement_deg = 5.0;
+  double loop_max_disagreement_deg_per_m = 1.0;
+
+  absl::Status Validate() const;
+};
+
 struct ServerConfig {
   std::string listen = "127.0.0.1:50051";  // HOST:PORT; port 0 picks a free port
   std::string db_path = "lifemap.db";
@@ -50,6 +68,7 @@ struct ServerConfig {
   tracking::KeyframeOptions keyframe;
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
   AppearanceOptions appearance;
+  PoseGraphOptions pose_graph;
   // Keyframe colour the client sent as PNG or raw is stored as JPEG at this quality, [1, 100]
   // (unless its map keeps originals); JPEG from the client is stored as it came.
   int keyframe_color_jpeg_quality = 85;

@@ -170,6 +170,9 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
   out->set_ended(v.ended);
   out->set_keyframe_count(static_cast<uint64_t>(v.keyframe_count));
   out->set_frame_count(static_cast<uint64_t>(v.frame_count));
+  out->set_loops_accepted(static_cast<uint64_t>(v.loops_accepted));
+  out->set_loops_rejected(static_cast<uint64_t>(v.loops_rejected));
+  out->set_pose_graph_solves(static_cast<uint64_t>(v.pose_graph_solves));
 }
 
 void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out) {

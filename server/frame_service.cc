@@ -33,8 +33,9 @@ double MsBetween(Clock::time_point a, Clock::time_point b) {
 // A frame processed but not yet answered: its result, and the commit it waits for.
 struct PendingResult {
   uint64_t architecture_ticket = 0;  // the key frame's job on the ArchitectureWorker, if any
+  uint64_t pose_graph_ticket = 0;    // its loop candidates' job on the PoseGraphWorker, if any
   v1::FrameResult result;
-  std::optional<std::future<absl::StatusOr<int64_t>>> commit;
+  std::optional<std::shared_future<absl::StatusOr<int64_t>>> commit;
   Clock::time_point received;
   // Set when the frame could not be added to its visit (ended, its map deleted, or written by
   // another stream): the call ends with this status and the frame gets no result.
@@ -148,10 +149,12 @@ struct FrameSettings {
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
 // every stored keyframe but its own visit's last few seconds. OK with no match (nothing
-// recognised); otherwise why it could not be asked.
+// recognised); otherwise why it could not be asked. With `loops`, the verified matches to earlier
+// keyframes of the same visit are added there too (loop candidates, issue 15).
 absl::Status AppearanceMatches(ServiceContext* ctx,
                                const absl::StatusOr<pipeline::KeyframeFeatures>& features,
-                               const RgbdFrame& f, int64_t visit_id, v1::FrameResult* r) {
+                               const RgbdFrame& f, int64_t visit_id, v1::FrameResult* r,
+                               std::vector<LoopCandidate>* loops) {
   if (!features.ok()) return features.status();
   const double recent_s = ctx->appearance->options().exclude_recent_s;
   const double t = f.timestamp_s;
@@ -166,6 +169,13 @@ absl::Status AppearanceMatches(ServiceContext* ctx,
   for (size_t i = 0; i < n; ++i) {
     PlaceMatchToProto(AppearancePlaceMatch(recognition->matches[i], &names),
                       r->add_place_matches());
+  }
+  if (loops != nullptr) {
+    for (const auto& m : recognition->matches) {
+      if (m.keyframe.visit_id != visit_id || !m.verification.verified) continue;
+      loops->push_back({m.keyframe.keyframe_id, m.verification.T_match_query,
+                        m.verification.inliers, m.verification.reprojection_px});
+    }
   }
   return absl::OkStatus();
 }
@@ -312,6 +322,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   }
   absl::MutexLock placing(&visit->place_mu);
   RgbdFrame& f = a.analysis->frame;
+  std::optional<Pose> odometry_pose;  // a tracked frame's pose in the tracker's own frame
   if (!f.T_world_camera || settings.refine_pose) {
     // No client pose (or one to refine): the server tracks the camera (issue 15); the estimate
     // then stands for the pose in keyframe selection, storage and the floor plan. A client pose
@@ -319,13 +330,23 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     const auto track_start = Clock::now();
     const tracking::TrackedPose tracked =
         visit->tracker.Track(f, a.tracking_input, f.T_world_camera);
+    odometry_pose = tracked.T_world_camera;
     auto* t = r.mutable_tracking();
     t->set_track_ms(MsBetween(track_start, Clock::now()));
     t->set_state(TrackingStateToProto(tracked.state));
     t->set_lost_frames(static_cast<uint32_t>(tracked.lost_frames));
-    if (tracked.T_world_camera) {
-      r.set_pose_source(f.T_world_camera ? v1::POSE_SOURCE_REFINED : v1::POSE_SOURCE_ESTIMATED);
+    if (tracked.T_world_camera && f.T_world_camera) {
+      // A refined client pose stays in the client's frame: no pose graph moves it.
+      r.set_pose_source(v1::POSE_SOURCE_REFINED);
       f.T_world_camera = tracked.T_world_camera;
+      odometry_pose.reset();
+      PoseToProto(*f.T_world_camera, r.mutable_pose());
+    } else if (tracked.T_world_camera) {
+      // Reported in the visit's corrected frame (the latest pose-graph solve, issue 15).
+      r.set_pose_source(v1::POSE_SOURCE_ESTIMATED);
+      absl::MutexLock correction(&visit->correction_mu);
+      f.T_world_camera = Pose::FromIsometry(visit->world_from_odom.ToIsometry() *
+                                            tracked.T_world_camera->ToIsometry());
       PoseToProto(*f.T_world_camera, r.mutable_pose());
     } else {
       t->set_reason(tracked.reason);
@@ -377,7 +398,11 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     tasks.push_back([&] {
       record = MakeKeyframeRecord(a.frame, f, visit->visit_id, a.keep_original_color,
                                   ctx->config.keyframe_color_jpeg_quality);
-      if (record.ok()) record->pose_source = pose_source;
+      if (record.ok()) {
+        record->pose_source = pose_source;
+        record->T_odom_camera = odometry_pose;
+        record->odom_segment = visit->odom_segment;
+      }
     });
   }
   TaskPool::Shared().RunAll(std::move(tasks));
@@ -389,8 +414,13 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
     }
   }
+  // A tracked keyframe's verified matches to earlier keyframes of its visit are loop candidates.
+  std::vector<LoopCandidate> loops;
+  const bool close_loops =
+      decision.selected && record.ok() && odometry_pose && ctx->config.pose_graph.enabled;
   if (query_appearance) {
-    facts.appearance = AppearanceMatches(ctx, features, f, visit->visit_id, &r);
+    facts.appearance =
+        AppearanceMatches(ctx, features, f, visit->visit_id, &r, close_loops ? &loops : nullptr);
   }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
@@ -405,7 +435,20 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       visit->tracker.PromoteLastToReference();
     }
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
-    p.commit = ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count});
+    p.commit =
+        ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count}).share();
+    if (!loops.empty()) {
+      PoseGraphWorker::Job job;
+      job.map_id = visit->map_id;
+      job.visit_id = visit->visit_id;
+      job.committed = *p.commit;
+      job.candidates = std::move(loops);
+      job.on_corrected = [visit_state](const Pose& world_from_odom) {
+        absl::MutexLock correction(&visit_state->correction_mu);
+        visit_state->world_from_odom = world_from_odom;
+      };
+      p.pose_graph_ticket = ctx->pose_graph->Submit(std::move(job));
+    }
     if (f.T_world_camera) {
       // Folded, ranked and stored off the reply path, in key-frame order.
       ArchitectureWorker::Visit job{visit->visit_id, visit->map_id,
@@ -431,7 +474,7 @@ void FinishResult(PendingResult* p) {
   auto* timing = p->result.mutable_timing();
   if (p->commit) {
     const auto wait_start = Clock::now();
-    absl::StatusOr<int64_t> id = p->commit->get();
+    const absl::StatusOr<int64_t>& id = p->commit->get();
     timing->set_commit_wait_ms(MsBetween(wait_start, Clock::now()));
     auto* kf = p->result.mutable_keyframe();
     if (id.ok()) {
@@ -598,6 +641,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
   absl::Status closed;  // guarded by closed_mu
   std::atomic<bool> visit_closed{false};
   uint64_t last_architecture_ticket = 0;  // written by `placer`, read after it is joined
+  uint64_t last_pose_graph_ticket = 0;    // likewise
   std::thread writer([&] {
     while (auto p = answering.Pop()) {
       FinishResult(&*p);
@@ -618,6 +662,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
       }
       PendingResult p = PlaceInVisit(ctx_, std::move(a), *state, claim->id(), *settings);
       last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
+      last_pose_graph_ticket = std::max(last_pose_graph_ticket, p.pose_graph_ticket);
       if (!p.visit_closed.ok()) {
         // The frame was read before the visit closed: it is answered with the error (a robot
         // that waits for each result is not left waiting), and the stream ends with it.
@@ -680,6 +725,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
   // A stream that ends has its visit's floor plan folded, stored and ranked: a robot (or an
   // operator) that asks right after sees every key frame it sent.
   if (last_architecture_ticket > 0) ctx_->architecture->Wait(last_architecture_ticket);
+  // Likewise its loops closed and its keyframes' poses corrected.
+  if (last_pose_graph_ticket > 0) ctx_->pose_graph->Wait(last_pose_graph_ticket);
 
   // Persist the visit's frame counter (it rides on keyframe commits otherwise).
   int64_t frame_count = 0;

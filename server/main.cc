@@ -3,7 +3,11 @@
 //   lifemapd --listen 127.0.0.1:50051 --db /var/lib/lifemap/lifemap.db [--config FILE]
 //
 // SIGTERM / SIGINT: stop accepting calls, let streams drain, commit pending keyframes, exit 0.
+#include <malloc.h>
+
+#include <algorithm>
 #include <csignal>
+#include <cstdlib>
 #include <iostream>
 #include <thread>
 
@@ -16,6 +20,15 @@
 
 int main(int argc, char** argv) {
   using lifemap::server::ServerConfig;
+  // glibc gives each thread that allocates its own arena (up to 8 per core), and each keeps
+  // the memory freed into it: with frames of several MB decoded and analysed on pool threads,
+  // gRPC's threads and the workers, the peak RSS of a stream that sends as fast as it can was
+  // 120-149 MB (once over the test's 160) with the default, 107-125 MB with one arena per core
+  // (e2e test FastSenderCannotExhaustServerMemory; throughput unchanged, docs/BENCHMARKS.md).
+  // MALLOC_ARENA_MAX, when set, is the operator's choice.
+  if (std::getenv("MALLOC_ARENA_MAX") == nullptr) {
+    mallopt(M_ARENA_MAX, static_cast<int>(std::max(2u, std::thread::hardware_concurrency())));
+  }
   CLI::App app{"lifemapd — lifelong indoor maps for robots (gRPC server)"};
   app.set_version_flag("--version", std::string(LIFEMAP_VERSION));
   std::string config_file, listen, db, log_level;

@@ -25,6 +25,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<PlaceIndex> places;
   std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
+  std::unique_ptr<PoseGraphWorker> pose_graph;       // waits for commits: before the committer
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
@@ -65,6 +66,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
       });
   impl->places = std::make_unique<PlaceIndex>(impl->store.get());
   impl->architecture = std::make_unique<ArchitectureWorker>(impl->places.get());
+  impl->pose_graph = std::make_unique<PoseGraphWorker>(impl->store.get(), config.pose_graph);
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
@@ -76,6 +78,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.visits = impl->visits.get();
   ctx.places = impl->places.get();
   ctx.architecture = impl->architecture.get();
+  ctx.pose_graph = impl->pose_graph.get();
   ctx.models = impl->models.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
@@ -136,6 +139,7 @@ void LifemapServer::Shutdown() {
   // Every handler has returned; fold the key frames still queued for architecture, commit
   // what is still queued, then close the store.
   impl_->architecture.reset();
+  impl_->pose_graph.reset();
   impl_->committer.reset();
   impl_->appearance.reset();
   impl_->store.reset();

@@ -17,6 +17,7 @@
 #include "server/config.h"
 #include "server/keyframe_committer.h"
 #include "server/model_registry.h"
+#include "server/pose_graph_worker.h"
 #include "server/store/store.h"
 #include "server/visit_registry.h"
 
@@ -35,6 +36,7 @@ struct ServiceContext {
   PlaceIndex* places = nullptr;
   ArchitectureWorker* architecture = nullptr;
   AppearanceIndex* appearance = nullptr;
+  PoseGraphWorker* pose_graph = nullptr;
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};

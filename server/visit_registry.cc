@@ -1,5 +1,6 @@
 #include "server/visit_registry.h"
 
+#include <chrono>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -74,6 +75,11 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto state = std::make_shared<VisitState>();
   state->visit_id = visit_id;
   state->map_id = visit->map_id;
+  // A new run of the tracker, distinct from any earlier one of this visit (microseconds since
+  // the epoch: a visit is loaded at most once per server run).
+  state->odom_segment = std::chrono::duration_cast<std::chrono::microseconds>(
+                            std::chrono::system_clock::now().time_since_epoch())
+                            .count();
   {
     absl::MutexLock lock(&state->mu);
     state->map_name = visit->map_name;

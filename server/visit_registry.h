@@ -42,6 +42,14 @@ struct VisitState {
   absl::Mutex place_mu ABSL_ACQUIRED_BEFORE(mu);
   // The camera of frames sent without a pose (issue 15): frame-to-keyframe odometry.
   tracking::Tracker tracker ABSL_GUARDED_BY(place_mu);
+  // This run of the tracker (stored with each tracked keyframe): keyframes of one run are
+  // joined by its odometry in the pose graph; a resumed visit starts a new run.
+  int64_t odom_segment = 0;
+  // The visit's latest pose-graph solve as a correction of the tracker's frame: a tracked pose
+  // T_odom_camera is reported and stored as world_from_odom * T_odom_camera. Identity until a
+  // loop closes; set by the PoseGraphWorker.
+  absl::Mutex correction_mu;
+  Pose world_from_odom ABSL_GUARDED_BY(correction_mu);
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;

@@ -305,14 +305,18 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
       return RunCall<v1::ListVisitsResponse>(
           *ctx, [&](client::Client& c) { return c.ListVisits(*map); },
           [](const v1::ListVisitsResponse& r) {
-            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s  %-23s  %s\n", "ID", "ROBOT",
-                                         "LABEL", "FRAMES", "KEYFRAMES", "STARTED", "STATE");
+            // LOOPS: loop closures accepted/rejected, and pose-graph solves (issue 15).
+            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s %-14s  %-23s  %s\n", "ID",
+                                         "ROBOT", "LABEL", "FRAMES", "KEYFRAMES", "LOOPS(OK/NO/S)",
+                                         "STARTED", "STATE");
             for (const auto& v : r.visits()) {
-              std::cout << absl::StrFormat("%6d %-16s %-20s %8d %10d  %-23s  %s\n", v.id(),
-                                           v.robot().empty() ? "-" : v.robot(),
-                                           v.label().empty() ? "-" : v.label(), v.frame_count(),
-                                           v.keyframe_count(), HumanTime(v.start_time_s()),
-                                           v.ended() ? "ended" : "open");
+              std::cout << absl::StrFormat(
+                  "%6d %-16s %-20s %8d %10d %-14s  %-23s  %s\n", v.id(),
+                  v.robot().empty() ? "-" : v.robot(), v.label().empty() ? "-" : v.label(),
+                  v.frame_count(), v.keyframe_count(),
+                  absl::StrCat(v.loops_accepted(), "/", v.loops_rejected(), "/",
+                               v.pose_graph_solves()),
+                  HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
             }
           });
     };

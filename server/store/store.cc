@@ -214,6 +214,54 @@ ALTER TABLE keyframe_features ADD COLUMN record_format INTEGER NOT NULL DEFAULT 
 ALTER TABLE keyframes ADD COLUMN pose_source INTEGER NOT NULL DEFAULT 1;
 UPDATE keyframes SET pose_source = 0 WHERE has_pose = 0;
 )sql",
+    // 8 -> 9: pose graphs (issue 15). A tracked keyframe keeps the tracker's own pose (odom_*:
+    // the odometry's frame, never changed afterwards; consecutive ones of a visit give the
+    // graph's odometry edges, within one odom_segment: one run of the tracker, a new one after a
+    // restart) beside its pose in the map (tx..qw), which pose-graph solves
+    // rewrite; optimisation_id says which solve wrote it (NULL: as tracked or sent). Loop and
+    // anchor edges from verified appearance matches, accepted or rejected with the reason, and
+    // each solve's record.
+    R"sql(
+ALTER TABLE keyframes ADD COLUMN odom_tx REAL;
+ALTER TABLE keyframes ADD COLUMN odom_ty REAL;
+ALTER TABLE keyframes ADD COLUMN odom_tz REAL;
+ALTER TABLE keyframes ADD COLUMN odom_qx REAL;
+ALTER TABLE keyframes ADD COLUMN odom_qy REAL;
+ALTER TABLE keyframes ADD COLUMN odom_qz REAL;
+ALTER TABLE keyframes ADD COLUMN odom_qw REAL;
+ALTER TABLE keyframes ADD COLUMN odom_segment INTEGER;
+ALTER TABLE keyframes ADD COLUMN optimisation_id INTEGER;
+CREATE TABLE pose_edges (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  kind INTEGER NOT NULL,
+  from_keyframe INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+  to_keyframe INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+  tx REAL NOT NULL, ty REAL NOT NULL, tz REAL NOT NULL,
+  qx REAL NOT NULL, qy REAL NOT NULL, qz REAL NOT NULL, qw REAL NOT NULL,
+  inliers INTEGER NOT NULL,
+  reprojection_px REAL NOT NULL,
+  accepted INTEGER NOT NULL,
+  reason TEXT NOT NULL,
+  created_time_s REAL NOT NULL
+);
+CREATE INDEX pose_edges_by_map ON pose_edges(map_id, to_keyframe);
+CREATE TABLE pose_optimisations (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  visit_id INTEGER NOT NULL,
+  created_time_s REAL NOT NULL,
+  keyframes INTEGER NOT NULL,
+  odometry_edges INTEGER NOT NULL,
+  loop_edges INTEGER NOT NULL,
+  loops_rejected INTEGER NOT NULL,
+  iterations INTEGER NOT NULL,
+  initial_cost REAL NOT NULL,
+  final_cost REAL NOT NULL,
+  solve_ms REAL NOT NULL,
+  max_correction_m REAL NOT NULL
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -221,8 +269,9 @@ static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVers
 constexpr char kKeyframeColumns[] =
     "k.id, k.visit_id, k.sequence, k.timestamp_s, k.has_pose, k.tx, k.ty, k.tz, k.qx, k.qy, "
     "k.qz, k.qw, k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.depth_scale, k.color_encoding, "
-    "k.depth_bytes, k.color_bytes, k.depth_encoding, k.pose_source";
-constexpr int kKeyframeColumnCount = 24;
+    "k.depth_bytes, k.color_bytes, k.depth_encoding, k.pose_source, k.odom_tx, k.odom_ty, "
+    "k.odom_tz, k.odom_qx, k.odom_qy, k.odom_qz, k.odom_qw, k.optimisation_id, k.odom_segment";
+constexpr int kKeyframeColumnCount = 33;
 
 // Superjut records: int32 id, int32 size_px, float32 entropy, planarity, horizontality,
 // textureness, neg_entropy (28 bytes). Keypoints: float32 x, y, size, angle, response (20 bytes).
@@ -309,19 +358,33 @@ std::string EncodeKeypoints(const std::vector<features::Keypoint>& keypoints) {
   return out;
 }
 
+}  // namespace
+
+void BindPose(Statement* s, int first, const Pose& p) {
+  s->Bind(first, p.translation.x()).Bind(first + 1, p.translation.y());
+  s->Bind(first + 2, p.translation.z());
+  s->Bind(first + 3, p.rotation.x()).Bind(first + 4, p.rotation.y());
+  s->Bind(first + 5, p.rotation.z()).Bind(first + 6, p.rotation.w());
+}
+
+Pose ReadPose(const Statement& s, int first) {
+  Pose p;
+  p.translation = {s.ColumnDouble(first), s.ColumnDouble(first + 1), s.ColumnDouble(first + 2)};
+  p.rotation = Eigen::Quaterniond(s.ColumnDouble(first + 6), s.ColumnDouble(first + 3),
+                                  s.ColumnDouble(first + 4), s.ColumnDouble(first + 5))
+                   .normalized();
+  return p;
+}
+
+namespace {
+
 KeyframeRecord ReadKeyframe(const Statement& s) {
   KeyframeRecord k;
   k.id = s.ColumnInt(0);
   k.visit_id = s.ColumnInt(1);
   k.sequence = static_cast<uint64_t>(s.ColumnInt(2));
   k.timestamp_s = s.ColumnDouble(3);
-  if (s.ColumnInt(4) != 0) {
-    Pose p;
-    p.translation = {s.ColumnDouble(5), s.ColumnDouble(6), s.ColumnDouble(7)};
-    p.rotation = Eigen::Quaterniond(s.ColumnDouble(11), s.ColumnDouble(8), s.ColumnDouble(9),
-                                    s.ColumnDouble(10));
-    k.T_world_camera = p;
-  }
+  if (s.ColumnInt(4) != 0) k.T_world_camera = ReadPose(s, 5);
   k.intrinsics.fx = s.ColumnDouble(12);
   k.intrinsics.fy = s.ColumnDouble(13);
   k.intrinsics.cx = s.ColumnDouble(14);
@@ -335,6 +398,9 @@ KeyframeRecord ReadKeyframe(const Statement& s) {
   k.depth_encoding = static_cast<StoredDepthEncoding>(s.ColumnInt(22));
   k.pose_source =
       k.T_world_camera ? static_cast<StoredPoseSource>(s.ColumnInt(23)) : StoredPoseSource::kNone;
+  if (!s.ColumnIsNull(24)) k.T_odom_camera = ReadPose(s, 24);
+  k.optimisation_id = s.ColumnIsNull(31) ? 0 : s.ColumnInt(31);
+  k.odom_segment = s.ColumnIsNull(32) ? 0 : s.ColumnInt(32);
   return k;
 }
 
@@ -357,12 +423,22 @@ VisitRecord ReadVisit(const Statement& s) {
   v.ended = s.ColumnInt(7) != 0;
   v.frame_count = s.ColumnInt(8);
   v.keyframe_count = s.ColumnInt(9);
+  v.loops_accepted = s.ColumnInt(10);
+  v.loops_rejected = s.ColumnInt(11);
+  v.pose_graph_solves = s.ColumnInt(12);
   return v;
 }
 
+// Loop edges are counted by their querying keyframe's visit.
 constexpr char kVisitSelect[] =
     "SELECT v.id, v.map_id, m.name, v.robot, v.label, v.start_time_s, v.end_time_s, v.ended, "
-    "v.frame_count, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id) "
+    "v.frame_count, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id), "
+    "(SELECT COUNT(*) FROM pose_edges e JOIN keyframes k ON k.id = e.to_keyframe WHERE "
+    "e.map_id = v.map_id AND k.visit_id = v.id AND e.kind = 2 AND e.accepted = 1), "
+    "(SELECT COUNT(*) FROM pose_edges e JOIN keyframes k ON k.id = e.to_keyframe WHERE "
+    "e.map_id = v.map_id AND k.visit_id = v.id AND e.kind = 2 AND e.accepted = 0), "
+    "(SELECT COUNT(*) FROM pose_optimisations o WHERE o.map_id = v.map_id AND "
+    "o.visit_id = v.id) "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =
@@ -756,8 +832,9 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   auto insert = db->Prepare(
       "INSERT INTO keyframes (visit_id, sequence, timestamp_s, has_pose, tx, ty, tz, qx, qy, qz, "
       "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes, "
-      "depth_encoding, pose_source) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
-      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23)");
+      "depth_encoding, pose_source, odom_tx, odom_ty, odom_tz, odom_qx, odom_qy, odom_qz, "
+      "odom_qw, odom_segment) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, "
+      "?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31)");
   if (!insert.ok()) return insert.status();
   auto insert_images =
       db->Prepare("INSERT INTO keyframe_images (keyframe_id, depth, color) VALUES (?1, ?2, ?3)");
@@ -785,10 +862,7 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(1, k.visit_id).Bind(2, static_cast<int64_t>(k.sequence)).Bind(3, k.timestamp_s);
       s->Bind(4, int64_t{k.T_world_camera.has_value()});
       if (k.T_world_camera) {
-        const auto& t = k.T_world_camera->translation;
-        const auto& q = k.T_world_camera->rotation;
-        s->Bind(5, t.x()).Bind(6, t.y()).Bind(7, t.z());
-        s->Bind(8, q.x()).Bind(9, q.y()).Bind(10, q.z()).Bind(11, q.w());
+        BindPose(&*s, 5, *k.T_world_camera);
       } else {
         for (int i = 5; i <= 11; ++i) s->BindNull(i);
       }
@@ -801,6 +875,12 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(20, k.depth_bytes).Bind(21, k.color_bytes);
       s->Bind(22, static_cast<int64_t>(k.depth_encoding));
       s->Bind(23, static_cast<int64_t>(k.T_world_camera ? k.pose_source : StoredPoseSource::kNone));
+      if (k.T_odom_camera) {
+        BindPose(&*s, 24, *k.T_odom_camera);
+        s->Bind(31, k.odom_segment);
+      } else {
+        for (int i = 24; i <= 31; ++i) s->BindNull(i);
+      }
       if (auto st = s->Run(); !st.ok()) return st;
     }
     k.id = db->LastInsertRowId();

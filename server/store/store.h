@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -66,6 +67,11 @@ struct VisitRecord {
   bool ended = false;
   int64_t keyframe_count = 0;
   int64_t frame_count = 0;
+  // Loop closure within the visit (issue 15): loop edges accepted into its pose graph (and
+  // not outvoted since), rejected ones, and pose-graph solves.
+  int64_t loops_accepted = 0;
+  int64_t loops_rejected = 0;
+  int64_t pose_graph_solves = 0;
 };
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
@@ -94,6 +100,12 @@ struct KeyframeRecord {
   double timestamp_s = 0.0;
   std::optional<Pose> T_world_camera;
   StoredPoseSource pose_source = StoredPoseSource::kClient;  // kNone without a pose
+  // A tracked keyframe's pose in its visit's odometry frame, as the tracker gave it (never
+  // rewritten: consecutive keyframes' odometry poses are the pose graph's odometry edges);
+  // unset for client poses.
+  std::optional<Pose> T_odom_camera;
+  int64_t odom_segment = 0;     // which run of the tracker (one visit may have several)
+  int64_t optimisation_id = 0;  // the pose-graph solve that wrote T_world_camera (0: none)
   CameraIntrinsics intrinsics;
   double depth_scale = 0.0;  // units per metre of `depth`'s uint16 values
   StoredDepthEncoding depth_encoding = StoredDepthEncoding::kPaletted;
@@ -161,6 +173,41 @@ struct VocabularyRecord {
   std::string data;  // Vocabulary::Serialize()
 };
 
+// A loop closure (two keyframes of one visit) or a visit anchor (a keyframe of another visit)
+// from a verified appearance match (issue 15), accepted into the pose graph or rejected with
+// the reason.
+enum class StoredEdgeKind { kLoop = 2, kAnchor = 3 };
+struct PoseEdgeRecord {
+  int64_t id = 0;  // assigned by InsertPoseEdge
+  int64_t map_id = 0;
+  StoredEdgeKind kind = StoredEdgeKind::kLoop;
+  int64_t from_keyframe = 0;  // the matched, earlier keyframe
+  int64_t to_keyframe = 0;    // the querying keyframe
+  Pose T_from_to;             // the querying camera in the matched camera's frame
+  int inliers = 0;
+  double reprojection_px = 0;
+  bool accepted = false;
+  std::string reason;  // why rejected (or what accepted it), for people reading listings
+  double created_time_s = 0;
+};
+
+// One pose-graph solve over a visit's keyframes: what it was given and what it did.
+struct PoseOptimisationRecord {
+  int64_t id = 0;  // assigned by ApplyPoseOptimisation
+  int64_t map_id = 0;
+  int64_t visit_id = 0;
+  double created_time_s = 0;
+  int keyframes = 0;
+  int odometry_edges = 0;
+  int loop_edges = 0;      // accepted loop and anchor edges given to the solve
+  int loops_rejected = 0;  // of those, switched off by the solve
+  int iterations = 0;
+  double initial_cost = 0;
+  double final_cost = 0;
+  double solve_ms = 0;
+  double max_correction_m = 0;
+};
+
 // A visit's architecture (paper 004) as last derived from its key frames.
 struct VisitPlaceRecord {
   int64_t visit_id = 0;
@@ -182,7 +229,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 8;
+  static constexpr int kSchemaVersion = 9;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -264,6 +311,25 @@ class Store {
   // returned); Latest returns the one in use, nullopt when none was stored.
   absl::StatusOr<int64_t> PutVocabulary(const VocabularyRecord& record);
   absl::StatusOr<std::optional<VocabularyRecord>> LatestVocabulary();
+
+  // Pose graphs (issue 15). InsertPoseEdge stores an edge (NOT_FOUND when either keyframe is
+  // gone) and returns its id. ListPoseEdges: a map's edges whose querying keyframe is in
+  // `visit_id` (0: every visit), by id.
+  absl::StatusOr<int64_t> InsertPoseEdge(const PoseEdgeRecord& edge);
+  absl::StatusOr<std::vector<PoseEdgeRecord>> ListPoseEdges(int64_t map_id, int64_t visit_id);
+  // Writes a solve in one transaction: `poses` (T_world_camera of keyframes, with the record's
+  // id as their optimisation_id); the edges in `rejected` marked rejected with `reject_reason`;
+  // and each keyframe of the visit newer than every keyframe in `poses` (tracked while the
+  // graph was solved) moved to `later_correction` * its odometry pose. A crash leaves the poses
+  // of the previous solve. Returns the record's id; NOT_FOUND when the visit's map is gone.
+  absl::StatusOr<int64_t> ApplyPoseOptimisation(PoseOptimisationRecord record,
+                                                const std::map<int64_t, Pose>& poses,
+                                                const std::vector<int64_t>& rejected,
+                                                const std::string& reject_reason,
+                                                const Pose& later_correction);
+  // A map's solves (of one visit, or all for 0), oldest first.
+  absl::StatusOr<std::vector<PoseOptimisationRecord>> ListPoseOptimisations(int64_t map_id,
+                                                                            int64_t visit_id);
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();

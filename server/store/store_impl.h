@@ -25,4 +25,9 @@ struct Store::Impl {
   absl::StatusOr<VisitRecord> GetVisitLocked(Database* db, int64_t visit_id);
 };
 
+// A pose as seven columns: tx, ty, tz, qx, qy, qz, qw, bound from parameter `first` (1-based)
+// or read from column `first` (0-based; the quaternion normalised).
+void BindPose(Statement* s, int first, const Pose& p);
+Pose ReadPose(const Statement& s, int first);
+
 }  // namespace lifemap::store

@@ -490,7 +490,8 @@ TEST_F(CliTest, EvalTrajectoryScoresTheServersTrackingOfARecording) {
   const json summary = json::parse(Lines(r.out).back());
   EXPECT_EQ(summary["frames"], 32);
   EXPECT_EQ(summary["lost_frames"], 0);
-  EXPECT_EQ(summary["scored"], "keyframes");
+  EXPECT_EQ(summary["scored"], "stored keyframes");
+  EXPECT_LT(summary["stored_keyframes"]["ate_rmse_m"].get<double>(), 0.01) << summary.dump();
   EXPECT_LT(summary["ate_rmse_m"].get<double>(), 0.01) << summary.dump();
   EXPECT_LT(summary["all_frames"]["ate_rmse_m"].get<double>(), 0.015) << summary.dump();
   EXPECT_GT(summary["rpe_trans_m"].get<double>(), 0.0);

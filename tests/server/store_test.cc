@@ -449,6 +449,99 @@ TEST_F(StoreTest, ModelsAreStoredActivatedPerMapOrAsDefaultAndGuardedOnDelete) {
   EXPECT_TRUE(store_->CheckIntegrity()->empty());
 }
 
+TEST_F(StoreTest, PoseGraphSolvesRewriteTrackedPosesInOneTransaction) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  ASSERT_TRUE(visit.ok());
+  // Four tracked keyframes: the odometry pose is kept beside the pose in the map.
+  std::vector<KeyframeRecord> batch;
+  for (int i = 0; i < 4; ++i) {
+    KeyframeRecord k = Keyframe(visit->id, 1.0 + i);
+    k.pose_source = StoredPoseSource::kEstimated;
+    k.T_odom_camera = k.T_world_camera;
+    k.odom_segment = 42;
+    batch.push_back(k);
+  }
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  const int64_t map_id = visit->map_id;
+
+  PoseEdgeRecord loop;
+  loop.map_id = map_id;
+  loop.from_keyframe = batch[0].id;
+  loop.to_keyframe = batch[2].id;
+  loop.T_from_to.translation = {0.5, 0, 0};
+  loop.inliers = 80;
+  loop.reprojection_px = 1.2;
+  loop.accepted = true;
+  loop.reason = "fine";
+  auto loop_id = store_->InsertPoseEdge(loop);
+  ASSERT_TRUE(loop_id.ok()) << loop_id.status();
+  PoseEdgeRecord refused = loop;
+  refused.accepted = false;
+  refused.reason = "12 PnP inliers, a loop needs 25";
+  ASSERT_TRUE(store_->InsertPoseEdge(refused).ok());
+  PoseEdgeRecord dangling = loop;
+  dangling.to_keyframe = 999999;
+  EXPECT_TRUE(absl::IsNotFound(store_->InsertPoseEdge(dangling).status()));
+
+  auto v = store_->GetVisit(visit->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_EQ(v->loops_accepted, 1);
+  EXPECT_EQ(v->loops_rejected, 1);
+  EXPECT_EQ(v->pose_graph_solves, 0);
+
+  // A solve over the first three: they move; the fourth (tracked meanwhile) follows the
+  // correction from its odometry pose; the loop was outvoted.
+  std::map<int64_t, Pose> solved;
+  for (int i = 0; i < 3; ++i) {
+    Pose p = *batch[i].T_world_camera;
+    p.translation.x() += 0.1 * i;
+    solved[batch[i].id] = p;
+  }
+  Pose correction;
+  correction.translation = {0.2, 0, 0};
+  PoseOptimisationRecord record;
+  record.map_id = map_id;
+  record.visit_id = visit->id;
+  record.keyframes = 3;
+  record.loop_edges = 1;
+  record.loops_rejected = 1;
+  auto solve_id = store_->ApplyPoseOptimisation(record, solved, {*loop_id}, "outvoted", correction);
+  ASSERT_TRUE(solve_id.ok()) << solve_id.status();
+  auto listed = store_->ListKeyframes(map_id, visit->id);
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 4u);
+  for (int i = 0; i < 4; ++i) {
+    const KeyframeRecord& k = (*listed)[i];
+    EXPECT_EQ(k.optimisation_id, *solve_id);
+    ASSERT_TRUE(k.T_odom_camera.has_value());
+    EXPECT_DOUBLE_EQ(k.T_odom_camera->translation.x(), 1.0 + i) << "odometry never rewritten";
+    EXPECT_EQ(k.odom_segment, 42);
+    EXPECT_NEAR(k.T_world_camera->translation.x(), 1.0 + i + (i < 3 ? 0.1 * i : 0.2), 1e-9);
+  }
+  auto edges = store_->ListPoseEdges(map_id, visit->id);
+  ASSERT_TRUE(edges.ok());
+  ASSERT_EQ(edges->size(), 2u);
+  EXPECT_FALSE((*edges)[0].accepted);
+  EXPECT_EQ((*edges)[0].reason, "outvoted");
+  EXPECT_EQ((*edges)[0].inliers, 80);
+  v = store_->GetVisit(visit->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_EQ(v->loops_accepted, 0);
+  EXPECT_EQ(v->loops_rejected, 2);
+  EXPECT_EQ(v->pose_graph_solves, 1);
+  auto solves = store_->ListPoseOptimisations(map_id, 0);
+  ASSERT_TRUE(solves.ok());
+  ASSERT_EQ(solves->size(), 1u);
+  EXPECT_EQ((*solves)[0].loops_rejected, 1);
+
+  // Deleting the map takes its edges and solves with it.
+  ASSERT_TRUE(store_->DeleteMap("m").ok());
+  auto gone = store_->ListPoseOptimisations(map_id, 0);
+  ASSERT_TRUE(gone.ok());
+  EXPECT_TRUE(gone->empty());
+}
+
 TEST(MapName, ValidatesCharactersAndLength) {
   EXPECT_TRUE(ValidateMapName("office_2-b.v1").ok());
   EXPECT_FALSE(ValidateMapName("").ok());

@@ -1,0 +1,90 @@
+// Loop closure and the pose graph of tracked visits (issue 15), off the reply path.
+//
+// A keyframe of a tracked visit is queried against the appearance index like every keyframe;
+// its verified matches to earlier keyframes of the same visit are loop candidates. This worker
+// takes them once the keyframe is committed, checks each one (stricter PnP figures than a place
+// match, and agreement with the odometry up to the drift it can have accumulated), stores it as
+// an accepted or rejected edge with the reason, and when one is accepted solves the visit's
+// pose graph (core/posegraph: odometry edges between consecutive keyframes, every accepted
+// loop, the visit's first keyframe fixed), writing the corrected keyframe poses and the solve's
+// record in one transaction. The visit's later frames are then reported in the corrected frame.
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <future>
+#include <memory>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "core/common/types.h"
+#include "server/config.h"
+#include "server/store/store.h"
+
+namespace lifemap::server {
+
+// A verified appearance match of a keyframe to an earlier keyframe of its visit.
+struct LoopCandidate {
+  int64_t keyframe_id = 0;  // the matched keyframe
+  Pose T_match_query;       // the querying camera in the matched camera's frame
+  int inliers = 0;
+  double reprojection_px = 0;
+};
+
+// What the worker counted since it started (all visits), for logs and tests.
+struct LoopClosureStats {
+  int64_t candidates = 0;
+  int64_t accepted = 0;
+  int64_t rejected = 0;
+  int64_t solves = 0;
+  int64_t rejected_by_solve = 0;  // accepted, then outvoted by the others in a solve
+};
+
+// Thread-safe.
+class PoseGraphWorker {
+ public:
+  PoseGraphWorker(store::Store* store, PoseGraphOptions options);
+  // Finishes every queued job, then stops.
+  ~PoseGraphWorker();
+  PoseGraphWorker(const PoseGraphWorker&) = delete;
+  PoseGraphWorker& operator=(const PoseGraphWorker&) = delete;
+
+  struct Job {
+    int64_t map_id = 0;
+    int64_t visit_id = 0;
+    // The querying keyframe's id once committed (the job is dropped if it is not).
+    std::shared_future<absl::StatusOr<int64_t>> committed;
+    std::vector<LoopCandidate> candidates;
+    // Called on the worker's thread after a solve with the visit's new correction
+    // (T_world_odom: its odometry frame in its corrected frame).
+    std::function<void(const Pose&)> on_corrected;
+  };
+  // Queues a job; returns its ticket for Wait().
+  uint64_t Submit(Job job);
+  // Blocks until the job with `ticket` (and every one before it) is done.
+  void Wait(uint64_t ticket);
+
+  LoopClosureStats Stats() const;
+  const PoseGraphOptions& options() const { return options_; }
+
+ private:
+  void Run();
+  void Process(Job job);
+  // Solves the visit's graph and stores the result; returns the new correction.
+  absl::StatusOr<Pose> Solve(int64_t map_id, int64_t visit_id);
+
+  store::Store* const store_;
+  const PoseGraphOptions options_;
+  mutable absl::Mutex mu_;
+  std::deque<std::pair<uint64_t, Job>> queue_ ABSL_GUARDED_BY(mu_);
+  uint64_t submitted_ ABSL_GUARDED_BY(mu_) = 0;
+  uint64_t done_ ABSL_GUARDED_BY(mu_) = 0;
+  bool stopping_ ABSL_GUARDED_BY(mu_) = false;
+  LoopClosureStats stats_ ABSL_GUARDED_BY(mu_);
+  std::thread thread_;
+};
+
+}  // namespace lifemap::server

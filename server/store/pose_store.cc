@@ -1,0 +1,181 @@
+// Store: pose graphs (issue 15): loop and anchor edges, and the solves that rewrite keyframe
+// poses.
+#include <algorithm>
+
+#include "absl/strings/str_cat.h"
+#include "server/store/store_impl.h"
+
+namespace lifemap::store {
+
+absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto stmt = db->Prepare(
+      "INSERT INTO pose_edges (map_id, kind, from_keyframe, to_keyframe, tx, ty, tz, qx, qy, qz, "
+      "qw, inliers, reprojection_px, accepted, reason, created_time_s) VALUES (?1, ?2, ?3, ?4, "
+      "?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, e.map_id).Bind(2, static_cast<int64_t>(e.kind));
+  s->Bind(3, e.from_keyframe).Bind(4, e.to_keyframe);
+  BindPose(&*s, 5, e.T_from_to);
+  s->Bind(12, int64_t{e.inliers}).Bind(13, e.reprojection_px);
+  s->Bind(14, int64_t{e.accepted}).Bind(15, e.reason).Bind(16, e.created_time_s);
+  if (auto st = s->Run(); !st.ok()) {
+    // The only constraints that can fail are the foreign keys: a keyframe or the map is gone.
+    if (absl::IsFailedPrecondition(st)) {
+      return absl::NotFoundError(absl::StrCat("keyframe ", e.from_keyframe, " or ", e.to_keyframe,
+                                              " (or map ", e.map_id,
+                                              ") no longer exists; edge not stored"));
+    }
+    return st;
+  }
+  return db->LastInsertRowId();
+}
+
+absl::StatusOr<std::vector<PoseEdgeRecord>> Store::ListPoseEdges(int64_t map_id, int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT e.id, e.map_id, e.kind, e.from_keyframe, e.to_keyframe, e.tx, e.ty, e.tz, e.qx, "
+      "e.qy, e.qz, e.qw, e.inliers, e.reprojection_px, e.accepted, e.reason, e.created_time_s "
+      "FROM pose_edges e JOIN keyframes k ON k.id = e.to_keyframe WHERE e.map_id = ?1 AND "
+      "(?2 = 0 OR k.visit_id = ?2) ORDER BY e.id");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id).Bind(2, visit_id);
+  std::vector<PoseEdgeRecord> out;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    PoseEdgeRecord e;
+    e.id = s->ColumnInt(0);
+    e.map_id = s->ColumnInt(1);
+    e.kind = static_cast<StoredEdgeKind>(s->ColumnInt(2));
+    e.from_keyframe = s->ColumnInt(3);
+    e.to_keyframe = s->ColumnInt(4);
+    e.T_from_to = ReadPose(*s, 5);
+    e.inliers = static_cast<int>(s->ColumnInt(12));
+    e.reprojection_px = s->ColumnDouble(13);
+    e.accepted = s->ColumnInt(14) != 0;
+    e.reason = s->ColumnText(15);
+    e.created_time_s = s->ColumnDouble(16);
+    out.push_back(std::move(e));
+  }
+  return out;
+}
+
+absl::StatusOr<int64_t> Store::ApplyPoseOptimisation(PoseOptimisationRecord r,
+                                                     const std::map<int64_t, Pose>& poses,
+                                                     const std::vector<int64_t>& rejected,
+                                                     const std::string& reject_reason,
+                                                     const Pose& later_correction) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  {
+    auto stmt = db->Prepare(
+        "INSERT INTO pose_optimisations (map_id, visit_id, created_time_s, keyframes, "
+        "odometry_edges, loop_edges, loops_rejected, iterations, initial_cost, final_cost, "
+        "solve_ms, max_correction_m) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, r.map_id).Bind(2, r.visit_id).Bind(3, r.created_time_s);
+    s->Bind(4, int64_t{r.keyframes}).Bind(5, int64_t{r.odometry_edges});
+    s->Bind(6, int64_t{r.loop_edges}).Bind(7, int64_t{r.loops_rejected});
+    s->Bind(8, int64_t{r.iterations}).Bind(9, r.initial_cost).Bind(10, r.final_cost);
+    s->Bind(11, r.solve_ms).Bind(12, r.max_correction_m);
+    if (auto st = s->Run(); !st.ok()) {
+      if (absl::IsFailedPrecondition(st)) {
+        return absl::NotFoundError(absl::StrCat("map ", r.map_id, " no longer exists"));
+      }
+      return st;
+    }
+  }
+  r.id = db->LastInsertRowId();
+  auto update = db->Prepare(
+      "UPDATE keyframes SET tx = ?1, ty = ?2, tz = ?3, qx = ?4, qy = ?5, qz = ?6, qw = ?7, "
+      "optimisation_id = ?8 WHERE id = ?9");
+  if (!update.ok()) return update.status();
+  int64_t newest = 0;
+  for (const auto& [id, pose] : poses) {
+    StatementScope s(*update);
+    BindPose(&*s, 1, pose);
+    s->Bind(8, r.id).Bind(9, id);
+    if (auto st = s->Run(); !st.ok()) return st;
+    newest = std::max(newest, id);
+  }
+  // Keyframes tracked while the graph was solved follow the newest solved one.
+  {
+    auto later = db->Prepare(
+        "SELECT id, odom_tx, odom_ty, odom_tz, odom_qx, odom_qy, odom_qz, odom_qw FROM "
+        "keyframes WHERE visit_id = ?1 AND id > ?2 AND odom_tx IS NOT NULL");
+    if (!later.ok()) return later.status();
+    std::vector<std::pair<int64_t, Pose>> moved;
+    {
+      StatementScope s(*later);
+      s->Bind(1, r.visit_id).Bind(2, newest);
+      for (;;) {
+        auto row = s->Step();
+        if (!row.ok()) return row.status();
+        if (!*row) break;
+        moved.push_back({s->ColumnInt(0), Pose::FromIsometry(later_correction.ToIsometry() *
+                                                             ReadPose(*s, 1).ToIsometry())});
+      }
+    }
+    for (const auto& [id, pose] : moved) {
+      StatementScope s(*update);
+      BindPose(&*s, 1, pose);
+      s->Bind(8, r.id).Bind(9, id);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
+  }
+  if (!rejected.empty()) {
+    auto reject = db->Prepare("UPDATE pose_edges SET accepted = 0, reason = ?1 WHERE id = ?2");
+    if (!reject.ok()) return reject.status();
+    for (int64_t id : rejected) {
+      StatementScope s(*reject);
+      s->Bind(1, reject_reason).Bind(2, id);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return r.id;
+}
+
+absl::StatusOr<std::vector<PoseOptimisationRecord>> Store::ListPoseOptimisations(int64_t map_id,
+                                                                                 int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT id, map_id, visit_id, created_time_s, keyframes, odometry_edges, loop_edges, "
+      "loops_rejected, iterations, initial_cost, final_cost, solve_ms, max_correction_m FROM "
+      "pose_optimisations WHERE map_id = ?1 AND (?2 = 0 OR visit_id = ?2) ORDER BY id");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id).Bind(2, visit_id);
+  std::vector<PoseOptimisationRecord> out;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    PoseOptimisationRecord r;
+    r.id = s->ColumnInt(0);
+    r.map_id = s->ColumnInt(1);
+    r.visit_id = s->ColumnInt(2);
+    r.created_time_s = s->ColumnDouble(3);
+    r.keyframes = static_cast<int>(s->ColumnInt(4));
+    r.odometry_edges = static_cast<int>(s->ColumnInt(5));
+    r.loop_edges = static_cast<int>(s->ColumnInt(6));
+    r.loops_rejected = static_cast<int>(s->ColumnInt(7));
+    r.iterations = static_cast<int>(s->ColumnInt(8));
+    r.initial_cost = s->ColumnDouble(9);
+    r.final_cost = s->ColumnDouble(10);
+    r.solve_ms = s->ColumnDouble(11);
+    r.max_correction_m = s->ColumnDouble(12);
+    out.push_back(r);
+  }
+  return out;
+}
+
+}  // namespace lifemap::store

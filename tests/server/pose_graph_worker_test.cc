@@ -1,0 +1,125 @@
+// Loop closure checks (issue 15): a candidate that disagrees with the odometry beyond the drift
+// it allows, or has too few inliers, is stored as rejected with the reason and moves nothing; a
+// consistent one is accepted, solved, and the visit's correction follows.
+#include "server/pose_graph_worker.h"
+
+#include <gtest/gtest.h>
+
+#include "tests/testing/test_util.h"
+
+namespace lifemap::server {
+namespace {
+
+class PoseGraphWorkerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto s = store::Store::Open(tmp_.File("lifemap.db"));
+    ASSERT_TRUE(s.ok()) << s.status();
+    store_ = *std::move(s);
+    ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+    auto v = store_->StartVisit("m", "", "", 1.0);
+    ASSERT_TRUE(v.ok());
+    visit_ = *v;
+    // Ten keyframes 0.3 m apart along x; the odometry believes they drifted 1 cm per step in y.
+    for (int i = 0; i < 10; ++i) {
+      store::KeyframeRecord k;
+      k.visit_id = visit_.id;
+      k.sequence = static_cast<uint64_t>(i);
+      k.timestamp_s = 1.0 + i;
+      Pose odom;
+      odom.translation = {0.3 * i, 0.01 * i, 0};
+      k.T_world_camera = odom;
+      k.T_odom_camera = odom;
+      k.odom_segment = 7;
+      k.pose_source = store::StoredPoseSource::kEstimated;
+      k.intrinsics = {525, 525, 319.5, 239.5, 640, 480};
+      k.depth_scale = 5000;
+      k.depth = "d";
+      k.color = "c";
+      keyframes_.push_back(k);
+    }
+    ASSERT_TRUE(store_->InsertKeyframes(&keyframes_, {}).ok());
+  }
+
+  // A candidate from keyframe `from` to the last one, measured as the truth has it (y = 0)
+  // plus `error`.
+  LoopCandidate Candidate(int from, const Eigen::Vector3d& error, int inliers = 60) {
+    LoopCandidate c;
+    c.keyframe_id = keyframes_[from].id;
+    c.T_match_query.translation = Eigen::Vector3d(0.3 * (9 - from), 0, 0) + error;
+    c.inliers = inliers;
+    c.reprojection_px = 1.0;
+    return c;
+  }
+
+  std::shared_future<absl::StatusOr<int64_t>> Committed(int64_t id) {
+    std::promise<absl::StatusOr<int64_t>> p;
+    p.set_value(id);
+    return p.get_future().share();
+  }
+
+  testing::TempDir tmp_;
+  std::unique_ptr<store::Store> store_;
+  store::VisitRecord visit_;
+  std::vector<store::KeyframeRecord> keyframes_;
+};
+
+TEST_F(PoseGraphWorkerTest, WrongAndWeakLoopsAreRejectedWithTheReasonAndARightOneCorrects) {
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> correction;
+  PoseGraphWorker::Job job;
+  job.map_id = visit_.map_id;
+  job.visit_id = visit_.id;
+  job.committed = Committed(keyframes_.back().id);
+  job.on_corrected = [&](const Pose& c) { correction = c; };
+  // 2 m off after 2.7 m of path: a perceptual alias, not drift.
+  job.candidates = {Candidate(0, {2.0, 0, 0}), Candidate(1, {0, 0, 0}, /*inliers=*/12)};
+  worker.Wait(worker.Submit(job));
+  EXPECT_FALSE(correction.has_value()) << "nothing accepted, nothing solved";
+  auto edges = store_->ListPoseEdges(visit_.map_id, visit_.id);
+  ASSERT_TRUE(edges.ok());
+  ASSERT_EQ(edges->size(), 2u);
+  EXPECT_FALSE((*edges)[0].accepted);
+  EXPECT_NE((*edges)[0].reason.find("disagrees with the odometry by 2.0"), std::string::npos)
+      << (*edges)[0].reason;
+  EXPECT_FALSE((*edges)[1].accepted);
+  EXPECT_NE((*edges)[1].reason.find("12 PnP inliers"), std::string::npos) << (*edges)[1].reason;
+
+  // The drift (9 cm in y) is within what 2.7 m of path allows: accepted, solved, corrected.
+  job.candidates = {Candidate(0, {0, 0, 0})};
+  worker.Wait(worker.Submit(job));
+  ASSERT_TRUE(correction.has_value());
+  auto listed = store_->ListKeyframes(visit_.map_id, visit_.id);
+  ASSERT_TRUE(listed.ok());
+  const auto& last = listed->back();
+  EXPECT_GT(last.optimisation_id, 0);
+  // Pulled back towards y = 0 (the loop and the odometry weighed by their sigmas).
+  EXPECT_LT(std::abs(last.T_world_camera->translation.y()), 0.06);
+  EXPECT_NEAR(last.T_odom_camera->translation.y(), 0.09, 1e-9) << "odometry kept as tracked";
+  const Eigen::Vector3d corrected = correction->ToIsometry() * last.T_odom_camera->translation;
+  EXPECT_LT((corrected - last.T_world_camera->translation).norm(), 1e-6)
+      << "later frames follow the newest keyframe's correction";
+  const LoopClosureStats stats = worker.Stats();
+  EXPECT_EQ(stats.candidates, 3);
+  EXPECT_EQ(stats.accepted, 1);
+  EXPECT_EQ(stats.rejected, 2);
+  EXPECT_EQ(stats.solves, 1);
+}
+
+TEST_F(PoseGraphWorkerTest, AKeyframeThatWasNotStoredClosesNothing) {
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  PoseGraphWorker::Job job;
+  job.map_id = visit_.map_id;
+  job.visit_id = visit_.id;
+  std::promise<absl::StatusOr<int64_t>> failed;
+  failed.set_value(absl::UnavailableError("disk full"));
+  job.committed = failed.get_future().share();
+  job.candidates = {Candidate(0, {0, 0, 0})};
+  worker.Wait(worker.Submit(job));
+  auto edges = store_->ListPoseEdges(visit_.map_id, visit_.id);
+  ASSERT_TRUE(edges.ok());
+  EXPECT_TRUE(edges->empty());
+}
+
+}  // namespace
+}  // namespace lifemap::server
