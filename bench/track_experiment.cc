@@ -10,6 +10,8 @@ int main(int argc, char** argv) {
   auto seq = io::ReadTumSequence(argv[1]);
   tracking::OdometryOptions o;
   o.downscale = std::atoi(argv[2]);
+  if (getenv("JUMP_M")) o.max_jump_m = std::atof(getenv("JUMP_M"));
+  if (getenv("JUMP_RAD")) o.max_jump_rad = std::atof(getenv("JUMP_RAD"));
   int limit = argc > 3 ? std::atoi(argv[3]) : 100000;
   tracking::Tracker tracker(o);
   tracking::KeyframeSelector selector;

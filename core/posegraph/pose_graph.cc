@@ -84,6 +84,10 @@ absl::Status OptimiseOptions::Validate() const {
   if (!(outlier_chi2 > 0) || !std::isfinite(outlier_chi2)) {
     return absl::InvalidArgumentError(absl::StrCat("outlier_chi2 must be > 0, got ", outlier_chi2));
   }
+  if (!(odometry_robust_scale >= 0) || !std::isfinite(odometry_robust_scale)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry_robust_scale must be >= 0, got ", odometry_robust_scale));
+  }
   if (max_rejection_rounds < 0 || max_rejection_rounds > 10) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_rejection_rounds must be within [0, 10], got ", max_rejection_rounds));
@@ -174,6 +178,10 @@ absl::StatusOr<OptimiseResult> Optimise(const std::map<int64_t, Pose>& initial,
     ceres::Problem problem(problem_options);
     ceres::EigenQuaternionManifold quaternion;
     ceres::CauchyLoss robust(options.robust_scale);
+    ceres::CauchyLoss robust_odometry(
+        options.odometry_robust_scale > 0 ? options.odometry_robust_scale : 1.0);
+    ceres::LossFunction* odometry_loss =
+        options.odometry_robust_scale > 0 ? &robust_odometry : nullptr;
     for (size_t i = 0; i < edges.size(); ++i) {
       if (!active[i]) continue;
       const Edge& e = edges[i];
@@ -181,8 +189,8 @@ absl::StatusOr<OptimiseResult> Optimise(const std::map<int64_t, Pose>& initial,
           new RelativePoseError(e.T_from_to, e.sigma_m, e.sigma_rad));
       NodeParams& a = params[e.from];
       NodeParams& b = params[e.to];
-      problem.AddResidualBlock(cost, e.kind == EdgeKind::kOdometry ? nullptr : &robust, a.t, a.q,
-                               b.t, b.q);
+      problem.AddResidualBlock(cost, e.kind == EdgeKind::kOdometry ? odometry_loss : &robust, a.t,
+                               a.q, b.t, b.q);
       problem.SetManifold(a.q, &quaternion);
       problem.SetManifold(b.q, &quaternion);
     }

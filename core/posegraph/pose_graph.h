@@ -42,6 +42,9 @@ struct OptimiseOptions {
   // The robust loss of loop and anchor edges: whitened residuals (in sigmas) up to about this
   // count fully, larger ones less and less (Cauchy), > 0.
   double robust_scale = 2.0;
+  // Odometry edges get a Cauchy loss of this scale too when > 0 (0: plain least squares), so
+  // that one bad odometry step can take a loop's correction instead of the whole chain bending.
+  double odometry_robust_scale = 0.0;
   // After a solve, a loop or anchor edge whose whitened squared residual exceeds this is
   // switched off and the graph solved again (at most `max_rejection_rounds` times); 22.5 is the
   // 99.9 % point of chi-square with 6 degrees of freedom. > 0.
