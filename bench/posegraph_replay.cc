@@ -72,8 +72,8 @@ int main(int argc, char** argv) {
       for (const auto& l : *edges) {
         if (!l.accepted && l.reason.find("outvoted") == std::string::npos) continue;
         if (!odom.count(l.from_keyframe) || !odom.count(l.to_keyframe)) continue;
-        graph.push_back({l.from_keyframe, l.to_keyframe, l.T_from_to,
-                         posegraph::EdgeKind::kLoop, 0.02, 0.01});
+        graph.push_back(
+            {l.from_keyframe, l.to_keyframe, l.T_from_to, posegraph::EdgeKind::kLoop, 0.02, 0.01});
         ++loops;
       }
       posegraph::OptimiseOptions o;
