@@ -173,6 +173,19 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
   out->set_loops_accepted(static_cast<uint64_t>(v.loops_accepted));
   out->set_loops_rejected(static_cast<uint64_t>(v.loops_rejected));
   out->set_pose_graph_solves(static_cast<uint64_t>(v.pose_graph_solves));
+  if (v.anchor) {
+    out->set_frame(v1::VISIT_FRAME_ANCHORED);
+    auto* a = out->mutable_anchor();
+    a->set_to_visit(static_cast<uint64_t>(v.anchor->to_visit_id));
+    PoseToProto(v.anchor->T_map_visit, a->mutable_t_map_visit());
+    a->set_residual_m(v.anchor->residual_m);
+    a->set_residual_deg(v.anchor->residual_deg);
+    a->set_anchored_time_s(v.anchor->anchored_time_s);
+  } else if (v.first_of_map || v.tracked_keyframes == 0) {
+    out->set_frame(v1::VISIT_FRAME_MAP);
+  } else {
+    out->set_frame(v1::VISIT_FRAME_UNANCHORED);
+  }
 }
 
 void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out) {

@@ -150,11 +150,13 @@ struct FrameSettings {
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
 // every stored keyframe but its own visit's last few seconds. OK with no match (nothing
 // recognised); otherwise why it could not be asked. With `loops`, the verified matches to earlier
-// keyframes of the same visit are added there too (loop candidates, issue 15).
+// keyframes of the same visit are added there too (loop candidates, issue 15); with `anchors`,
+// those to other visits of map `map_id` (anchor candidates).
 absl::Status AppearanceMatches(ServiceContext* ctx,
                                const absl::StatusOr<pipeline::KeyframeFeatures>& features,
                                const RgbdFrame& f, int64_t visit_id, v1::FrameResult* r,
-                               std::vector<LoopCandidate>* loops) {
+                               std::vector<LoopCandidate>* loops,
+                               std::vector<AnchorCandidate>* anchors, int64_t map_id) {
   if (!features.ok()) return features.status();
   const double recent_s = ctx->appearance->options().exclude_recent_s;
   const double t = f.timestamp_s;
@@ -170,11 +172,13 @@ absl::Status AppearanceMatches(ServiceContext* ctx,
     PlaceMatchToProto(AppearancePlaceMatch(recognition->matches[i], &names),
                       r->add_place_matches());
   }
-  if (loops != nullptr) {
-    for (const auto& m : recognition->matches) {
-      if (m.keyframe.visit_id != visit_id || !m.verification.verified) continue;
-      loops->push_back({m.keyframe.keyframe_id, m.verification.T_match_query,
-                        m.verification.inliers, m.verification.reprojection_px});
+  for (const auto& m : recognition->matches) {
+    if (!m.verification.verified) continue;
+    const LoopCandidate c{m.keyframe.keyframe_id, m.verification.T_match_query,
+                          m.verification.inliers, m.verification.reprojection_px};
+    if (loops != nullptr && m.keyframe.visit_id == visit_id) loops->push_back(c);
+    if (anchors != nullptr && m.keyframe.visit_id != visit_id && m.keyframe.map_id == map_id) {
+      anchors->push_back({m.keyframe.visit_id, c});
     }
   }
   return absl::OkStatus();
@@ -415,12 +419,15 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     }
   }
   // A tracked keyframe's verified matches to earlier keyframes of its visit are loop candidates.
+  // Until the visit is anchored, its matches to other visits of the map are anchor candidates.
   std::vector<LoopCandidate> loops;
+  std::vector<AnchorCandidate> anchors;
   const bool close_loops =
       decision.selected && record.ok() && odometry_pose && ctx->config.pose_graph.enabled;
   if (query_appearance) {
-    facts.appearance =
-        AppearanceMatches(ctx, features, f, visit->visit_id, &r, close_loops ? &loops : nullptr);
+    facts.appearance = AppearanceMatches(
+        ctx, features, f, visit->visit_id, &r, close_loops ? &loops : nullptr,
+        close_loops && !visit->anchored.load() ? &anchors : nullptr, visit->map_id);
   }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
@@ -437,15 +444,22 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit =
         ctx->committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count}).share();
-    if (!loops.empty()) {
+    if (!loops.empty() || !anchors.empty()) {
       PoseGraphWorker::Job job;
       job.map_id = visit->map_id;
       job.visit_id = visit->visit_id;
       job.committed = *p.commit;
       job.candidates = std::move(loops);
+      job.anchors = std::move(anchors);
       job.on_corrected = [visit_state](const Pose& world_from_odom) {
         absl::MutexLock correction(&visit_state->correction_mu);
         visit_state->world_from_odom = world_from_odom;
+      };
+      job.on_anchored = [visit_state](const Pose& T_map_visit) {
+        absl::MutexLock correction(&visit_state->correction_mu);
+        visit_state->world_from_odom = Pose::FromIsometry(
+            T_map_visit.ToIsometry() * visit_state->world_from_odom.ToIsometry());
+        visit_state->anchored = true;
       };
       p.pose_graph_ticket = ctx->pose_graph->Submit(std::move(job));
     }

@@ -37,6 +37,12 @@ posegraph::Edge OdometryEdge(const store::KeyframeRecord& a, const store::Keyfra
 constexpr double kLoopSigmaM = 0.02;
 constexpr double kLoopSigmaRad = 0.01;
 
+// A visit is anchored when two of its keyframes' matches put it within this of each other, and
+// waits with at most this many single matches.
+constexpr double kAnchorAgreementM = 0.10;
+constexpr double kAnchorAgreementDeg = 3.0;
+constexpr size_t kMaxPendingAnchors = 64;
+
 }  // namespace
 
 PoseGraphWorker::PoseGraphWorker(store::Store* store, PoseGraphOptions options)
@@ -110,6 +116,7 @@ void PoseGraphWorker::Process(Job job) {
   };
   const store::KeyframeRecord* query = find(query_id);
   if (query == nullptr || !query->T_odom_camera) return;
+  if (!job.anchors.empty()) ProcessAnchors(job, *query);
 
   int accepted = 0;
   for (const LoopCandidate& c : job.candidates) {
@@ -175,6 +182,7 @@ void PoseGraphWorker::Process(Job job) {
     ++(edge.accepted ? stats_.accepted : stats_.rejected);
   }
   if (accepted == 0) return;
+  // Poses may have moved since the job was queued (an anchor): the solve reads them again.
   auto correction = Solve(job.map_id, job.visit_id);
   if (!correction.ok()) {
     spdlog::warn("visit {}: pose graph not solved: {}", job.visit_id,
@@ -182,6 +190,88 @@ void PoseGraphWorker::Process(Job job) {
     return;
   }
   if (job.on_corrected) job.on_corrected(*correction);
+}
+
+void PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord& query) {
+  auto visit = store_->GetVisit(job.visit_id);
+  if (!visit.ok() || visit->anchor || !query.T_world_camera) return;
+  auto visits = store_->ListVisits(visit->map_name);
+  if (!visits.ok() || visits->empty()) return;
+  // The map's frame is its first visit's.
+  const int64_t root = visits->front().id;
+  if (job.visit_id == root) return;
+  std::map<int64_t, const store::VisitRecord*> by_id;
+  for (const auto& v : *visits) by_id[v.id] = &v;
+  auto& pending = pending_anchors_[job.visit_id];
+  for (const AnchorCandidate& c : job.anchors) {
+    {
+      absl::MutexLock lock(&mu_);
+      ++stats_.anchor_candidates;
+    }
+    const LoopCandidate& m = c.match;
+    if (m.inliers < options_.loop_min_inliers ||
+        m.reprojection_px > options_.loop_max_reprojection_px) {
+      continue;
+    }
+    auto it = by_id.find(c.visit_id);
+    if (it == by_id.end() || c.visit_id == job.visit_id) continue;
+    auto matched = store_->GetKeyframe(job.map_id, m.keyframe_id);
+    if (!matched.ok() || !matched->T_world_camera) continue;
+    // The matched visit's frame in the map's: the first visit's is the map's; an anchored one
+    // says where it lies (its keyframes were moved into the map's frame when it was anchored);
+    // client poses are in the map's frame already. A tracked visit not anchored yet is not.
+    const bool in_map_frame = c.visit_id == root || it->second->anchor.has_value() ||
+                              matched->pose_source == store::StoredPoseSource::kClient ||
+                              matched->pose_source == store::StoredPoseSource::kRefined;
+    if (!in_map_frame) continue;
+    const Eigen::Isometry3d T_map_query =
+        matched->T_world_camera->ToIsometry() * m.T_match_query.ToIsometry();
+    AnchorEstimate estimate;
+    estimate.query_keyframe = query.id;
+    estimate.to_visit = c.visit_id;
+    estimate.T_map_visit =
+        Pose::FromIsometry(T_map_query * query.T_world_camera->ToIsometry().inverse());
+    estimate.edge.map_id = job.map_id;
+    estimate.edge.kind = store::StoredEdgeKind::kAnchor;
+    estimate.edge.from_keyframe = m.keyframe_id;
+    estimate.edge.to_keyframe = query.id;
+    estimate.edge.T_from_to = m.T_match_query;
+    estimate.edge.inliers = m.inliers;
+    estimate.edge.reprojection_px = m.reprojection_px;
+    estimate.edge.accepted = true;
+    estimate.edge.created_time_s = NowSeconds();
+    // Two matches from different keyframes of the visit must agree: one match can be an alias.
+    for (const AnchorEstimate& other : pending) {
+      if (other.query_keyframe == query.id) continue;
+      const double off_m =
+          (other.T_map_visit.translation - estimate.T_map_visit.translation).norm();
+      const double off_deg = RotationAngleRad(other.T_map_visit, estimate.T_map_visit) * kRadToDeg;
+      if (off_m > kAnchorAgreementM || off_deg > kAnchorAgreementDeg) continue;
+      store::VisitAnchor anchor;
+      anchor.to_visit_id = estimate.to_visit;
+      anchor.T_map_visit = estimate.T_map_visit;
+      anchor.residual_m = off_m;
+      anchor.residual_deg = off_deg;
+      anchor.anchored_time_s = NowSeconds();
+      estimate.edge.reason = absl::StrFormat(
+          "anchors visit %d to visit %d: agrees with keyframe %d's match within %.3f m / %.2f deg",
+          job.visit_id, estimate.to_visit, other.query_keyframe, off_m, off_deg);
+      if (auto s = store_->AnchorVisit(job.visit_id, estimate.edge, &anchor); !s.ok()) {
+        spdlog::warn("visit {}: not anchored: {}", job.visit_id, s.ToString());
+        return;
+      }
+      spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
+                   job.visit_id, anchor.to_visit_id, visit->map_name, off_m, off_deg);
+      pending_anchors_.erase(job.visit_id);
+      {
+        absl::MutexLock lock(&mu_);
+        ++stats_.anchors;
+      }
+      if (job.on_anchored) job.on_anchored(anchor.T_map_visit);
+      return;
+    }
+    if (pending.size() < kMaxPendingAnchors) pending.push_back(std::move(estimate));
+  }
 }
 
 absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id) {

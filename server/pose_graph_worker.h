@@ -14,6 +14,7 @@
 #include <deque>
 #include <functional>
 #include <future>
+#include <map>
 #include <memory>
 #include <thread>
 #include <vector>
@@ -34,6 +35,13 @@ struct LoopCandidate {
   double reprojection_px = 0;
 };
 
+// A verified appearance match of a tracked keyframe to a keyframe of another visit of its map:
+// an anchor candidate.
+struct AnchorCandidate {
+  int64_t visit_id = 0;  // the matched keyframe's visit
+  LoopCandidate match;
+};
+
 // What the worker counted since it started (all visits), for logs and tests.
 struct LoopClosureStats {
   int64_t candidates = 0;
@@ -41,6 +49,8 @@ struct LoopClosureStats {
   int64_t rejected = 0;
   int64_t solves = 0;
   int64_t rejected_by_solve = 0;  // accepted, then outvoted by the others in a solve
+  int64_t anchor_candidates = 0;
+  int64_t anchors = 0;  // visits anchored
 };
 
 // Thread-safe.
@@ -58,9 +68,13 @@ class PoseGraphWorker {
     // The querying keyframe's id once committed (the job is dropped if it is not).
     std::shared_future<absl::StatusOr<int64_t>> committed;
     std::vector<LoopCandidate> candidates;
+    std::vector<AnchorCandidate> anchors;
     // Called on the worker's thread after a solve with the visit's new correction
     // (T_world_odom: its odometry frame in its corrected frame).
     std::function<void(const Pose&)> on_corrected;
+    // Called on the worker's thread once the visit is anchored, with T_map_visit: its frame in
+    // the map's (its stored keyframes were moved by it; later frames must be too).
+    std::function<void(const Pose&)> on_anchored;
   };
   // Queues a job; returns its ticket for Wait().
   uint64_t Submit(Job job);
@@ -75,6 +89,17 @@ class PoseGraphWorker {
   void Process(Job job);
   // Solves the visit's graph and stores the result; returns the new correction.
   absl::StatusOr<Pose> Solve(int64_t map_id, int64_t visit_id);
+  // Anchors the visit once two of its keyframes' matches agree on where it lies in the map.
+  void ProcessAnchors(const Job& job, const store::KeyframeRecord& query);
+
+  // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
+  struct AnchorEstimate {
+    int64_t query_keyframe = 0;
+    int64_t to_visit = 0;
+    store::PoseEdgeRecord edge;
+    Pose T_map_visit;
+  };
+  std::map<int64_t, std::vector<AnchorEstimate>> pending_anchors_;
 
   store::Store* const store_;
   const PoseGraphOptions options_;

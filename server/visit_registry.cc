@@ -75,6 +75,7 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto state = std::make_shared<VisitState>();
   state->visit_id = visit_id;
   state->map_id = visit->map_id;
+  state->anchored = visit->anchor.has_value();
   // A new run of the tracker, distinct from any earlier one of this visit (microseconds since
   // the epoch: a visit is loaded at most once per server run).
   state->odom_segment = std::chrono::duration_cast<std::chrono::microseconds>(

@@ -3,6 +3,7 @@
 // writes the visit; and whether it may still be written.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -50,6 +51,9 @@ struct VisitState {
   // loop closes; set by the PoseGraphWorker.
   absl::Mutex correction_mu;
   Pose world_from_odom ABSL_GUARDED_BY(correction_mu);
+  // A tracked visit is anchored into its map's frame once (issue 15); until then its keyframes'
+  // matches to other visits of the map are anchor candidates.
+  std::atomic<bool> anchored{false};
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;

@@ -7,9 +7,10 @@
 
 namespace lifemap::store {
 
-absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
-  absl::MutexLock lock(&impl_->write_mu);
-  Database* db = impl_->write_db.get();
+namespace {
+
+// Inserts `e` on `db` (whose write lock the caller holds); returns its id.
+absl::StatusOr<int64_t> InsertEdgeLocked(Database* db, const PoseEdgeRecord& e) {
   auto stmt = db->Prepare(
       "INSERT INTO pose_edges (map_id, kind, from_keyframe, to_keyframe, tx, ty, tz, qx, qy, qz, "
       "qw, inliers, reprojection_px, accepted, reason, created_time_s) VALUES (?1, ?2, ?3, ?4, "
@@ -31,6 +32,77 @@ absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
     return st;
   }
   return db->LastInsertRowId();
+}
+
+}  // namespace
+
+absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
+  absl::MutexLock lock(&impl_->write_mu);
+  return InsertEdgeLocked(impl_->write_db.get(), e);
+}
+
+absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, VisitAnchor* anchor) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  {
+    auto check = db->Prepare("SELECT anchor_visit_id FROM visits WHERE id = ?1");
+    if (!check.ok()) return check.status();
+    StatementScope s(*check);
+    s->Bind(1, visit_id);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+    if (!s->ColumnIsNull(0)) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "visit ", visit_id, " is anchored already (to visit ", s->ColumnInt(0), ")"));
+    }
+  }
+  auto edge_id = InsertEdgeLocked(db, edge);
+  if (!edge_id.ok()) return edge_id.status();
+  anchor->edge_id = *edge_id;
+  auto update = db->Prepare(
+      "UPDATE visits SET anchor_visit_id = ?1, anchor_edge_id = ?2, map_tx = ?3, map_ty = ?4, "
+      "map_tz = ?5, map_qx = ?6, map_qy = ?7, map_qz = ?8, map_qw = ?9, anchor_residual_m = ?10, "
+      "anchor_residual_deg = ?11, anchored_time_s = ?12 WHERE id = ?13");
+  if (!update.ok()) return update.status();
+  {
+    StatementScope s(*update);
+    s->Bind(1, anchor->to_visit_id).Bind(2, anchor->edge_id);
+    BindPose(&*s, 3, anchor->T_map_visit);
+    s->Bind(10, anchor->residual_m).Bind(11, anchor->residual_deg);
+    s->Bind(12, anchor->anchored_time_s).Bind(13, visit_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  // The visit's keyframes move into the map's frame.
+  std::vector<std::pair<int64_t, Pose>> moved;
+  {
+    auto posed = db->Prepare(
+        "SELECT id, tx, ty, tz, qx, qy, qz, qw FROM keyframes WHERE visit_id = ?1 AND "
+        "has_pose = 1");
+    if (!posed.ok()) return posed.status();
+    StatementScope s(*posed);
+    s->Bind(1, visit_id);
+    for (;;) {
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      moved.push_back({s->ColumnInt(0), Pose::FromIsometry(anchor->T_map_visit.ToIsometry() *
+                                                           ReadPose(*s, 1).ToIsometry())});
+    }
+  }
+  auto move = db->Prepare(
+      "UPDATE keyframes SET tx = ?1, ty = ?2, tz = ?3, qx = ?4, qy = ?5, qz = ?6, qw = ?7 WHERE "
+      "id = ?8");
+  if (!move.ok()) return move.status();
+  for (const auto& [id, pose] : moved) {
+    StatementScope s(*move);
+    BindPose(&*s, 1, pose);
+    s->Bind(8, id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  return tx.Commit();
 }
 
 absl::StatusOr<std::vector<PoseEdgeRecord>> Store::ListPoseEdges(int64_t map_id, int64_t visit_id) {

@@ -262,6 +262,23 @@ CREATE TABLE pose_optimisations (
   max_correction_m REAL NOT NULL
 );
 )sql",
+    // 9 -> 10: a tracked visit anchored into its map's frame (issue 15): the visit it was
+    // anchored to, the anchor edge (pose_edges, kind 3), T_map_visit, and the residual between
+    // the two matches that agreed on it. NULL anchor_visit_id: not anchored.
+    R"sql(
+ALTER TABLE visits ADD COLUMN anchor_visit_id INTEGER;
+ALTER TABLE visits ADD COLUMN anchor_edge_id INTEGER;
+ALTER TABLE visits ADD COLUMN map_tx REAL;
+ALTER TABLE visits ADD COLUMN map_ty REAL;
+ALTER TABLE visits ADD COLUMN map_tz REAL;
+ALTER TABLE visits ADD COLUMN map_qx REAL;
+ALTER TABLE visits ADD COLUMN map_qy REAL;
+ALTER TABLE visits ADD COLUMN map_qz REAL;
+ALTER TABLE visits ADD COLUMN map_qw REAL;
+ALTER TABLE visits ADD COLUMN anchor_residual_m REAL;
+ALTER TABLE visits ADD COLUMN anchor_residual_deg REAL;
+ALTER TABLE visits ADD COLUMN anchored_time_s REAL;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -426,6 +443,18 @@ VisitRecord ReadVisit(const Statement& s) {
   v.loops_accepted = s.ColumnInt(10);
   v.loops_rejected = s.ColumnInt(11);
   v.pose_graph_solves = s.ColumnInt(12);
+  if (!s.ColumnIsNull(13)) {
+    VisitAnchor a;
+    a.to_visit_id = s.ColumnInt(13);
+    a.edge_id = s.ColumnInt(14);
+    a.T_map_visit = ReadPose(s, 15);
+    a.residual_m = s.ColumnDouble(22);
+    a.residual_deg = s.ColumnDouble(23);
+    a.anchored_time_s = s.ColumnDouble(24);
+    v.anchor = a;
+  }
+  v.tracked_keyframes = s.ColumnInt(25);
+  v.first_of_map = s.ColumnInt(26) != 0;
   return v;
 }
 
@@ -438,7 +467,10 @@ constexpr char kVisitSelect[] =
     "(SELECT COUNT(*) FROM pose_edges e JOIN keyframes k ON k.id = e.to_keyframe WHERE "
     "e.map_id = v.map_id AND k.visit_id = v.id AND e.kind = 2 AND e.accepted = 0), "
     "(SELECT COUNT(*) FROM pose_optimisations o WHERE o.map_id = v.map_id AND "
-    "o.visit_id = v.id) "
+    "o.visit_id = v.id), v.anchor_visit_id, v.anchor_edge_id, v.map_tx, v.map_ty, v.map_tz, "
+    "v.map_qx, v.map_qy, v.map_qz, v.map_qw, v.anchor_residual_m, v.anchor_residual_deg, "
+    "v.anchored_time_s, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id AND "
+    "k.odom_tx IS NOT NULL), v.id = (SELECT MIN(w.id) FROM visits w WHERE w.map_id = v.map_id) "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =

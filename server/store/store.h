@@ -56,6 +56,15 @@ struct MapUpdate {
   std::optional<bool> keep_original_color;
 };
 
+struct VisitAnchor {
+  int64_t to_visit_id = 0;
+  int64_t edge_id = 0;
+  Pose T_map_visit;
+  double residual_m = 0;
+  double residual_deg = 0;
+  double anchored_time_s = 0;
+};
+
 struct VisitRecord {
   int64_t id = 0;
   int64_t map_id = 0;
@@ -72,6 +81,13 @@ struct VisitRecord {
   int64_t loops_accepted = 0;
   int64_t loops_rejected = 0;
   int64_t pose_graph_solves = 0;
+  // Anchoring (issue 15): set once a tracked visit's keyframes matched, by appearance, keyframes
+  // of a visit already in the map's frame: that visit, the anchor edge (pose_edges, kind
+  // anchor), where this visit's frame lies in the map's (T_map_visit), and how far the two
+  // agreeing matches that anchored it were apart.
+  std::optional<VisitAnchor> anchor;
+  int64_t tracked_keyframes = 0;  // keyframes posed by the server's tracker
+  bool first_of_map = false;      // the map's first visit: its frame is the map's
 };
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
@@ -229,7 +245,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 9;
+  static constexpr int kSchemaVersion = 10;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -327,6 +343,11 @@ class Store {
                                                 const std::vector<int64_t>& rejected,
                                                 const std::string& reject_reason,
                                                 const Pose& later_correction);
+  // Anchors a visit (issue 15): stores the anchor edge (accepted) and the visit's anchor, and
+  // moves the visit's posed keyframes into the map's frame (T_map_visit * pose), in one
+  // transaction; sets anchor.edge_id. FAILED_PRECONDITION when the visit is anchored already;
+  // NOT_FOUND when it or a keyframe is gone.
+  absl::Status AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, VisitAnchor* anchor);
   // A map's solves (of one visit, or all for 0), oldest first.
   absl::StatusOr<std::vector<PoseOptimisationRecord>> ListPoseOptimisations(int64_t map_id,
                                                                             int64_t visit_id);

@@ -121,5 +121,76 @@ TEST_F(PoseGraphWorkerTest, AKeyframeThatWasNotStoredClosesNothing) {
   EXPECT_TRUE(edges->empty());
 }
 
+// A second tracked visit whose own frame is the first visit's moved by T (2 m along x, turned
+// 90 deg about z): two of its keyframes' matches agreeing on T anchor it, its keyframes move into
+// the map's frame; a single match, or two that disagree, anchor nothing.
+TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
+  Pose T;  // the second visit's frame in the map's
+  T.translation = {2.0, 0.0, 0.0};
+  T.rotation = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ());
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  std::vector<store::KeyframeRecord> b;
+  for (int i = 0; i < 4; ++i) {
+    store::KeyframeRecord k = keyframes_[i];
+    k.id = 0;
+    k.visit_id = second->id;
+    k.timestamp_s = 100.0 + i;
+    // Keyframe i of the second visit stands where keyframe i of the first does, in its own
+    // frame: T^-1 * (the first visit's pose).
+    const Pose own =
+        Pose::FromIsometry(T.ToIsometry().inverse() * keyframes_[i].T_world_camera->ToIsometry());
+    k.T_world_camera = own;
+    k.T_odom_camera = own;
+    b.push_back(k);
+  }
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  auto job_for = [&](int i, const Pose& T_match_query) {
+    PoseGraphWorker::Job job;
+    job.map_id = visit_.map_id;
+    job.visit_id = second->id;
+    job.committed = Committed(b[i].id);
+    job.anchors = {{visit_.id, {keyframes_[i].id, T_match_query, 60, 1.0}}};
+    job.on_anchored = [&](const Pose& t) { anchored = t; };
+    return job;
+  };
+  // Keyframe 0's match, then keyframe 1's that disagrees by 0.5 m: nothing yet.
+  Pose off;
+  off.translation = {0.5, 0, 0};
+  worker.Wait(worker.Submit(job_for(0, Pose{})));
+  worker.Wait(worker.Submit(job_for(1, off)));
+  EXPECT_FALSE(anchored.has_value());
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  // Keyframe 2's agrees with keyframe 0's: anchored to the first visit by T.
+  worker.Wait(worker.Submit(job_for(2, Pose{})));
+  ASSERT_TRUE(anchored.has_value());
+  EXPECT_LT((anchored->translation - T.translation).norm(), 1e-6);
+  EXPECT_LT(RotationAngleRad(*anchored, T), 1e-6);
+  v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  ASSERT_TRUE(v->anchor.has_value());
+  EXPECT_EQ(v->anchor->to_visit_id, visit_.id);
+  EXPECT_LT(v->anchor->residual_m, 1e-6);
+  EXPECT_GT(v->anchor->edge_id, 0);
+  // Its keyframes are in the map's frame now: where the first visit's are.
+  auto listed = store_->ListKeyframes(visit_.map_id, second->id);
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 4u);
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_LT(((*listed)[i].T_world_camera->translation - keyframes_[i].T_world_camera->translation)
+                  .norm(),
+              1e-6);
+  }
+  // Anchored once: later matches change nothing.
+  anchored.reset();
+  worker.Wait(worker.Submit(job_for(3, off)));
+  EXPECT_FALSE(anchored.has_value());
+  EXPECT_EQ(worker.Stats().anchors, 1);
+}
+
 }  // namespace
 }  // namespace lifemap::server
