@@ -3,29 +3,26 @@
 // keyframes and the anchored visit's (both in the map's frame once anchored) are each aligned
 // rigidly to their ground truth; if the anchor were exact, and each visit's own trajectory
 // too, the two alignments would be the same: their difference is the anchoring error.
-// Usage: anchor_check DB MAP_ID REF_VISIT REF_GROUNDTRUTH VISIT GROUNDTRUTH
+// Usage: anchor_check DB MAP_ID REF_VISIT REF_TUM_DIR VISIT TUM_DIR
 #include <cmath>
 #include <cstdlib>
-#include <fstream>
 #include <iostream>
-#include <sstream>
 
 #include "core/eval/trajectory.h"
+#include "core/io/tum_dataset.h"
 #include "server/store/store.h"
 
 using namespace lifemap;
 
 namespace {
 
-std::vector<eval::TimedPose> ReadTruth(const std::string& path) {
+// A TUM folder's ground truth (its frames' poses).
+std::vector<eval::TimedPose> ReadTruth(const std::string& dir) {
   std::vector<eval::TimedPose> truth;
-  std::ifstream in(path);
-  for (std::string line; std::getline(in, line);) {
-    if (line.empty() || line[0] == '#') continue;
-    std::istringstream f(line);
-    double t, x, y, z, qx, qy, qz, qw;
-    f >> t >> x >> y >> z >> qx >> qy >> qz >> qw;
-    truth.push_back({t, *Pose::FromComponents(x, y, z, qx, qy, qz, qw)});
+  auto seq = io::ReadTumSequence(dir);
+  if (!seq.ok()) return truth;
+  for (const auto& f : seq->frames) {
+    if (f.T_world_camera) truth.push_back({f.timestamp_s, *f.T_world_camera});
   }
   return truth;
 }
@@ -34,7 +31,7 @@ std::vector<eval::TimedPose> ReadTruth(const std::string& path) {
 
 int main(int argc, char** argv) {
   if (argc != 7) {
-    std::cerr << "usage: anchor_check DB MAP_ID REF_VISIT REF_GROUNDTRUTH VISIT GROUNDTRUTH\n";
+    std::cerr << "usage: anchor_check DB MAP_ID REF_VISIT REF_TUM_DIR VISIT TUM_DIR\n";
     return 2;
   }
   auto store = store::Store::Open(argv[1]);

@@ -1,13 +1,12 @@
 // Research tool (issue 15): re-solves a stored visit's pose graph (its keyframes' odometry poses
 // and accepted loop edges, read from a lifemap database) with other settings, and scores each
 // against a TUM ground truth. Usage:
-//   posegraph_replay DB MAP_ID VISIT_ID GROUNDTRUTH.txt
+//   posegraph_replay DB MAP_ID VISIT_ID TUM_DIR
 #include <cstdlib>
-#include <fstream>
 #include <iostream>
-#include <sstream>
 
 #include "core/eval/trajectory.h"
+#include "core/io/tum_dataset.h"
 #include "core/posegraph/pose_graph.h"
 #include "server/store/store.h"
 
@@ -15,7 +14,7 @@ using namespace lifemap;
 
 int main(int argc, char** argv) {
   if (argc != 5) {
-    std::cerr << "usage: posegraph_replay DB MAP_ID VISIT_ID GROUNDTRUTH.txt\n";
+    std::cerr << "usage: posegraph_replay DB MAP_ID VISIT_ID TUM_DIR\n";
     return 2;
   }
   auto store = store::Store::Open(argv[1]);
@@ -28,13 +27,13 @@ int main(int argc, char** argv) {
   auto edges = (*store)->ListPoseEdges(map_id, visit_id);
   if (!keyframes.ok() || !edges.ok()) return 1;
   std::vector<eval::TimedPose> truth;
-  std::ifstream gt(argv[4]);
-  for (std::string line; std::getline(gt, line);) {
-    if (line.empty() || line[0] == '#') continue;
-    std::istringstream in(line);
-    double t, x, y, z, qx, qy, qz, qw;
-    in >> t >> x >> y >> z >> qx >> qy >> qz >> qw;
-    truth.push_back({t, *Pose::FromComponents(x, y, z, qx, qy, qz, qw)});
+  auto seq = io::ReadTumSequence(argv[4]);
+  if (!seq.ok()) {
+    std::cerr << seq.status() << "\n";
+    return 1;
+  }
+  for (const auto& f : seq->frames) {
+    if (f.T_world_camera) truth.push_back({f.timestamp_s, *f.T_world_camera});
   }
   std::sort(keyframes->begin(), keyframes->end(),
             [](const auto& a, const auto& b) { return a.id < b.id; });
