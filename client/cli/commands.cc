@@ -305,18 +305,27 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
       return RunCall<v1::ListVisitsResponse>(
           *ctx, [&](client::Client& c) { return c.ListVisits(*map); },
           [](const v1::ListVisitsResponse& r) {
-            // LOOPS: loop closures accepted/rejected, and pose-graph solves (issue 15).
-            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s %-14s  %-23s  %s\n", "ID",
+            // LOOPS: loop closures accepted/rejected, and pose-graph solves; FRAME: the map's
+            // (first visit or client poses), anchored to a visit (the agreeing matches'
+            // residual), or unanchored (issue 15).
+            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s %-14s %-24s  %-23s  %s\n", "ID",
                                          "ROBOT", "LABEL", "FRAMES", "KEYFRAMES", "LOOPS(OK/NO/S)",
-                                         "STARTED", "STATE");
+                                         "FRAME", "STARTED", "STATE");
             for (const auto& v : r.visits()) {
+              std::string frame = "map";
+              if (v.frame() == v1::VISIT_FRAME_ANCHORED) {
+                frame = absl::StrFormat("anchored->%d (%.1fcm)", v.anchor().to_visit(),
+                                        v.anchor().residual_m() * 100);
+              } else if (v.frame() == v1::VISIT_FRAME_UNANCHORED) {
+                frame = "unanchored";
+              }
               std::cout << absl::StrFormat(
-                  "%6d %-16s %-20s %8d %10d %-14s  %-23s  %s\n", v.id(),
+                  "%6d %-16s %-20s %8d %10d %-14s %-24s  %-23s  %s\n", v.id(),
                   v.robot().empty() ? "-" : v.robot(), v.label().empty() ? "-" : v.label(),
                   v.frame_count(), v.keyframe_count(),
                   absl::StrCat(v.loops_accepted(), "/", v.loops_rejected(), "/",
                                v.pose_graph_solves()),
-                  HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
+                  frame, HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
             }
           });
     };

@@ -81,6 +81,7 @@ TEST_F(ServerTest, ATrackedVisitAroundARoomClosesItsLoop) {
   const v1::Visit& v = listed_visits->visits(0);
   EXPECT_GE(v.loops_accepted(), 5u);
   EXPECT_GE(v.pose_graph_solves(), 1u);
+  EXPECT_EQ(v.frame(), v1::VISIT_FRAME_MAP) << "the map's first visit: its frame is the map's";
 
   // The stored keyframes (corrected) are closer to the truth than the poses answered on the way.
   auto listed = client_->ListKeyframes("room", v.id());

@@ -165,6 +165,11 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   auto v = store_->GetVisit(second->id);
   ASSERT_TRUE(v.ok());
   EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_FALSE(v->first_of_map);
+  EXPECT_EQ(v->tracked_keyframes, 4) << "tracked, not anchored: VISIT_FRAME_UNANCHORED";
+  auto first = store_->GetVisit(visit_.id);
+  ASSERT_TRUE(first.ok());
+  EXPECT_TRUE(first->first_of_map);
   // Keyframe 2's agrees with keyframe 0's: anchored to the first visit by T.
   worker.Wait(worker.Submit(job_for(2, Pose{})));
   ASSERT_TRUE(anchored.has_value());
