@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <string>
+#include <vector>
 
 #include <spdlog/spdlog.h>
 
@@ -42,6 +44,35 @@ constexpr double kLoopSigmaRad = 0.01;
 constexpr double kAnchorAgreementM = 0.10;
 constexpr double kAnchorAgreementDeg = 3.0;
 constexpr size_t kMaxPendingAnchors = 64;
+
+// A visit's keyframes (without images) by id, for FindKeyframe.
+absl::StatusOr<std::vector<store::KeyframeRecord>> KeyframesById(store::Store* store,
+                                                                 int64_t map_id, int64_t visit_id) {
+  auto keyframes = store->ListKeyframes(map_id, visit_id);
+  if (!keyframes.ok()) return keyframes.status();
+  std::sort(keyframes->begin(), keyframes->end(),
+            [](const auto& a, const auto& b) { return a.id < b.id; });
+  return keyframes;
+}
+
+const store::KeyframeRecord* FindKeyframe(const std::vector<store::KeyframeRecord>& by_id,
+                                          int64_t id) {
+  auto it = std::lower_bound(by_id.begin(), by_id.end(), id,
+                             [](const auto& k, int64_t v) { return k.id < v; });
+  return it != by_id.end() && it->id == id ? &*it : nullptr;
+}
+
+// Why a match's PnP figures are too weak for a loop or an anchor; empty when they are not.
+std::string WeakMatchReason(const LoopCandidate& c, const PoseGraphOptions& options) {
+  if (c.inliers < options.loop_min_inliers) {
+    return absl::StrCat(c.inliers, " PnP inliers, a loop needs ", options.loop_min_inliers);
+  }
+  if (c.reprojection_px > options.loop_max_reprojection_px) {
+    return absl::StrFormat("reprojection %.2f px, a loop allows %.2f", c.reprojection_px,
+                           options.loop_max_reprojection_px);
+  }
+  return "";
+}
 
 }  // namespace
 
@@ -101,22 +132,15 @@ void PoseGraphWorker::Process(Job job) {
   const absl::StatusOr<int64_t>& committed = job.committed.get();
   if (!committed.ok()) return;  // the keyframe was not stored: nothing to join
   const int64_t query_id = *committed;
-  auto keyframes = store_->ListKeyframes(job.map_id, job.visit_id);
+  auto keyframes = KeyframesById(store_, job.map_id, job.visit_id);
   if (!keyframes.ok()) {
     spdlog::warn("visit {}: loop candidates of keyframe {} dropped: {}", job.visit_id, query_id,
                  keyframes.status().ToString());
     return;
   }
-  std::sort(keyframes->begin(), keyframes->end(),
-            [](const auto& a, const auto& b) { return a.id < b.id; });
-  auto find = [&](int64_t id) -> const store::KeyframeRecord* {
-    auto it = std::lower_bound(keyframes->begin(), keyframes->end(), id,
-                               [](const auto& k, int64_t v) { return k.id < v; });
-    return it != keyframes->end() && it->id == id ? &*it : nullptr;
-  };
-  const store::KeyframeRecord* query = find(query_id);
+  const store::KeyframeRecord* query = FindKeyframe(*keyframes, query_id);
   if (query == nullptr || !query->T_odom_camera) return;
-  if (!job.anchors.empty()) ProcessAnchors(job, *query);
+  const bool anchored = !job.anchors.empty() && ProcessAnchors(job, *query);
 
   int accepted = 0;
   for (const LoopCandidate& c : job.candidates) {
@@ -129,19 +153,16 @@ void PoseGraphWorker::Process(Job job) {
     edge.inliers = c.inliers;
     edge.reprojection_px = c.reprojection_px;
     edge.created_time_s = NowSeconds();
-    const store::KeyframeRecord* match = find(c.keyframe_id);
+    const store::KeyframeRecord* match = FindKeyframe(*keyframes, c.keyframe_id);
+    const std::string weak = WeakMatchReason(c, options_);
     if (match == nullptr) {
       edge.reason = "the matched keyframe is not in this visit";
     } else if (!match->T_odom_camera || match->odom_segment != query->odom_segment) {
       edge.reason =
           "the matched keyframe was tracked by an earlier run of the tracker (the visit was "
           "resumed): no odometry joins them";
-    } else if (c.inliers < options_.loop_min_inliers) {
-      edge.reason =
-          absl::StrCat(c.inliers, " PnP inliers, a loop needs ", options_.loop_min_inliers);
-    } else if (c.reprojection_px > options_.loop_max_reprojection_px) {
-      edge.reason = absl::StrFormat("reprojection %.2f px, a loop allows %.2f", c.reprojection_px,
-                                    options_.loop_max_reprojection_px);
+    } else if (!weak.empty()) {
+      edge.reason = weak;
     } else {
       // The odometry's own idea of where the query is from the match, and the path between
       // them: the drift the odometry can have accumulated grows with it.
@@ -182,8 +203,10 @@ void PoseGraphWorker::Process(Job job) {
     ++(edge.accepted ? stats_.accepted : stats_.rejected);
   }
   if (accepted == 0) return;
-  // Poses may have moved since the job was queued (an anchor): the solve reads them again.
-  auto correction = Solve(job.map_id, job.visit_id);
+  // An anchor just moved the visit's poses: the solve reads them again.
+  if (anchored) keyframes = KeyframesById(store_, job.map_id, job.visit_id);
+  if (!keyframes.ok()) return;
+  auto correction = Solve(job.map_id, job.visit_id, *keyframes);
   if (!correction.ok()) {
     spdlog::warn("visit {}: pose graph not solved: {}", job.visit_id,
                  correction.status().ToString());
@@ -192,16 +215,18 @@ void PoseGraphWorker::Process(Job job) {
   if (job.on_corrected) job.on_corrected(*correction);
 }
 
-void PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord& query) {
+bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord& query) {
   auto visit = store_->GetVisit(job.visit_id);
-  if (!visit.ok() || visit->anchor || !query.T_world_camera) return;
+  if (!visit.ok() || visit->anchor || !query.T_world_camera) return false;
   auto visits = store_->ListVisits(visit->map_name);
-  if (!visits.ok() || visits->empty()) return;
+  if (!visits.ok() || visits->empty()) return false;
   // The map's frame is its first visit's.
   const int64_t root = visits->front().id;
-  if (job.visit_id == root) return;
+  if (job.visit_id == root) return false;
   std::map<int64_t, const store::VisitRecord*> by_id;
   for (const auto& v : *visits) by_id[v.id] = &v;
+  // The matched visits' keyframes (poses, no images), read once per visit.
+  std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
   auto& pending = pending_anchors_[job.visit_id];
   for (const AnchorCandidate& c : job.anchors) {
     {
@@ -209,14 +234,16 @@ void PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
       ++stats_.anchor_candidates;
     }
     const LoopCandidate& m = c.match;
-    if (m.inliers < options_.loop_min_inliers ||
-        m.reprojection_px > options_.loop_max_reprojection_px) {
-      continue;
-    }
+    if (!WeakMatchReason(m, options_).empty()) continue;
     auto it = by_id.find(c.visit_id);
     if (it == by_id.end() || c.visit_id == job.visit_id) continue;
-    auto matched = store_->GetKeyframe(job.map_id, m.keyframe_id);
-    if (!matched.ok() || !matched->T_world_camera) continue;
+    if (!matched_visits.count(c.visit_id)) {
+      auto listed = KeyframesById(store_, job.map_id, c.visit_id);
+      if (!listed.ok()) continue;
+      matched_visits[c.visit_id] = *std::move(listed);
+    }
+    const store::KeyframeRecord* matched = FindKeyframe(matched_visits[c.visit_id], m.keyframe_id);
+    if (matched == nullptr || !matched->T_world_camera) continue;
     // The matched visit's frame in the map's: the first visit's is the map's; an anchored one
     // says where it lies (its keyframes were moved into the map's frame when it was anchored);
     // client poses are in the map's frame already. A tracked visit not anchored yet is not.
@@ -258,7 +285,7 @@ void PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
           job.visit_id, estimate.to_visit, other.query_keyframe, off_m, off_deg);
       if (auto s = store_->AnchorVisit(job.visit_id, estimate.edge, &anchor); !s.ok()) {
         spdlog::warn("visit {}: not anchored: {}", job.visit_id, s.ToString());
-        return;
+        return false;
       }
       spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
                    job.visit_id, anchor.to_visit_id, visit->map_name, off_m, off_deg);
@@ -268,25 +295,23 @@ void PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
         ++stats_.anchors;
       }
       if (job.on_anchored) job.on_anchored(anchor.T_map_visit);
-      return;
+      return true;
     }
     if (pending.size() < kMaxPendingAnchors) pending.push_back(std::move(estimate));
   }
+  return false;
 }
 
-absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id) {
-  auto keyframes = store_->ListKeyframes(map_id, visit_id);
-  if (!keyframes.ok()) return keyframes.status();
-  std::sort(keyframes->begin(), keyframes->end(),
-            [](const auto& a, const auto& b) { return a.id < b.id; });
+absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id,
+                                            const std::vector<store::KeyframeRecord>& keyframes) {
   // The graph spans the latest run of the tracker (keyframes joined by its odometry).
   int64_t segment = 0;
-  for (const auto& k : *keyframes) {
+  for (const auto& k : keyframes) {
     if (k.T_odom_camera && k.T_world_camera) segment = k.odom_segment;
   }
   std::vector<const store::KeyframeRecord*> nodes;
   std::map<int64_t, Pose> initial;
-  for (const auto& k : *keyframes) {
+  for (const auto& k : keyframes) {
     if (!k.T_odom_camera || !k.T_world_camera || k.odom_segment != segment) continue;
     nodes.push_back(&k);
     initial[k.id] = *k.T_world_camera;

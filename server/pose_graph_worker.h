@@ -87,10 +87,13 @@ class PoseGraphWorker {
  private:
   void Run();
   void Process(Job job);
-  // Solves the visit's graph and stores the result; returns the new correction.
-  absl::StatusOr<Pose> Solve(int64_t map_id, int64_t visit_id);
-  // Anchors the visit once two of its keyframes' matches agree on where it lies in the map.
-  void ProcessAnchors(const Job& job, const store::KeyframeRecord& query);
+  // Solves the visit's graph over `keyframes` (the visit's, by id, as stored now) and stores the
+  // result; returns the new correction.
+  absl::StatusOr<Pose> Solve(int64_t map_id, int64_t visit_id,
+                             const std::vector<store::KeyframeRecord>& keyframes);
+  // Anchors the visit once two of its keyframes' matches agree on where it lies in the map;
+  // true when it did (the visit's stored poses moved).
+  bool ProcessAnchors(const Job& job, const store::KeyframeRecord& query);
 
   // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
   struct AnchorEstimate {

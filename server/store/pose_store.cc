@@ -1,6 +1,8 @@
 // Store: pose graphs (issue 15): loop and anchor edges, and the solves that rewrite keyframe
 // poses.
 #include <algorithm>
+#include <utility>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "server/store/store_impl.h"
@@ -32,6 +34,20 @@ absl::StatusOr<int64_t> InsertEdgeLocked(Database* db, const PoseEdgeRecord& e) 
     return st;
   }
   return db->LastInsertRowId();
+}
+
+// The rows of `select` (bound; its columns: a keyframe id, then a pose's seven), each pose moved
+// by `T` (T * pose).
+absl::StatusOr<std::vector<std::pair<int64_t, Pose>>> MovedPoses(Statement* select, const Pose& T) {
+  std::vector<std::pair<int64_t, Pose>> moved;
+  for (;;) {
+    auto row = select->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    moved.push_back({select->ColumnInt(0),
+                     Pose::FromIsometry(T.ToIsometry() * ReadPose(*select, 1).ToIsometry())});
+  }
+  return moved;
 }
 
 }  // namespace
@@ -76,7 +92,7 @@ absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, Vi
     if (auto st = s->Run(); !st.ok()) return st;
   }
   // The visit's keyframes move into the map's frame.
-  std::vector<std::pair<int64_t, Pose>> moved;
+  absl::StatusOr<std::vector<std::pair<int64_t, Pose>>> moved;
   {
     auto posed = db->Prepare(
         "SELECT id, tx, ty, tz, qx, qy, qz, qw FROM keyframes WHERE visit_id = ?1 AND "
@@ -84,19 +100,14 @@ absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, Vi
     if (!posed.ok()) return posed.status();
     StatementScope s(*posed);
     s->Bind(1, visit_id);
-    for (;;) {
-      auto row = s->Step();
-      if (!row.ok()) return row.status();
-      if (!*row) break;
-      moved.push_back({s->ColumnInt(0), Pose::FromIsometry(anchor->T_map_visit.ToIsometry() *
-                                                           ReadPose(*s, 1).ToIsometry())});
-    }
+    moved = MovedPoses(&*s, anchor->T_map_visit);
   }
+  if (!moved.ok()) return moved.status();
   auto move = db->Prepare(
       "UPDATE keyframes SET tx = ?1, ty = ?2, tz = ?3, qx = ?4, qy = ?5, qz = ?6, qw = ?7 WHERE "
       "id = ?8");
   if (!move.ok()) return move.status();
-  for (const auto& [id, pose] : moved) {
+  for (const auto& [id, pose] : *moved) {
     StatementScope s(*move);
     BindPose(&*s, 1, pose);
     s->Bind(8, id);
@@ -184,19 +195,14 @@ absl::StatusOr<int64_t> Store::ApplyPoseOptimisation(PoseOptimisationRecord r,
         "SELECT id, odom_tx, odom_ty, odom_tz, odom_qx, odom_qy, odom_qz, odom_qw FROM "
         "keyframes WHERE visit_id = ?1 AND id > ?2 AND odom_tx IS NOT NULL");
     if (!later.ok()) return later.status();
-    std::vector<std::pair<int64_t, Pose>> moved;
+    absl::StatusOr<std::vector<std::pair<int64_t, Pose>>> moved;
     {
       StatementScope s(*later);
       s->Bind(1, r.visit_id).Bind(2, newest);
-      for (;;) {
-        auto row = s->Step();
-        if (!row.ok()) return row.status();
-        if (!*row) break;
-        moved.push_back({s->ColumnInt(0), Pose::FromIsometry(later_correction.ToIsometry() *
-                                                             ReadPose(*s, 1).ToIsometry())});
-      }
+      moved = MovedPoses(&*s, later_correction);
     }
-    for (const auto& [id, pose] : moved) {
+    if (!moved.ok()) return moved.status();
+    for (const auto& [id, pose] : *moved) {
       StatementScope s(*update);
       BindPose(&*s, 1, pose);
       s->Bind(8, r.id).Bind(9, id);
