@@ -14,21 +14,6 @@
 
 using namespace lifemap;
 
-namespace {
-
-// A TUM folder's ground truth (its frames' poses).
-std::vector<eval::TimedPose> ReadTruth(const std::string& dir) {
-  std::vector<eval::TimedPose> truth;
-  auto seq = io::ReadTumSequence(dir);
-  if (!seq.ok()) return truth;
-  for (const auto& f : seq->frames) {
-    if (f.T_world_camera) truth.push_back({f.timestamp_s, *f.T_world_camera});
-  }
-  return truth;
-}
-
-}  // namespace
-
 int main(int argc, char** argv) {
   if (argc != 7) {
     std::cerr << "usage: anchor_check DB MAP_ID REF_VISIT REF_TUM_DIR VISIT TUM_DIR\n";
@@ -48,7 +33,12 @@ int main(int argc, char** argv) {
     for (const auto& k : *keyframes) {
       if (k.T_world_camera) est.push_back({k.timestamp_s, *k.T_world_camera});
     }
-    auto e = eval::CompareTrajectories(est, ReadTruth(argv[4 + 2 * i]));
+    auto seq = io::ReadTumSequence(argv[4 + 2 * i]);
+    if (!seq.ok()) {
+      std::cerr << seq.status() << "\n";
+      return 1;
+    }
+    auto e = eval::CompareTrajectories(est, eval::GroundTruth(*seq));
     if (!e.ok()) {
       std::cerr << e.status() << "\n";
       return 1;

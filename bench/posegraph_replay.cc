@@ -26,15 +26,12 @@ int main(int argc, char** argv) {
   auto keyframes = (*store)->ListKeyframes(map_id, visit_id);
   auto edges = (*store)->ListPoseEdges(map_id, visit_id);
   if (!keyframes.ok() || !edges.ok()) return 1;
-  std::vector<eval::TimedPose> truth;
   auto seq = io::ReadTumSequence(argv[4]);
   if (!seq.ok()) {
     std::cerr << seq.status() << "\n";
     return 1;
   }
-  for (const auto& f : seq->frames) {
-    if (f.T_world_camera) truth.push_back({f.timestamp_s, *f.T_world_camera});
-  }
+  const std::vector<eval::TimedPose> truth = eval::GroundTruth(*seq);
   std::sort(keyframes->begin(), keyframes->end(),
             [](const auto& a, const auto& b) { return a.id < b.id; });
   std::map<int64_t, Pose> odom;

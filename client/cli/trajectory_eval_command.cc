@@ -44,6 +44,11 @@ struct FrameOutcome {
   std::optional<Pose> truth;
 };
 
+// A pose as the server sent it, checked as any pose is (Pose::FromComponents).
+absl::StatusOr<Pose> PoseOf(const v1::Pose& p) {
+  return Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
+}
+
 std::string TrackingName(v1::TrackingState s) {
   switch (s) {
     case v1::TRACKING_STARTED:
@@ -194,8 +199,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       lost += r.tracking().state() == v1::TRACKING_LOST;
       track_ms.push_back(r.tracking().track_ms());
       if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {
-        const auto& p = r.pose();
-        auto pose = Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
+        auto pose = PoseOf(r.pose());
         if (pose.ok()) {
           o.tracked = true;
           o.pose = *pose;
@@ -211,10 +215,8 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   if (!send_error.empty()) return Fail(absl::InvalidArgumentError(send_error));
   if (!finished.ok()) return Fail(finished);
 
-  std::vector<eval::TimedPose> truth, all, keyframes;
-  for (const auto& e : seq->frames) {
-    if (e.T_world_camera) truth.push_back({e.timestamp_s, *e.T_world_camera});
-  }
+  const std::vector<eval::TimedPose> truth = eval::GroundTruth(*seq);
+  std::vector<eval::TimedPose> all, keyframes;
   for (const auto& f : frames) {
     if (!f.tracked) continue;
     all.push_back({f.timestamp_s, f.pose});
@@ -227,9 +229,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   if (!listed.ok()) return Fail(listed.status());
   for (const auto& kf : listed->keyframes()) {
     if (kf.pose_source() != v1::POSE_SOURCE_ESTIMATED) continue;
-    const auto& p = kf.pose();
-    auto pose = Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
-    if (pose.ok()) stored.push_back({kf.timestamp_s(), *pose});
+    if (auto pose = PoseOf(kf.pose()); pose.ok()) stored.push_back({kf.timestamp_s(), *pose});
   }
   const auto stored_errors = eval::CompareTrajectories(stored, truth);
   const auto kf_errors = eval::CompareTrajectories(keyframes, truth);

@@ -26,6 +26,14 @@ const TimedPose* Nearest(const std::vector<TimedPose>& truth, double t, double m
 
 }  // namespace
 
+std::vector<TimedPose> GroundTruth(const io::TumSequence& sequence) {
+  std::vector<TimedPose> truth;
+  for (const auto& f : sequence.frames) {
+    if (f.T_world_camera) truth.push_back({f.timestamp_s, *f.T_world_camera});
+  }
+  return truth;
+}
+
 absl::StatusOr<TrajectoryErrors> CompareTrajectories(const std::vector<TimedPose>& estimate,
                                                      const std::vector<TimedPose>& truth,
                                                      double max_dt_s, double rpe_delta_s) {

@@ -27,6 +27,9 @@ struct TrajectoryErrors {
   std::vector<double> position_errors_m;  // per associated pose, in estimate order
 };
 
+// A recording's ground truth: its frames that have a ground-truth pose, in frame order.
+std::vector<TimedPose> GroundTruth(const io::TumSequence& sequence);
+
 // InvalidArgument with fewer than 3 associated poses (no alignment is defined).
 absl::StatusOr<TrajectoryErrors> CompareTrajectories(const std::vector<TimedPose>& estimate,
                                                      const std::vector<TimedPose>& truth,
