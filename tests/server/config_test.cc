@@ -96,6 +96,41 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   }
 }
 
+TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json")) << R"({"pose_graph": {"enabled": false, "loop_min_inliers": 40,
+             "loop_max_reprojection_px": 1.5, "loop_max_disagreement_m": 0.3,
+             "loop_max_disagreement_per_m": 0, "loop_max_disagreement_deg": 8,
+             "loop_max_disagreement_deg_per_m": 2}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_FALSE(c->pose_graph.enabled);
+  EXPECT_EQ(c->pose_graph.loop_min_inliers, 40);
+  EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_reprojection_px, 1.5);
+  EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_m, 0.3);
+  EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_per_m, 0.0);
+  EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_deg, 8.0);
+  EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_deg_per_m, 2.0);
+  const std::pair<const char*, const char*> bad[] = {
+      {"inliers.json", R"({"pose_graph": {"loop_min_inliers": 5}})"},
+      {"reprojection.json", R"({"pose_graph": {"loop_max_reprojection_px": 0}})"},
+      {"metres.json", R"({"pose_graph": {"loop_max_disagreement_m": -0.1}})"},
+      {"per_m.json", R"({"pose_graph": {"loop_max_disagreement_per_m": -1}})"},
+      {"degrees.json", R"({"pose_graph": {"loop_max_disagreement_deg": 0}})"},
+      {"deg_per_m.json", R"({"pose_graph": {"loop_max_disagreement_deg_per_m": -2}})"},
+      {"key.json", R"({"pose_graph": {"loop_inliers": 30}})"},
+      {"type.json", R"({"pose_graph": {"enabled": "yes"}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file;
+    if (std::string(file) != "type.json") {
+      EXPECT_NE(r.status().message().find("pose_graph"), std::string::npos) << r.status();
+    }
+  }
+}
+
 TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))
