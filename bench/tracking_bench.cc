@@ -71,6 +71,64 @@ void BM_TrackFr1Xyz(benchmark::State& state) {
 }
 BENCHMARK(BM_TrackFr1Xyz)->Arg(1)->Arg(2)->Arg(4)->Unit(benchmark::kMillisecond);
 
+// The odometry's settings compared at half resolution (issue 15, third part): 0 = OpenCV's
+// gradient threshold (10) without the feature check (the settings before), 1 = threshold 5
+// without it, 2 = the defaults (threshold 5, feature check on).
+tracking::OdometryOptions Variant(int64_t v) {
+  tracking::OdometryOptions o;
+  if (v == 0) o.min_gradient = 10;
+  if (v <= 1) o.feature_keypoints = 0;
+  return o;
+}
+
+// What the server does per frame on its pool, beside the frame's other analyses.
+void BM_PrepareFr1Xyz(benchmark::State& state) {
+  const Recording& r = Fr1Xyz();
+  if (r.frames.empty()) {
+    state.SkipWithError("needs ../shared/data/tum_fr1_xyz_subset");
+    return;
+  }
+  const tracking::OdometryOptions options = Variant(state.range(0));
+  size_t i = 0;
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(
+        tracking::PrepareForTracking(r.frames[i++ % r.frames.size()], options));
+  }
+  state.SetItemsProcessed(state.iterations());
+}
+BENCHMARK(BM_PrepareFr1Xyz)->DenseRange(0, 2)->Unit(benchmark::kMillisecond);
+
+// What the server does per frame in the visit's order: the alignment of prepared frames.
+void BM_AlignFr1Xyz(benchmark::State& state) {
+  const Recording& r = Fr1Xyz();
+  if (r.frames.empty()) {
+    state.SkipWithError("needs ../shared/data/tum_fr1_xyz_subset");
+    return;
+  }
+  const tracking::OdometryOptions options = Variant(state.range(0));
+  std::vector<std::shared_ptr<tracking::TrackingInput>> prepared;
+  for (const RgbdFrame& f : r.frames) prepared.push_back(tracking::PrepareForTracking(f, options));
+  for (auto _ : state) {
+    // The inputs carry caches the alignment fills: prepare again, untimed, for each pass.
+    state.PauseTiming();
+    for (size_t i = 0; i < r.frames.size(); ++i) {
+      prepared[i] = tracking::PrepareForTracking(r.frames[i], options);
+    }
+    state.ResumeTiming();
+    tracking::Tracker tracker(options);
+    tracking::KeyframeSelector selector;
+    for (size_t i = 0; i < r.frames.size(); ++i) {
+      const auto t = tracker.Track(r.frames[i], prepared[i]);
+      if (t.T_world_camera && selector.Decide(r.frames[i].timestamp_s, t.T_world_camera).selected) {
+        selector.Accept(r.frames[i].timestamp_s, t.T_world_camera);
+        tracker.PromoteLastToReference();
+      }
+    }
+  }
+  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(r.frames.size()));
+}
+BENCHMARK(BM_AlignFr1Xyz)->DenseRange(0, 2)->Unit(benchmark::kMillisecond);
+
 }  // namespace
 }  // namespace lifemap
 

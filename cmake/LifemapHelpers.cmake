@@ -46,10 +46,11 @@ function(lifemap_test)
   if(NOT L_LABEL)
     set(L_LABEL unit)
   endif()
-  # End-to-end tests render worlds and stream whole recordings through the CLI: up to 10 min
-  # each (ctest --timeout only sets the default for tests without their own).
+  # End-to-end and integration tests render worlds and stream whole recordings (the loop
+  # closure test 600 frames): up to 10 min each on a loaded 2-core machine (ctest --timeout only
+  # sets the default for tests without their own).
   set(timeout 300)
-  if(L_LABEL STREQUAL "e2e")
+  if(L_LABEL STREQUAL "e2e" OR L_LABEL STREQUAL "integration")
     set(timeout 600)
   endif()
   gtest_discover_tests(${L_NAME} PROPERTIES LABELS ${L_LABEL} TIMEOUT ${timeout}

@@ -77,5 +77,7 @@ void AddPlaceEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx);
 // `lifemap eval trajectory` (issue 15: the server's tracking against ground truth).
 void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx);
+// `lifemap eval alignment` (issue 15: visits months apart anchored into one map frame).
+void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx);
 
 }  // namespace lifemap::cli

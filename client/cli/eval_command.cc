@@ -534,6 +534,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   AddPlaceEvalCommand(ev, ctx);
   AddAppearanceEvalCommand(ev, ctx);
   AddTrajectoryEvalCommand(ev, ctx);
+  AddAlignmentEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -3,20 +3,18 @@
 // against the recording's ground truth in the TUM benchmark's convention (ATE RMSE after a
 // rigid alignment, RPE over one second).
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <map>
-#include <thread>
 
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
-#include "core/common/image_codec.h"
+#include "client/cli/unposed_stream.h"
 #include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
 
@@ -35,39 +33,10 @@ struct TrajectoryArgs {
   int max_frames = 0;
 };
 
-struct FrameOutcome {
-  double timestamp_s = 0;
-  bool tracked = false;
-  bool keyframe = false;
-  Pose pose;
-  std::string state;
-  std::optional<Pose> truth;
-};
-
-// A pose as the server sent it, checked as any pose is (Pose::FromComponents).
-absl::StatusOr<Pose> PoseOf(const v1::Pose& p) {
-  return Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
-}
-
-std::string TrackingName(v1::TrackingState s) {
-  switch (s) {
-    case v1::TRACKING_STARTED:
-      return "started";
-    case v1::TRACKING_OK:
-      return "ok";
-    case v1::TRACKING_LOST:
-      return "lost";
-    case v1::TRACKING_REGAINED:
-      return "regained";
-    default:
-      return "none";
-  }
-}
-
 // Top-down (x, y of the ground truth's frame) plot of the truth, the aligned estimate as
 // answered frame by frame, and the stored keyframes after the visit's pose-graph solves
 // (`stored`, aligned by `stored_align`).
-std::string TopDownSvg(const std::vector<FrameOutcome>& frames, const Eigen::Isometry3d& align,
+std::string TopDownSvg(const std::vector<TrackedFrame>& frames, const Eigen::Isometry3d& align,
                        const std::vector<eval::TimedPose>& stored,
                        const Eigen::Isometry3d& stored_align) {
   std::vector<Eigen::Vector2d> truth, estimate, corrected;
@@ -131,21 +100,11 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
         absl::StrCat(a.tum_dir, ": needs a groundtruth.txt covering the frames to score against (",
                      seq->frames_with_pose, " frames have a ground-truth pose)")));
   }
-  size_t n = seq->frames.size();
-  if (a.max_frames > 0) n = std::min(n, static_cast<size_t>(a.max_frames));
   std::error_code ec;
   fs::create_directories(a.out, ec);
   if (ec) {
     return Fail(absl::PermissionDeniedError(absl::StrCat(a.out, ": ", ec.message())));
   }
-  auto first = ReadFileBytes(seq->frames[0].rgb_path);
-  if (!first.ok()) return Fail(first.status());
-  auto header = ProbeImage(*first);
-  if (!header.ok()) return Fail(header.status());
-  std::string intrinsics_source;
-  const v1::CameraIntrinsics k = IntrinsicsProto(
-      io::TumSequenceIntrinsics(*seq, header->width, header->height, &intrinsics_source));
-
   auto client = ctx.Connect();
   if (!client.ok()) return Fail(client.status());
   const std::string map =
@@ -154,66 +113,17 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       !m.ok() && !absl::IsAlreadyExists(m.status())) {
     return Fail(m.status());
   }
-  v1::StreamStart start;
-  start.set_map(map);
-  start.set_robot("lifemap eval trajectory");
-  start.set_visit_label(a.tum_dir);
-  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
-  auto stream = (*client)->OpenStream(start);
-  if (!stream.ok()) return Fail(stream.status());
-
-  std::string send_error;
-  const auto t0 = std::chrono::steady_clock::now();
-  std::thread sender([&] {
-    for (size_t i = 0; i < n; ++i) {
-      const auto& e = seq->frames[i];
-      if (a.rate_hz > 0) {
-        std::this_thread::sleep_until(
-            t0 + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                     std::chrono::duration<double>(i / a.rate_hz)));
-      }
-      auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, i);
-      if (f.ok() && a.compact) f = client::CompactFrame(*f);
-      if (!f.ok()) {
-        send_error = absl::StrCat(e.rgb_path, ": ", f.status().message());
-        (*stream)->Cancel();
-        break;
-      }
-      if (!(*stream)->Send(*f)) break;  // no pose: the server tracks the camera
-    }
-    (*stream)->CloseSend();
-  });
-  std::vector<FrameOutcome> frames;
-  int lost = 0, errors = 0;
-  std::vector<double> track_ms;
-  v1::FrameResult r;
-  while ((*stream)->Receive(&r)) {
-    FrameOutcome o;
-    o.timestamp_s = r.timestamp_s();
-    if (r.sequence() < seq->frames.size()) o.truth = seq->frames[r.sequence()].T_world_camera;
-    if (r.has_error()) {
-      ++errors;
-      o.state = "error";
-    } else {
-      o.state = TrackingName(r.tracking().state());
-      lost += r.tracking().state() == v1::TRACKING_LOST;
-      track_ms.push_back(r.tracking().track_ms());
-      if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {
-        auto pose = PoseOf(r.pose());
-        if (pose.ok()) {
-          o.tracked = true;
-          o.pose = *pose;
-        }
-      }
-      o.keyframe = r.keyframe().committed();
-    }
-    frames.push_back(o);
-  }
-  sender.join();
-  const absl::Status finished = (*stream)->Finish();
-  const uint64_t visit = (*stream)->started().visit_id();
-  if (!send_error.empty()) return Fail(absl::InvalidArgumentError(send_error));
-  if (!finished.ok()) return Fail(finished);
+  UnposedStreamOptions options;
+  options.robot = "lifemap eval trajectory";
+  options.compact = a.compact;
+  options.rate_hz = a.rate_hz;
+  options.max_frames = a.max_frames;
+  auto streamed = StreamWithoutPoses(**client, map, *seq, options);
+  if (!streamed.ok()) return Fail(streamed.status());
+  const std::vector<TrackedFrame>& frames = streamed->frames;
+  const uint64_t visit = streamed->visit_id;
+  const int lost = streamed->lost;
+  std::vector<double> track_ms = streamed->track_ms;
 
   const std::vector<eval::TimedPose> truth = eval::GroundTruth(*seq);
   std::vector<eval::TimedPose> all, keyframes;
@@ -224,14 +134,9 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   }
   // The keyframes as stored once the stream ended: the server waits for the visit's loop
   // closures and pose-graph solves before it ends a stream.
-  std::vector<eval::TimedPose> stored;
-  auto listed = (*client)->ListKeyframes(map, visit);
-  if (!listed.ok()) return Fail(listed.status());
-  for (const auto& kf : listed->keyframes()) {
-    if (kf.pose_source() != v1::POSE_SOURCE_ESTIMATED) continue;
-    if (auto pose = PoseOf(kf.pose()); pose.ok()) stored.push_back({kf.timestamp_s(), *pose});
-  }
-  const auto stored_errors = eval::CompareTrajectories(stored, truth);
+  auto stored = StoredEstimatedKeyframes(**client, map, visit);
+  if (!stored.ok()) return Fail(stored.status());
+  const auto stored_errors = eval::CompareTrajectories(*stored, truth);
   const auto kf_errors = eval::CompareTrajectories(keyframes, truth);
   const auto all_errors = eval::CompareTrajectories(all, truth);
   std::sort(track_ms.begin(), track_ms.end());
@@ -243,9 +148,9 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       {"visit", visit},
       {"frames", frames.size()},
       {"lost_frames", lost},
-      {"rejected_frames", errors},
+      {"rejected_frames", streamed->rejected},
       {"keyframes", keyframes.size()},
-      {"intrinsics", intrinsics_source},
+      {"intrinsics", streamed->intrinsics_source},
       {"sent", a.compact ? "compact" : "as-recorded"},
       {"track_ms_p50", track_p50},
       {"keyframe_trajectory", ErrorsJson(kf_errors)},
@@ -286,7 +191,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
     }
     if (all_errors.ok()) {
       std::ofstream(fs::path(a.out) / "trajectory.svg") << TopDownSvg(
-          frames, all_errors->T_truth_estimate, stored,
+          frames, all_errors->T_truth_estimate, *stored,
           stored_errors.ok() ? stored_errors->T_truth_estimate : all_errors->T_truth_estimate);
     }
   }

@@ -8,6 +8,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/appearance/verify.h"
+#include "core/features/keypoints.h"
 
 namespace lifemap::tracking {
 namespace {
@@ -56,6 +58,28 @@ absl::Status OdometryOptions::Validate() const {
     return absl::InvalidArgumentError(
         "odometry max_jump_m must be within (0, 10] and max_jump_rad within (0, pi]");
   }
+  if (!(min_gradient >= 0 && min_gradient <= 255)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry min_gradient must be within [0, 255], got ", min_gradient));
+  }
+  if (feature_keypoints < 0 || feature_keypoints > 5000 || feature_min_inliers < 6 ||
+      feature_min_inliers > 1000) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "odometry feature_keypoints must be within [0, 5000] and feature_min_inliers within "
+        "[6, 1000], got ",
+        feature_keypoints, " and ", feature_min_inliers));
+  }
+  if (!(feature_check_speed_mps > 0 && feature_check_speed_mps <= 100 &&
+        feature_check_turn_dps > 0 && feature_check_turn_dps <= 3600)) {
+    return absl::InvalidArgumentError(
+        "odometry feature_check_speed_mps must be within (0, 100] and feature_check_turn_dps "
+        "within (0, 3600]");
+  }
+  if (!(feature_agree_m > 0 && feature_agree_m <= 1 && feature_agree_deg > 0 &&
+        feature_agree_deg <= 45)) {
+    return absl::InvalidArgumentError(
+        "odometry feature_agree_m must be within (0, 1] and feature_agree_deg within (0, 45]");
+  }
   return absl::OkStatus();
 }
 
@@ -72,6 +96,8 @@ cv::Ptr<cv::rgbd::RgbdICPOdometry> MakeOdometry(const CameraIntrinsics& k,
   auto odometry =
       cv::rgbd::RgbdICPOdometry::create(CameraMatrix(k, options.downscale), options.min_depth_m,
                                         options.max_depth_m, options.max_depth_diff_m);
+  odometry->setMinGradientMagnitudes(
+      cv::Mat(std::vector<float>(4, options.min_gradient), /*copyData=*/true));
   odometry->setMaxTranslation(options.max_translation_m);
   odometry->setMaxRotation(options.max_rotation_deg);
   return odometry;
@@ -86,7 +112,49 @@ bool SameCamera(const CameraIntrinsics& a, const CameraIntrinsics& b) {
 // options that shape a prepared frame (resolution, depth range) agree.
 bool SamePreparation(const OdometryOptions& a, const OdometryOptions& b) {
   return a.downscale == b.downscale && a.min_depth_m == b.min_depth_m &&
-         a.max_depth_m == b.max_depth_m && a.max_depth_diff_m == b.max_depth_diff_m;
+         a.min_gradient == b.min_gradient && a.max_depth_m == b.max_depth_m &&
+         a.max_depth_diff_m == b.max_depth_diff_m && a.feature_keypoints == b.feature_keypoints;
+}
+
+// How far apart two estimates of one pose are.
+bool Agree(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b, const OdometryOptions& o) {
+  const Eigen::Isometry3d d = a.inverse() * b;
+  return d.translation().norm() <= o.feature_agree_m &&
+         AngleOf(d) <= o.feature_agree_deg * M_PI / 180.0;
+}
+
+// How well `current` agrees with `reference` when moved by T_reference_current: the share of
+// its sampled pixels (every 4th row and column, with depth) that land inside the reference
+// image on a depth within 2 cm + 2 % and a grey level within 16 of their own. Both frames at
+// the odometry's resolution, `K` its camera matrix. The arbiter between the dense and the
+// feature estimates: where one slid along a wall its depth still agrees, but the tiles, window
+// and furniture edges in its view no longer do.
+double Consistency(const cv::rgbd::OdometryFrame& current, const cv::rgbd::OdometryFrame& reference,
+                   const cv::Mat& K, const Eigen::Isometry3d& T_reference_current) {
+  const double fx = K.at<double>(0, 0), fy = K.at<double>(1, 1), cx = K.at<double>(0, 2),
+               cy = K.at<double>(1, 2);
+  const Eigen::Matrix3d R = T_reference_current.linear();
+  const Eigen::Vector3d t = T_reference_current.translation();
+  int sampled = 0, consistent = 0;
+  for (int r = 0; r < current.depth.rows; r += 4) {
+    const float* z_row = current.depth.ptr<float>(r);
+    const uchar* g_row = current.image.ptr<uchar>(r);
+    for (int c = 0; c < current.depth.cols; c += 4) {
+      const float z = z_row[c];
+      if (!(z > 0) || !std::isfinite(z)) continue;
+      ++sampled;
+      const Eigen::Vector3d p = R * Eigen::Vector3d((c - cx) / fx * z, (r - cy) / fy * z, z) + t;
+      if (p.z() <= 0) continue;
+      const int u = static_cast<int>(std::lround(fx * p.x() / p.z() + cx));
+      const int v = static_cast<int>(std::lround(fy * p.y() / p.z() + cy));
+      if (u < 0 || v < 0 || u >= reference.depth.cols || v >= reference.depth.rows) continue;
+      const float zr = reference.depth.at<float>(v, u);
+      if (!(zr > 0) || std::abs(zr - p.z()) > 0.02 + 0.02 * p.z()) continue;
+      if (std::abs(static_cast<int>(reference.image.at<uchar>(v, u)) - g_row[c]) > 16) continue;
+      ++consistent;
+    }
+  }
+  return sampled > 0 ? static_cast<double>(consistent) / sampled : 0.0;
 }
 
 }  // namespace
@@ -96,7 +164,28 @@ struct TrackingInput {
   OdometryOptions options;                 // prepared with these
   cv::Ptr<cv::rgbd::OdometryFrame> frame;  // null when the frame cannot be tracked
   std::string why_not;
+  // The feature check's input: the frame's full-resolution colour and depth (shared, not
+  // copied), and its ORB keypoints with 3D points (camera frame) once a check has needed them.
+  cv::Mat color_bgr, depth_m;
+  std::optional<features::KeypointSet> keypoints;
 };
+
+namespace {
+
+// The frame's keypoints for the feature check, detected on first use.
+const features::KeypointSet& KeypointsOf(TrackingInput& in, int max_keypoints) {
+  if (!in.keypoints) {
+    // Four pyramid levels: a frame and its reference keyframe are close in scale.
+    features::OrbOptions orb;
+    orb.max_keypoints = max_keypoints;
+    orb.pyramid_levels = 4;
+    in.keypoints = features::ExtractOrb(in.color_bgr, orb);
+    features::AttachPoints(in.depth_m, in.intrinsics, &*in.keypoints);
+  }
+  return *in.keypoints;
+}
+
+}  // namespace
 
 std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& f,
                                                   const OdometryOptions& options) {
@@ -124,6 +213,10 @@ std::shared_ptr<TrackingInput> PrepareForTracking(const RgbdFrame& f,
         usable * 100 / std::max<size_t>(1, depth.total()), " % of the pixels)");
     return in;
   }
+  if (options.feature_keypoints > 0) {
+    in->color_bgr = f.color_bgr;
+    in->depth_m = f.depth_m;
+  }
   in->frame = cv::rgbd::OdometryFrame::create(gray, depth);
   try {
     // The source-side cache (pyramids, gradients, normals) of the coming alignment.
@@ -141,15 +234,17 @@ struct Tracker::Impl {
   cv::Ptr<cv::rgbd::RgbdICPOdometry> odometry;
   CameraIntrinsics intrinsics;  // of the frames the odometry was set up for (full size)
 
-  // The reference keyframe: its prepared frame and pose.
+  // The reference keyframe: its prepared frame, keypoints and pose.
   cv::Ptr<cv::rgbd::OdometryFrame> reference;
+  std::shared_ptr<TrackingInput> reference_input, last_input;
   Eigen::Isometry3d T_world_reference = Eigen::Isometry3d::Identity();
   // The last frame tracked, prepared, and its pose relative to the reference.
   cv::Ptr<cv::rgbd::OdometryFrame> last;
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
   bool last_tracked = false;
   int lost_frames = 0;
-  double last_timestamp_s = 0.0;  // of the last frame tracked or lost
+  double last_timestamp_s = 0.0;          // of the last frame tracked or lost
+  double last_tracked_timestamp_s = 0.0;  // of the last frame tracked
 };
 
 Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
@@ -214,9 +309,12 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     // The visit's first trackable frame defines its frame.
     m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
     m.reference = current;
+    m.reference_input = prepared;
     m.T_world_reference =
         prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry();
     m.last = current;
+    m.last_input = prepared;
+    m.last_tracked_timestamp_s = frame.timestamp_s;
     m.T_reference_last = Eigen::Isometry3d::Identity();
     m.last_tracked = true;
     m.lost_frames = 0;
@@ -231,33 +329,90 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   // With a prior (a client's pose to refine) it starts from that instead.
   const Eigen::Isometry3d predicted =
       prior ? m.T_world_reference.inverse() * prior->ToIsometry() : m.T_reference_last;
-  cv::Mat Rt;
-  // src = the current frame, dst = the reference: Rt maps current-camera points into the
-  // reference camera, i.e. T_reference_current.
-  bool ok = false;
-  try {
-    ok = m.odometry->compute(current, m.reference, Rt, ToMat(predicted));
-  } catch (const cv::Exception& e) {
-    return lose(absl::StrCat("odometry failed: ", e.what()));
-  }
-  if (!ok || Rt.empty()) {
-    return lose(
-        "the view could not be aligned to the reference keyframe (too little overlap, "
-        "texture or geometry)");
-  }
-  const Eigen::Isometry3d T_reference_current = ToIsometry(Rt);
+  // The dense alignment from `guess`: T_reference_current, or why not. src = the current
+  // frame, dst = the reference: Rt maps current-camera points into the reference camera.
+  std::string dense_failure;
+  auto align = [&](const Eigen::Isometry3d& guess) -> std::optional<Eigen::Isometry3d> {
+    cv::Mat Rt;
+    try {
+      if (m.odometry->compute(current, m.reference, Rt, ToMat(guess)) && !Rt.empty()) {
+        return ToIsometry(Rt);
+      }
+      dense_failure =
+          "the view could not be aligned to the reference keyframe (too little overlap, "
+          "texture or geometry)";
+    } catch (const cv::Exception& e) {
+      dense_failure = absl::StrCat("odometry failed: ", e.what());
+    }
+    return std::nullopt;
+  };
   // After lost frames the camera may have moved on: the allowed jump grows with them (OpenCV's
   // own limits still bound it).
-  const Eigen::Isometry3d jump = predicted.inverse() * T_reference_current;
   const double allowance = 1.0 + m.lost_frames;
-  if (jump.translation().norm() > m.options.max_jump_m * allowance ||
-      AngleOf(jump) > m.options.max_jump_rad * allowance) {
-    return lose(absl::StrCat("the alignment jumped ", jump.translation().norm(), " m / ",
-                             AngleOf(jump) * 180 / M_PI, " deg from the prediction"));
+  auto jump_failure = [&](const Eigen::Isometry3d& T_reference_current) -> std::string {
+    const Eigen::Isometry3d jump = predicted.inverse() * T_reference_current;
+    if (jump.translation().norm() > m.options.max_jump_m * allowance ||
+        AngleOf(jump) > m.options.max_jump_rad * allowance) {
+      return absl::StrCat("the alignment jumped ", jump.translation().norm(), " m / ",
+                          AngleOf(jump) * 180 / M_PI, " deg from the prediction");
+    }
+    return "";
+  };
+  std::optional<Eigen::Isometry3d> dense = align(predicted);
+  std::string dense_jump = dense ? jump_failure(*dense) : "";
+  if (!dense_jump.empty()) dense.reset();
+  // The feature check (see OdometryOptions), where the dense alignment failed or moved the
+  // camera faster than `feature_check_speed_mps` / `feature_check_turn_dps` from the last pose.
+  std::optional<Eigen::Isometry3d> by_features;
+  bool suspicious = !dense;
+  if (dense) {
+    const Eigen::Isometry3d step = m.T_reference_last.inverse() * *dense;
+    const double dt = std::max(frame.timestamp_s - m.last_tracked_timestamp_s, 1e-3);
+    suspicious = step.translation().norm() / dt > m.options.feature_check_speed_mps ||
+                 AngleOf(step) * 180 / M_PI / dt > m.options.feature_check_turn_dps;
+  }
+  if (suspicious && m.options.feature_keypoints > 0 && m.reference_input != nullptr) {
+    appearance::VerifyOptions verify;
+    verify.min_inliers = m.options.feature_min_inliers;
+    const appearance::Verification v = appearance::VerifyMatch(
+        KeypointsOf(*prepared, m.options.feature_keypoints), k,
+        KeypointsOf(*m.reference_input, m.options.feature_keypoints), verify);
+    if (v.verified && jump_failure(v.T_match_query.ToIsometry()).empty()) {
+      by_features = v.T_match_query.ToIsometry();
+    }
+  }
+  Eigen::Isometry3d T_reference_current;
+  TrackingMethod method = TrackingMethod::kDense;
+  if (dense && (!by_features || Agree(*dense, *by_features, m.options))) {
+    T_reference_current = *dense;
+  } else if (by_features) {
+    // The dense alignment disagreed with the features, or failed: run it again from theirs,
+    // and keep whichever estimate the two images agree with best (an earlier one on a tie).
+    std::vector<std::pair<TrackingMethod, Eigen::Isometry3d>> candidates;
+    if (dense) candidates.push_back({TrackingMethod::kDense, *dense});
+    if (auto refit = align(*by_features); refit && jump_failure(*refit).empty()) {
+      candidates.push_back({TrackingMethod::kRefit, *refit});
+    }
+    candidates.push_back({TrackingMethod::kFeatures, *by_features});
+    const cv::Mat K = CameraMatrix(k, m.options.downscale);
+    double best = -1;
+    for (const auto& [how, T] : candidates) {
+      const double score = Consistency(*current, *m.reference, K, T);
+      if (score > best + 0.01) {
+        best = score;
+        method = how;
+        T_reference_current = T;
+      }
+    }
+  } else {
+    return lose(dense_jump.empty() ? dense_failure : dense_jump);
   }
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
+  out.method = method;
   m.T_reference_last = T_reference_current;
   m.last = current;
+  m.last_input = prepared;
+  m.last_tracked_timestamp_s = frame.timestamp_s;
   m.last_tracked = true;
   m.lost_frames = 0;
   out.T_world_camera = Pose::FromIsometry(m.T_world_reference * T_reference_current);
@@ -270,6 +425,7 @@ void Tracker::PromoteLastToReference() {
   m.odometry->prepareFrameCache(m.last, cv::rgbd::OdometryFrame::CACHE_ALL);
   m.T_world_reference = m.T_world_reference * m.T_reference_last;
   m.reference = m.last;
+  m.reference_input = m.last_input;
   m.T_reference_last = Eigen::Isometry3d::Identity();
 }
 

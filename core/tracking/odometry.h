@@ -22,6 +22,12 @@ struct OdometryOptions {
   float min_depth_m = 0.3f;
   float max_depth_m = 4.0f;
   float max_depth_diff_m = 0.07f;
+  // Pixels whose grey-level gradient is below this (per pyramid level, grey levels per pixel)
+  // are left out of the photometric term. OpenCV's default, 10, leaves out the soft texture of
+  // painted walls seen close up: on such a view the alignment rests on point-to-plane ICP alone,
+  // which is free to slide along the wall (sim seed 7: 156 mm ATE at 10, 2.7 mm at 5; chosen
+  // there, other seeds in docs/RESULTS.md "Issue 15 (third part)").
+  float min_gradient = 5.0f;
   // Motion from the reference keyframe beyond which an alignment is refused (OpenCV's check).
   float max_translation_m = 0.5f;
   float max_rotation_deg = 40.0f;
@@ -29,6 +35,21 @@ struct OdometryOptions {
   // grows with the frames lost since).
   double max_jump_m = 0.15;
   double max_jump_rad = 0.35;
+  // The feature check: ORB keypoints (`feature_keypoints` at most, 0 = no check) of the frame
+  // matched to the reference keyframe's and located by PnP (appearance::VerifyMatch) give a
+  // second, independent estimate. It runs where the dense alignment failed or moved the camera
+  // faster than `feature_check_speed_mps` / `feature_check_turn_dps` since the last tracked
+  // frame (a slide along a plain wall above a tiled floor: point-to-plane ICP is free along the
+  // wall, the photometric term weak), not on every frame: detection costs ~8 ms a frame at
+  // 640x480. With at least `feature_min_inliers` PnP inliers, a dense alignment that disagrees
+  // by more than `feature_agree_m` / `feature_agree_deg` is run again from the PnP estimate, and
+  // of the three estimates the one the two images agree with best is kept.
+  int feature_keypoints = 500;
+  double feature_check_speed_mps = 0.4;
+  double feature_check_turn_dps = 40.0;
+  int feature_min_inliers = 30;
+  double feature_agree_m = 0.03;
+  double feature_agree_deg = 2.0;
 
   // InvalidArgument naming the first field out of range.
   absl::Status Validate() const;
@@ -41,8 +62,17 @@ enum class TrackingState {
   kRegained,  // aligned again after lost frames
 };
 
+// Which estimate a tracked pose is.
+enum class TrackingMethod {
+  kNone,      // lost, or the visit's first frame
+  kDense,     // the dense RGB-D alignment from the last pose
+  kRefit,     // the dense alignment run again from the feature (PnP) estimate
+  kFeatures,  // the feature (PnP) estimate: the dense alignment disagreed or failed
+};
+
 struct TrackedPose {
   TrackingState state = TrackingState::kLost;
+  TrackingMethod method = TrackingMethod::kNone;
   std::optional<Pose> T_world_camera;  // unset when lost
   std::string reason;                  // why lost, for people reading results
   int lost_frames = 0;                 // consecutive frames lost, this one included

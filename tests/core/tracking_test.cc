@@ -103,6 +103,21 @@ TEST(OdometryOptions, RefusesValuesOutOfRange) {
   o = {};
   o.max_jump_rad = 4.0;
   EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.min_gradient = -1;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.feature_min_inliers = 3;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.feature_check_speed_mps = 0;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.feature_agree_deg = 90;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
+  o.feature_keypoints = 0;  // no feature check
+  EXPECT_TRUE(o.Validate().ok());
 }
 
 // Tracks every frame of a TUM recording the way the server does (keyframes by the estimated
@@ -110,13 +125,14 @@ TEST(OdometryOptions, RefusesValuesOutOfRange) {
 struct Tracked {
   std::vector<eval::TimedPose> estimate, truth;
   int lost = 0;
+  int by_features = 0;  // frames whose pose came from the feature check (refit or PnP)
 };
-Tracked TrackRecording(const std::string& dir) {
+Tracked TrackRecording(const std::string& dir, const tracking::OdometryOptions& options = {}) {
   Tracked out;
   auto seq = io::ReadTumSequence(dir);
   EXPECT_TRUE(seq.ok()) << seq.status();
   if (!seq.ok()) return out;
-  tracking::Tracker tracker;
+  tracking::Tracker tracker(options);
   tracking::KeyframeSelector selector;
   for (const auto& e : seq->frames) {
     auto frame = io::DecodeTumFrame(*seq, e);
@@ -129,6 +145,8 @@ Tracked TrackRecording(const std::string& dir) {
       continue;
     }
     out.estimate.push_back({e.timestamp_s, *tracked.T_world_camera});
+    out.by_features += tracked.method == tracking::TrackingMethod::kRefit ||
+                       tracked.method == tracking::TrackingMethod::kFeatures;
     if (selector.Decide(e.timestamp_s, tracked.T_world_camera).selected) {
       selector.Accept(e.timestamp_s, tracked.T_world_camera);
       tracker.PromoteLastToReference();
@@ -170,6 +188,68 @@ TEST(Tracker, TracksASyntheticVisitWithSensorNoiseWithinACentimetre) {
   std::cerr << "sim seed 3: " << t.estimate.size() << " frames, ATE " << errors->ate_rmse_m * 1000
             << " mm\n";
   EXPECT_LT(errors->ate_rmse_m, 0.01);
+}
+
+// Renders `count` frames of a synthetic walk from frame `first` (sensor model on).
+void RenderWalk(uint64_t seed, const std::string& world, size_t first, size_t count,
+                const std::string& dir) {
+  auto style = sim::ParseWorld(world, seed);
+  ASSERT_TRUE(style.ok()) << style.status();
+  auto place = sim::GeneratePlace(seed, "rect", *style);
+  ASSERT_TRUE(place.ok()) << place.status();
+  auto visits = sim::GenerateVisits(*place, seed, 1, 6.0, sim::Conditions{}, 900);
+  ASSERT_TRUE(visits.ok()) << visits.status();
+  sim::Visit visit = (*visits)[0];
+  visit.trajectory.erase(visit.trajectory.begin(),
+                         visit.trajectory.begin() + static_cast<std::ptrdiff_t>(first));
+  visit.trajectory.resize(count);
+  sim::WriteOptions options;
+  options.seed = seed;
+  auto written = sim::WriteVisit(dir, *place, visit, nullptr, options);
+  ASSERT_TRUE(written.ok()) << written.status();
+}
+
+double Ate(const Tracked& t) {
+  auto errors = eval::CompareTrajectories(t.estimate, t.truth);
+  EXPECT_TRUE(errors.ok()) << errors.status();
+  return errors.ok() ? errors->ate_rmse_m : 1e9;
+}
+
+// A painted wall seen close up (sim seed 7's first two seconds): its soft texture is below
+// OpenCV's default gradient threshold, and without the photometric term the alignment slid
+// along the wall by up to 10 cm a frame.
+TEST(Tracker, APlainWallCloseUpKeepsItsPhotometricTerm) {
+  testing::TempDir tmp;
+  RenderWalk(7, "rooms", 0, 60, tmp.File("visit"));
+  const Tracked t = TrackRecording(tmp.File("visit"));
+  EXPECT_EQ(t.lost, 0);
+  tracking::OdometryOptions before;
+  before.min_gradient = 10;  // OpenCV's default
+  before.feature_keypoints = 0;
+  const Tracked b = TrackRecording(tmp.File("visit"), before);
+  std::cerr << "sim seed 7, 60 frames: ATE " << Ate(t) * 1000
+            << " mm (OpenCV's threshold: " << Ate(b) * 1000 << " mm)\n";
+  EXPECT_LT(Ate(t), 0.005);
+  EXPECT_GT(Ate(b), 3 * Ate(t)) << "the scene no longer tests the threshold";
+}
+
+// Where the dense alignment fails, the feature check's PnP estimate tracks the frame: here the
+// dense alignment is made to fail (OpenCV refuses any result more than 2 mm from the reference
+// keyframe) on a real recording.
+TEST(Tracker, TheFeatureCheckTracksFramesTheDenseAlignmentCannot) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  tracking::OdometryOptions options;
+  options.max_translation_m = 0.002f;
+  const Tracked t = TrackRecording(dir, options);
+  options.feature_keypoints = 0;
+  const Tracked w = TrackRecording(dir, options);
+  std::cerr << "fr1_xyz, dense alignment crippled: ATE " << Ate(t) * 1000 << " mm, "
+            << t.by_features << " frames by the feature check, " << t.lost
+            << " lost (without it: " << w.lost << " lost)\n";
+  EXPECT_GT(w.lost, 10) << "the dense alignment no longer fails here";
+  EXPECT_LE(t.lost, 2);
+  EXPECT_GT(t.by_features, 10);
+  EXPECT_LT(Ate(t), 0.02);
 }
 
 TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {

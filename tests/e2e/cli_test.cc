@@ -649,6 +649,35 @@ TEST_F(CliTest, EvalPlacesScoresASuiteAgainstItsGroundTruth) {
   EXPECT_NE(r.err.find("has no \"threshold\""), std::string::npos) << r.err;
 }
 
+// Issue 15: a suite's visits streamed without poses, one map per place. 12 frames for a loop of
+// a room are too far apart to track well, so this checks the bookkeeping: every query and one
+// visit of the other place per map are streamed and classified, and nothing is anchored to the
+// wrong place.
+TEST_F(CliTest, EvalAlignmentStreamsASuiteWithoutPosesOneMapPerPlace) {
+  ASSERT_EQ(Run({"sim", "suite", "--seed", "4", "--places", "2", "--frames", "12", "--out",
+                 tmp_.File("suite")})
+                .code,
+            0);
+  auto r = Run(
+      {"--json", "eval", "alignment", "--suite", tmp_.File("suite"), "--out", tmp_.File("align")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json al = json::parse(Slurp(tmp_.File("align/summary.json")));
+  EXPECT_EQ(al["visits"], 16) << "8 queries per place";
+  EXPECT_EQ(al["anchored_correct"].get<int>() + al["anchored_wrong"].get<int>() -
+                al["anchored_wrong_place"].get<int>() + al["unanchored"].get<int>() +
+                al["not_scored"].get<int>(),
+            16);
+  EXPECT_EQ(al["cross_place"]["visits"], 2);
+  EXPECT_EQ(al["anchored_wrong_place"], 0) << "a visit of the other place was anchored";
+  EXPECT_EQ(al["subsets"].size(), 8u);
+  EXPECT_EQ(Lines(Slurp(tmp_.File("align/visits.csv"))).size(), 19u) << "header + 18 visits";
+  r = Run({"--json", "maps", "list"});
+  EXPECT_EQ(r.out.find("eval-alignment"), std::string::npos) << "the scratch maps are deleted";
+  r = Run({"eval", "alignment", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
+}
+
 TEST_F(CliTest, SimulatedVisitsStreamUnchanged) {
   auto r = Run({"--json", "sim", "--seed", "5", "--place-shape", "square", "--visits", "2",
                 "--frames", "12", "--conditions", "scenery,lighting", "--out", tmp_.File("sim")});

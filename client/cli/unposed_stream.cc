@@ -1,0 +1,127 @@
+#include "client/cli/unposed_stream.h"
+
+#include <algorithm>
+#include <chrono>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "client/cli/commands.h"
+#include "core/common/image_codec.h"
+
+namespace lifemap::cli {
+namespace {
+
+// A pose as the server sent it, checked as any pose is (Pose::FromComponents).
+absl::StatusOr<Pose> PoseOf(const v1::Pose& p) {
+  return Pose::FromComponents(p.tx(), p.ty(), p.tz(), p.qx(), p.qy(), p.qz(), p.qw());
+}
+
+std::string TrackingName(v1::TrackingState s) {
+  switch (s) {
+    case v1::TRACKING_STARTED:
+      return "started";
+    case v1::TRACKING_OK:
+      return "ok";
+    case v1::TRACKING_LOST:
+      return "lost";
+    case v1::TRACKING_REGAINED:
+      return "regained";
+    default:
+      return "none";
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
+                                                 const io::TumSequence& sequence,
+                                                 const UnposedStreamOptions& options) {
+  size_t n = sequence.frames.size();
+  if (options.max_frames > 0) n = std::min(n, static_cast<size_t>(options.max_frames));
+  if (n == 0) return absl::InvalidArgumentError(absl::StrCat(sequence.dir, ": no frames"));
+  auto first = ReadFileBytes(sequence.frames[0].rgb_path);
+  if (!first.ok()) return first.status();
+  auto header = ProbeImage(*first);
+  if (!header.ok()) return header.status();
+  StreamedVisit visit;
+  const v1::CameraIntrinsics k = IntrinsicsProto(
+      io::TumSequenceIntrinsics(sequence, header->width, header->height, &visit.intrinsics_source));
+
+  v1::StreamStart start;
+  start.set_map(map);
+  start.set_robot(options.robot);
+  start.set_visit_label(options.visit_label.empty() ? sequence.dir : options.visit_label);
+  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  auto stream = client.OpenStream(start);
+  if (!stream.ok()) return stream.status();
+
+  std::string send_error;
+  const auto t0 = std::chrono::steady_clock::now();
+  std::thread sender([&] {
+    for (size_t i = 0; i < n; ++i) {
+      const auto& e = sequence.frames[i];
+      if (options.rate_hz > 0) {
+        std::this_thread::sleep_until(
+            t0 + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                     std::chrono::duration<double>(i / options.rate_hz)));
+      }
+      auto f = client::FrameFromFiles(e.rgb_path, e.depth_path, 5000.0, k, e.timestamp_s, i);
+      if (f.ok() && options.compact) f = client::CompactFrame(*f);
+      if (!f.ok()) {
+        send_error = absl::StrCat(e.rgb_path, ": ", f.status().message());
+        (*stream)->Cancel();
+        break;
+      }
+      if (!(*stream)->Send(*f)) break;  // no pose: the server tracks the camera
+    }
+    (*stream)->CloseSend();
+  });
+  v1::FrameResult r;
+  while ((*stream)->Receive(&r)) {
+    TrackedFrame o;
+    o.timestamp_s = r.timestamp_s();
+    if (r.sequence() < sequence.frames.size()) {
+      o.truth = sequence.frames[r.sequence()].T_world_camera;
+    }
+    if (r.has_error()) {
+      ++visit.rejected;
+      o.state = "error";
+    } else {
+      o.state = TrackingName(r.tracking().state());
+      visit.lost += r.tracking().state() == v1::TRACKING_LOST;
+      visit.track_ms.push_back(r.tracking().track_ms());
+      if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {
+        if (auto pose = PoseOf(r.pose()); pose.ok()) {
+          o.tracked = true;
+          o.pose = *pose;
+        }
+      }
+      o.keyframe = r.keyframe().committed();
+    }
+    visit.frames.push_back(o);
+  }
+  sender.join();
+  const absl::Status finished = (*stream)->Finish();
+  visit.visit_id = (*stream)->started().visit_id();
+  if (!send_error.empty()) return absl::InvalidArgumentError(send_error);
+  if (!finished.ok()) return finished;
+  return visit;
+}
+
+absl::StatusOr<std::vector<io::TimedPose>> StoredEstimatedKeyframes(client::Client& client,
+                                                                    const std::string& map,
+                                                                    uint64_t visit_id) {
+  auto listed = client.ListKeyframes(map, visit_id);
+  if (!listed.ok()) return listed.status();
+  std::vector<io::TimedPose> stored;
+  for (const auto& kf : listed->keyframes()) {
+    if (kf.pose_source() != v1::POSE_SOURCE_ESTIMATED) continue;
+    if (auto pose = PoseOf(kf.pose()); pose.ok()) stored.push_back({kf.timestamp_s(), *pose});
+  }
+  std::sort(stored.begin(), stored.end(), [](const io::TimedPose& a, const io::TimedPose& b) {
+    return a.timestamp_s < b.timestamp_s;
+  });
+  return stored;
+}
+
+}  // namespace lifemap::cli

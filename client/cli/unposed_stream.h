@@ -1,0 +1,59 @@
+// Streaming a recording to lifemapd without poses, as a robot without its own localisation
+// would, and reading back what the server made of it: the evaluations of issue 15
+// (`lifemap eval trajectory`, `lifemap eval alignment`) share it.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "client/lifemap_client.h"
+#include "core/common/types.h"
+#include "core/io/tum_dataset.h"
+
+namespace lifemap::cli {
+
+// One frame's answer.
+struct TrackedFrame {
+  double timestamp_s = 0;
+  bool tracked = false;  // the server estimated a pose (`pose`)
+  bool keyframe = false;
+  Pose pose;
+  std::string state;          // started | ok | lost | regained | none | error
+  std::optional<Pose> truth;  // the recording's ground truth for the frame, if it has one
+};
+
+struct UnposedStreamOptions {
+  std::string robot = "lifemap eval";
+  std::string visit_label;
+  bool compact = false;  // JPEG colour + paletted depth, as a robot on a network would send
+  double rate_hz = 0.0;  // 0: as fast as the server answers
+  int max_frames = 0;    // 0: every frame
+};
+
+struct StreamedVisit {
+  uint64_t visit_id = 0;
+  std::vector<TrackedFrame> frames;  // in frame order, one per answer
+  int lost = 0;                      // frames answered TRACKING_LOST
+  int rejected = 0;                  // frames answered with a per-frame error
+  std::vector<double> track_ms;      // the server's tracking time per answered frame
+  std::string intrinsics_source;     // where the camera intrinsics sent came from
+};
+
+// Streams `sequence` into `map` (which must exist) without poses and collects every answer.
+// Returns once the server ended the stream, i.e. after the visit's loop closures, pose-graph
+// solves and anchoring have finished. A frame file that cannot be read: InvalidArgument naming
+// it; a stream the server broke: its status.
+absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
+                                                 const io::TumSequence& sequence,
+                                                 const UnposedStreamOptions& options);
+
+// The visit's keyframes as stored now, with the poses the server estimated (loop-closed, and in
+// the map's frame once the visit is anchored), in timestamp order.
+absl::StatusOr<std::vector<io::TimedPose>> StoredEstimatedKeyframes(client::Client& client,
+                                                                    const std::string& map,
+                                                                    uint64_t visit_id);
+
+}  // namespace lifemap::cli
