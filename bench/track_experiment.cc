@@ -17,6 +17,7 @@ int main(int argc, char** argv) {
   if (getenv("FEAT")) o.feature_keypoints = std::atoi(getenv("FEAT"));
   if (getenv("FEAT_INLIERS")) o.feature_min_inliers = std::atoi(getenv("FEAT_INLIERS"));
   if (getenv("CHECK_SPEED")) o.feature_check_speed_mps = std::atof(getenv("CHECK_SPEED"));
+  if (getenv("CHECK_TURN")) o.feature_check_turn_dps = std::atof(getenv("CHECK_TURN"));
   if (getenv("FEAT_AGREE_M")) o.feature_agree_m = std::atof(getenv("FEAT_AGREE_M"));
   int methods[4] = {0, 0, 0, 0};
   int limit = argc > 3 ? std::atoi(argv[3]) : 100000;
