@@ -51,6 +51,7 @@ struct AlignmentTrial {
   std::string frame;   // map | anchored | unanchored | error
   std::string error;   // why the visit could not be scored
   uint64_t anchor_to = 0;
+  // Seconds of streaming (server clock) before the anchor was set; -1 when not anchored.
   double anchored_after_s = -1, residual_cm = 0, residual_deg = 0;
   double error_cm = -1, error_deg = -1;  // against the truth (anchored visits of the place)
   std::string verdict;                   // correct | wrong | unanchored | error
@@ -136,9 +137,8 @@ absl::Status StreamVisit(client::Client& client, const std::string& map, const s
       t->anchor_to = v.anchor().to_visit();
       t->residual_cm = v.anchor().residual_m() * 100;
       t->residual_deg = v.anchor().residual_deg();
-      if (!streamed->frames.empty()) {
-        t->anchored_after_s = v.anchor().anchored_time_s() - streamed->frames[0].timestamp_s;
-      }
+      // Both on the server's clock: a streamed visit starts when its stream opens.
+      t->anchored_after_s = std::max(0.0, v.anchor().anchored_time_s() - v.start_time_s());
     }
   }
   auto stored = StoredEstimatedKeyframes(client, map, t->visit_id);
@@ -283,7 +283,7 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
       "then its query visits without poses into the same map; one visit of another place per "
       "map must stay unanchored. An anchor more than %.0f cm or %.0f deg from the truth is "
       "wrong.\n\n| subset | visits | anchored correctly | wrongly | not anchored | not scored | "
-      "median error (cm) | median error (deg) | anchored after (s, median) |\n"
+      "median error (cm) | median error (deg) | anchored after (s of streaming, median) |\n"
       "|---|---|---|---|---|---|---|---|---|\n",
       a.suite, places.size(), a.wrong_cm, a.wrong_deg);
   for (const auto& [k, tally] : by_subset) {
