@@ -42,13 +42,13 @@ struct AlignmentArgs {
 
 // One visit streamed into a place's map and what became of it.
 struct AlignmentTrial {
-  std::string path, place_id, conditions, subset_name;
+  std::string path, place_id, conditions;
   int subset = 0;            // 1..8; 0 for the cross-place trials
   bool cross_place = false;  // a visit of another place: must stay unanchored
   uint64_t visit_id = 0;
   int frames = 0, lost = 0, keyframes = 0;
   double ate_mm = -1;  // the visit's stored keyframes against its own ground truth (-1: none)
-  std::string frame;   // map | anchored | unanchored | error
+  std::string frame;   // the server's VisitFrame: map | anchored | unanchored
   std::string error;   // why the visit could not be scored
   uint64_t anchor_to = 0;
   // Seconds of streaming (server clock) before the anchor was set; -1 when not anchored.
@@ -213,7 +213,6 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
       t.conditions = visit->conditions;
       t.subset = cross_place ? 0 : visit->subset;
       t.cross_place = cross_place;
-      t.subset_name = cross_place ? "cross-place" : visit->conditions;
       std::optional<Eigen::Isometry3d> T_truth_query;
       if (auto s = StreamVisit(**client, map, (root / t.path).string(), a, &t, &T_truth_query);
           !s.ok()) {
