@@ -19,6 +19,8 @@ int main(int argc, char** argv) {
   if (getenv("CHECK_SPEED")) o.feature_check_speed_mps = std::atof(getenv("CHECK_SPEED"));
   if (getenv("CHECK_TURN")) o.feature_check_turn_dps = std::atof(getenv("CHECK_TURN"));
   if (getenv("FEAT_AGREE_M")) o.feature_agree_m = std::atof(getenv("FEAT_AGREE_M"));
+  if (getenv("HOLE_MARGIN")) o.hole_margin = std::atoi(getenv("HOLE_MARGIN"));
+  const int stripe = getenv("STRIPE") ? std::atoi(getenv("STRIPE")) : 0;
   int methods[4] = {0, 0, 0, 0};
   int limit = argc > 3 ? std::atoi(argv[3]) : 100000;
   tracking::Tracker tracker(o);
@@ -35,10 +37,16 @@ int main(int argc, char** argv) {
       cv::imencode(".jpg", f->color_bgr, buf, {cv::IMWRITE_JPEG_QUALITY, std::atoi(argv[4])});
       f->color_bgr = cv::imdecode(buf, cv::IMREAD_COLOR);
     }
+    if (stripe > 0) {
+      // Something close without depth, fixed in the image: dark, no depth, a stripe on the left.
+      f->color_bgr.colRange(0, stripe).setTo(cv::Scalar(20, 20, 30));
+      f->depth_m.colRange(0, stripe).setTo(0);
+    }
     auto t = tracker.Track(*f);
     if (e.T_world_camera) truth.push_back({e.timestamp_s, *e.T_world_camera});
     if (!t.T_world_camera) {
       ++lost;
+      if (verbose) std::cout << "frame " << n - 1 << " lost: " << t.reason << "\n";
       continue;
     }
     est.push_back({e.timestamp_s, *t.T_world_camera});

@@ -28,6 +28,12 @@ struct OdometryOptions {
   // which is free to slide along the wall (sim seed 7: 156 mm ATE at 10, 2.7 mm at 5; chosen
   // there, other seeds in docs/RESULTS.md "Issue 15 (third part)").
   float min_gradient = 5.0f;
+  // Pixels (per pyramid level) beside a depth hole that neither term uses: where something
+  // closer than the sensor's range has no depth, its edge against the surface behind looks
+  // like texture on that surface and moves with the camera. 0 keeps them. Chosen on building
+  // seed 13 (208 mm ATE with OpenCV's own pyramids, 5.3 mm at 2); docs/RESULTS.md "Issue 15
+  // (fourth part)".
+  int hole_margin = 2;
   // Motion from the reference keyframe beyond which an alignment is refused (OpenCV's check).
   float max_translation_m = 0.5f;
   float max_rotation_deg = 40.0f;
