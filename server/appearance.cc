@@ -21,6 +21,10 @@ absl::Status AppearanceOptions::Validate() const {
   if (!(exclude_recent_s >= 0 && exclude_recent_s <= 86400)) {
     return absl::InvalidArgumentError("appearance.exclude_recent_s must be in [0, 86400]");
   }
+  if (!(exclude_recent_m >= 0 && exclude_recent_m <= 1e6)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "appearance.exclude_recent_m must be in [0, 1e6] metres, got ", exclude_recent_m));
+  }
   if (max_frame_matches < 1 || max_frame_matches > 100) {
     return absl::InvalidArgumentError("appearance.max_frame_matches must be in [1, 100]");
   }

@@ -22,9 +22,13 @@ struct AppearanceOptions {
   appearance::VocabularyOptions vocabulary;
   appearance::RecognizerOptions recognizer;
   pipeline::KeyframeFeatureOptions features;  // ORB per keyframe (and per queried frame)
-  // A keyframe of the querying visit is not a match when taken less than this long before or
-  // after the query (it is the same view a moment ago, not a recognised place), seconds.
+  // A keyframe of the querying visit is not a match while it is both less than
+  // `exclude_recent_s` from the query in time and less than `exclude_recent_m` of the camera's
+  // path behind it (the same view a moment ago, not a recognised place). The path lets a walk
+  // that returns to its start within seconds close its loop: the 300-frame synthetic walks pass
+  // their start 8.6-11.4 s in, after 5-7 m, and a time window alone of 10 s excluded them.
   double exclude_recent_s = 10.0;
+  double exclude_recent_m = 3.0;
   int max_frame_matches = 3;  // appearance matches a frame result lists, [1, 100]
   // Non-keyframes are queried too when a frame's options ask (FrameOptions.
   // appearance_interval_s); this is the default for frames that do not say: nullopt =

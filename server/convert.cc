@@ -308,6 +308,20 @@ v1::TrackingState TrackingStateToProto(tracking::TrackingState state) {
   return v1::TRACKING_STATE_UNSPECIFIED;
 }
 
+v1::TrackingMethod TrackingMethodToProto(tracking::TrackingMethod method) {
+  switch (method) {
+    case tracking::TrackingMethod::kDense:
+      return v1::TRACKING_METHOD_DENSE;
+    case tracking::TrackingMethod::kRefit:
+      return v1::TRACKING_METHOD_REFIT;
+    case tracking::TrackingMethod::kFeatures:
+      return v1::TRACKING_METHOD_FEATURES;
+    case tracking::TrackingMethod::kNone:
+      break;
+  }
+  return v1::TRACKING_METHOD_UNSPECIFIED;
+}
+
 void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,
                         google::protobuf::RepeatedPtrField<v1::OutputStatus>* out) {
   auto add = [out](v1::FrameOutput o, bool computed, absl::string_view reason) {

@@ -33,6 +33,7 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
 absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
 void PoseToProto(const Pose& pose, v1::Pose* out);
 v1::TrackingState TrackingStateToProto(tracking::TrackingState state);
+v1::TrackingMethod TrackingMethodToProto(tracking::TrackingMethod method);
 // A frame result's pose source as the store keeps it, and back (KeyframeSummary).
 store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source);
 v1::PoseSource StoredPoseSourceToProto(store::StoredPoseSource source);

@@ -148,21 +148,25 @@ struct FrameSettings {
 };
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
-// every stored keyframe but its own visit's last few seconds. OK with no match (nothing
+// every stored keyframe but those of its own visit it has only just passed (closer than
+// `exclude_recent_s` in time and `exclude_recent_m` along `path`). OK with no match (nothing
 // recognised); otherwise why it could not be asked. With `loops`, the verified matches to earlier
 // keyframes of the same visit are added there too (loop candidates, issue 15); with `anchors`,
 // those to other visits of map `map_id` (anchor candidates).
 absl::Status AppearanceMatches(ServiceContext* ctx,
                                const absl::StatusOr<pipeline::KeyframeFeatures>& features,
-                               const RgbdFrame& f, int64_t visit_id, v1::FrameResult* r,
-                               std::vector<LoopCandidate>* loops,
+                               const RgbdFrame& f, int64_t visit_id, const VisitPath& path,
+                               v1::FrameResult* r, std::vector<LoopCandidate>* loops,
                                std::vector<AnchorCandidate>* anchors, int64_t map_id) {
   if (!features.ok()) return features.status();
   const double recent_s = ctx->appearance->options().exclude_recent_s;
+  const double recent_m = ctx->appearance->options().exclude_recent_m;
   const double t = f.timestamp_s;
   auto recognition = ctx->appearance->Recognize(
-      features->keypoints, f.intrinsics, [visit_id, t, recent_s](const appearance::KeyframeRef& k) {
-        return k.visit_id == visit_id && std::abs(k.timestamp_s - t) < recent_s;
+      features->keypoints, f.intrinsics, [&](const appearance::KeyframeRef& k) {
+        if (k.visit_id != visit_id || std::abs(k.timestamp_s - t) >= recent_s) return false;
+        const std::optional<double> since = path.SinceKeyframe(k.timestamp_s);
+        return !since || *since < recent_m;
       });
   if (!recognition.ok()) return recognition.status();
   const size_t n = std::min(recognition->matches.size(),
@@ -338,6 +342,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     auto* t = r.mutable_tracking();
     t->set_track_ms(MsBetween(track_start, Clock::now()));
     t->set_state(TrackingStateToProto(tracked.state));
+    t->set_method(TrackingMethodToProto(tracked.method));
     t->set_lost_frames(static_cast<uint32_t>(tracked.lost_frames));
     if (tracked.T_world_camera && f.T_world_camera) {
       // A refined client pose stays in the client's frame: no pose graph moves it.
@@ -357,6 +362,13 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       facts.tracking_lost_reason = tracked.reason;
     }
     facts.tracked = tracked.state;
+  }
+  // The path advances by the tracker's own frame where it tracked (a pose-graph correction
+  // moves the reported pose, not the camera), else by the client's pose.
+  if (odometry_pose) {
+    visit->path.Advance(odometry_pose->translation);
+  } else if (f.T_world_camera) {
+    visit->path.Advance(f.T_world_camera->translation);
   }
   const store::StoredPoseSource pose_source = StoredPoseSourceFromProto(r.pose_source());
   // Decided under the visit's lock; the keyframe's features and appearance query run outside it
@@ -426,7 +438,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       decision.selected && record.ok() && odometry_pose && ctx->config.pose_graph.enabled;
   if (query_appearance) {
     facts.appearance = AppearanceMatches(
-        ctx, features, f, visit->visit_id, &r, close_loops ? &loops : nullptr,
+        ctx, features, f, visit->visit_id, visit->path, &r, close_loops ? &loops : nullptr,
         close_loops && !visit->anchored.load() ? &anchors : nullptr, visit->map_id);
   }
   absl::MutexLock lock(&visit->mu);
@@ -436,6 +448,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   }
   if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
+    visit->path.MarkKeyframe(f.timestamp_s);
     // Later frames are aligned to this keyframe (a no-op for posed frames and lost ones).
     if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED ||
         r.pose_source() == v1::POSE_SOURCE_REFINED) {

@@ -1,12 +1,32 @@
 #include "server/visit_registry.h"
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
 
 namespace lifemap::server {
+
+void VisitPath::Advance(const Eigen::Vector3d& position_m) {
+  if (last_position_) travelled_m_ += (position_m - *last_position_).norm();
+  last_position_ = position_m;
+}
+
+void VisitPath::MarkKeyframe(double timestamp_s) {
+  if (!keyframes_.empty() && !(timestamp_s > keyframes_.back().first)) return;
+  keyframes_.emplace_back(timestamp_s, travelled_m_);
+}
+
+std::optional<double> VisitPath::SinceKeyframe(double timestamp_s) const {
+  // Timestamps come back from the store as they were given: equal, up to a microsecond.
+  auto it = std::lower_bound(keyframes_.begin(), keyframes_.end(),
+                             std::make_pair(timestamp_s - 1e-6, -1.0));
+  if (it == keyframes_.end() || std::abs(it->first - timestamp_s) > 1e-6) return std::nullopt;
+  return travelled_m_ - it->second;
+}
 
 absl::Status VisitState::CheckWritable(uint64_t stream) const {
   if (!closed.ok()) return closed;

@@ -9,6 +9,10 @@
 #include <optional>
 #include <string>
 #include <unordered_map>
+#include <utility>
+#include <vector>
+
+#include <Eigen/Core>
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
@@ -18,6 +22,27 @@
 #include "server/store/store.h"
 
 namespace lifemap::server {
+
+// The camera's path through a visit: metres travelled, and how far along it each keyframe was
+// taken, so that an appearance query can leave out the keyframes it has only just passed
+// (AppearanceOptions.exclude_recent_m). Lost frames add nothing; the first pose after them
+// adds the straight line from the last one.
+class VisitPath {
+ public:
+  void Advance(const Eigen::Vector3d& position_m);
+  // Records a keyframe taken at `timestamp_s` (after the last one recorded) at the current
+  // point of the path.
+  void MarkKeyframe(double timestamp_s);
+  // Metres travelled since the keyframe taken at `timestamp_s`; nullopt when this run of the
+  // server did not see it taken.
+  std::optional<double> SinceKeyframe(double timestamp_s) const;
+  double travelled_m() const { return travelled_m_; }
+
+ private:
+  std::optional<Eigen::Vector3d> last_position_;
+  double travelled_m_ = 0;
+  std::vector<std::pair<double, double>> keyframes_;  // (timestamp s, travelled m), by time
+};
 
 struct VisitState {
   int64_t visit_id = 0;
@@ -43,6 +68,7 @@ struct VisitState {
   absl::Mutex place_mu ABSL_ACQUIRED_BEFORE(mu);
   // The camera of frames sent without a pose (issue 15): frame-to-keyframe odometry.
   tracking::Tracker tracker ABSL_GUARDED_BY(place_mu);
+  VisitPath path ABSL_GUARDED_BY(place_mu);
   // This run of the tracker (stored with each tracked keyframe): keyframes of one run are
   // joined by its odometry in the pose graph; a resumed visit starts a new run.
   int64_t odom_segment = 0;

@@ -139,6 +139,11 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   const auto stored_errors = eval::CompareTrajectories(*stored, truth);
   const auto kf_errors = eval::CompareTrajectories(keyframes, truth);
   const auto all_errors = eval::CompareTrajectories(all, truth);
+  // How many tracked frames each estimate gave (docs/API.md "Tracking").
+  nlohmann::json by_method = {{"dense", 0}, {"refit", 0}, {"features", 0}};
+  for (const auto& f : frames) {
+    if (!f.method.empty()) by_method[f.method] = by_method[f.method].get<int>() + 1;
+  }
   std::sort(track_ms.begin(), track_ms.end());
   const double track_p50 = track_ms.empty() ? 0.0 : track_ms[track_ms.size() / 2];
 
@@ -153,6 +158,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       {"intrinsics", streamed->intrinsics_source},
       {"sent", a.compact ? "compact" : "as-recorded"},
       {"track_ms_p50", track_p50},
+      {"frames_by_method", by_method},
       {"keyframe_trajectory", ErrorsJson(kf_errors)},
       {"stored_keyframes", ErrorsJson(stored_errors)},
       {"all_frames", ErrorsJson(all_errors)},
@@ -170,11 +176,12 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   std::ofstream(fs::path(a.out) / "summary.json") << summary.dump(2) << "\n";
   {
     std::ofstream csv(fs::path(a.out) / "trajectory.csv");
-    csv << "timestamp_s,state,keyframe,est_x,est_y,est_z,truth_x,truth_y,truth_z\n";
+    csv << "timestamp_s,state,method,keyframe,est_x,est_y,est_z,truth_x,truth_y,truth_z\n";
     const Eigen::Isometry3d align =
         all_errors.ok() ? all_errors->T_truth_estimate : Eigen::Isometry3d::Identity();
     for (const auto& f : frames) {
-      csv << absl::StrFormat("%.6f,%s,%d,", f.timestamp_s, f.state, f.keyframe ? 1 : 0);
+      csv << absl::StrFormat("%.6f,%s,%s,%d,", f.timestamp_s, f.state, f.method,
+                             f.keyframe ? 1 : 0);
       if (f.tracked) {
         const Eigen::Vector3d p = align * f.pose.translation;
         csv << absl::StrFormat("%.5f,%.5f,%.5f,", p.x(), p.y(), p.z());

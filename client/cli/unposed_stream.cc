@@ -31,6 +31,19 @@ std::string TrackingName(v1::TrackingState s) {
   }
 }
 
+std::string MethodName(v1::TrackingMethod m) {
+  switch (m) {
+    case v1::TRACKING_METHOD_DENSE:
+      return "dense";
+    case v1::TRACKING_METHOD_REFIT:
+      return "refit";
+    case v1::TRACKING_METHOD_FEATURES:
+      return "features";
+    default:
+      return "";
+  }
+}
+
 }  // namespace
 
 absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
@@ -88,6 +101,7 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
       o.state = "error";
     } else {
       o.state = TrackingName(r.tracking().state());
+      o.method = MethodName(r.tracking().method());
       visit.lost += r.tracking().state() == v1::TRACKING_LOST;
       visit.track_ms.push_back(r.tracking().track_ms());
       if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {

@@ -22,6 +22,7 @@ struct TrackedFrame {
   bool keyframe = false;
   Pose pose;
   std::string state;          // started | ok | lost | regained | none | error
+  std::string method;         // dense | refit | features, or "" (lost, started, error)
   std::optional<Pose> truth;  // the recording's ground truth for the frame, if it has one
 };
 

@@ -495,6 +495,11 @@ TEST_F(CliTest, EvalTrajectoryScoresTheServersTrackingOfARecording) {
   EXPECT_LT(summary["ate_rmse_m"].get<double>(), 0.01) << summary.dump();
   EXPECT_LT(summary["all_frames"]["ate_rmse_m"].get<double>(), 0.015) << summary.dump();
   EXPECT_GT(summary["rpe_trans_m"].get<double>(), 0.0);
+  const json& by_method = summary["frames_by_method"];
+  EXPECT_EQ(by_method["dense"].get<int>() + by_method["refit"].get<int>() +
+                by_method["features"].get<int>(),
+            31)
+      << "every frame but the first says how it was tracked: " << by_method.dump();
   for (const char* file : {"summary.json", "trajectory.csv", "trajectory.svg"}) {
     EXPECT_TRUE(std::filesystem::exists(out + "/" + file)) << file;
   }

@@ -64,7 +64,7 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   std::ofstream(tmp.File("ok.json"))
       << R"({"appearance": {"min_training_keyframes": 5, "frame_interval_s": 2.5,
              "candidates": 4, "min_inliers": 20, "max_keypoints": 800, "detect_scale": 0.75, "pyramid_levels": 4,
-             "pyramid_scale": 1.4}})";
+             "pyramid_scale": 1.4, "exclude_recent_m": 5}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->appearance.min_training_keyframes, 5);
@@ -76,6 +76,7 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   EXPECT_DOUBLE_EQ(c->appearance.features.orb.detect_scale, 0.75);
   EXPECT_EQ(c->appearance.features.orb.pyramid_levels, 4);
   EXPECT_DOUBLE_EQ(c->appearance.features.orb.pyramid_scale, 1.4);
+  EXPECT_DOUBLE_EQ(c->appearance.exclude_recent_m, 5);
   const std::pair<const char*, const char*> bad[] = {
       {"train.json", R"({"appearance": {"min_training_keyframes": 1}})"},
       {"interval.json", R"({"appearance": {"frame_interval_s": -1}})"},
@@ -87,6 +88,7 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
       {"levels0.json", R"({"appearance": {"pyramid_levels": 0}})"},
       {"ratio.json", R"({"appearance": {"pyramid_scale": 1.0}})"},
       {"key.json", R"({"appearance": {"candidate": 4}})"},
+      {"path.json", R"({"appearance": {"exclude_recent_m": -1}})"},
   };
   for (const auto& [file, text] : bad) {
     std::ofstream(tmp.File(file)) << text;
