@@ -316,6 +316,8 @@ v1::TrackingMethod TrackingMethodToProto(tracking::TrackingMethod method) {
       return v1::TRACKING_METHOD_REFIT;
     case tracking::TrackingMethod::kFeatures:
       return v1::TRACKING_METHOD_FEATURES;
+    case tracking::TrackingMethod::kRelocalised:
+      return v1::TRACKING_METHOD_RELOCALISED;
     case tracking::TrackingMethod::kNone:
       break;
   }

@@ -10,6 +10,7 @@
 
 #include "absl/cleanup/cleanup.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "core/common/image_codec.h"
 #include "core/common/task_pool.h"
 #include "core/pipeline/keyframe.h"
@@ -307,6 +308,47 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   return a;
 }
 
+// Relocalisation (issue 15): a frame the tracker lost is matched by appearance against its own
+// visit's stored keyframes; the best verified match, as strict as a loop closure
+// (`pose_graph.loop_min_inliers`, `loop_max_reprojection_px`), places it in the visit's
+// (corrected) frame through the matched keyframe's stored pose. Returns that pose and a line
+// saying how, or why not.
+absl::StatusOr<std::pair<Pose, std::string>> PlaceByAppearance(ServiceContext* ctx,
+                                                               AnalysedFrame& a,
+                                                               const FrameSettings& settings,
+                                                               int64_t map_id, int64_t visit_id) {
+  if (ctx->appearance == nullptr) return absl::FailedPreconditionError("appearance is disabled");
+  if (!a.analysis->entropy && !settings.request.entropy_masks) {
+    // Pruned by the masks like any query, though the client skipped them (not reported).
+    pipeline::FrameRequest masks;
+    masks.entropy_threshold = a.entropy_threshold;
+    ctx->pipeline->ComputeEntropy(&*a.analysis, masks);
+  }
+  auto features = pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
+  if (!features.ok()) return features.status();
+  const RgbdFrame& f = a.analysis->frame;
+  auto recognition = ctx->appearance->Recognize(
+      features->keypoints, f.intrinsics,
+      [visit_id](const appearance::KeyframeRef& k) { return k.visit_id != visit_id; });
+  if (!recognition.ok()) return recognition.status();
+  const PoseGraphOptions& strict = ctx->config.pose_graph;
+  for (const auto& m : recognition->matches) {
+    const appearance::Verification& v = m.verification;
+    if (!v.verified || v.inliers < strict.loop_min_inliers ||
+        v.reprojection_px > strict.loop_max_reprojection_px) {
+      continue;
+    }
+    auto keyframe = ctx->store->GetKeyframe(map_id, m.keyframe.keyframe_id);
+    if (!keyframe.ok() || !keyframe->T_world_camera) continue;  // deleted since it was indexed
+    return std::make_pair(
+        Pose::FromIsometry(keyframe->T_world_camera->ToIsometry() * v.T_match_query.ToIsometry()),
+        absl::StrFormat("relocalised by a verified appearance match to keyframe %d (%d inliers, "
+                        "%.2f px)",
+                        m.keyframe.keyframe_id, v.inliers, v.reprojection_px));
+  }
+  return absl::NotFoundError("no stored keyframe of the visit matched strictly enough");
+}
+
 // Places an analysed frame in its visit, in the visit's frame order: the keyframe decision, the
 // keyframe's features, record and appearance query, the commit and the floor-plan fold, and
 // the output statuses. `writer` is the stream's claim on the visit (0 for a unary
@@ -336,8 +378,23 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     // then stands for the pose in keyframe selection, storage and the floor plan. A client pose
     // that cannot be refined is kept as it came.
     const auto track_start = Clock::now();
-    const tracking::TrackedPose tracked =
-        visit->tracker.Track(f, a.tracking_input, f.T_world_camera);
+    tracking::TrackedPose tracked = visit->tracker.Track(f, a.tracking_input, f.T_world_camera);
+    if (tracked.state == tracking::TrackingState::kLost && !f.T_world_camera) {
+      if (auto placed = PlaceByAppearance(ctx, a, settings, visit->map_id, visit->visit_id);
+          placed.ok()) {
+        Pose T_odom_camera;
+        {
+          absl::MutexLock correction(&visit->correction_mu);
+          T_odom_camera = Pose::FromIsometry(visit->world_from_odom.ToIsometry().inverse() *
+                                             placed->first.ToIsometry());
+        }
+        if (auto relocalised = visit->tracker.Relocalise(T_odom_camera);
+            relocalised.T_world_camera) {
+          tracked = relocalised;
+          r.mutable_tracking()->set_reason(placed->second);
+        }
+      }
+    }
     odometry_pose = tracked.T_world_camera;
     auto* t = r.mutable_tracking();
     t->set_track_ms(MsBetween(track_start, Clock::now()));

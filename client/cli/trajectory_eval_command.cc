@@ -140,7 +140,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   const auto kf_errors = eval::CompareTrajectories(keyframes, truth);
   const auto all_errors = eval::CompareTrajectories(all, truth);
   // How many tracked frames each estimate gave (docs/API.md "Tracking").
-  nlohmann::json by_method = {{"dense", 0}, {"refit", 0}, {"features", 0}};
+  nlohmann::json by_method = {{"dense", 0}, {"refit", 0}, {"features", 0}, {"relocalised", 0}};
   for (const auto& f : frames) {
     if (!f.method.empty()) by_method[f.method] = by_method[f.method].get<int>() + 1;
   }

@@ -39,6 +39,8 @@ std::string MethodName(v1::TrackingMethod m) {
       return "refit";
     case v1::TRACKING_METHOD_FEATURES:
       return "features";
+    case v1::TRACKING_METHOD_RELOCALISED:
+      return "relocalised";
     default:
       return "";
   }

@@ -312,6 +312,10 @@ struct Tracker::Impl {
   int lost_frames = 0;
   double last_timestamp_s = 0.0;          // of the last frame tracked or lost
   double last_tracked_timestamp_s = 0.0;  // of the last frame tracked
+  // The last frame Track reported lost after preparing it, until the next Track: what
+  // Relocalise places.
+  std::shared_ptr<TrackingInput> lost_input;
+  double lost_timestamp_s = 0.0;
 };
 
 Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
@@ -342,6 +346,7 @@ Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
 TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared,
                            const std::optional<Pose>& prior) {
   Impl& m = *impl_;
+  m.lost_input = nullptr;
   TrackedPose out;
   auto lose = [&](std::string why) {
     m.last_tracked = false;
@@ -372,6 +377,9 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   }
   if (prepared->frame == nullptr) return lose(prepared->why_not);
   cv::Ptr<cv::rgbd::OdometryFrame> current = prepared->frame;
+  // Kept for Relocalise should this frame be lost (cleared on the next Track).
+  m.lost_input = prepared;
+  m.lost_timestamp_s = frame.timestamp_s;
   if (m.reference == nullptr) {
     // The visit's first trackable frame defines its frame.
     m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
@@ -385,6 +393,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     m.T_reference_last = Eigen::Isometry3d::Identity();
     m.last_tracked = true;
     m.lost_frames = 0;
+    m.lost_input = nullptr;
     out.state = TrackingState::kStarted;
     out.T_world_camera = Pose::FromIsometry(m.T_world_reference);
     return out;
@@ -474,6 +483,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   } else {
     return lose(dense_jump.empty() ? dense_failure : dense_jump);
   }
+  m.lost_input = nullptr;
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   out.method = method;
   m.T_reference_last = T_reference_current;
@@ -483,6 +493,32 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   m.last_tracked = true;
   m.lost_frames = 0;
   out.T_world_camera = Pose::FromIsometry(m.T_world_reference * T_reference_current);
+  return out;
+}
+
+TrackedPose Tracker::Relocalise(const Pose& T_world_camera) {
+  Impl& m = *impl_;
+  TrackedPose out;
+  if (m.lost_input == nullptr || m.lost_input->frame == nullptr || m.odometry == nullptr) {
+    out.state = m.last_tracked ? TrackingState::kTracking : TrackingState::kLost;
+    out.lost_frames = m.lost_frames;
+    out.reason = "only a frame just lost (with usable depth) can be relocalised";
+    return out;
+  }
+  m.odometry->prepareFrameCache(m.lost_input->frame, cv::rgbd::OdometryFrame::CACHE_ALL);
+  m.reference = m.lost_input->frame;
+  m.reference_input = m.lost_input;
+  m.last = m.reference;
+  m.last_input = m.reference_input;
+  m.T_world_reference = T_world_camera.ToIsometry();
+  m.T_reference_last = Eigen::Isometry3d::Identity();
+  m.last_tracked = true;
+  m.last_tracked_timestamp_s = m.lost_timestamp_s;
+  m.lost_frames = 0;
+  m.lost_input = nullptr;
+  out.state = TrackingState::kRegained;
+  out.method = TrackingMethod::kRelocalised;
+  out.T_world_camera = T_world_camera;
   return out;
 }
 

@@ -73,10 +73,11 @@ enum class TrackingState {
 
 // Which estimate a tracked pose is.
 enum class TrackingMethod {
-  kNone,      // lost, or the visit's first frame
-  kDense,     // the dense RGB-D alignment from the last pose
-  kRefit,     // the dense alignment run again from the feature (PnP) estimate
-  kFeatures,  // the feature (PnP) estimate: the dense alignment disagreed or failed
+  kNone,         // lost, or the visit's first frame
+  kDense,        // the dense RGB-D alignment from the last pose
+  kRefit,        // the dense alignment run again from the feature (PnP) estimate
+  kFeatures,     // the feature (PnP) estimate: the dense alignment disagreed or failed
+  kRelocalised,  // after lost frames, placed by a verified match to a keyframe (Relocalise)
 };
 
 struct TrackedPose {
@@ -122,6 +123,13 @@ class Tracker {
   // not tracked and changes nothing (reported lost, with the reason).
   TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr,
                     const std::optional<Pose>& prior = std::nullopt);
+
+  // Relocalisation: places the frame just reported lost (by the last Track call, once it was
+  // prepared) at `T_world_camera`, found by other means (a verified appearance match to a
+  // stored keyframe of the visit), and makes it the reference later frames are aligned to.
+  // Returns kRegained / kRelocalised with that pose; kLost with the reason when the last frame
+  // was not one that can be (tracked, from the past, or without usable depth).
+  TrackedPose Relocalise(const Pose& T_world_camera);
 
   // Makes the last frame tracked (not lost) the reference that later frames are aligned to:
   // call when it became a keyframe. Nothing when the last frame was lost.

@@ -308,6 +308,12 @@ TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {
   EXPECT_FALSE(lost.T_world_camera);
   EXPECT_NE(lost.reason.find("too little depth"), std::string::npos) << lost.reason;
   EXPECT_EQ(lost.lost_frames, 1);
+  Pose somewhere;
+  somewhere.translation = {1, 2, 3};
+  const auto not_placed = tracker.Relocalise(somewhere);
+  EXPECT_EQ(not_placed.state, tracking::TrackingState::kLost)
+      << "a frame without usable depth cannot become the reference";
+  EXPECT_NE(not_placed.reason.find("relocalised"), std::string::npos) << not_placed.reason;
   RgbdFrame past = *first;
   past.timestamp_s -= 1.0;
   const auto reordered = tracker.Track(past);
@@ -318,6 +324,43 @@ TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {
   EXPECT_EQ(back.state, tracking::TrackingState::kRegained) << back.reason;
   ASSERT_TRUE(back.T_world_camera);
   EXPECT_LT(back.T_world_camera->translation.norm(), 0.05) << "a frame later, a few mm away";
+  EXPECT_FALSE(tracker.Relocalise(somewhere).T_world_camera) << "a tracked frame is not moved";
+}
+
+// A lost frame placed by other means (as the server does by an appearance match) becomes the
+// reference: the next frames are tracked from the pose it was given.
+TEST(Tracker, ARelocalisedFrameIsTheReferenceOfTheNextFrames) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  tracking::OdometryOptions options;
+  options.feature_keypoints = 0;
+  tracking::Tracker tracker(options);
+  auto first = io::DecodeTumFrame(*seq, seq->frames[0]);
+  auto second = io::DecodeTumFrame(*seq, seq->frames[1]);
+  auto third = io::DecodeTumFrame(*seq, seq->frames[2]);
+  ASSERT_TRUE(first.ok() && second.ok() && third.ok());
+  ASSERT_EQ(tracker.Track(*first).state, tracking::TrackingState::kStarted);
+  // The second frame upside down: nothing aligns it to the first.
+  RgbdFrame flipped = *second;
+  cv::flip(second->color_bgr, flipped.color_bgr, -1);
+  cv::flip(second->depth_m, flipped.depth_m, -1);
+  ASSERT_EQ(tracker.Track(flipped).state, tracking::TrackingState::kLost);
+  Pose there;
+  there.translation = {1, 2, 3};
+  const auto placed = tracker.Relocalise(there);
+  EXPECT_EQ(placed.state, tracking::TrackingState::kRegained);
+  EXPECT_EQ(placed.method, tracking::TrackingMethod::kRelocalised);
+  ASSERT_TRUE(placed.T_world_camera);
+  EXPECT_LT((placed.T_world_camera->translation - there.translation).norm(), 1e-12);
+  // The third frame, also upside down, is a few millimetres from the flipped second.
+  RgbdFrame next = *third;
+  cv::flip(third->color_bgr, next.color_bgr, -1);
+  cv::flip(third->depth_m, next.depth_m, -1);
+  const auto tracked = tracker.Track(next);
+  EXPECT_EQ(tracked.state, tracking::TrackingState::kTracking) << tracked.reason;
+  ASSERT_TRUE(tracked.T_world_camera);
+  EXPECT_LT((tracked.T_world_camera->translation - there.translation).norm(), 0.05);
 }
 
 }  // namespace

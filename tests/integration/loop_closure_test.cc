@@ -1,6 +1,9 @@
 // Loop closure served (issue 15): a synthetic visit around a room and a quarter more, streamed
 // without poses, closes its loop: verified appearance matches to its own earlier keyframes
 // become pose-graph edges, the solve corrects the stored keyframes, and the visit says so.
+#include <chrono>
+#include <map>
+#include <optional>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -99,6 +102,73 @@ TEST_F(ServerTest, ATrackedVisitAroundARoomClosesItsLoop) {
             << v.loops_rejected() << ", solves " << v.pose_graph_solves() << "\n";
   EXPECT_LT(corrected->ate_rmse_m, online->ate_rmse_m);
   EXPECT_LT(corrected->ate_rmse_m, 0.03);
+}
+
+// Relocalisation: a robot that loses its camera (here: 4 s of a walk, then nothing until it is
+// back near where it started, 12 s in) is placed again by a verified appearance match to one of
+// its visit's keyframes, and tracked on from there.
+TEST_F(ServerTest, ALostCameraIsRelocalisedAgainstItsVisitsKeyframes) {
+  server::ServerConfig config;
+  config.appearance.min_training_keyframes = 5;  // a vocabulary within the first seconds
+  StartServer(config);
+  auto place = sim::GeneratePlace(3, "rect");
+  ASSERT_TRUE(place.ok()) << place.status();
+  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 600);
+  ASSERT_TRUE(visits.ok()) << visits.status();
+  const sim::Visit& visit = (*visits)[0];
+  ASSERT_TRUE(client_->CreateMap("room", "").ok());
+  v1::StreamStart start;
+  start.set_map("room");
+  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  std::vector<size_t> sent;
+  for (size_t f = 0; f < 120; ++f) sent.push_back(f);
+  for (size_t f = 480; f < 540; ++f) sent.push_back(f);  // one loop on: where it began
+  std::thread sender([&] {
+    for (size_t f : sent) {
+      // Time for the first keyframes' vocabulary to be trained and indexed before the gap.
+      if (f == 480) std::this_thread::sleep_for(std::chrono::seconds(3));
+      if (!(*stream)->Send(UnposedFrame(*place, visit, f))) break;
+    }
+    (*stream)->CloseSend();
+  });
+  std::map<size_t, Pose> estimated;
+  std::optional<size_t> relocalised;
+  int lost_after = 0;
+  v1::FrameResult r;
+  while ((*stream)->Receive(&r)) {
+    ASSERT_FALSE(r.has_error()) << r.error().message();
+    if (r.tracking().method() == v1::TRACKING_METHOD_RELOCALISED && !relocalised) {
+      relocalised = r.sequence();
+      EXPECT_EQ(r.tracking().state(), v1::TRACKING_REGAINED);
+      EXPECT_NE(r.tracking().reason().find("keyframe"), std::string::npos) << r.tracking().reason();
+      std::cout << "frame " << r.sequence() << ": " << r.tracking().reason() << "\n";
+    }
+    if (relocalised && r.sequence() > *relocalised) {
+      lost_after += r.tracking().state() == v1::TRACKING_LOST;
+    }
+    if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {
+      estimated[r.sequence()] = *server::PoseFromProto(r.pose());
+    }
+  }
+  sender.join();
+  ASSERT_TRUE((*stream)->Finish().ok());
+  ASSERT_TRUE(relocalised.has_value()) << "no frame after the gap was relocalised";
+  EXPECT_LT(*relocalised, 490u) << "relocalised within the first frames after the gap";
+  EXPECT_EQ(lost_after, 0) << "tracked on from the relocalised frame";
+  // Where it was placed, against the truth, both relative to the visit's first frame.
+  ASSERT_TRUE(estimated.count(0) && estimated.count(*relocalised));
+  const Eigen::Isometry3d est =
+      estimated[0].ToIsometry().inverse() * estimated[*relocalised].ToIsometry();
+  const Eigen::Isometry3d truth = visit.trajectory[0].T_world_camera.ToIsometry().inverse() *
+                                  visit.trajectory[*relocalised].T_world_camera.ToIsometry();
+  const Eigen::Isometry3d error = truth.inverse() * est;
+  std::cout << "relocalised at frame " << *relocalised << ": error "
+            << error.translation().norm() * 100 << " cm, "
+            << Eigen::AngleAxisd(error.rotation()).angle() * 180 / M_PI << " deg\n";
+  EXPECT_LT(error.translation().norm(), 0.05);
+  EXPECT_LT(Eigen::AngleAxisd(error.rotation()).angle() * 180 / M_PI, 2.0);
 }
 
 }  // namespace
