@@ -308,6 +308,18 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   return a;
 }
 
+// The frame's appearance features (ORB, pruned by its entropy masks: a client that skipped the
+// masks still gets features pruned by them, not reported).
+absl::StatusOr<pipeline::KeyframeFeatures> QueryFeatures(ServiceContext* ctx, AnalysedFrame& a,
+                                                         bool entropy_skipped) {
+  if (!a.analysis->entropy && entropy_skipped) {
+    pipeline::FrameRequest masks;
+    masks.entropy_threshold = a.entropy_threshold;
+    ctx->pipeline->ComputeEntropy(&*a.analysis, masks);
+  }
+  return pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
+}
+
 // Relocalisation (issue 15): a frame the tracker lost is matched by appearance against its own
 // visit's stored keyframes; the best verified match, as strict as a loop closure
 // (`pose_graph.loop_min_inliers`, `loop_max_reprojection_px`), places it in the visit's
@@ -318,33 +330,26 @@ absl::StatusOr<std::pair<Pose, std::string>> PlaceByAppearance(ServiceContext* c
                                                                const FrameSettings& settings,
                                                                int64_t map_id, int64_t visit_id) {
   if (ctx->appearance == nullptr) return absl::FailedPreconditionError("appearance is disabled");
-  if (!a.analysis->entropy && !settings.request.entropy_masks) {
-    // Pruned by the masks like any query, though the client skipped them (not reported).
-    pipeline::FrameRequest masks;
-    masks.entropy_threshold = a.entropy_threshold;
-    ctx->pipeline->ComputeEntropy(&*a.analysis, masks);
-  }
-  auto features = pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
+  auto features = QueryFeatures(ctx, a, !settings.request.entropy_masks);
   if (!features.ok()) return features.status();
   const RgbdFrame& f = a.analysis->frame;
   auto recognition = ctx->appearance->Recognize(
       features->keypoints, f.intrinsics,
       [visit_id](const appearance::KeyframeRef& k) { return k.visit_id != visit_id; });
   if (!recognition.ok()) return recognition.status();
-  const PoseGraphOptions& strict = ctx->config.pose_graph;
   for (const auto& m : recognition->matches) {
     const appearance::Verification& v = m.verification;
-    if (!v.verified || v.inliers < strict.loop_min_inliers ||
-        v.reprojection_px > strict.loop_max_reprojection_px) {
-      continue;
-    }
-    auto keyframe = ctx->store->GetKeyframe(map_id, m.keyframe.keyframe_id);
+    const LoopCandidate match{m.keyframe.keyframe_id, v.T_match_query, v.inliers,
+                              v.reprojection_px};
+    if (!v.verified || !WeakMatchReason(match, ctx->config.pose_graph).empty()) continue;
+    auto keyframe = ctx->store->GetKeyframe(map_id, match.keyframe_id);
     if (!keyframe.ok() || !keyframe->T_world_camera) continue;  // deleted since it was indexed
     return std::make_pair(
-        Pose::FromIsometry(keyframe->T_world_camera->ToIsometry() * v.T_match_query.ToIsometry()),
+        Pose::FromIsometry(keyframe->T_world_camera->ToIsometry() *
+                           match.T_match_query.ToIsometry()),
         absl::StrFormat("relocalised by a verified appearance match to keyframe %d (%d inliers, "
                         "%.2f px)",
-                        m.keyframe.keyframe_id, v.inliers, v.reprojection_px));
+                        match.keyframe_id, match.inliers, match.reprojection_px));
   }
   return absl::NotFoundError("no stored keyframe of the visit matched strictly enough");
 }
@@ -457,15 +462,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   // The features and the stored images are independent: two tasks of the pool.
   std::vector<std::function<void()>> tasks;
   if (decision.selected || query_appearance) {
-    tasks.push_back([&] {
-      // A client that skipped the masks still gets features pruned by them (not reported).
-      if (!a.analysis->entropy && facts.entropy_skipped) {
-        pipeline::FrameRequest masks;
-        masks.entropy_threshold = a.entropy_threshold;
-        ctx->pipeline->ComputeEntropy(&*a.analysis, masks);
-      }
-      features = pipeline::ExtractKeyframeFeatures(*a.analysis, ctx->config.appearance.features);
-    });
+    tasks.push_back([&] { features = QueryFeatures(ctx, a, facts.entropy_skipped); });
   }
   if (decision.selected) {
     tasks.push_back([&] {

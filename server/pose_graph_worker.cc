@@ -62,7 +62,8 @@ const store::KeyframeRecord* FindKeyframe(const std::vector<store::KeyframeRecor
   return it != by_id.end() && it->id == id ? &*it : nullptr;
 }
 
-// Why a match's PnP figures are too weak for a loop or an anchor; empty when they are not.
+}  // namespace
+
 std::string WeakMatchReason(const LoopCandidate& c, const PoseGraphOptions& options) {
   if (c.inliers < options.loop_min_inliers) {
     return absl::StrCat(c.inliers, " PnP inliers, a loop needs ", options.loop_min_inliers);
@@ -73,8 +74,6 @@ std::string WeakMatchReason(const LoopCandidate& c, const PoseGraphOptions& opti
   }
   return "";
 }
-
-}  // namespace
 
 PoseGraphWorker::PoseGraphWorker(store::Store* store, PoseGraphOptions options)
     : store_(store), options_(options), thread_([this] { Run(); }) {}

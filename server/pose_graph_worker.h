@@ -17,6 +17,7 @@
 #include <map>
 #include <memory>
 #include <thread>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -34,6 +35,10 @@ struct LoopCandidate {
   int inliers = 0;
   double reprojection_px = 0;
 };
+
+// Why a match's PnP figures are too weak for a loop, an anchor or a relocalisation
+// (`loop_min_inliers`, `loop_max_reprojection_px`); empty when they are not.
+std::string WeakMatchReason(const LoopCandidate& c, const PoseGraphOptions& options);
 
 // A verified appearance match of a tracked keyframe to a keyframe of another visit of its map:
 // an anchor candidate.

@@ -299,23 +299,35 @@ struct Tracker::Impl {
   cv::Ptr<cv::rgbd::RgbdICPOdometry> odometry;
   CameraIntrinsics intrinsics;  // of the frames the odometry was set up for (full size)
 
-  // The reference keyframe: its prepared frame, keypoints and pose. The two inputs keep their
-  // frames' full-resolution colour and depth for the feature check: ~2.1 MB each at 640x480,
-  // so about 4 MB per tracked visit.
-  cv::Ptr<cv::rgbd::OdometryFrame> reference;
-  std::shared_ptr<TrackingInput> reference_input, last_input;
+  // The reference keyframe, prepared (frame, keypoints), and its pose; null before the visit's
+  // first trackable frame. The inputs keep their frames' full-resolution colour and depth for
+  // the feature check: ~2.1 MB each at 640x480, so about 4 MB per tracked visit.
+  std::shared_ptr<TrackingInput> reference;
   Eigen::Isometry3d T_world_reference = Eigen::Isometry3d::Identity();
   // The last frame tracked, prepared, and its pose relative to the reference.
-  cv::Ptr<cv::rgbd::OdometryFrame> last;
+  std::shared_ptr<TrackingInput> last;
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
   bool last_tracked = false;
   int lost_frames = 0;
   double last_timestamp_s = 0.0;          // of the last frame tracked or lost
   double last_tracked_timestamp_s = 0.0;  // of the last frame tracked
   // The last frame Track reported lost after preparing it, until the next Track: what
-  // Relocalise places.
-  std::shared_ptr<TrackingInput> lost_input;
-  double lost_timestamp_s = 0.0;
+  // Relocalise places (its time is `last_timestamp_s`).
+  std::shared_ptr<TrackingInput> lost;
+
+  // Makes `input` (prepared, trackable) the reference and the last tracked frame, at
+  // `T_world_camera`: the visit's first frame, or a relocalised one.
+  void RestartAt(std::shared_ptr<TrackingInput> input, const Eigen::Isometry3d& T_world_camera,
+                 double timestamp_s) {
+    odometry->prepareFrameCache(input->frame, cv::rgbd::OdometryFrame::CACHE_ALL);
+    reference = input;
+    last = std::move(input);
+    T_world_reference = T_world_camera;
+    T_reference_last = Eigen::Isometry3d::Identity();
+    last_tracked = true;
+    last_tracked_timestamp_s = timestamp_s;
+    lost_frames = 0;
+  }
 };
 
 Tracker::Tracker(OdometryOptions options) : impl_(std::make_unique<Impl>()) {
@@ -346,7 +358,7 @@ Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
 TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared,
                            const std::optional<Pose>& prior) {
   Impl& m = *impl_;
-  m.lost_input = nullptr;
+  m.lost = nullptr;
   TrackedPose out;
   auto lose = [&](std::string why) {
     m.last_tracked = false;
@@ -377,23 +389,11 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   }
   if (prepared->frame == nullptr) return lose(prepared->why_not);
   cv::Ptr<cv::rgbd::OdometryFrame> current = prepared->frame;
-  // Kept for Relocalise should this frame be lost (cleared on the next Track).
-  m.lost_input = prepared;
-  m.lost_timestamp_s = frame.timestamp_s;
   if (m.reference == nullptr) {
     // The visit's first trackable frame defines its frame.
-    m.odometry->prepareFrameCache(current, cv::rgbd::OdometryFrame::CACHE_ALL);
-    m.reference = current;
-    m.reference_input = prepared;
-    m.T_world_reference =
-        prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry();
-    m.last = current;
-    m.last_input = prepared;
-    m.last_tracked_timestamp_s = frame.timestamp_s;
-    m.T_reference_last = Eigen::Isometry3d::Identity();
-    m.last_tracked = true;
-    m.lost_frames = 0;
-    m.lost_input = nullptr;
+    m.RestartAt(prepared,
+                prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry(),
+                frame.timestamp_s);
     out.state = TrackingState::kStarted;
     out.T_world_camera = Pose::FromIsometry(m.T_world_reference);
     return out;
@@ -411,7 +411,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   auto align = [&](const Eigen::Isometry3d& guess) -> std::optional<Eigen::Isometry3d> {
     cv::Mat Rt;
     try {
-      if (m.odometry->compute(current, m.reference, Rt, ToMat(guess)) && !Rt.empty()) {
+      if (m.odometry->compute(current, m.reference->frame, Rt, ToMat(guess)) && !Rt.empty()) {
         return ToIsometry(Rt);
       }
       dense_failure =
@@ -447,12 +447,12 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     suspicious = step.translation().norm() / dt > m.options.feature_check_speed_mps ||
                  AngleOf(step) * 180 / M_PI / dt > m.options.feature_check_turn_dps;
   }
-  if (suspicious && m.options.feature_keypoints > 0 && m.reference_input != nullptr) {
+  if (suspicious && m.options.feature_keypoints > 0) {
     appearance::VerifyOptions verify;
     verify.min_inliers = m.options.feature_min_inliers;
-    const appearance::Verification v = appearance::VerifyMatch(
-        KeypointsOf(*prepared, m.options.feature_keypoints), k,
-        KeypointsOf(*m.reference_input, m.options.feature_keypoints), verify);
+    const appearance::Verification v =
+        appearance::VerifyMatch(KeypointsOf(*prepared, m.options.feature_keypoints), k,
+                                KeypointsOf(*m.reference, m.options.feature_keypoints), verify);
     if (v.verified && jump_failure(v.T_match_query.ToIsometry()).empty()) {
       by_features = v.T_match_query.ToIsometry();
     }
@@ -473,7 +473,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     const cv::Mat K = CameraMatrix(k, m.options.downscale);
     double best = -1;
     for (const auto& [how, T] : candidates) {
-      const double score = Consistency(*current, *m.reference, K, T);
+      const double score = Consistency(*current, *m.reference->frame, K, T);
       if (score > best + 0.01) {
         best = score;
         method = how;
@@ -481,14 +481,13 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
       }
     }
   } else {
+    m.lost = prepared;  // for Relocalise, until the next Track
     return lose(dense_jump.empty() ? dense_failure : dense_jump);
   }
-  m.lost_input = nullptr;
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   out.method = method;
   m.T_reference_last = T_reference_current;
-  m.last = current;
-  m.last_input = prepared;
+  m.last = prepared;
   m.last_tracked_timestamp_s = frame.timestamp_s;
   m.last_tracked = true;
   m.lost_frames = 0;
@@ -499,23 +498,13 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
 TrackedPose Tracker::Relocalise(const Pose& T_world_camera) {
   Impl& m = *impl_;
   TrackedPose out;
-  if (m.lost_input == nullptr || m.lost_input->frame == nullptr || m.odometry == nullptr) {
+  if (m.lost == nullptr) {
     out.state = m.last_tracked ? TrackingState::kTracking : TrackingState::kLost;
     out.lost_frames = m.lost_frames;
     out.reason = "only a frame just lost (with usable depth) can be relocalised";
     return out;
   }
-  m.odometry->prepareFrameCache(m.lost_input->frame, cv::rgbd::OdometryFrame::CACHE_ALL);
-  m.reference = m.lost_input->frame;
-  m.reference_input = m.lost_input;
-  m.last = m.reference;
-  m.last_input = m.reference_input;
-  m.T_world_reference = T_world_camera.ToIsometry();
-  m.T_reference_last = Eigen::Isometry3d::Identity();
-  m.last_tracked = true;
-  m.last_tracked_timestamp_s = m.lost_timestamp_s;
-  m.lost_frames = 0;
-  m.lost_input = nullptr;
+  m.RestartAt(std::move(m.lost), T_world_camera.ToIsometry(), m.last_timestamp_s);
   out.state = TrackingState::kRegained;
   out.method = TrackingMethod::kRelocalised;
   out.T_world_camera = T_world_camera;
@@ -525,10 +514,9 @@ TrackedPose Tracker::Relocalise(const Pose& T_world_camera) {
 void Tracker::PromoteLastToReference() {
   Impl& m = *impl_;
   if (!m.last_tracked || m.last == nullptr || m.last == m.reference) return;
-  m.odometry->prepareFrameCache(m.last, cv::rgbd::OdometryFrame::CACHE_ALL);
+  m.odometry->prepareFrameCache(m.last->frame, cv::rgbd::OdometryFrame::CACHE_ALL);
   m.T_world_reference = m.T_world_reference * m.T_reference_last;
   m.reference = m.last;
-  m.reference_input = m.last_input;
   m.T_reference_last = Eigen::Isometry3d::Identity();
 }
 

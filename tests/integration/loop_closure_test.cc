@@ -5,6 +5,7 @@
 #include <map>
 #include <optional>
 #include <thread>
+#include <utility>
 
 #include <gtest/gtest.h>
 
@@ -21,6 +22,24 @@ namespace {
 using testing::ServerTest;
 
 const CameraIntrinsics kKinect{525, 525, 319.5, 239.5, 640, 480};
+
+// Sim seed 3's rectangular room and one walk through it: 600 frames, a loop and a quarter.
+absl::StatusOr<std::pair<sim::Place, sim::Visit>> RoomWalk() {
+  auto place = sim::GeneratePlace(3, "rect");
+  if (!place.ok()) return place.status();
+  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 600);
+  if (!visits.ok()) return visits.status();
+  return std::make_pair(*std::move(place), (*visits)[0]);
+}
+
+// A stream into a new map "room" whose results carry no images.
+absl::StatusOr<std::unique_ptr<client::FrameStream>> OpenRoomStream(client::Client& client) {
+  if (auto map = client.CreateMap("room", ""); !map.ok()) return map.status();
+  v1::StreamStart start;
+  start.set_map("room");
+  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  return client.OpenStream(start);
+}
 
 // Frame f of a rendered visit as a robot without localisation sends it (sensor noise on, the
 // noise seeded as `lifemap sim --seed 3` does; PNG colour: JPEG's blocks cost the odometry on
@@ -45,20 +64,15 @@ TEST_F(ServerTest, ATrackedVisitAroundARoomClosesItsLoop) {
   server::ServerConfig config;
   config.appearance.min_training_keyframes = 10;  // a vocabulary early in the one visit
   StartServer(config);
-  auto place = sim::GeneratePlace(3, "rect");
-  ASSERT_TRUE(place.ok()) << place.status();
-  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 600);
-  ASSERT_TRUE(visits.ok()) << visits.status();
-  const sim::Visit& visit = (*visits)[0];
-  ASSERT_TRUE(client_->CreateMap("room", "").ok());
-  v1::StreamStart start;
-  start.set_map("room");
-  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
-  auto stream = client_->OpenStream(start);
+  auto walk = RoomWalk();
+  ASSERT_TRUE(walk.ok()) << walk.status();
+  const sim::Place& place = walk->first;
+  const sim::Visit& visit = walk->second;
+  auto stream = OpenRoomStream(*client_);
   ASSERT_TRUE(stream.ok()) << stream.status();
   std::thread sender([&] {
     for (size_t f = 0; f < visit.trajectory.size(); ++f) {
-      if (!(*stream)->Send(UnposedFrame(*place, visit, f))) break;
+      if (!(*stream)->Send(UnposedFrame(place, visit, f))) break;
     }
     (*stream)->CloseSend();
   });
@@ -111,16 +125,11 @@ TEST_F(ServerTest, ALostCameraIsRelocalisedAgainstItsVisitsKeyframes) {
   server::ServerConfig config;
   config.appearance.min_training_keyframes = 5;  // a vocabulary within the first seconds
   StartServer(config);
-  auto place = sim::GeneratePlace(3, "rect");
-  ASSERT_TRUE(place.ok()) << place.status();
-  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 600);
-  ASSERT_TRUE(visits.ok()) << visits.status();
-  const sim::Visit& visit = (*visits)[0];
-  ASSERT_TRUE(client_->CreateMap("room", "").ok());
-  v1::StreamStart start;
-  start.set_map("room");
-  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
-  auto stream = client_->OpenStream(start);
+  auto walk = RoomWalk();
+  ASSERT_TRUE(walk.ok()) << walk.status();
+  const sim::Place& place = walk->first;
+  const sim::Visit& visit = walk->second;
+  auto stream = OpenRoomStream(*client_);
   ASSERT_TRUE(stream.ok()) << stream.status();
   std::vector<size_t> sent;
   for (size_t f = 0; f < 120; ++f) sent.push_back(f);
@@ -129,7 +138,7 @@ TEST_F(ServerTest, ALostCameraIsRelocalisedAgainstItsVisitsKeyframes) {
     for (size_t f : sent) {
       // Time for the first keyframes' vocabulary to be trained and indexed before the gap.
       if (f == 480) std::this_thread::sleep_for(std::chrono::seconds(3));
-      if (!(*stream)->Send(UnposedFrame(*place, visit, f))) break;
+      if (!(*stream)->Send(UnposedFrame(place, visit, f))) break;
     }
     (*stream)->CloseSend();
   });
