@@ -4,6 +4,7 @@
 #include <chrono>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/image_codec.h"
 #include "core/place/serialize.h"
 
 namespace lifemap::server {
@@ -111,8 +112,29 @@ void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_
   arch->ranking.status = absl::OkStatus();
 }
 
-ArchitectureWorker::ArchitectureWorker(PlaceIndex* index)
-    : index_(index), thread_([this] { Run(); }) {}
+void RebuildArchitecture(store::Store* store, PlaceIndex* index, int64_t map_id, int64_t visit_id,
+                         const std::string& map, bool store_plan, VisitArchitecture* arch) {
+  arch->builder = place::FloorPlanBuilder();
+  int folded = 0;
+  auto s = store->ForEachKeyframeWithImages(
+      map_id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
+        if (!k.T_world_camera) return absl::OkStatus();
+        auto d = DecodeDepthMetres(store::StoredDepth(k));
+        // A damaged image does not stop the others.
+        if (d.ok() && FoldArchitectureKeyframe(*d, k.intrinsics, *k.T_world_camera, arch)) {
+          ++folded;
+        }
+        return absl::OkStatus();
+      });
+  if (!s.ok()) {
+    arch->SetStatus(s);
+    return;
+  }
+  if (folded > 0) UpdateArchitectureRanking(index, visit_id, map_id, map, store_plan, arch);
+}
+
+ArchitectureWorker::ArchitectureWorker(store::Store* store, PlaceIndex* index)
+    : store_(store), index_(index), thread_([this] { Run(); }) {}
 
 ArchitectureWorker::~ArchitectureWorker() {
   {
@@ -127,6 +149,13 @@ uint64_t ArchitectureWorker::Submit(Visit visit, cv::Mat depth_m, const CameraIn
   absl::MutexLock lock(&mu_);
   const uint64_t ticket = ++submitted_;
   queue_.push_back({ticket, std::move(visit), std::move(depth_m), k, T_world_camera});
+  return ticket;
+}
+
+uint64_t ArchitectureWorker::SubmitRebuild(Visit visit) {
+  absl::MutexLock lock(&mu_);
+  const uint64_t ticket = ++submitted_;
+  queue_.push_back({ticket, std::move(visit), cv::Mat(), {}, {}, /*rebuild=*/true});
   return ticket;
 }
 
@@ -159,7 +188,10 @@ void ArchitectureWorker::Run() {
       queue_.pop_front();
     }
     Visit& v = job.visit;
-    if (FoldArchitectureKeyframe(job.depth_m, job.k, job.T_world_camera, v.arch)) {
+    if (job.rebuild) {
+      RebuildArchitecture(store_, index_, v.map_id, v.visit_id, v.map_name(), /*store_plan=*/true,
+                          v.arch);
+    } else if (FoldArchitectureKeyframe(job.depth_m, job.k, job.T_world_camera, v.arch)) {
       UpdateArchitectureRanking(index_, v.visit_id, v.map_id, v.map_name(), /*store=*/true, v.arch);
     }
     const uint64_t ticket = job.ticket;

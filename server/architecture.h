@@ -98,12 +98,19 @@ bool FoldArchitectureKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
 void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_id,
                                const std::string& map, bool store, VisitArchitecture* arch);
 
+// Folds a visit's stored posed key frames into `arch` afresh (its builder reset), then derives
+// and ranks its plan, storing it with `store_plan`. For a resumed visit (before its state is
+// shared), and on the ArchitectureWorker for a visit anchored into its map's frame (its stored
+// key frames moved there, and the plan must follow them). Damaged images are skipped.
+void RebuildArchitecture(store::Store* store, PlaceIndex* index, int64_t map_id, int64_t visit_id,
+                         const std::string& map, bool store_plan, VisitArchitecture* arch);
+
 // Folds posed key frames into their visits' architecture on one thread, in the order they
 // were submitted (so a visit's key frames fold in frame order), off the reply path.
 // Thread-safe.
 class ArchitectureWorker {
  public:
-  explicit ArchitectureWorker(PlaceIndex* index);
+  ArchitectureWorker(store::Store* store, PlaceIndex* index);
   // Finishes every queued key frame, then stops.
   ~ArchitectureWorker();
   ArchitectureWorker(const ArchitectureWorker&) = delete;
@@ -122,6 +129,9 @@ class ArchitectureWorker {
   // (cv::Mat reference counting): the caller must not write to it afterwards.
   uint64_t Submit(Visit visit, cv::Mat depth_m, const CameraIntrinsics& k,
                   const Pose& T_world_camera);
+  // Queues a rebuild of the visit's architecture from its stored key frames (RebuildArchitecture,
+  // stored), after the key frames queued before it; returns its ticket.
+  uint64_t SubmitRebuild(Visit visit);
   // Blocks until the key frame with `ticket` (and all before it) is folded and ranked.
   void Wait(uint64_t ticket);
   // The ticket of the last key frame submitted (0: none yet).
@@ -134,9 +144,11 @@ class ArchitectureWorker {
     cv::Mat depth_m;
     CameraIntrinsics k;
     Pose T_world_camera;
+    bool rebuild = false;  // RebuildArchitecture instead of folding `depth_m`
   };
   void Run();
 
+  store::Store* const store_;
   PlaceIndex* const index_;
   mutable absl::Mutex mu_;
   std::deque<Job> queue_ ABSL_GUARDED_BY(mu_);

@@ -80,6 +80,11 @@ absl::Status PoseGraphOptions::Validate() const {
           absl::StrCat("pose_graph.", name, " must be a number >= 0, got ", v));
     }
   }
+  if (!(layout_max_through_share >= 0 && layout_max_through_share <= 1)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("pose_graph.layout_max_through_share must be within [0, 1], got ",
+                     layout_max_through_share));
+  }
   return absl::OkStatus();
 }
 
@@ -246,6 +251,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             g.loop_max_disagreement_deg = v.get<double>();
           } else if (k == "loop_max_disagreement_deg_per_m") {
             g.loop_max_disagreement_deg_per_m = v.get<double>();
+          } else if (k == "layout_max_through_share") {
+            g.layout_max_through_share = v.get<double>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key pose_graph.", k));

@@ -53,6 +53,10 @@ struct PoseGraphOptions {
   double loop_max_disagreement_per_m = 0.05;
   double loop_max_disagreement_deg = 5.0;
   double loop_max_disagreement_deg_per_m = 1.0;
+  // The architecture check (paper 004's floor plans): a loop's query, or an anchored visit's
+  // keyframes, placed where the matches put them, may have at most this share of their depth
+  // readings beyond the walls of the matched visit's plan (where it has one), [0, 1].
+  double layout_max_through_share = 0.05;
 
   absl::Status Validate() const;
 };

@@ -205,6 +205,17 @@ struct AnalysedFrame {
 };
 
 // Reads the visit's writability and map name (a unary frame has neither to check).
+// The visit as the architecture worker needs it (kept alive by its jobs).
+ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state) {
+  VisitState* v = state.get();
+  return {v->visit_id, v->map_id,
+          [v] {
+            absl::MutexLock name_lock(&v->mu);
+            return v->map_name;  // read when the plan is stored: renames follow
+          },
+          &v->architecture, state};
+}
+
 absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_name) {
   if (visit == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&visit->mu);
@@ -484,16 +495,17 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
     }
   }
-  // A tracked keyframe's verified matches to earlier keyframes of its visit are loop candidates.
-  // Until the visit is anchored, its matches to other visits of the map are anchor candidates.
+  // A tracked keyframe's verified matches to earlier keyframes of its visit are loop candidates;
+  // its matches to other visits of the map may anchor the visit, or, once it is anchored, tie
+  // it to them in its pose graph.
   std::vector<LoopCandidate> loops;
   std::vector<AnchorCandidate> anchors;
   const bool close_loops =
       decision.selected && record.ok() && odometry_pose && ctx->config.pose_graph.enabled;
   if (query_appearance) {
-    facts.appearance = AppearanceMatches(
-        ctx, features, f, visit->visit_id, visit->path, &r, close_loops ? &loops : nullptr,
-        close_loops && !visit->anchored.load() ? &anchors : nullptr, visit->map_id);
+    facts.appearance = AppearanceMatches(ctx, features, f, visit->visit_id, visit->path, &r,
+                                         close_loops ? &loops : nullptr,
+                                         close_loops ? &anchors : nullptr, visit->map_id);
   }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
@@ -522,24 +534,22 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
         absl::MutexLock correction(&visit_state->correction_mu);
         visit_state->world_from_odom = world_from_odom;
       };
-      job.on_anchored = [visit_state](const Pose& T_map_visit) {
-        absl::MutexLock correction(&visit_state->correction_mu);
-        visit_state->world_from_odom = Pose::FromIsometry(
-            T_map_visit.ToIsometry() * visit_state->world_from_odom.ToIsometry());
-        visit_state->anchored = true;
+      job.on_anchored = [visit_state, architecture = ctx->architecture](const Pose& T_map_visit) {
+        {
+          absl::MutexLock correction(&visit_state->correction_mu);
+          visit_state->world_from_odom = Pose::FromIsometry(
+              T_map_visit.ToIsometry() * visit_state->world_from_odom.ToIsometry());
+        }
+        // Its stored key frames moved into the map's frame: its floor plan follows them (the
+        // key frames folded from now on are placed there).
+        architecture->SubmitRebuild(ArchitectureJobVisit(visit_state));
       };
       p.pose_graph_ticket = ctx->pose_graph->Submit(std::move(job));
     }
     if (f.T_world_camera) {
       // Folded, ranked and stored off the reply path, in key-frame order.
-      ArchitectureWorker::Visit job{visit->visit_id, visit->map_id,
-                                    [visit] {
-                                      absl::MutexLock name_lock(&visit->mu);
-                                      return visit->map_name;
-                                    },
-                                    &visit->architecture, visit_state};
-      p.architecture_ticket =
-          ctx->architecture->Submit(std::move(job), f.depth_m, f.intrinsics, *f.T_world_camera);
+      p.architecture_ticket = ctx->architecture->Submit(ArchitectureJobVisit(visit_state),
+                                                        f.depth_m, f.intrinsics, *f.T_world_camera);
     }
   }
   // Every result carries the visit's ranking by architecture (paper 004) as known now.

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -10,6 +11,9 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/common/image_codec.h"
+#include "core/place/layout_check.h"
+#include "core/place/serialize.h"
 #include "core/posegraph/pose_graph.h"
 #include "server/services.h"
 
@@ -60,6 +64,111 @@ const store::KeyframeRecord* FindKeyframe(const std::vector<store::KeyframeRecor
   auto it = std::lower_bound(by_id.begin(), by_id.end(), id,
                              [](const auto& k, int64_t v) { return k.id < v; });
   return it != by_id.end() && it->id == id ? &*it : nullptr;
+}
+
+// The architecture check of anchors and loops: at most this many keyframes of a visit are
+// placed in a plan (spread over the visit; each costs a depth decode and ~1 ms of rays).
+constexpr size_t kLayoutKeyframes = 24;
+
+// A visit's floor plan, if it has one in the frame its stored keyframes are in now: an anchored
+// visit's plan derived before the anchor is in its old frame (the next key frame re-derives it).
+std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRecord& visit) {
+  auto record = store->GetVisitPlace(visit.id);
+  if (!record.ok()) return std::nullopt;
+  if (visit.anchor && record->updated_time_s < visit.anchor->anchored_time_s) return std::nullopt;
+  auto plan = place::FloorPlanFromJson(record->floor_plan_json);
+  if (!plan.ok() || plan->walls.size() < 3) return std::nullopt;
+  return *std::move(plan);
+}
+
+// What a plan says of cameras placed in it: readings beyond its walls, cameras outside it.
+struct LayoutEvidence {
+  int keyframes = 0;
+  int outside = 0;
+  int64_t readings = 0;
+  int64_t through = 0;
+  double ThroughShare() const {
+    return readings > 0 ? static_cast<double>(through) / static_cast<double>(readings) : 0.0;
+  }
+  std::string Text() const {
+    return absl::StrFormat(
+        "%.1f %% of %d depth readings of %d keyframes beyond its walls, %d cameras outside it",
+        100 * ThroughShare(), readings, keyframes, outside);
+  }
+};
+
+// Places each keyframe (its id and T_frame_camera) by `T_plan_frame` in `plan` and checks its
+// depth against the walls.
+LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
+                           const std::vector<std::pair<int64_t, Pose>>& keyframes,
+                           const Eigen::Isometry3d& T_plan_frame, const place::FloorPlan& plan) {
+  LayoutEvidence e;
+  for (const auto& [id, T_frame_camera] : keyframes) {
+    auto k = store->GetKeyframe(map_id, id);
+    auto depth = k.ok() ? DecodeDepthMetres(store::StoredDepth(*k)) : k.status();
+    if (!depth.ok()) {
+      spdlog::warn("keyframe {}: not checked against the floor plan: {}", id,
+                   depth.status().ToString());
+      continue;
+    }
+    const place::LayoutAgreement a =
+        place::CheckLayout(plan, *depth, k->intrinsics,
+                           Pose::FromIsometry(T_plan_frame * T_frame_camera.ToIsometry()));
+    ++e.keyframes;
+    e.outside += !a.camera_inside;
+    e.readings += a.readings;
+    e.through += a.through_walls;
+  }
+  return e;
+}
+
+// Why the evidence contradicts the plan (empty when it does not): too many readings beyond its
+// walls, or most cameras outside it.
+std::string LayoutDisagreement(const LayoutEvidence& e, const PoseGraphOptions& options) {
+  if (e.keyframes == 0) return "";
+  if (e.ThroughShare() > options.layout_max_through_share || 2 * e.outside > e.keyframes) {
+    return absl::StrCat("disagrees with the floor plan: ", e.Text(), " (allowed ",
+                        absl::StrFormat("%.1f", 100 * options.layout_max_through_share),
+                        " %, and at most half outside)");
+  }
+  return "";
+}
+
+// An edge from a verified match of keyframe `query_id`, not yet judged.
+store::PoseEdgeRecord EdgeOf(int64_t map_id, store::StoredEdgeKind kind, const LoopCandidate& c,
+                             int64_t query_id) {
+  store::PoseEdgeRecord edge;
+  edge.map_id = map_id;
+  edge.kind = kind;
+  edge.from_keyframe = c.keyframe_id;
+  edge.to_keyframe = query_id;
+  edge.T_from_to = c.T_match_query;
+  edge.inliers = c.inliers;
+  edge.reprojection_px = c.reprojection_px;
+  edge.created_time_s = NowSeconds();
+  return edge;
+}
+
+// The tracker's path (metres) over the keyframes (by id) after `from_id` up to `to_id`.
+double PathM(const std::vector<store::KeyframeRecord>& by_id, int64_t from_id, int64_t to_id) {
+  double path_m = 0;
+  for (size_t i = 1; i < by_id.size(); ++i) {
+    const auto& k = by_id[i];
+    const auto& prev = by_id[i - 1];
+    if (k.id <= from_id || k.id > to_id) continue;
+    if (k.T_odom_camera && prev.T_odom_camera && k.odom_segment == prev.odom_segment) {
+      path_m += (k.T_odom_camera->translation - prev.T_odom_camera->translation).norm();
+    }
+  }
+  return path_m;
+}
+
+// Whether a stored keyframe's pose is in its map's frame: its visit is the map's first, or was
+// anchored (its keyframes were moved into the map's frame), or the pose is the client's.
+bool InMapFrame(const store::VisitRecord& visit, const store::KeyframeRecord& k) {
+  return visit.first_of_map || visit.anchor.has_value() ||
+         k.pose_source == store::StoredPoseSource::kClient ||
+         k.pose_source == store::StoredPoseSource::kRefined;
 }
 
 }  // namespace
@@ -139,58 +248,40 @@ void PoseGraphWorker::Process(Job job) {
   }
   const store::KeyframeRecord* query = FindKeyframe(*keyframes, query_id);
   if (query == nullptr || !query->T_odom_camera) return;
-  const bool anchored = !job.anchors.empty() && ProcessAnchors(job, *query);
+  auto visit = store_->GetVisit(job.visit_id);
+  if (!visit.ok()) return;
+  // An unanchored visit's matches to other visits may anchor it; an anchored visit's tie it to
+  // them in its pose graph.
+  const bool was_anchored = visit->anchor.has_value();
+  const bool anchored =
+      !was_anchored && !job.anchors.empty() && ProcessAnchors(job, *visit, *query, *keyframes);
+  // An anchor just moved the visit's poses: the checks and the solve read them again.
+  if (anchored) {
+    keyframes = KeyframesById(store_, job.map_id, job.visit_id);
+    if (!keyframes.ok()) return;
+    query = FindKeyframe(*keyframes, query_id);
+    if (query == nullptr) return;
+  }
+  // The visit's own floor plan, read once a loop needs it.
+  std::optional<std::optional<place::FloorPlan>> own_plan;
 
   int accepted = 0;
   for (const LoopCandidate& c : job.candidates) {
-    store::PoseEdgeRecord edge;
-    edge.map_id = job.map_id;
-    edge.kind = store::StoredEdgeKind::kLoop;
-    edge.from_keyframe = c.keyframe_id;
-    edge.to_keyframe = query_id;
-    edge.T_from_to = c.T_match_query;
-    edge.inliers = c.inliers;
-    edge.reprojection_px = c.reprojection_px;
-    edge.created_time_s = NowSeconds();
+    store::PoseEdgeRecord edge = EdgeOf(job.map_id, store::StoredEdgeKind::kLoop, c, query_id);
     const store::KeyframeRecord* match = FindKeyframe(*keyframes, c.keyframe_id);
-    const std::string weak = WeakMatchReason(c, options_);
     if (match == nullptr) {
       edge.reason = "the matched keyframe is not in this visit";
     } else if (!match->T_odom_camera || match->odom_segment != query->odom_segment) {
       edge.reason =
           "the matched keyframe was tracked by an earlier run of the tracker (the visit was "
           "resumed): no odometry joins them";
-    } else if (!weak.empty()) {
-      edge.reason = weak;
     } else {
-      // The odometry's own idea of where the query is from the match, and the path between
-      // them: the drift the odometry can have accumulated grows with it.
-      double path_m = 0;
-      for (auto it = keyframes->begin(); it != keyframes->end(); ++it) {
-        if (it->id <= match->id || it->id > query_id) continue;
-        const auto& prev = *(it - 1);
-        if (it->T_odom_camera && prev.T_odom_camera) {
-          path_m += (it->T_odom_camera->translation - prev.T_odom_camera->translation).norm();
-        }
-      }
-      const Pose predicted = posegraph::Relative(*match->T_odom_camera, *query->T_odom_camera);
-      const double off_m = (predicted.translation - c.T_match_query.translation).norm();
-      const double off_deg = RotationAngleRad(predicted, c.T_match_query) * kRadToDeg;
-      const double allow_m =
-          options_.loop_max_disagreement_m + options_.loop_max_disagreement_per_m * path_m;
-      const double allow_deg =
-          options_.loop_max_disagreement_deg + options_.loop_max_disagreement_deg_per_m * path_m;
-      if (off_m > allow_m || off_deg > allow_deg) {
-        edge.reason = absl::StrFormat(
-            "disagrees with the odometry by %.2f m / %.1f deg after %.1f m of path (allowed %.2f "
-            "m / %.1f deg)",
-            off_m, off_deg, path_m, allow_m, allow_deg);
-      } else {
-        edge.accepted = true;
-        edge.reason =
-            absl::StrFormat("%d inliers, %.2f px; odometry off by %.3f m / %.2f deg after %.1f m",
-                            c.inliers, c.reprojection_px, off_m, off_deg, path_m);
-      }
+      if (!own_plan) own_plan.emplace(PlanOf(store_, *visit));
+      // The odometry's own idea of where the query is from the match, up to the drift it can
+      // have accumulated over the path between them.
+      Judge(c, posegraph::Relative(*match->T_odom_camera, *query->T_odom_camera),
+            PathM(*keyframes, match->id, query_id), "the odometry", *match,
+            own_plan->has_value() ? &**own_plan : nullptr, &edge);
     }
     if (auto id = store_->InsertPoseEdge(edge); !id.ok()) {
       spdlog::warn("visit {}: loop edge not stored: {}", job.visit_id, id.status().ToString());
@@ -201,10 +292,8 @@ void PoseGraphWorker::Process(Job job) {
     ++stats_.candidates;
     ++(edge.accepted ? stats_.accepted : stats_.rejected);
   }
+  if (was_anchored) accepted += ProcessTies(job, *query, *keyframes);
   if (accepted == 0) return;
-  // An anchor just moved the visit's poses: the solve reads them again.
-  if (anchored) keyframes = KeyframesById(store_, job.map_id, job.visit_id);
-  if (!keyframes.ok()) return;
   auto correction = Solve(job.map_id, job.visit_id, *keyframes);
   if (!correction.ok()) {
     spdlog::warn("visit {}: pose graph not solved: {}", job.visit_id,
@@ -214,14 +303,102 @@ void PoseGraphWorker::Process(Job job) {
   if (job.on_corrected) job.on_corrected(*correction);
 }
 
-bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord& query) {
-  auto visit = store_->GetVisit(job.visit_id);
-  if (!visit.ok() || visit->anchor || !query.T_world_camera) return false;
-  auto visits = store_->ListVisits(visit->map_name);
+void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, double path_m,
+                            const char* poses, const store::KeyframeRecord& match,
+                            const place::FloorPlan* plan, store::PoseEdgeRecord* edge) {
+  if (const std::string weak = WeakMatchReason(c, options_); !weak.empty()) {
+    edge->reason = weak;
+    return;
+  }
+  const double off_m = (predicted.translation - c.T_match_query.translation).norm();
+  const double off_deg = RotationAngleRad(predicted, c.T_match_query) * kRadToDeg;
+  const double allow_m =
+      options_.loop_max_disagreement_m + options_.loop_max_disagreement_per_m * path_m;
+  const double allow_deg =
+      options_.loop_max_disagreement_deg + options_.loop_max_disagreement_deg_per_m * path_m;
+  if (off_m > allow_m || off_deg > allow_deg) {
+    edge->reason = absl::StrFormat(
+        "disagrees with %s by %.2f m / %.1f deg after %.1f m of path (allowed %.2f m / %.1f deg)",
+        poses, off_m, off_deg, path_m, allow_m, allow_deg);
+    return;
+  }
+  edge->reason = absl::StrFormat("%d inliers, %.2f px; %s off by %.3f m / %.2f deg after %.1f m",
+                                 c.inliers, c.reprojection_px, poses, off_m, off_deg, path_m);
+  // Where the match puts the query must agree with the matched visit's floor plan, if it has
+  // one.
+  if (!plan || !match.T_world_camera) {
+    absl::StrAppend(&edge->reason, "; no floor plan to check against yet");
+    edge->accepted = true;
+    return;
+  }
+  const Pose placed =
+      Pose::FromIsometry(match.T_world_camera->ToIsometry() * c.T_match_query.ToIsometry());
+  const LayoutEvidence evidence = CheckLayout(store_, edge->map_id, {{edge->to_keyframe, placed}},
+                                              Eigen::Isometry3d::Identity(), *plan);
+  if (const std::string layout = LayoutDisagreement(evidence, options_); !layout.empty()) {
+    edge->reason = layout;
+    absl::MutexLock lock(&mu_);
+    ++stats_.rejected_by_layout;
+    return;
+  }
+  absl::StrAppend(&edge->reason, "; floor plan: ", evidence.Text());
+  edge->accepted = true;
+}
+
+int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& query,
+                                 const std::vector<store::KeyframeRecord>& visit_keyframes) {
+  if (!query.T_world_camera) return 0;
+  int accepted = 0;
+  std::map<int64_t, std::optional<store::VisitRecord>> visits;
+  std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
+  std::map<int64_t, std::optional<place::FloorPlan>> plans;
+  for (const AnchorCandidate& c : job.anchors) {
+    if (c.visit_id == job.visit_id) continue;
+    if (!visits.count(c.visit_id)) {
+      auto v = store_->GetVisit(c.visit_id);
+      visits[c.visit_id] = v.ok() ? std::optional(*v) : std::nullopt;
+      if (v.ok()) {
+        auto listed = KeyframesById(store_, job.map_id, c.visit_id);
+        if (listed.ok()) matched_visits[c.visit_id] = *std::move(listed);
+        plans[c.visit_id] = PlanOf(store_, *v);
+      }
+    }
+    const auto& other = visits[c.visit_id];
+    if (!other || other->map_id != job.map_id) continue;
+    const store::KeyframeRecord* matched =
+        FindKeyframe(matched_visits[c.visit_id], c.match.keyframe_id);
+    if (matched == nullptr || !matched->T_world_camera || !InMapFrame(*other, *matched)) {
+      continue;  // a visit not in the map's frame yet ties nothing
+    }
+    store::PoseEdgeRecord edge =
+        EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, c.match, query.id);
+    // Both visits are in the map's frame: their stored poses predict the match, up to this
+    // visit's drift since its start.
+    Judge(c.match, posegraph::Relative(*matched->T_world_camera, *query.T_world_camera),
+          PathM(visit_keyframes, 0, query.id), "the map's poses", *matched,
+          plans[c.visit_id] ? &*plans[c.visit_id] : nullptr, &edge);
+    if (edge.accepted) {
+      edge.reason =
+          absl::StrCat("ties visit ", job.visit_id, " to visit ", c.visit_id, ": ", edge.reason);
+    }
+    if (auto id = store_->InsertPoseEdge(edge); !id.ok()) {
+      spdlog::warn("visit {}: tie edge not stored: {}", job.visit_id, id.status().ToString());
+      continue;
+    }
+    accepted += edge.accepted;
+    absl::MutexLock lock(&mu_);
+    ++(edge.accepted ? stats_.ties : stats_.ties_rejected);
+  }
+  return accepted;
+}
+
+bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& visit,
+                                     const store::KeyframeRecord& query,
+                                     const std::vector<store::KeyframeRecord>& visit_keyframes) {
+  // The map's frame is its first visit's: that one is never anchored.
+  if (visit.anchor || visit.first_of_map || !query.T_world_camera) return false;
+  auto visits = store_->ListVisits(visit.map_name);
   if (!visits.ok() || visits->empty()) return false;
-  // The map's frame is its first visit's.
-  const int64_t root = visits->front().id;
-  if (job.visit_id == root) return false;
   std::map<int64_t, const store::VisitRecord*> by_id;
   for (const auto& v : *visits) by_id[v.id] = &v;
   // The matched visits' keyframes (poses, no images), read once per visit.
@@ -246,10 +423,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
     // The matched visit's frame in the map's: the first visit's is the map's; an anchored one
     // says where it lies (its keyframes were moved into the map's frame when it was anchored);
     // client poses are in the map's frame already. A tracked visit not anchored yet is not.
-    const bool in_map_frame = c.visit_id == root || it->second->anchor.has_value() ||
-                              matched->pose_source == store::StoredPoseSource::kClient ||
-                              matched->pose_source == store::StoredPoseSource::kRefined;
-    if (!in_map_frame) continue;
+    if (!InMapFrame(*it->second, *matched)) continue;
     const Eigen::Isometry3d T_map_query =
         matched->T_world_camera->ToIsometry() * m.T_match_query.ToIsometry();
     AnchorEstimate estimate;
@@ -273,6 +447,34 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
           (other.T_map_visit.translation - estimate.T_map_visit.translation).norm();
       const double off_deg = RotationAngleRad(other.T_map_visit, estimate.T_map_visit) * kRadToDeg;
       if (off_m > kAnchorAgreementM || off_deg > kAnchorAgreementDeg) continue;
+      // Both matches may be to furniture that another place shares: the visit's keyframes,
+      // placed in the map by them, must agree with the matched visit's floor plan.
+      const std::string layout = CheckAnchorLayout(job, *it->second, estimate.T_map_visit,
+                                                   visit_keyframes, &estimate.edge.reason);
+      if (!layout.empty()) {
+        estimate.edge.accepted = false;
+        estimate.edge.reason = layout;
+        if (auto id = store_->InsertPoseEdge(estimate.edge); !id.ok()) {
+          spdlog::warn("visit {}: anchor edge not stored: {}", job.visit_id,
+                       id.status().ToString());
+        }
+        spdlog::info("visit {}: anchor to visit {} rejected: {}", job.visit_id, estimate.to_visit,
+                     layout);
+        // Every pending match that agrees with this one is as wrong.
+        const Pose wrong = estimate.T_map_visit;
+        pending.erase(
+            std::remove_if(pending.begin(), pending.end(),
+                           [&](const AnchorEstimate& e) {
+                             return (e.T_map_visit.translation - wrong.translation).norm() <=
+                                        kAnchorAgreementM &&
+                                    RotationAngleRad(e.T_map_visit, wrong) * kRadToDeg <=
+                                        kAnchorAgreementDeg;
+                           }),
+            pending.end());
+        absl::MutexLock lock(&mu_);
+        ++stats_.anchors_rejected;
+        break;
+      }
       store::VisitAnchor anchor;
       anchor.to_visit_id = estimate.to_visit;
       anchor.T_map_visit = estimate.T_map_visit;
@@ -280,14 +482,16 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
       anchor.residual_deg = off_deg;
       anchor.anchored_time_s = NowSeconds();
       estimate.edge.reason = absl::StrFormat(
-          "anchors visit %d to visit %d: agrees with keyframe %d's match within %.3f m / %.2f deg",
-          job.visit_id, estimate.to_visit, other.query_keyframe, off_m, off_deg);
+          "anchors visit %d to visit %d: agrees with keyframe %d's match within %.3f m / %.2f "
+          "deg; %s",
+          job.visit_id, estimate.to_visit, other.query_keyframe, off_m, off_deg,
+          estimate.edge.reason);
       if (auto s = store_->AnchorVisit(job.visit_id, estimate.edge, &anchor); !s.ok()) {
         spdlog::warn("visit {}: not anchored: {}", job.visit_id, s.ToString());
         return false;
       }
       spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
-                   job.visit_id, anchor.to_visit_id, visit->map_name, off_m, off_deg);
+                   job.visit_id, anchor.to_visit_id, visit.map_name, off_m, off_deg);
       pending_anchors_.erase(job.visit_id);
       {
         absl::MutexLock lock(&mu_);
@@ -296,9 +500,38 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::KeyframeRecord
       if (job.on_anchored) job.on_anchored(anchor.T_map_visit);
       return true;
     }
-    if (pending.size() < kMaxPendingAnchors) pending.push_back(std::move(estimate));
+    if (pending.size() < kMaxPendingAnchors && estimate.edge.accepted) {
+      pending.push_back(std::move(estimate));
+    }
   }
   return false;
+}
+
+std::string PoseGraphWorker::CheckAnchorLayout(
+    const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
+    const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text) {
+  const std::optional<place::FloorPlan> plan = PlanOf(store_, to_visit);
+  if (!plan) {
+    *evidence_text = absl::StrCat("visit ", to_visit.id, " has no floor plan to check against");
+    return "";
+  }
+  std::vector<std::pair<int64_t, Pose>> placed;
+  for (const auto& k : visit_keyframes) {
+    if (k.T_world_camera) placed.emplace_back(k.id, *k.T_world_camera);
+  }
+  // At most kLayoutKeyframes, spread over the visit.
+  if (placed.size() > kLayoutKeyframes) {
+    std::vector<std::pair<int64_t, Pose>> spread;
+    for (size_t i = 0; i < kLayoutKeyframes; ++i) {
+      spread.push_back(placed[i * placed.size() / kLayoutKeyframes]);
+    }
+    placed = std::move(spread);
+  }
+  const LayoutEvidence evidence =
+      CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(), *plan);
+  *evidence_text = absl::StrCat("visit ", to_visit.id, "'s floor plan: ", evidence.Text());
+  spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, *evidence_text);
+  return LayoutDisagreement(evidence, options_);
 }
 
 absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id,
@@ -321,7 +554,7 @@ absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id,
   const int odometry_edges = static_cast<int>(edges.size());
   auto stored = store_->ListPoseEdges(map_id, visit_id);
   if (!stored.ok()) return stored.status();
-  std::vector<int64_t> edge_ids;  // of the loop edges, in the order given to the solve
+  std::vector<int64_t> edge_ids;  // of the loop and tie edges, in the order given to the solve
   for (const auto& e : *stored) {
     if (!e.accepted || e.kind != store::StoredEdgeKind::kLoop) continue;
     if (!initial.count(e.from_keyframe) || !initial.count(e.to_keyframe)) continue;
@@ -329,9 +562,38 @@ absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id,
                      kLoopSigmaM, kLoopSigmaRad});
     edge_ids.push_back(e.id);
   }
+  // An anchored visit's anchor and ties join it to keyframes of other visits already in the
+  // map's frame: those are held where they are (the map's frame is theirs; a later visit does
+  // not bend what earlier ones built), and the visit's own first keyframe is free.
+  std::set<int64_t> fixed;
+  std::optional<std::vector<store::KeyframeRecord>> map_keyframes;  // read once, if needed
+  for (const auto& e : *stored) {
+    if (!e.accepted || e.kind != store::StoredEdgeKind::kAnchor) continue;
+    if (!initial.count(e.to_keyframe) || initial.count(e.from_keyframe)) continue;
+    if (!fixed.count(e.from_keyframe)) {
+      if (!map_keyframes) {
+        auto listed = KeyframesById(store_, map_id, 0);
+        if (!listed.ok()) return listed.status();
+        map_keyframes = *std::move(listed);
+      }
+      const store::KeyframeRecord* k = FindKeyframe(*map_keyframes, e.from_keyframe);
+      if (k == nullptr || !k->T_world_camera) continue;  // deleted since
+      initial[k->id] = *k->T_world_camera;
+      fixed.insert(k->id);
+    }
+    edges.push_back({e.from_keyframe, e.to_keyframe, e.T_from_to, posegraph::EdgeKind::kAnchor,
+                     kLoopSigmaM, kLoopSigmaRad});
+    edge_ids.push_back(e.id);
+  }
+  if (fixed.empty()) fixed.insert(nodes.front()->id);
   posegraph::OptimiseOptions solve_options;
-  auto solved = posegraph::Optimise(initial, edges, {nodes.front()->id}, solve_options);
+  auto solved = posegraph::Optimise(initial, edges, fixed, solve_options);
   if (!solved.ok()) return solved.status();
+  // Only the visit's own keyframes are written.
+  for (auto it = solved->poses.begin(); it != solved->poses.end();) {
+    it = fixed.count(it->first) && it->first != nodes.front()->id ? solved->poses.erase(it)
+                                                                  : std::next(it);
+  }
   std::vector<int64_t> rejected;
   for (size_t i : solved->rejected) rejected.push_back(edge_ids[i - odometry_edges]);
   store::PoseOptimisationRecord record;

@@ -16,8 +16,8 @@
 #include <future>
 #include <map>
 #include <memory>
-#include <thread>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -25,6 +25,10 @@
 #include "core/common/types.h"
 #include "server/config.h"
 #include "server/store/store.h"
+
+namespace lifemap::place {
+struct FloorPlan;
+}  // namespace lifemap::place
 
 namespace lifemap::server {
 
@@ -53,9 +57,13 @@ struct LoopClosureStats {
   int64_t accepted = 0;
   int64_t rejected = 0;
   int64_t solves = 0;
-  int64_t rejected_by_solve = 0;  // accepted, then outvoted by the others in a solve
+  int64_t rejected_by_solve = 0;   // accepted, then outvoted by the others in a solve
+  int64_t rejected_by_layout = 0;  // loops whose placed query disagreed with the floor plan
   int64_t anchor_candidates = 0;
-  int64_t anchors = 0;  // visits anchored
+  int64_t anchors = 0;           // visits anchored
+  int64_t anchors_rejected = 0;  // agreeing matches whose placed visit disagreed with the plan
+  int64_t ties = 0;              // edges tying an anchored visit to other visits of its map
+  int64_t ties_rejected = 0;
 };
 
 // Thread-safe.
@@ -98,7 +106,29 @@ class PoseGraphWorker {
                              const std::vector<store::KeyframeRecord>& keyframes);
   // Anchors the visit once two of its keyframes' matches agree on where it lies in the map;
   // true when it did (the visit's stored poses moved).
-  bool ProcessAnchors(const Job& job, const store::KeyframeRecord& query);
+  bool ProcessAnchors(const Job& job, const store::VisitRecord& visit,
+                      const store::KeyframeRecord& query,
+                      const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // An anchored visit's matches to other visits in the map's frame, checked like loops (against
+  // both visits' stored poses) and stored as edges that tie the visit to them in its solves;
+  // returns how many were accepted.
+  int ProcessTies(const Job& job, const store::KeyframeRecord& query,
+                  const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
+  // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
+  // odometry, or the map's stored poses) up to the drift allowed over `path_m`; and, where
+  // `plan` (the matched visit's floor plan, or null) exists, the query placed by the match
+  // against it.
+  void Judge(const LoopCandidate& c, const Pose& predicted, double path_m, const char* poses,
+             const store::KeyframeRecord& match, const place::FloorPlan* plan,
+             store::PoseEdgeRecord* edge);
+  // The architecture check of an anchor: the visit's keyframes placed by `T_map_visit` against
+  // `to_visit`'s floor plan. Why they disagree (empty when they do not, or when there is no plan
+  // to check); `evidence_text` says what was seen.
+  std::string CheckAnchorLayout(const Job& job, const store::VisitRecord& to_visit,
+                                const Pose& T_map_visit,
+                                const std::vector<store::KeyframeRecord>& visit_keyframes,
+                                std::string* evidence_text);
 
   // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
   struct AnchorEstimate {

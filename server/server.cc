@@ -25,7 +25,9 @@ struct LifemapServer::Impl {
   std::unique_ptr<KeyframeCommitter> committer;
   std::unique_ptr<PlaceIndex> places;
   std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
-  std::unique_ptr<PoseGraphWorker> pose_graph;       // waits for commits: before the committer
+  // Waits for commits (before the committer goes) and queues rebuilds on the architecture
+  // worker (before it goes).
+  std::unique_ptr<PoseGraphWorker> pose_graph;
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
@@ -65,7 +67,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         appearance->OnCommitted(k);
       });
   impl->places = std::make_unique<PlaceIndex>(impl->store.get());
-  impl->architecture = std::make_unique<ArchitectureWorker>(impl->places.get());
+  impl->architecture = std::make_unique<ArchitectureWorker>(impl->store.get(), impl->places.get());
   impl->pose_graph = std::make_unique<PoseGraphWorker>(impl->store.get(), config.pose_graph);
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
@@ -138,8 +140,9 @@ void LifemapServer::Shutdown() {
   impl_->grpc_server->Shutdown(deadline);
   // Every handler has returned; fold the key frames still queued for architecture, commit
   // what is still queued, then close the store.
-  impl_->architecture.reset();
+  // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
   impl_->pose_graph.reset();
+  impl_->architecture.reset();
   impl_->committer.reset();
   impl_->appearance.reset();
   impl_->store.reset();

@@ -6,7 +6,6 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "core/common/image_codec.h"
 
 namespace lifemap::server {
 
@@ -95,7 +94,6 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto state = std::make_shared<VisitState>();
   state->visit_id = visit_id;
   state->map_id = visit->map_id;
-  state->anchored = visit->anchor.has_value();
   // A new run of the tracker, distinct from any earlier one of this visit (microseconds since
   // the epoch: a visit is loaded at most once per server run).
   state->odom_segment = std::chrono::duration_cast<std::chrono::microseconds>(
@@ -107,38 +105,12 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
     state->frame_count = visit->frame_count;
     if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
   }
-  RebuildArchitecture(state.get());
+  // A resumed visit's architecture from its stored key frames (stored already).
+  RebuildArchitecture(store_, places_, state->map_id, visit_id, visit->map_name,
+                      /*store_plan=*/false, &state->architecture);
   absl::MutexLock lock(&mu_);
   auto [it, inserted] = visits_.emplace(visit_id, std::move(state));
   return it->second;  // another thread may have loaded it first: use that one
-}
-
-void VisitRegistry::RebuildArchitecture(VisitState* state) {
-  VisitArchitecture& arch = state->architecture;
-  std::string map_name;
-  {
-    absl::MutexLock lock(&state->mu);
-    map_name = state->map_name;
-  }
-  int folded = 0;
-  auto s = store_->ForEachKeyframeWithImages(
-      state->map_id, state->visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
-        if (!k.T_world_camera) return absl::OkStatus();
-        auto d = DecodeDepthMetres(store::StoredDepth(k));
-        // A damaged image does not stop the others.
-        if (d.ok() && FoldArchitectureKeyframe(*d, k.intrinsics, *k.T_world_camera, &arch)) {
-          ++folded;
-        }
-        return absl::OkStatus();
-      });
-  if (!s.ok()) {
-    arch.SetStatus(s);
-    return;
-  }
-  if (folded > 0) {
-    UpdateArchitectureRanking(places_, state->visit_id, state->map_id, map_name,
-                              /*store=*/false, &arch);
-  }
 }
 
 int64_t VisitRegistry::CloseVisit(int64_t visit_id, const absl::Status& why) {

@@ -3,7 +3,6 @@
 // writes the visit; and whether it may still be written.
 #pragma once
 
-#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -77,9 +76,6 @@ struct VisitState {
   // loop closes; set by the PoseGraphWorker.
   absl::Mutex correction_mu;
   Pose world_from_odom ABSL_GUARDED_BY(correction_mu);
-  // A tracked visit is anchored into its map's frame once (issue 15); until then its keyframes'
-  // matches to other visits of the map are anchor candidates.
-  std::atomic<bool> anchored{false};
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;
@@ -142,10 +138,6 @@ class VisitRegistry {
   absl::StatusOr<MapSettings> SettingsOfMap(int64_t map_id);
 
  private:
-  // Folds the visit's stored posed key frames into its architecture (a resumed visit), before
-  // the state is shared.
-  void RebuildArchitecture(VisitState* state);
-
   store::Store* const store_;
   PlaceIndex* const places_;
   absl::Mutex mu_;

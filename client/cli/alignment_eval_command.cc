@@ -32,6 +32,7 @@ using nlohmann::json;
 struct AlignmentArgs {
   std::string suite, out;
   bool compact = false;
+  bool send_gravity = true;  // --gravity accelerometer|none
   double rate_hz = 0.0;
   bool keep_maps = false;
   // An anchor further than this from the truth has put the visit somewhere else in the room:
@@ -122,6 +123,7 @@ absl::Status StreamVisit(client::Client& client, const std::string& map, const s
   options.robot = "lifemap eval alignment";
   options.visit_label = t->path;
   options.compact = a.compact;
+  options.send_gravity = a.send_gravity;
   options.rate_hz = a.rate_hz;
   auto streamed = StreamWithoutPoses(client, map, *seq, options);
   if (!streamed.ok()) return streamed.status();
@@ -275,6 +277,7 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
   summary["suite"] = a.suite;
   summary["places"] = places.size();
   summary["sent"] = a.compact ? "compact" : "as-recorded";
+  summary["gravity"] = a.send_gravity ? "accelerometer" : "none";
   summary["wrong_beyond"] = {{"cm", a.wrong_cm}, {"deg", a.wrong_deg}};
   summary["subsets"] = json::object();
   std::string report = absl::StrFormat(
@@ -310,6 +313,11 @@ void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx) {
          "--send", [a](const std::string& how) { a->compact = how == "compact"; },
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
+  cmd->add_option_function<std::string>(
+         "--gravity", [a](const std::string& how) { a->send_gravity = how == "accelerometer"; },
+         "accelerometer (default: each frame's Frame.gravity from the recording's "
+         "accelerometer.txt, where it has one) or none")
+      ->check(CLI::IsMember({"accelerometer", "none"}));
   cmd->add_option("--rate", a->rate_hz, "frames per second (default 0: as fast as served)")
       ->check(CLI::Range(0.0, 1000.0));
   cmd->add_flag("--keep-maps", a->keep_maps, "keep the per-place maps (default: deleted after)");

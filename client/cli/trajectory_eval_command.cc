@@ -29,6 +29,7 @@ struct TrajectoryArgs {
   std::string map;  // empty: a scratch map, deleted afterwards
   bool keep_map = false;
   bool compact = false;
+  bool send_gravity = true;  // --gravity accelerometer|none
   double rate_hz = 0.0;
   int max_frames = 0;
 };
@@ -116,6 +117,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   UnposedStreamOptions options;
   options.robot = "lifemap eval trajectory";
   options.compact = a.compact;
+  options.send_gravity = a.send_gravity;
   options.rate_hz = a.rate_hz;
   options.max_frames = a.max_frames;
   auto streamed = StreamWithoutPoses(**client, map, *seq, options);
@@ -157,6 +159,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       {"keyframes", keyframes.size()},
       {"intrinsics", streamed->intrinsics_source},
       {"sent", a.compact ? "compact" : "as-recorded"},
+      {"frames_with_gravity", streamed->frames_with_gravity},
       {"track_ms_p50", track_p50},
       {"frames_by_method", by_method},
       {"keyframe_trajectory", ErrorsJson(kf_errors)},
@@ -255,6 +258,11 @@ void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx) {
          "--send", [a](const std::string& how) { a->compact = how == "compact"; },
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
+  cmd->add_option_function<std::string>(
+         "--gravity", [a](const std::string& how) { a->send_gravity = how == "accelerometer"; },
+         "accelerometer (default: each frame's Frame.gravity from the recording's "
+         "accelerometer.txt, where it has one) or none")
+      ->check(CLI::IsMember({"accelerometer", "none"}));
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunTrajectoryEval(*ctx, *a); }; });
 }
 

@@ -87,6 +87,13 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
         (*stream)->Cancel();
         break;
       }
+      if (options.send_gravity && e.gravity_camera) {
+        auto* g = f->mutable_gravity();
+        g->set_x(e.gravity_camera->x());
+        g->set_y(e.gravity_camera->y());
+        g->set_z(e.gravity_camera->z());
+        ++visit.frames_with_gravity;
+      }
       if (!(*stream)->Send(*f)) break;  // no pose: the server tracks the camera
     }
     (*stream)->CloseSend();

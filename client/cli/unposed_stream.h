@@ -32,6 +32,9 @@ struct UnposedStreamOptions {
   bool compact = false;  // JPEG colour + paletted depth, as a robot on a network would send
   double rate_hz = 0.0;  // 0: as fast as the server answers
   int max_frames = 0;    // 0: every frame
+  // Frame.gravity from the recording's accelerometer.txt where it has one (the server levels
+  // the visit's frame by the first frame's).
+  bool send_gravity = true;
 };
 
 struct StreamedVisit {
@@ -41,6 +44,7 @@ struct StreamedVisit {
   int rejected = 0;                  // frames answered with a per-frame error
   std::vector<double> track_ms;      // the server's tracking time per answered frame
   std::string intrinsics_source;     // where the camera intrinsics sent came from
+  int frames_with_gravity = 0;       // frames sent with Frame.gravity
 };
 
 // Streams `sequence` into `map` (which must exist) without poses and collects every answer.

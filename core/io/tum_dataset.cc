@@ -111,6 +111,18 @@ std::vector<std::pair<size_t, size_t>> Associate(const std::vector<TimedFile>& r
 
 }  // namespace
 
+absl::StatusOr<Eigen::Vector3d> TumGravityFromAccelerometer(const Eigen::Vector3d& reading) {
+  if (!reading.allFinite() || reading.norm() < 1e-6) {
+    return absl::InvalidArgumentError("accelerometer reading of zero length or not finite");
+  }
+  return Eigen::Vector3d(reading.x(), reading.y(), -reading.z()).normalized();
+}
+
+Eigen::Vector3d TumAccelerometerReading(const Eigen::Vector3d& gravity_camera) {
+  const Eigen::Vector3d g = gravity_camera.normalized() * 9.81;
+  return {g.x(), g.y(), -g.z()};
+}
+
 absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path) {
   auto rows = ReadTable(path);
   if (!rows.ok()) return rows.status();
@@ -179,8 +191,9 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
       auto td = ParseDouble(row[2], options.associations_file, line);
       if (!tr.ok()) return tr.status();
       if (!td.ok()) return td.status();
-      TumFrameEntry e{*tr, (fs::path(dir) / row[1]).string(), *td,
-                      (fs::path(dir) / row[3]).string(), std::nullopt};
+      TumFrameEntry e{*tr,          (fs::path(dir) / row[1]).string(),
+                      *td,          (fs::path(dir) / row[3]).string(),
+                      std::nullopt, std::nullopt};
       if (!fs::exists(e.rgb_path) || !fs::exists(e.depth_path)) {
         ++seq.listed_but_missing;
         continue;
@@ -204,7 +217,7 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
     seq.listed_but_missing = missing_rgb + missing_depth;
     for (const auto& [r, d] : Associate(*rgb, *depth, options.max_association_dt_s)) {
       seq.frames.push_back({(*rgb)[r].timestamp_s, (*rgb)[r].path, (*depth)[d].timestamp_s,
-                            (*depth)[d].path, std::nullopt});
+                            (*depth)[d].path, std::nullopt, std::nullopt});
     }
   }
   std::sort(
@@ -225,6 +238,40 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
       f.T_world_camera =
           InterpolateTrajectory(*trajectory, f.timestamp_s, options.max_groundtruth_gap_s);
       if (f.T_world_camera) ++seq.frames_with_pose;
+    }
+  }
+
+  const std::string accel_path = (fs::path(dir) / "accelerometer.txt").string();
+  if (fs::exists(accel_path)) {
+    auto rows = ReadTable(accel_path);
+    if (!rows.ok()) return rows.status();
+    std::vector<std::pair<double, Eigen::Vector3d>> readings;
+    for (const auto& [line, row] : *rows) {
+      if (row.size() < 4) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(accel_path, ":", line, ": expected 'timestamp ax ay az'"));
+      }
+      double v[4];
+      for (int i = 0; i < 4; ++i) {
+        auto parsed = ParseDouble(row[i], accel_path, line);
+        if (!parsed.ok()) return parsed.status();
+        v[i] = *parsed;
+      }
+      readings.push_back({v[0], {v[1], v[2], v[3]}});
+    }
+    std::sort(readings.begin(), readings.end(),
+              [](const auto& a, const auto& b) { return a.first < b.first; });
+    seq.has_accelerometer = true;
+    const double w = options.accelerometer_window_s;
+    for (auto& f : seq.frames) {
+      auto it = std::lower_bound(readings.begin(), readings.end(), f.timestamp_s - w,
+                                 [](const auto& r, double t) { return r.first < t; });
+      Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+      for (; it != readings.end() && it->first <= f.timestamp_s + w; ++it) sum += it->second;
+      if (auto g = TumGravityFromAccelerometer(sum); g.ok()) {
+        f.gravity_camera = *g;
+        ++seq.frames_with_gravity;
+      }
     }
   }
 

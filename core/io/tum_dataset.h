@@ -23,6 +23,9 @@ struct TumFrameEntry {
   double depth_timestamp_s = 0.0;
   std::string depth_path;
   std::optional<Pose> T_world_camera;  // ground truth interpolated at timestamp_s, if known
+  // Gravity's direction in the camera frame (unit; x right, y down, z forward) from the
+  // recording's accelerometer.txt, if it has one (TumGravityFromAccelerometer).
+  std::optional<Eigen::Vector3d> gravity_camera;
 };
 
 struct TumReadOptions {
@@ -31,6 +34,9 @@ struct TumReadOptions {
   double max_association_dt_s = 0.02;
   // Ground truth is interpolated only between samples at most this far apart (mocap: 0.01 s).
   double max_groundtruth_gap_s = 0.1;
+  // A frame's gravity is the mean of the accelerometer's readings within this of its time (the
+  // Kinect's runs at ~100 Hz; averaging takes out some of a hand-held camera's own motion).
+  double accelerometer_window_s = 0.1;
   // A list file that names the pairs directly ("t_rgb rgb_path t_depth depth_path"); empty =
   // pair rgb.txt and depth.txt by time.
   std::string associations_file;
@@ -42,6 +48,8 @@ struct TumSequence {
   int listed_but_missing = 0;         // entries named in the lists whose files are absent
   bool has_groundtruth = false;
   int frames_with_pose = 0;
+  bool has_accelerometer = false;  // accelerometer.txt was read
+  int frames_with_gravity = 0;
   std::optional<CameraIntrinsics> intrinsics;  // from DIR/intrinsics.txt when present
 };
 
@@ -58,6 +66,18 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir,
 // image that does not decode.
 absl::StatusOr<RgbdFrame> DecodeTumFrame(const TumSequence& seq, const TumFrameEntry& entry,
                                          bool decode_color = true);
+
+// Gravity's direction in the camera frame from one reading of a TUM recording's
+// accelerometer.txt ("timestamp ax ay az", m/s^2). The Kinect's accelerometer measures the
+// support force (up) in a frame turned 180 degrees about the optical axis from the camera's, so
+// gravity in the camera frame is (ax, ay, -az) normalised: on fr1_xyz this agrees with the
+// mocap ground truth's vertical within 5 degrees (median; the hand-held camera's own
+// accelerations add up to ~15). lifemap's synthetic recordings write the same convention.
+// InvalidArgument for a reading of (near) zero length or not finite.
+absl::StatusOr<Eigen::Vector3d> TumGravityFromAccelerometer(const Eigen::Vector3d& reading);
+// The inverse: the reading a still accelerometer gives for `gravity_camera` (any length),
+// 9.81 m/s^2 long.
+Eigen::Vector3d TumAccelerometerReading(const Eigen::Vector3d& gravity_camera);
 
 // Reads "timestamp tx ty tz qx qy qz qw" lines (comments with '#').
 absl::StatusOr<std::vector<TimedPose>> ReadTumTrajectory(const std::string& path);

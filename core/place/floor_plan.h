@@ -63,8 +63,10 @@ struct FloorPlan {
   std::vector<Wall> walls;    // counter-clockwise around the place; wall i ends at corner i+1
   std::vector<StairFlight> stairs;
   int keyframes = 0;
-  // Ground-plane basis: world point p ↦ (e1·p, e2·p).
-  Eigen::Vector3d e1, e2, up;
+  // Ground-plane basis: world point p ↦ (e1·p, e2·p). The defaults are a z-up frame's (the
+  // builder's with its default `world_up`, and what a plan read from JSON is taken in).
+  Eigen::Vector3d e1 = Eigen::Vector3d::UnitX(), e2 = Eigen::Vector3d::UnitY(),
+                  up = Eigen::Vector3d::UnitZ();
 };
 
 struct FloorPlanOptions {

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
+#include <random>
 
 #include <nlohmann/json.hpp>
 #include <opencv2/core/utility.hpp>
@@ -184,10 +185,17 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
   if (previous) before.openings = previous->openings;
 
   std::ofstream rgb_list(root / "rgb.txt"), depth_list(root / "depth.txt"),
-      associations(root / "associations.txt"), groundtruth(root / "groundtruth.txt");
+      associations(root / "associations.txt"), groundtruth(root / "groundtruth.txt"),
+      accelerometer(root / "accelerometer.txt");
   rgb_list << "# color images\n# timestamp filename\n";
   depth_list << "# depth maps\n# timestamp filename\n";
   groundtruth << "# ground truth trajectory (exact)\n# timestamp tx ty tz qx qy qz qw\n";
+  // A still IMU's reading per frame, in the TUM Kinect's convention (io::TumAccelerometerReading),
+  // with 0.05 m/s^2 of noise per axis (about 0.3 degrees of tilt).
+  accelerometer
+      << "# accelerometer data (simulated, TUM Kinect convention)\n# timestamp ax ay az\n";
+  std::mt19937_64 imu_noise(options.seed * 7919ULL + visit.index);
+  std::normal_distribution<double> imu_sigma(0.0, 0.05);
   const auto& k = options.intrinsics;
   std::ofstream(root / "intrinsics.txt")
       << absl::StrFormat("%.6f %.6f %.6f %.6f %d %d\n", k.fx, k.fy, k.cx, k.cy, k.width, k.height);
@@ -268,6 +276,11 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
     depth_list << stamp << " depth/" << name << "\n";
     associations << stamp << " rgb/" << name << " " << stamp << " depth/" << name << "\n";
     groundtruth << io::FormatTumPoseLine(tp.timestamp_s, tp.T_world_camera) << "\n";
+    // The world is z up: gravity is -z.
+    Eigen::Vector3d a = io::TumAccelerometerReading(tp.T_world_camera.rotation.inverse() *
+                                                    -Eigen::Vector3d::UnitZ());
+    for (int i = 0; i < 3; ++i) a[i] += imu_sigma(imu_noise);
+    accelerometer << absl::StrFormat("%s %.6f %.6f %.6f\n", stamp, a.x(), a.y(), a.z());
     summary.mean_valid_depth += outcomes[f].valid_depth;
     summary.mean_moved += outcomes[f].moved;
     ++summary.frames;

@@ -8,6 +8,7 @@
 
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
+#include "core/place/layout_check.h"
 #include "core/place/serialize.h"
 #include "core/planes/planes.h"
 #include "core/sim/generator.h"
@@ -132,6 +133,77 @@ TEST(FloorPlan, AWallSeenInPartOrNotAtAllStillClosesTheOutline) {
     }
     EXPECT_EQ(unseen, max_forward_y < 0.5 ? 1 : 0);
   }
+}
+
+TEST(LayoutCheck, AViewAgreesWithItsPlaceOnlyWhereItWasTaken) {
+  // Seed 3's room and its plan from 30 key frames; every 10th frame of the walk checked at its
+  // true pose, and at the same pose turned 90 degrees or moved 1.5 m forward. At the truth no
+  // reading lies beyond a wall; each view placed wrongly sees through the plan's walls or
+  // stands outside them in at least one of the two.
+  const Built b = BuildVisit(3, "rect");
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  const auto visits = sim::GenerateVisits(b.place, 3, 1, 0, sim::Conditions{}, 90);
+  ASSERT_TRUE(visits.ok());
+  const auto& v = (*visits)[0];
+  auto contradicts = [](const LayoutAgreement& a) {
+    return !a.camera_inside || a.ThroughShare() > 0.1;
+  };
+  for (size_t f = 5; f < v.trajectory.size(); f += 10) {
+    SCOPED_TRACE(f);
+    const Pose& truth = v.trajectory[f].T_world_camera;
+    const auto frame = sim::Render(b.place, v.SolidsAt(f), v.lighting, Kinect(), truth,
+                                   sim::SensorOptions{}, f + 7);
+    const LayoutAgreement at_truth = CheckLayout(*b.plan, frame.depth_m, Kinect(), truth);
+    EXPECT_GT(at_truth.readings, 3000);
+    EXPECT_TRUE(at_truth.camera_inside);
+    EXPECT_LT(at_truth.ThroughShare(), 0.01);
+    Pose turned = truth;
+    turned.rotation =
+        Eigen::Quaterniond(Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ())) * truth.rotation;
+    Pose moved = truth;
+    moved.translation += truth.rotation * Eigen::Vector3d(0, 0, 1.5);  // forward
+    EXPECT_TRUE(contradicts(CheckLayout(*b.plan, frame.depth_m, Kinect(), turned)) ||
+                contradicts(CheckLayout(*b.plan, frame.depth_m, Kinect(), moved)));
+  }
+}
+
+TEST(LayoutCheck, AnotherRoomsViewsSeeThroughThePlan) {
+  // Seed 3's plan against views of seed 5's L-shaped room at their own poses, as matches to
+  // shared furniture would place them. One view alone passes about half the time (its readings
+  // stop short of the walls that are not there); a visit's views together do not: the server
+  // checks every keyframe of a visit.
+  const Built b = BuildVisit(3, "rect");
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  const auto other = *sim::GeneratePlace(5, "L");
+  const auto visits = sim::GenerateVisits(other, 5, 1, 0, sim::Conditions{}, 90);
+  ASSERT_TRUE(visits.ok());
+  const auto& v = (*visits)[0];
+  int readings = 0, through = 0, passing = 0, views = 0;
+  for (size_t f = 5; f < v.trajectory.size(); f += 10) {
+    const Pose& pose = v.trajectory[f].T_world_camera;
+    const auto frame =
+        sim::Render(other, v.SolidsAt(f), v.lighting, Kinect(), pose, sim::SensorOptions{}, f + 7);
+    const LayoutAgreement a = CheckLayout(*b.plan, frame.depth_m, Kinect(), pose);
+    readings += a.readings;
+    through += a.through_walls;
+    passing += a.camera_inside && a.ThroughShare() < 0.01;
+    ++views;
+  }
+  EXPECT_GE(passing, 2) << "of " << views;  // what one view can pass
+  EXPECT_GT(static_cast<double>(through) / readings, 0.1);
+}
+
+TEST(LayoutCheck, NoReadingsNoWallsNoCrossings) {
+  FloorPlan empty;
+  cv::Mat depth(480, 640, CV_32FC1, cv::Scalar(2.0f));
+  const LayoutAgreement a = CheckLayout(empty, depth, Kinect(), Pose{});
+  EXPECT_EQ(a.readings, 60 * 80);
+  EXPECT_EQ(a.through_walls, 0);
+  EXPECT_FALSE(a.camera_inside);
+  const LayoutAgreement none =
+      CheckLayout(empty, cv::Mat(480, 640, CV_32FC1, cv::Scalar(0.0f)), Kinect(), Pose{});
+  EXPECT_EQ(none.readings, 0);
+  EXPECT_EQ(none.ThroughShare(), 0.0);
 }
 
 TEST(FloorPlan, AscendingStairsAreFoundNearTheirWall) {

@@ -496,6 +496,11 @@ TEST(Writer, MovedMasksCoverExactlyTheMovedObjectAndTumReadsBack) {
   EXPECT_NEAR(seq->frames[0].T_world_camera->translation.x(), 0.5, 1e-6);
   ASSERT_TRUE(seq->intrinsics.has_value());
   EXPECT_DOUBLE_EQ(seq->intrinsics->fx, 262.5);
+  // A simulated accelerometer: gravity within a degree of the truth's -z.
+  EXPECT_EQ(seq->frames_with_gravity, 3);
+  const Eigen::Vector3d down =
+      seq->frames[0].T_world_camera->rotation.inverse() * -Eigen::Vector3d::UnitZ();
+  EXPECT_GT(seq->frames[0].gravity_camera->dot(down), std::cos(M_PI / 180));
 
   const std::string name = std::filesystem::path(seq->frames[0].rgb_path).filename().string();
   const cv::Mat moved = cv::imread(tmp.File("v1/moved/" + name), cv::IMREAD_UNCHANGED);

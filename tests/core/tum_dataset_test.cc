@@ -1,5 +1,7 @@
 #include "core/io/tum_dataset.h"
 
+#include <algorithm>
+#include <cmath>
 #include <fstream>
 
 #include <gtest/gtest.h>
@@ -28,6 +30,33 @@ TEST(TumSequence, ReadsFr1XyzWithGroundTruth) {
   EXPECT_NEAR(p.translation.x(), 1.3406, 0.002);
   EXPECT_NEAR(p.translation.y(), 0.6266, 0.002);
   EXPECT_NEAR(p.translation.z(), 1.6577, 0.002);
+}
+
+TEST(TumSequence, GravityFromTheAccelerometerAgreesWithTheMocapVertical) {
+  // fr1_xyz's accelerometer.txt (the Kinect's, ~100 Hz) against the ground truth's vertical
+  // (TUM's mocap frame is z up) at every frame: the hand-held camera's own accelerations tilt
+  // single readings, the window mean stays within a few degrees.
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  EXPECT_TRUE(seq->has_accelerometer);
+  EXPECT_EQ(seq->frames_with_gravity, 32);
+  std::vector<double> errors_deg;
+  for (const auto& f : seq->frames) {
+    ASSERT_TRUE(f.gravity_camera && f.T_world_camera);
+    const Eigen::Vector3d truth = f.T_world_camera->rotation.inverse() * -Eigen::Vector3d::UnitZ();
+    EXPECT_NEAR(f.gravity_camera->norm(), 1.0, 1e-9);
+    errors_deg.push_back(std::acos(std::clamp(truth.dot(*f.gravity_camera), -1.0, 1.0)) * 180 /
+                         M_PI);
+  }
+  std::sort(errors_deg.begin(), errors_deg.end());
+  EXPECT_LT(errors_deg[errors_deg.size() / 2], 6.0);
+  EXPECT_LT(errors_deg.back(), 15.0);
+  // A still reading and back; zero is refused.
+  const Eigen::Vector3d g(0.1, 0.9, 0.4);
+  EXPECT_LT((*TumGravityFromAccelerometer(TumAccelerometerReading(g)) - g.normalized()).norm(),
+            1e-12);
+  EXPECT_FALSE(TumGravityFromAccelerometer(Eigen::Vector3d::Zero()).ok());
 }
 
 TEST(TumSequence, SkipsListedButMissingImages) {

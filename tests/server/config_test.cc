@@ -103,7 +103,7 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
   std::ofstream(tmp.File("ok.json")) << R"({"pose_graph": {"enabled": false, "loop_min_inliers": 40,
              "loop_max_reprojection_px": 1.5, "loop_max_disagreement_m": 0.3,
              "loop_max_disagreement_per_m": 0, "loop_max_disagreement_deg": 8,
-             "loop_max_disagreement_deg_per_m": 2}})";
+             "loop_max_disagreement_deg_per_m": 2, "layout_max_through_share": 0.1}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_FALSE(c->pose_graph.enabled);
@@ -113,7 +113,9 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
   EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_per_m, 0.0);
   EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_deg, 8.0);
   EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_deg_per_m, 2.0);
+  EXPECT_DOUBLE_EQ(c->pose_graph.layout_max_through_share, 0.1);
   const std::pair<const char*, const char*> bad[] = {
+      {"layout.json", R"({"pose_graph": {"layout_max_through_share": 1.5}})"},
       {"inliers.json", R"({"pose_graph": {"loop_min_inliers": 5}})"},
       {"reprojection.json", R"({"pose_graph": {"loop_max_reprojection_px": 0}})"},
       {"metres.json", R"({"pose_graph": {"loop_max_disagreement_m": -0.1}})"},

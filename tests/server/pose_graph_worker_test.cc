@@ -4,6 +4,11 @@
 #include "server/pose_graph_worker.h"
 
 #include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include "core/common/image_codec.h"
+#include "core/place/descriptor.h"
+#include "core/place/serialize.h"
 
 #include "tests/testing/test_util.h"
 
@@ -56,6 +61,19 @@ class PoseGraphWorkerTest : public ::testing::Test {
     std::promise<absl::StatusOr<int64_t>> p;
     p.set_value(id);
     return p.get_future().share();
+  }
+
+  // A job for keyframe `query_id` of visit `visit_id` whose one anchor candidate is a match to
+  // keyframe `i` of the first visit; an anchor is reported into `anchored`.
+  PoseGraphWorker::Job AnchorJob(int64_t visit_id, int64_t query_id, int i,
+                                 const Pose& T_match_query, std::optional<Pose>* anchored) {
+    PoseGraphWorker::Job job;
+    job.map_id = visit_.map_id;
+    job.visit_id = visit_id;
+    job.committed = Committed(query_id);
+    job.anchors = {{visit_.id, {keyframes_[i].id, T_match_query, 60, 1.0}}};
+    job.on_anchored = [anchored](const Pose& t) { *anchored = t; };
+    return job;
   }
 
   testing::TempDir tmp_;
@@ -148,13 +166,7 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
   std::optional<Pose> anchored;
   auto job_for = [&](int i, const Pose& T_match_query) {
-    PoseGraphWorker::Job job;
-    job.map_id = visit_.map_id;
-    job.visit_id = second->id;
-    job.committed = Committed(b[i].id);
-    job.anchors = {{visit_.id, {keyframes_[i].id, T_match_query, 60, 1.0}}};
-    job.on_anchored = [&](const Pose& t) { anchored = t; };
-    return job;
+    return AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
   };
   // Keyframe 0's match, then keyframe 1's that disagrees by 0.5 m: nothing yet.
   Pose off;
@@ -190,12 +202,130 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
                   .norm(),
               1e-6);
   }
-  // Anchored once: later matches change nothing.
+  // Anchored once: later matches do not anchor it again, they tie it to the first visit. One
+  // that disagrees with the map's poses by 0.5 m (more than 0.15 m + 5 % of its 0.9 m path) is
+  // rejected; one 4 cm off is accepted, and the solve moves only the second visit's keyframes,
+  // towards it.
   anchored.reset();
   worker.Wait(worker.Submit(job_for(3, off)));
   EXPECT_FALSE(anchored.has_value());
   EXPECT_EQ(worker.Stats().anchors, 1);
+  EXPECT_EQ(worker.Stats().ties_rejected, 1);
+  Pose close;
+  close.translation = {0.04, 0, 0};
+  bool corrected = false;
+  auto tie = job_for(3, close);
+  tie.on_corrected = [&](const Pose&) { corrected = true; };
+  worker.Wait(worker.Submit(std::move(tie)));
+  EXPECT_EQ(worker.Stats().ties, 1);
+  EXPECT_TRUE(corrected);
+  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  ASSERT_EQ(edges->size(), 3u);  // the anchor, the rejected tie, the tie
+  EXPECT_FALSE((*edges)[1].accepted);
+  EXPECT_NE((*edges)[1].reason.find("disagrees with the map's poses"), std::string::npos)
+      << (*edges)[1].reason;
+  EXPECT_TRUE((*edges)[2].accepted);
+  EXPECT_NE((*edges)[2].reason.find("ties visit"), std::string::npos) << (*edges)[2].reason;
+  auto first_after = store_->ListKeyframes(visit_.map_id, visit_.id);
+  ASSERT_TRUE(first_after.ok());
+  for (size_t i = 0; i < first_after->size(); ++i) {
+    EXPECT_LT(
+        ((*first_after)[i].T_world_camera->translation - keyframes_[i].T_world_camera->translation)
+            .norm(),
+        1e-9)
+        << "the map's first visit is held where it is";
+  }
+  listed = store_->ListKeyframes(visit_.map_id, second->id);
+  ASSERT_TRUE(listed.ok());
+  const double moved_x =
+      (*listed)[3].T_world_camera->translation.x() - keyframes_[3].T_world_camera->translation.x();
+  EXPECT_GT(moved_x, 0.005) << "pulled towards the tie";
+  EXPECT_LT(moved_x, 0.045);
 }
 
 }  // namespace
+// The architecture check of an anchor: the map's first visit has a floor plan (a 4 m square
+// room round the origin); a second visit's cameras look along +x from 1.2 m up and read 1.5 m
+// everywhere. Two agreeing matches that put that visit 1.5 m further along x place its
+// readings a metre beyond the room's wall: rejected, with the reason, nothing moved; two that
+// put it at the origin anchor it.
+TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsRejected) {
+  place::FloorPlan room;
+  const Eigen::Vector2d corners[] = {{-2, -2}, {2, -2}, {2, 2}, {-2, 2}};
+  for (int i = 0; i < 4; ++i) room.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
+  store::VisitPlaceRecord plan;
+  plan.visit_id = visit_.id;
+  plan.keyframes = 10;
+  plan.floor_plan_json = place::FloorPlanToJson(room);
+  plan.descriptor_json = place::DescriptorToJson(place::Describe(room));
+  plan.updated_time_s = 1.0;
+  ASSERT_TRUE(store_->PutVisitPlace(plan).ok());
+
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  auto depth = EncodeDepthPng16(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.5f)), 5000);
+  ASSERT_TRUE(depth.ok());
+  Pose looking_along_x;  // camera z = world x, camera x = world -y, camera y = world -z
+  Eigen::Matrix3d R;
+  R << 0, 0, 1, -1, 0, 0, 0, -1, 0;
+  looking_along_x.rotation = Eigen::Quaterniond(R);
+  looking_along_x.translation = {0, 0, 1.2};
+  std::vector<store::KeyframeRecord> b;
+  for (int i = 0; i < 3; ++i) {
+    store::KeyframeRecord k = keyframes_[i];
+    k.id = 0;
+    k.visit_id = second->id;
+    k.timestamp_s = 100.0 + i;
+    k.T_world_camera = looking_along_x;
+    k.T_odom_camera = looking_along_x;
+    k.depth = *depth;
+    k.depth_encoding = store::StoredDepthEncoding::kPng16;
+    b.push_back(k);
+  }
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  // Keyframe i of the first visit stands 0.3 i m along x, not turned: the query's camera in
+  // its frame is where it must be for the visit to lie at `T_map_visit`.
+  auto match = [&](int i, const Eigen::Vector3d& T_map_visit) {
+    Pose q = looking_along_x;
+    q.translation += T_map_visit - keyframes_[i].T_world_camera->translation;
+    return q;
+  };
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  auto job_for = [&](int i, const Pose& T_match_query) {
+    return AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
+  };
+  const Eigen::Vector3d wrong(1.5, 0, 0);
+  worker.Wait(worker.Submit(job_for(0, match(0, wrong))));
+  worker.Wait(worker.Submit(job_for(1, match(1, wrong))));
+  EXPECT_FALSE(anchored.has_value());
+  EXPECT_EQ(worker.Stats().anchors_rejected, 1);
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  ASSERT_EQ(edges->size(), 1u);
+  EXPECT_FALSE((*edges)[0].accepted);
+  EXPECT_NE((*edges)[0].reason.find("disagrees with the floor plan"), std::string::npos)
+      << (*edges)[0].reason;
+  // The rejected pair is forgotten: a third match agreeing with them anchors nothing either.
+  worker.Wait(worker.Submit(job_for(2, match(2, wrong))));
+  EXPECT_FALSE(anchored.has_value());
+
+  // Two matches that place it at the origin, inside the room: anchored.
+  worker.Wait(worker.Submit(job_for(0, match(0, Eigen::Vector3d::Zero()))));
+  worker.Wait(worker.Submit(job_for(1, match(1, Eigen::Vector3d::Zero()))));
+  ASSERT_TRUE(anchored.has_value());
+  EXPECT_LT(anchored->translation.norm(), 1e-6);
+  v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok() && v->anchor.has_value());
+  edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  ASSERT_EQ(edges->size(), 2u);
+  EXPECT_TRUE((*edges)[1].accepted);
+  EXPECT_NE((*edges)[1].reason.find("0.0 % of"), std::string::npos) << (*edges)[1].reason;
+}
+
 }  // namespace lifemap::server
