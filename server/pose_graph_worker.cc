@@ -81,6 +81,21 @@ std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRe
   return *std::move(plan);
 }
 
+// The floor plan a match to `to_visit` is checked against, and whose it is: `to_visit`'s own, or
+// where it has none (yet), its map's first visit's (every visit in the map's frame shares it).
+std::optional<std::pair<place::FloorPlan, int64_t>> PlanToCheck(
+    store::Store* store, const store::VisitRecord& to_visit) {
+  if (auto plan = PlanOf(store, to_visit)) return std::make_pair(*std::move(plan), to_visit.id);
+  if (to_visit.first_of_map) return std::nullopt;
+  auto visits = store->ListVisits(to_visit.map_name);
+  if (!visits.ok()) return std::nullopt;
+  for (const auto& v : *visits) {
+    if (!v.first_of_map) continue;
+    if (auto plan = PlanOf(store, v)) return std::make_pair(*std::move(plan), v.id);
+  }
+  return std::nullopt;
+}
+
 // What a plan says of cameras placed in it: readings beyond its walls, cameras outside it.
 struct LayoutEvidence {
   int keyframes = 0;
@@ -351,7 +366,7 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
   int accepted = 0;
   std::map<int64_t, std::optional<store::VisitRecord>> visits;
   std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
-  std::map<int64_t, std::optional<place::FloorPlan>> plans;
+  std::map<int64_t, std::optional<std::pair<place::FloorPlan, int64_t>>> plans;
   for (const AnchorCandidate& c : job.anchors) {
     if (c.visit_id == job.visit_id) continue;
     if (!visits.count(c.visit_id)) {
@@ -360,7 +375,7 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
       if (v.ok()) {
         auto listed = KeyframesById(store_, job.map_id, c.visit_id);
         if (listed.ok()) matched_visits[c.visit_id] = *std::move(listed);
-        plans[c.visit_id] = PlanOf(store_, *v);
+        plans[c.visit_id] = PlanToCheck(store_, *v);
       }
     }
     const auto& other = visits[c.visit_id];
@@ -376,7 +391,7 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
     // visit's drift since its start.
     Judge(c.match, posegraph::Relative(*matched->T_world_camera, *query.T_world_camera),
           PathM(visit_keyframes, 0, query.id), "the map's poses", *matched,
-          plans[c.visit_id] ? &*plans[c.visit_id] : nullptr, &edge);
+          plans[c.visit_id] ? &plans[c.visit_id]->first : nullptr, &edge);
     if (edge.accepted) {
       edge.reason =
           absl::StrCat("ties visit ", job.visit_id, " to visit ", c.visit_id, ": ", edge.reason);
@@ -510,9 +525,10 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
 std::string PoseGraphWorker::CheckAnchorLayout(
     const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
     const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text) {
-  const std::optional<place::FloorPlan> plan = PlanOf(store_, to_visit);
+  const auto plan = PlanToCheck(store_, to_visit);
   if (!plan) {
-    *evidence_text = absl::StrCat("visit ", to_visit.id, " has no floor plan to check against");
+    *evidence_text = absl::StrCat("neither visit ", to_visit.id,
+                                  " nor the map's first visit has a floor plan to check against");
     return "";
   }
   std::vector<std::pair<int64_t, Pose>> placed;
@@ -528,8 +544,8 @@ std::string PoseGraphWorker::CheckAnchorLayout(
     placed = std::move(spread);
   }
   const LayoutEvidence evidence =
-      CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(), *plan);
-  *evidence_text = absl::StrCat("visit ", to_visit.id, "'s floor plan: ", evidence.Text());
+      CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(), plan->first);
+  *evidence_text = absl::StrCat("visit ", plan->second, "'s floor plan: ", evidence.Text());
   spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, *evidence_text);
   return LayoutDisagreement(evidence, options_);
 }

@@ -117,8 +117,8 @@ class PoseGraphWorker {
   // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
   // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
   // odometry, or the map's stored poses) up to the drift allowed over `path_m`; and, where
-  // `plan` (the matched visit's floor plan, or null) exists, the query placed by the match
-  // against it.
+  // `plan` (the matched visit's floor plan, else its map's first visit's; or null) exists, the
+  // query placed by the match against it.
   void Judge(const LoopCandidate& c, const Pose& predicted, double path_m, const char* poses,
              const store::KeyframeRecord& match, const place::FloorPlan* plan,
              store::PoseEdgeRecord* edge);
