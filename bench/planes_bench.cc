@@ -20,9 +20,11 @@
 #include <benchmark/benchmark.h>
 #include <opencv2/imgcodecs.hpp>
 
+#include "core/common/image_codec.h"
 #include "core/io/tum_dataset.h"
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
+#include "core/place/layout_check.h"
 #include "core/planes/planes.h"
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
@@ -164,6 +166,35 @@ void BM_FloorPlanUpdate(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_FloorPlanUpdate)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond)->Iterations(20);
+
+// The architecture check of one keyframe (issue 15): a rendered view of seed 3's room placed in
+// its plan (from 30 key frames) and its depth checked against the walls (0: the depth decoded
+// from the 16-bit PNG the store keeps, as the pose-graph worker does; 1: the rays alone).
+void BM_LayoutCheck(benchmark::State& state) {
+  const CameraIntrinsics k{525, 525, 319.5, 239.5, 640, 480};
+  auto place = sim::GeneratePlace(3, "rect");
+  auto visits = sim::GenerateVisits(*place, 3, 1, 0, sim::Conditions{}, 90);
+  const auto& v = (*visits)[0];
+  place::FloorPlanBuilder builder;
+  for (size_t f = 0; f < v.trajectory.size(); f += 3) {
+    const cv::Mat d = sim::Render(*place, v.solids, v.lighting, k, v.trajectory[f].T_world_camera,
+                                  sim::SensorOptions{}, f + 1)
+                          .depth_m;
+    builder.AddDepthKeyframe(d, k, v.trajectory[f].T_world_camera).IgnoreError();
+  }
+  const auto plan = builder.Build();
+  const Pose& pose = v.trajectory[40].T_world_camera;
+  const cv::Mat depth =
+      sim::Render(*place, v.solids, v.lighting, k, pose, sim::SensorOptions{}, 99).depth_m;
+  const std::string png = *EncodeDepthPng16(depth, 5000);
+  for (auto _ : state) {
+    const cv::Mat d = state.range(0) == 0
+                          ? *DecodeDepthMetres({DepthEncoding::kPng16, png, 640, 480, 5000})
+                          : depth;
+    benchmark::DoNotOptimize(place::CheckLayout(*plan, d, k, pose));
+  }
+}
+BENCHMARK(BM_LayoutCheck)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
 
 // A query against 1,000 stored descriptors of 4–8 corners with openings and stairs.
 void BM_MatchAgainst1000Places(benchmark::State& state) {

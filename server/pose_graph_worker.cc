@@ -114,29 +114,6 @@ struct LayoutEvidence {
 
 // Places each keyframe (its id and T_frame_camera) by `T_plan_frame` in `plan` and checks its
 // depth against the walls.
-LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
-                           const std::vector<std::pair<int64_t, Pose>>& keyframes,
-                           const Eigen::Isometry3d& T_plan_frame, const place::FloorPlan& plan) {
-  LayoutEvidence e;
-  for (const auto& [id, T_frame_camera] : keyframes) {
-    auto k = store->GetKeyframe(map_id, id);
-    auto depth = k.ok() ? DecodeDepthMetres(store::StoredDepth(*k)) : k.status();
-    if (!depth.ok()) {
-      spdlog::warn("keyframe {}: not checked against the floor plan: {}", id,
-                   depth.status().ToString());
-      continue;
-    }
-    const place::LayoutAgreement a =
-        place::CheckLayout(plan, *depth, k->intrinsics,
-                           Pose::FromIsometry(T_plan_frame * T_frame_camera.ToIsometry()));
-    ++e.keyframes;
-    e.outside += !a.camera_inside;
-    e.readings += a.readings;
-    e.through += a.through_walls;
-  }
-  return e;
-}
-
 // Why the evidence contradicts the plan (empty when it does not): too many readings beyond its
 // walls, or most cameras outside it.
 std::string LayoutDisagreement(const LayoutEvidence& e, const PoseGraphOptions& options) {
@@ -184,6 +161,47 @@ bool InMapFrame(const store::VisitRecord& visit, const store::KeyframeRecord& k)
   return visit.first_of_map || visit.anchor.has_value() ||
          k.pose_source == store::StoredPoseSource::kClient ||
          k.pose_source == store::StoredPoseSource::kRefined;
+}
+
+}  // namespace
+
+// The last keyframe depth decoded for a floor-plan check: a keyframe's loop and tie candidates
+// are checked one after the other.
+struct DecodedKeyframe {
+  int64_t id = 0;
+  cv::Mat depth_m;
+  CameraIntrinsics k;
+};
+
+namespace {
+
+// Places each keyframe (its id and T_frame_camera) by `T_plan_frame` in `plan` and checks its
+// depth against the walls; `last_decoded` keeps the last depth decoded.
+LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
+                           const std::vector<std::pair<int64_t, Pose>>& keyframes,
+                           const Eigen::Isometry3d& T_plan_frame, const place::FloorPlan& plan,
+                           std::unique_ptr<DecodedKeyframe>* last_decoded) {
+  LayoutEvidence e;
+  for (const auto& [id, T_frame_camera] : keyframes) {
+    if (!(*last_decoded) || (*last_decoded)->id != id) {
+      auto k = store->GetKeyframe(map_id, id);
+      auto depth = k.ok() ? DecodeDepthMetres(store::StoredDepth(*k)) : k.status();
+      if (!depth.ok()) {
+        spdlog::warn("keyframe {}: not checked against the floor plan: {}", id,
+                     depth.status().ToString());
+        continue;
+      }
+      (*last_decoded).reset(new DecodedKeyframe{id, *std::move(depth), k->intrinsics});
+    }
+    const place::LayoutAgreement a =
+        place::CheckLayout(plan, (*last_decoded)->depth_m, (*last_decoded)->k,
+                           Pose::FromIsometry(T_plan_frame * T_frame_camera.ToIsometry()));
+    ++e.keyframes;
+    e.outside += !a.camera_inside;
+    e.readings += a.readings;
+    e.through += a.through_walls;
+  }
+  return e;
 }
 
 }  // namespace
@@ -349,7 +367,7 @@ void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, doubl
   const Pose placed =
       Pose::FromIsometry(match.T_world_camera->ToIsometry() * c.T_match_query.ToIsometry());
   const LayoutEvidence evidence = CheckLayout(store_, edge->map_id, {{edge->to_keyframe, placed}},
-                                              Eigen::Isometry3d::Identity(), *plan);
+                                              Eigen::Isometry3d::Identity(), *plan, &last_decoded_);
   if (const std::string layout = LayoutDisagreement(evidence, options_); !layout.empty()) {
     edge->reason = layout;
     absl::MutexLock lock(&mu_);
@@ -543,8 +561,8 @@ std::string PoseGraphWorker::CheckAnchorLayout(
     }
     placed = std::move(spread);
   }
-  const LayoutEvidence evidence =
-      CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(), plan->first);
+  const LayoutEvidence evidence = CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(),
+                                              plan->first, &last_decoded_);
   *evidence_text = absl::StrCat("visit ", plan->second, "'s floor plan: ", evidence.Text());
   spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, *evidence_text);
   return LayoutDisagreement(evidence, options_);

@@ -32,6 +32,8 @@ struct FloorPlan;
 
 namespace lifemap::server {
 
+struct DecodedKeyframe;  // a keyframe's depth, decoded for a floor-plan check
+
 // A verified appearance match of a keyframe to an earlier keyframe of its visit.
 struct LoopCandidate {
   int64_t keyframe_id = 0;  // the matched keyframe
@@ -138,6 +140,9 @@ class PoseGraphWorker {
     Pose T_map_visit;
   };
   std::map<int64_t, std::vector<AnchorEstimate>> pending_anchors_;
+  // The last keyframe decoded for a floor-plan check (worker thread only): a keyframe's loop and
+  // tie candidates are checked one after another.
+  std::unique_ptr<DecodedKeyframe> last_decoded_;
 
   store::Store* const store_;
   const PoseGraphOptions options_;
