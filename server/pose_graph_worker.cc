@@ -294,6 +294,8 @@ void PoseGraphWorker::Process(Job job) {
     if (!keyframes.ok()) return;
     query = FindKeyframe(*keyframes, query_id);
     if (query == nullptr) return;
+    visit = store_->GetVisit(job.visit_id);  // anchored now: its plan is in the old frame
+    if (!visit.ok()) return;
   }
   // The visit's own floor plan, read once a loop needs it.
   std::optional<std::optional<place::FloorPlan>> own_plan;
