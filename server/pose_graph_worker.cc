@@ -69,6 +69,9 @@ const store::KeyframeRecord* FindKeyframe(const std::vector<store::KeyframeRecor
 // The architecture check of anchors and loops: at most this many keyframes of a visit are
 // placed in a plan (spread over the visit; each costs a depth decode and ~1 ms of rays).
 constexpr size_t kLayoutKeyframes = 24;
+// ... and an anchor waits until the visit has this many: a visit's first two keyframes (its
+// first second) are too little evidence (RESULTS.md "Issue 15 (fifth part)").
+constexpr size_t kLayoutMinKeyframes = 6;
 
 // A visit's floor plan, if it has one in the frame its stored keyframes are in now: an anchored
 // visit's plan derived before the anchor is in its old frame (the next key frame re-derives it).
@@ -484,8 +487,10 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       if (off_m > kAnchorAgreementM || off_deg > kAnchorAgreementDeg) continue;
       // Both matches may be to furniture that another place shares: the visit's keyframes,
       // placed in the map by them, must agree with the matched visit's floor plan.
-      const std::string layout = CheckAnchorLayout(job, *it->second, estimate.T_map_visit,
-                                                   visit_keyframes, &estimate.edge.reason);
+      const std::optional<std::string> checked = CheckAnchorLayout(
+          job, *it->second, estimate.T_map_visit, visit_keyframes, &estimate.edge.reason);
+      if (!checked) break;  // too few keyframes to check yet: kept pending, decided later
+      const std::string& layout = *checked;
       if (!layout.empty()) {
         estimate.edge.accepted = false;
         estimate.edge.reason = layout;
@@ -542,7 +547,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
   return false;
 }
 
-std::string PoseGraphWorker::CheckAnchorLayout(
+std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
     const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
     const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text) {
   const auto plan = PlanToCheck(store_, to_visit);
@@ -555,6 +560,7 @@ std::string PoseGraphWorker::CheckAnchorLayout(
   for (const auto& k : visit_keyframes) {
     if (k.T_world_camera) placed.emplace_back(k.id, *k.T_world_camera);
   }
+  if (placed.size() < kLayoutMinKeyframes) return std::nullopt;
   // At most kLayoutKeyframes, spread over the visit.
   if (placed.size() > kLayoutKeyframes) {
     std::vector<std::pair<int64_t, Pose>> spread;
@@ -658,8 +664,8 @@ absl::StatusOr<Pose> PoseGraphWorker::Solve(int64_t map_id, int64_t visit_id,
       correction);
   if (!id.ok()) return id.status();
   spdlog::info(
-      "visit {}: pose graph solved ({} keyframes, {} loops, {} rejected) in {:.1f} ms, largest "
-      "correction {:.3f} m",
+      "visit {}: pose graph solved ({} keyframes, {} loop and anchor edges, {} rejected) in "
+      "{:.1f} ms, largest correction {:.3f} m",
       visit_id, record.keyframes, record.loop_edges, record.loops_rejected, record.solve_ms,
       record.max_correction_m);
   absl::MutexLock lock(&mu_);

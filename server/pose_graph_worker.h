@@ -16,6 +16,7 @@
 #include <future>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -126,11 +127,11 @@ class PoseGraphWorker {
              store::PoseEdgeRecord* edge);
   // The architecture check of an anchor: the visit's keyframes placed by `T_map_visit` against
   // `to_visit`'s floor plan. Why they disagree (empty when they do not, or when there is no plan
-  // to check); `evidence_text` says what was seen.
-  std::string CheckAnchorLayout(const Job& job, const store::VisitRecord& to_visit,
-                                const Pose& T_map_visit,
-                                const std::vector<store::KeyframeRecord>& visit_keyframes,
-                                std::string* evidence_text);
+  // to check; nullopt while the visit has too few keyframes to tell); `evidence_text` says what
+  // was seen.
+  std::optional<std::string> CheckAnchorLayout(
+      const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
+      const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text);
 
   // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
   struct AnchorEstimate {

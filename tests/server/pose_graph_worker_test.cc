@@ -247,9 +247,9 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
 }  // namespace
 // The architecture check of an anchor: the map's first visit has a floor plan (a 4 m square
 // room round the origin); a second visit's cameras look along +x from 1.2 m up and read 1.5 m
-// everywhere. Two agreeing matches that put that visit 1.5 m further along x place its
-// readings a metre beyond the room's wall: rejected, with the reason, nothing moved; two that
-// put it at the origin anchor it.
+// everywhere. Matches that put that visit 1.5 m further along x place its readings a metre
+// beyond the room's wall: while the visit has fewer than 6 keyframes they wait; then they are
+// rejected, with the reason, nothing moved; two that put it at the origin anchor it.
 TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsRejected) {
   place::FloorPlan room;
   const Eigen::Vector2d corners[] = {{-2, -2}, {2, -2}, {2, 2}, {-2, 2}};
@@ -272,7 +272,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   looking_along_x.rotation = Eigen::Quaterniond(R);
   looking_along_x.translation = {0, 0, 1.2};
   std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 3; ++i) {
+  for (int i = 0; i < 6; ++i) {
     store::KeyframeRecord k = keyframes_[i];
     k.id = 0;
     k.visit_id = second->id;
@@ -283,6 +283,9 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
     k.depth_encoding = store::StoredDepthEncoding::kPng16;
     b.push_back(k);
   }
+  // The first two keyframes now, the other four later.
+  std::vector<store::KeyframeRecord> later(b.begin() + 2, b.end());
+  b.resize(2);
   ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
   // Keyframe i of the first visit stands 0.3 i m along x, not turned: the query's camera in
   // its frame is where it must be for the visit to lie at `T_map_visit`.
@@ -300,6 +303,14 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   worker.Wait(worker.Submit(job_for(0, match(0, wrong))));
   worker.Wait(worker.Submit(job_for(1, match(1, wrong))));
   EXPECT_FALSE(anchored.has_value());
+  EXPECT_EQ(worker.Stats().anchors_rejected, 0) << "two keyframes: too few to tell, it waits";
+  auto none = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(none.ok());
+  EXPECT_TRUE(none->empty());
+  ASSERT_TRUE(store_->InsertKeyframes(&later, {}).ok());
+  b.insert(b.end(), later.begin(), later.end());
+  worker.Wait(worker.Submit(job_for(2, match(2, wrong))));
+  EXPECT_FALSE(anchored.has_value());
   EXPECT_EQ(worker.Stats().anchors_rejected, 1);
   auto v = store_->GetVisit(second->id);
   ASSERT_TRUE(v.ok());
@@ -310,13 +321,13 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   EXPECT_FALSE((*edges)[0].accepted);
   EXPECT_NE((*edges)[0].reason.find("disagrees with the floor plan"), std::string::npos)
       << (*edges)[0].reason;
-  // The rejected pair is forgotten: a third match agreeing with them anchors nothing either.
-  worker.Wait(worker.Submit(job_for(2, match(2, wrong))));
+  // The rejected ones are forgotten: another match agreeing with them anchors nothing either.
+  worker.Wait(worker.Submit(job_for(3, match(3, wrong))));
   EXPECT_FALSE(anchored.has_value());
 
   // Two matches that place it at the origin, inside the room: anchored.
-  worker.Wait(worker.Submit(job_for(0, match(0, Eigen::Vector3d::Zero()))));
-  worker.Wait(worker.Submit(job_for(1, match(1, Eigen::Vector3d::Zero()))));
+  worker.Wait(worker.Submit(job_for(4, match(4, Eigen::Vector3d::Zero()))));
+  worker.Wait(worker.Submit(job_for(5, match(5, Eigen::Vector3d::Zero()))));
   ASSERT_TRUE(anchored.has_value());
   EXPECT_LT(anchored->translation.norm(), 1e-6);
   v = store_->GetVisit(second->id);
