@@ -18,6 +18,15 @@
 #include "server/services.h"
 
 namespace lifemap::server {
+
+// The last keyframe depth decoded for a floor-plan check: a keyframe's loop and tie candidates
+// are checked one after the other.
+struct DecodedKeyframe {
+  int64_t id = 0;
+  cv::Mat depth_m;
+  CameraIntrinsics k;
+};
+
 namespace {
 
 constexpr double kRadToDeg = 180.0 / M_PI;
@@ -47,6 +56,12 @@ constexpr double kLoopSigmaRad = 0.01;
 // waits with at most this many single matches.
 constexpr double kAnchorAgreementM = 0.10;
 constexpr double kAnchorAgreementDeg = 3.0;
+
+// Whether two estimates of a visit's place in the map agree (kAnchorAgreementM / Deg).
+bool AnchorsAgree(const Pose& a, const Pose& b) {
+  return (a.translation - b.translation).norm() <= kAnchorAgreementM &&
+         RotationAngleRad(a, b) * kRadToDeg <= kAnchorAgreementDeg;
+}
 constexpr size_t kMaxPendingAnchors = 64;
 
 // A visit's keyframes (without images) by id, for FindKeyframe.
@@ -115,8 +130,6 @@ struct LayoutEvidence {
   }
 };
 
-// Places each keyframe (its id and T_frame_camera) by `T_plan_frame` in `plan` and checks its
-// depth against the walls.
 // Why the evidence contradicts the plan (empty when it does not): too many readings beyond its
 // walls, or most cameras outside it.
 std::string LayoutDisagreement(const LayoutEvidence& e, const PoseGraphOptions& options) {
@@ -165,18 +178,6 @@ bool InMapFrame(const store::VisitRecord& visit, const store::KeyframeRecord& k)
          k.pose_source == store::StoredPoseSource::kClient ||
          k.pose_source == store::StoredPoseSource::kRefined;
 }
-
-}  // namespace
-
-// The last keyframe depth decoded for a floor-plan check: a keyframe's loop and tie candidates
-// are checked one after the other.
-struct DecodedKeyframe {
-  int64_t id = 0;
-  cv::Mat depth_m;
-  CameraIntrinsics k;
-};
-
-namespace {
 
 // Places each keyframe (its id and T_frame_camera) by `T_plan_frame` in `plan` and checks its
 // depth against the walls; `last_decoded` keeps the last depth decoded.
@@ -387,25 +388,29 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
                                  const std::vector<store::KeyframeRecord>& visit_keyframes) {
   if (!query.T_world_camera) return 0;
   int accepted = 0;
-  std::map<int64_t, std::optional<store::VisitRecord>> visits;
-  std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
-  std::map<int64_t, std::optional<std::pair<place::FloorPlan, int64_t>>> plans;
+  // The matched visits as read once: record, keyframes (by id), the plan to check against.
+  struct Matched {
+    std::optional<store::VisitRecord> visit;
+    std::vector<store::KeyframeRecord> keyframes;
+    std::optional<std::pair<place::FloorPlan, int64_t>> plan;
+  };
+  std::map<int64_t, Matched> matched_visits;
   for (const AnchorCandidate& c : job.anchors) {
     if (c.visit_id == job.visit_id) continue;
-    if (!visits.count(c.visit_id)) {
-      auto v = store_->GetVisit(c.visit_id);
-      visits[c.visit_id] = v.ok() ? std::optional(*v) : std::nullopt;
-      if (v.ok()) {
-        auto listed = KeyframesById(store_, job.map_id, c.visit_id);
-        if (listed.ok()) matched_visits[c.visit_id] = *std::move(listed);
-        plans[c.visit_id] = PlanToCheck(store_, *v);
+    auto [entry, added] = matched_visits.try_emplace(c.visit_id);
+    Matched& other = entry->second;
+    if (added) {
+      if (auto v = store_->GetVisit(c.visit_id); v.ok()) {
+        if (auto listed = KeyframesById(store_, job.map_id, c.visit_id); listed.ok()) {
+          other.keyframes = *std::move(listed);
+        }
+        other.plan = PlanToCheck(store_, *v);
+        other.visit = *std::move(v);
       }
     }
-    const auto& other = visits[c.visit_id];
-    if (!other || other->map_id != job.map_id) continue;
-    const store::KeyframeRecord* matched =
-        FindKeyframe(matched_visits[c.visit_id], c.match.keyframe_id);
-    if (matched == nullptr || !matched->T_world_camera || !InMapFrame(*other, *matched)) {
+    if (!other.visit || other.visit->map_id != job.map_id) continue;
+    const store::KeyframeRecord* matched = FindKeyframe(other.keyframes, c.match.keyframe_id);
+    if (matched == nullptr || !matched->T_world_camera || !InMapFrame(*other.visit, *matched)) {
       continue;  // a visit not in the map's frame yet ties nothing
     }
     store::PoseEdgeRecord edge =
@@ -414,7 +419,7 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
     // visit's drift since its start.
     Judge(c.match, posegraph::Relative(*matched->T_world_camera, *query.T_world_camera),
           PathM(visit_keyframes, 0, query.id), "the map's poses", *matched,
-          plans[c.visit_id] ? &plans[c.visit_id]->first : nullptr, &edge);
+          other.plan ? &other.plan->first : nullptr, &edge);
     if (edge.accepted) {
       edge.reason =
           absl::StrCat("ties visit ", job.visit_id, " to visit ", c.visit_id, ": ", edge.reason);
@@ -458,9 +463,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     }
     const store::KeyframeRecord* matched = FindKeyframe(matched_visits[c.visit_id], m.keyframe_id);
     if (matched == nullptr || !matched->T_world_camera) continue;
-    // The matched visit's frame in the map's: the first visit's is the map's; an anchored one
-    // says where it lies (its keyframes were moved into the map's frame when it was anchored);
-    // client poses are in the map's frame already. A tracked visit not anchored yet is not.
+    // A tracked visit not anchored yet is not in the map's frame: nothing to anchor to.
     if (!InMapFrame(*it->second, *matched)) continue;
     const Eigen::Isometry3d T_map_query =
         matched->T_world_camera->ToIsometry() * m.T_match_query.ToIsometry();
@@ -469,22 +472,15 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     estimate.to_visit = c.visit_id;
     estimate.T_map_visit =
         Pose::FromIsometry(T_map_query * query.T_world_camera->ToIsometry().inverse());
-    estimate.edge.map_id = job.map_id;
-    estimate.edge.kind = store::StoredEdgeKind::kAnchor;
-    estimate.edge.from_keyframe = m.keyframe_id;
-    estimate.edge.to_keyframe = query.id;
-    estimate.edge.T_from_to = m.T_match_query;
-    estimate.edge.inliers = m.inliers;
-    estimate.edge.reprojection_px = m.reprojection_px;
+    estimate.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, m, query.id);
     estimate.edge.accepted = true;
-    estimate.edge.created_time_s = NowSeconds();
     // Two matches from different keyframes of the visit must agree: one match can be an alias.
     for (const AnchorEstimate& other : pending) {
       if (other.query_keyframe == query.id) continue;
       const double off_m =
           (other.T_map_visit.translation - estimate.T_map_visit.translation).norm();
       const double off_deg = RotationAngleRad(other.T_map_visit, estimate.T_map_visit) * kRadToDeg;
-      if (off_m > kAnchorAgreementM || off_deg > kAnchorAgreementDeg) continue;
+      if (!AnchorsAgree(other.T_map_visit, estimate.T_map_visit)) continue;
       // Both matches may be to furniture that another place shares: the visit's keyframes,
       // placed in the map by them, must agree with the matched visit's floor plan.
       const std::optional<std::string> checked = CheckAnchorLayout(
@@ -502,15 +498,11 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
                      layout);
         // Every pending match that agrees with this one is as wrong.
         const Pose wrong = estimate.T_map_visit;
-        pending.erase(
-            std::remove_if(pending.begin(), pending.end(),
-                           [&](const AnchorEstimate& e) {
-                             return (e.T_map_visit.translation - wrong.translation).norm() <=
-                                        kAnchorAgreementM &&
-                                    RotationAngleRad(e.T_map_visit, wrong) * kRadToDeg <=
-                                        kAnchorAgreementDeg;
-                           }),
-            pending.end());
+        pending.erase(std::remove_if(pending.begin(), pending.end(),
+                                     [&](const AnchorEstimate& e) {
+                                       return AnchorsAgree(e.T_map_visit, wrong);
+                                     }),
+                      pending.end());
         absl::MutexLock lock(&mu_);
         ++stats_.anchors_rejected;
         break;

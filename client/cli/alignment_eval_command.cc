@@ -313,11 +313,7 @@ void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx) {
          "--send", [a](const std::string& how) { a->compact = how == "compact"; },
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
-  cmd->add_option_function<std::string>(
-         "--gravity", [a](const std::string& how) { a->send_gravity = how == "accelerometer"; },
-         "accelerometer (default: each frame's Frame.gravity from the recording's "
-         "accelerometer.txt, where it has one) or none")
-      ->check(CLI::IsMember({"accelerometer", "none"}));
+  AddGravityOption(cmd, &a->send_gravity);
   cmd->add_option("--rate", a->rate_hz, "frames per second (default 0: as fast as served)")
       ->check(CLI::Range(0.0, 1000.0));
   cmd->add_flag("--keep-maps", a->keep_maps, "keep the per-place maps (default: deleted after)");

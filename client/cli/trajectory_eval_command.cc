@@ -258,11 +258,7 @@ void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx) {
          "--send", [a](const std::string& how) { a->compact = how == "compact"; },
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
-  cmd->add_option_function<std::string>(
-         "--gravity", [a](const std::string& how) { a->send_gravity = how == "accelerometer"; },
-         "accelerometer (default: each frame's Frame.gravity from the recording's "
-         "accelerometer.txt, where it has one) or none")
-      ->check(CLI::IsMember({"accelerometer", "none"}));
+  AddGravityOption(cmd, &a->send_gravity);
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunTrajectoryEval(*ctx, *a); }; });
 }
 

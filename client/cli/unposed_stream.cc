@@ -48,6 +48,15 @@ std::string MethodName(v1::TrackingMethod m) {
 
 }  // namespace
 
+void AddGravityOption(CLI::App* cmd, bool* send_gravity) {
+  cmd->add_option_function<std::string>(
+         "--gravity",
+         [send_gravity](const std::string& how) { *send_gravity = how == "accelerometer"; },
+         "accelerometer (default: each frame's Frame.gravity from the recording's "
+         "accelerometer.txt, where it has one) or none")
+      ->check(CLI::IsMember({"accelerometer", "none"}));
+}
+
 absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
                                                  const io::TumSequence& sequence,
                                                  const UnposedStreamOptions& options) {

@@ -8,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include <CLI/CLI.hpp>
+
 #include "absl/status/statusor.h"
 #include "client/lifemap_client.h"
 #include "core/common/types.h"
@@ -36,6 +38,10 @@ struct UnposedStreamOptions {
   // the visit's frame by the first frame's).
   bool send_gravity = true;
 };
+
+// Adds `--gravity accelerometer|none` to an evaluation command, setting `*send_gravity`
+// (UnposedStreamOptions::send_gravity).
+void AddGravityOption(CLI::App* cmd, bool* send_gravity);
 
 struct StreamedVisit {
   uint64_t visit_id = 0;

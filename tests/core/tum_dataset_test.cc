@@ -80,6 +80,33 @@ TEST(TumSequence, RejectsMissingFolderAndMalformedLines) {
   EXPECT_NE(s.message().find("rgb.txt:2"), std::string::npos) << s;
 }
 
+TEST(TumSequence, AccelerometerFileIsCheckedAndAZeroReadingGivesNoGravity) {
+  testing::TempDir tmp;
+  testing::WriteSyntheticTum(tmp.path(), 3);  // frames at 1700000000 + i / 30 s
+  // A malformed line names the file and the line.
+  std::ofstream(tmp.File("accelerometer.txt")) << "# timestamp ax ay az\n1700000000.0 0 9.8\n";
+  auto s = ReadTumSequence(tmp.path()).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(s));
+  EXPECT_NE(s.message().find("accelerometer.txt:2"), std::string::npos) << s;
+  std::ofstream(tmp.File("accelerometer.txt")) << "1700000000.0 0 x 0\n";
+  s = ReadTumSequence(tmp.path()).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(s));
+  EXPECT_NE(s.message().find("accelerometer.txt:1"), std::string::npos) << s;
+  // Readings summing to zero near a frame give it no gravity rather than a NaN one; frames with
+  // no reading within the window get none either.
+  std::ofstream(tmp.File("accelerometer.txt")) << "1700000000.0 0 0 0\n1700000000.0333 0 9.8 0\n";
+  TumReadOptions options;
+  options.accelerometer_window_s = 0.01;
+  auto seq = ReadTumSequence(tmp.path(), options);
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  EXPECT_TRUE(seq->has_accelerometer);
+  EXPECT_EQ(seq->frames_with_gravity, 1);
+  EXPECT_FALSE(seq->frames[0].gravity_camera.has_value());
+  ASSERT_TRUE(seq->frames[1].gravity_camera.has_value());
+  EXPECT_NEAR(seq->frames[1].gravity_camera->y(), 1.0, 1e-12);
+  EXPECT_FALSE(seq->frames[2].gravity_camera.has_value());
+}
+
 TEST(TumTrajectory, RejectsNonUnitQuaternionWithLineNumber) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("gt.txt")) << "1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 3\n";

@@ -351,6 +351,12 @@ TEST_F(CliTest, ClearErrorsForBadFlagsAndUnreachableServer) {
   r = Run({"stream", "--map", "nomap", "--tum", tum});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("lifemap maps create nomap"), std::string::npos) << r.err;
+  for (const char* command : {"trajectory", "alignment"}) {
+    r = Run({"eval", command, command == std::string("trajectory") ? "--tum" : "--suite", tum,
+             "--out", tmp_.File("g"), "--gravity", "sideways"});
+    EXPECT_EQ(r.code, 2) << command;
+    EXPECT_NE(r.err.find("--gravity"), std::string::npos) << r.err;
+  }
   // With --json an error is also a JSON object on stdout.
   r = Run({"--json", "maps", "show", "nomap"});
   EXPECT_EQ(r.code, 1);

@@ -63,6 +63,15 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return p.get_future().share();
   }
 
+  // The first visit's keyframe `i` as a new keyframe of `visit_id`, 99 s later.
+  store::KeyframeRecord CopiedInto(int64_t visit_id, int i) const {
+    store::KeyframeRecord k = keyframes_[i];
+    k.id = 0;
+    k.visit_id = visit_id;
+    k.timestamp_s = 100.0 + i;
+    return k;
+  }
+
   // A job for keyframe `query_id` of visit `visit_id` whose one anchor candidate is a match to
   // keyframe `i` of the first visit; an anchor is reported into `anchored`.
   PoseGraphWorker::Job AnchorJob(int64_t visit_id, int64_t query_id, int i,
@@ -150,10 +159,7 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   ASSERT_TRUE(second.ok());
   std::vector<store::KeyframeRecord> b;
   for (int i = 0; i < 4; ++i) {
-    store::KeyframeRecord k = keyframes_[i];
-    k.id = 0;
-    k.visit_id = second->id;
-    k.timestamp_s = 100.0 + i;
+    store::KeyframeRecord k = CopiedInto(second->id, i);
     // Keyframe i of the second visit stands where keyframe i of the first does, in its own
     // frame: T^-1 * (the first visit's pose).
     const Pose own =
@@ -273,10 +279,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   looking_along_x.translation = {0, 0, 1.2};
   std::vector<store::KeyframeRecord> b;
   for (int i = 0; i < 6; ++i) {
-    store::KeyframeRecord k = keyframes_[i];
-    k.id = 0;
-    k.visit_id = second->id;
-    k.timestamp_s = 100.0 + i;
+    store::KeyframeRecord k = CopiedInto(second->id, i);
     k.T_world_camera = looking_along_x;
     k.T_odom_camera = looking_along_x;
     k.depth = *depth;
