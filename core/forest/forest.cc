@@ -10,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/checksum.h"
 #include "core/common/task_pool.h"
 
 namespace lifemap::forest {
@@ -445,15 +446,6 @@ absl::StatusOr<Prediction> Forest::Predict(const cv::Mat& depth_m, const cv::Mat
 
 namespace {
 
-uint64_t Fnv1a(const std::string& bytes, size_t n) {
-  uint64_t h = 1469598103934665603ULL;
-  for (size_t i = 0; i < n; ++i) {
-    h ^= static_cast<uint8_t>(bytes[i]);
-    h *= 1099511628211ULL;
-  }
-  return h;
-}
-
 template <typename T>
 void Put(std::string* out, const T& v) {
   out->append(reinterpret_cast<const char*>(&v), sizeof(T));
@@ -550,7 +542,7 @@ std::string Forest::Serialize(const ModelDescription& description) const {
     Put(&out, static_cast<uint32_t>(t.leaves.size()));
     for (float v : t.leaves) Put(&out, v);
   }
-  Put(&out, Fnv1a(out, out.size()));
+  Put(&out, Fnv1a64(out));
   return out;
 }
 
@@ -564,7 +556,8 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
   }
   uint64_t stored = 0;
   std::memcpy(&stored, bytes.data() + bytes.size() - 8, 8);
-  if (stored != Fnv1a(bytes, bytes.size() - 8)) return corrupt("checksum mismatch");
+  if (stored != Fnv1a64(std::string_view(bytes).substr(0, bytes.size() - 8)))
+    return corrupt("checksum mismatch");
   Reader r(bytes, bytes.size() - 8);
   char magic[4];
   uint32_t version = 0, classes = 0, names = 0, trees = 0;
