@@ -1,10 +1,13 @@
-// `lifemap train` and `lifemap eval segmentation`: the random-forest labeller of paper 002,
-// trained and evaluated locally on labelled data (mOSD .pcd folders or synthetic visits).
+// `lifemap train`, `lifemap eval segmentation` and `lifemap eval fusion`: the random-forest
+// labeller of paper 002 and its semantic octree, trained and evaluated locally on labelled data
+// (mOSD .pcd folders, synthetic visits, TUM-format folders with label PNGs).
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <iostream>
+#include <map>
 
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -19,6 +22,7 @@
 #include "core/forest/forest.h"
 #include "core/forest/labeled_data.h"
 #include "core/io/labeled_pcd.h"
+#include "core/semantic/semantic_map.h"
 
 namespace lifemap::cli {
 namespace {
@@ -32,6 +36,34 @@ absl::StatusOr<forest::LabeledDataset> ReadData(const std::vector<std::string>& 
   o.frame_stride = frame_stride;
   o.sim_classes = sim_classes == "all" ? forest::SimClasses::kAll : forest::SimClasses::kGrouped;
   return forest::ReadLabeledData(dirs, o);
+}
+
+absl::StatusOr<forest::Forest> LoadModel(const std::string& path,
+                                         forest::ModelDescription* description) {
+  auto bytes = ReadFileBytes(path);
+  if (!bytes.ok()) return bytes.status();
+  return forest::Forest::Deserialize(*bytes, description);
+}
+
+absl::Status SameClasses(const std::vector<std::string>& names,
+                         const forest::LabeledDataset& data) {
+  if (data.class_names == names) return absl::OkStatus();
+  return absl::FailedPreconditionError(
+      absl::StrCat("the model's classes [", absl::StrJoin(names, ", "), "] are not the data's [",
+                   absl::StrJoin(data.class_names, ", "),
+                   "]: evaluate on data of the kind it was trained on (or retrain)"));
+}
+
+// Writes OUT/summary.json when `out` is set; with --json prints the summary and returns true
+// (the caller prints nothing more).
+bool WriteSummary(const CliContext& ctx, const std::string& out, const json& summary) {
+  if (!out.empty()) {
+    std::error_code ec;
+    fs::create_directories(out, ec);
+    std::ofstream(fs::path(out) / "summary.json") << summary.dump(2) << "\n";
+  }
+  if (ctx.json) std::cout << summary.dump() << "\n";
+  return ctx.json;
 }
 
 struct TrainArgs {
@@ -169,20 +201,13 @@ json Scores(const std::vector<std::vector<int64_t>>& confusion,
 }
 
 int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
-  auto bytes = ReadFileBytes(a.model);
-  if (!bytes.ok()) return Fail(bytes.status());
   forest::ModelDescription description;
-  auto model = forest::Forest::Deserialize(*bytes, &description);
+  auto model = LoadModel(a.model, &description);
   if (!model.ok()) return Fail(model.status());
   const std::vector<std::string>& names = description.class_names;
   auto data = ReadData(a.data, a.frame_stride, a.sim_classes);
   if (!data.ok()) return Fail(data.status());
-  if (data->class_names != names) {
-    return Fail(absl::FailedPreconditionError(
-        absl::StrCat("the model's classes [", absl::StrJoin(names, ", "), "] are not the data's [",
-                     absl::StrJoin(data->class_names, ", "),
-                     "]: evaluate on data of the kind it was trained on (or retrain)")));
-  }
+  if (auto c = SameClasses(names, *data); !c.ok()) return Fail(c);
   // Scores a labeller over the data: pixels with a label and a depth reading count.
   const size_t n = names.size();
   auto score = [&](const std::function<absl::StatusOr<cv::Mat>(const forest::LabeledImage&)>& label)
@@ -241,15 +266,7 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
   summary["model"] = a.model;
   summary["images"] = data->images.size();
   summary["stride"] = a.stride;
-  if (!a.out.empty()) {
-    std::error_code ec;
-    fs::create_directories(a.out, ec);
-    std::ofstream(fs::path(a.out) / "summary.json") << summary.dump(2) << "\n";
-  }
-  if (ctx.json) {
-    std::cout << summary.dump() << "\n";
-    return 0;
-  }
+  if (WriteSummary(ctx, a.out, summary)) return 0;
   std::cout << absl::StrFormat("%d images, every %d-th pixel, background = %s\n",
                                data->images.size(), a.stride, names[0]);
   std::cout << absl::StrFormat("%-16s %9s %9s %9s   %s\n", "decision", "accuracy", "precision",
@@ -267,6 +284,184 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
                                  c["precision"].get<double>(), c["recall"].get<double>(),
                                  c["pixels"].get<int64_t>());
   }
+  return 0;
+}
+
+struct FusionArgs {
+  std::string model;
+  std::vector<std::string> data;
+  std::string out;
+  int stride = 2;
+  int frame_stride = 5;
+  std::string sim_classes = "grouped";
+  semantic::SemanticMapOptions map;
+};
+
+// Accumulates pixels with a label and a depth reading into a confusion matrix.
+void Tally(const cv::Mat& truth, const cv::Mat& guess,
+           std::vector<std::vector<int64_t>>* confusion) {
+  const size_t n = confusion->size();
+  for (int r = 0; r < truth.rows; ++r) {
+    const uint8_t* t = truth.ptr<uint8_t>(r);
+    const uint8_t* g = guess.ptr<uint8_t>(r);
+    for (int c = 0; c < truth.cols; ++c) {
+      if (t[c] >= n || g[c] >= n) continue;
+      ++(*confusion)[t[c]][g[c]];
+    }
+  }
+}
+
+// Scores as `eval fusion` reports them: precision and recall per class name (their means
+// beside), the confusion matrix (rows: truth, columns: labels).
+json FusionScores(const std::vector<std::vector<int64_t>>& confusion,
+                  const std::vector<std::string>& names) {
+  json s = Scores(confusion, names);
+  json out = {{"accuracy", s["accuracy"]},
+              {"accuracy_no_bg", s["accuracy_no_bg"]},
+              {"mean_precision", s["precision"]},
+              {"mean_recall", s["recall"]},
+              {"mean_precision_no_bg", s["precision_no_bg"]},
+              {"mean_recall_no_bg", s["recall_no_bg"]},
+              {"precision", json::object()},
+              {"recall", json::object()},
+              {"pixels", json::object()},
+              {"confusion", confusion}};
+  for (const auto& [name, c] : s["per_class"].items()) {
+    out["precision"][name] = c["precision"];
+    out["recall"][name] = c["recall"];
+    out["pixels"][name] = c["pixels"];
+  }
+  return out;
+}
+
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0.0;
+  std::sort(v.begin(), v.end());
+  return v[static_cast<size_t>(q * static_cast<double>(v.size() - 1) + 0.5)];
+}
+
+// Paper 002's Tables I-IV: per visit, every image is labelled alone (single), all of the
+// visit's images are fused into a semantic octree at their ground-truth poses, and the octree's
+// labels are rendered back into every image (fused; where the octree has no label the image's
+// own label stands, and the share the octree labelled is reported as coverage).
+int RunEvalFusion(const CliContext& ctx, const FusionArgs& a) {
+  forest::ModelDescription description;
+  auto model = LoadModel(a.model, &description);
+  if (!model.ok()) return Fail(model.status());
+  const std::vector<std::string>& names = description.class_names;
+  if (auto s = a.map.Validate(); !s.ok()) return Fail(s);
+  auto data = ReadData(a.data, a.frame_stride, a.sim_classes);
+  if (!data.ok()) return Fail(data.status());
+  if (auto c = SameClasses(names, *data); !c.ok()) return Fail(c);
+  std::map<size_t, std::vector<size_t>> images_of;  // source -> image indices, in time order
+  for (size_t i = 0; i < data->images.size(); ++i) {
+    const forest::LabeledView& v = data->views[i];
+    if (!v.T_world_camera) {
+      return Fail(absl::FailedPreconditionError(absl::StrCat(
+          data->sources[v.source],
+          ": fusion needs every image's pose (a TUM-format folder with groundtruth.txt, e.g. a "
+          "lifemap sim visit); this image has none")));
+    }
+    images_of[v.source].push_back(i);
+  }
+  const size_t n = names.size();
+  using Confusion = std::vector<std::vector<int64_t>>;
+  Confusion single(n, std::vector<int64_t>(n, 0)), prior = single, fused = single,
+                                                   fused_only = single;
+  std::vector<double> fuse_ms, render_ms;
+  int64_t depth_pixels = 0, rendered_pixels = 0;
+  json visits = json::array();
+  for (const auto& [source, images] : images_of) {
+    auto map = semantic::SemanticMap::Create(static_cast<int>(n), model->class_prior(), a.map);
+    if (!map.ok()) return Fail(map.status());
+    std::vector<cv::Mat> single_labels;
+    for (size_t i : images) {
+      const forest::LabeledImage& im = data->images[i];
+      const forest::LabeledView& v = data->views[i];
+      auto p = model->Predict(im.depth_m, im.color_bgr, forest::Decision::kBalanced, a.stride);
+      if (!p.ok()) return Fail(p.status());
+      auto pw =
+          model->Predict(im.depth_m, im.color_bgr, forest::Decision::kPriorWeighted, a.stride);
+      if (!pw.ok()) return Fail(pw.status());
+      Tally(im.labels, p->labels, &single);
+      Tally(im.labels, pw->labels, &prior);
+      auto stats = (*map)->Fuse(im.depth_m, v.intrinsics, *v.T_world_camera, p->probabilities);
+      if (!stats.ok()) {
+        return Fail(absl::Status(stats.status().code(), absl::StrCat(data->sources[source], ": ",
+                                                                     stats.status().message())));
+      }
+      fuse_ms.push_back(stats->ms);
+      single_labels.push_back(p->labels);
+    }
+    for (size_t k = 0; k < images.size(); ++k) {
+      const forest::LabeledImage& im = data->images[images[k]];
+      const forest::LabeledView& v = data->views[images[k]];
+      const auto start = std::chrono::steady_clock::now();
+      auto r = (*map)->Render(im.depth_m, v.intrinsics, *v.T_world_camera, a.stride);
+      render_ms.push_back(
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+              .count());
+      if (!r.ok()) return Fail(r.status());
+      Tally(im.labels, r->labels, &fused_only);
+      cv::Mat labels = single_labels[k].clone();
+      r->labels.copyTo(labels, r->labels != forest::kIgnore);
+      Tally(im.labels, labels, &fused);
+      depth_pixels += r->depth_pixels;
+      rendered_pixels += r->labelled_pixels;
+    }
+    const semantic::SemanticSummary s = (*map)->Summarize();
+    json volume = json::object();
+    for (size_t c = 0; c < n; ++c) volume[names[c]] = s.class_volume_m3[c];
+    visits.push_back({{"folder", data->sources[source]},
+                      {"images", images.size()},
+                      {"occupied_voxels", s.occupied_voxels},
+                      {"labelled_voxels", s.labelled_voxels},
+                      {"nodes", s.nodes},
+                      {"memory_bytes", s.memory_bytes},
+                      {"class_volume_m3", volume}});
+  }
+  json summary = {
+      {"model", a.model},
+      {"classes", names},
+      {"images", data->images.size()},
+      {"stride", a.stride},
+      {"frame_stride", a.frame_stride},
+      {"resolution_m", a.map.resolution_m},
+      {"single", FusionScores(single, names)},
+      {"single_prior_weighted", FusionScores(prior, names)},
+      {"fused", FusionScores(fused, names)},
+      {"fused_where_rendered", FusionScores(fused_only, names)},
+      {"fused_coverage",
+       depth_pixels > 0 ? static_cast<double>(rendered_pixels) / static_cast<double>(depth_pixels)
+                        : 0.0},
+      {"fusion_ms", {{"p50", Percentile(fuse_ms, 0.5)}, {"max", Percentile(fuse_ms, 1.0)}}},
+      {"render_ms", {{"p50", Percentile(render_ms, 0.5)}, {"max", Percentile(render_ms, 1.0)}}},
+      {"visits", visits}};
+  summary["gain_no_bg"] = summary["fused"]["accuracy_no_bg"].get<double>() -
+                          summary["single"]["accuracy_no_bg"].get<double>();
+  summary["gain"] =
+      summary["fused"]["accuracy"].get<double>() - summary["single"]["accuracy"].get<double>();
+  if (WriteSummary(ctx, a.out, summary)) return 0;
+  std::cout << absl::StrFormat(
+      "%d images in %d visits, every %d-th pixel, %.3g m voxels; the octree labels %.1f %% of "
+      "the depth pixels\n",
+      data->images.size(), images_of.size(), a.stride, a.map.resolution_m,
+      100.0 * summary["fused_coverage"].get<double>());
+  std::cout << absl::StrFormat("%-22s %9s %9s   per class recall / precision\n", "labels",
+                               "accuracy", "no bg");
+  for (const char* row : {"single", "single_prior_weighted", "fused", "fused_where_rendered"}) {
+    const json& s = summary[row];
+    std::string per_class;
+    for (const auto& [name, r] : s["recall"].items()) {
+      per_class += absl::StrFormat("  %s %.2f/%.2f", name, r.get<double>(),
+                                   s["precision"][name].get<double>());
+    }
+    std::cout << absl::StrFormat("%-22s %9.3f %9.3f %s\n", row, s["accuracy"].get<double>(),
+                                 s["accuracy_no_bg"].get<double>(), per_class);
+  }
+  std::cout << absl::StrFormat(
+      "gain without background: %+.3f; fusion %.1f ms (p50), render %.1f ms (p50)\n",
+      summary["gain_no_bg"].get<double>(), Percentile(fuse_ms, 0.5), Percentile(render_ms, 0.5));
   return 0;
 }
 
@@ -318,6 +513,32 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
                   "synthetic visits: 'grouped' (default) or 'all'; as the model was trained")
       ->check(CLI::IsMember({"grouped", "all"}));
   seg->callback([ctx, e] { ctx->run = [ctx, e] { return RunEvalSegmentation(*ctx, *e); }; });
+
+  auto* fusion = eval->add_subcommand(
+      "fusion",
+      "Paper 002's fusion tables: single-frame labels vs labels fused in a semantic octree and "
+      "rendered back, per visit (needs ground-truth poses)");
+  auto f = std::make_shared<FusionArgs>();
+  fusion->add_option("--model", f->model, "model file (lifemap train)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  fusion->add_option("--data", f->data, "visit folders with poses (lifemap sim visits)")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  fusion->add_option("--out", f->out, "folder for summary.json");
+  fusion->add_option("--stride", f->stride, "label and render every N-th pixel (default 2)")
+      ->check(CLI::Range(1, 16));
+  fusion->add_option("--frame-stride", f->frame_stride, "every N-th frame of a visit (default 5)")
+      ->check(CLI::Range(1, 1000));
+  fusion->add_option("--sim-classes", f->sim_classes, "synthetic visits: 'grouped' or 'all'")
+      ->check(CLI::IsMember({"grouped", "all"}));
+  fusion->add_option("--resolution", f->map.resolution_m, "voxel edge, metres (default 0.05)");
+  fusion->add_option("--uniform-mix", f->map.observation_uniform_mix,
+                     "weight of a uniform distribution mixed into each observation (default 0.1)");
+  fusion->add_option("--prior-weight", f->map.prior_weight,
+                     "the training prior's weight in each voxel's initial belief, 0..1");
+  fusion->add_option("--fuse-stride", f->map.pixel_stride, "every N-th pixel is fused (default 4)");
+  fusion->callback([ctx, f] { ctx->run = [ctx, f] { return RunEvalFusion(*ctx, *f); }; });
 }
 
 }  // namespace lifemap::cli

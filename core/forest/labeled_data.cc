@@ -109,6 +109,9 @@ absl::Status ReadMosdFolder(const fs::path& dir, LabeledDataset* out) {
     im.depth_m = frame->frame.depth_m;
     im.color_bgr = frame->frame.color_bgr;
     im.labels = io::MosdTableObjectClasses(frame->labels);
+    LabeledView view;
+    view.intrinsics = io::KinectDefaultIntrinsics(im.depth_m.cols, im.depth_m.rows);
+    out->views.push_back(view);
     out->images.push_back(std::move(im));
   }
   return absl::OkStatus();
@@ -157,6 +160,12 @@ absl::Status ReadTumLabelled(const fs::path& dir, const fs::path& label_dir,
           ") is not one of the ", scheme.names.size(), " classes named (255 = unlabelled)"));
     }
     depth.convertTo(im.depth_m, CV_32FC1, 1.0 / kTumDepthScale);
+    LabeledView view;
+    view.timestamp_s = e.timestamp_s;
+    std::string source;
+    view.intrinsics = io::TumSequenceIntrinsics(*seq, depth.cols, depth.rows, &source);
+    view.T_world_camera = e.T_world_camera;
+    out->views.push_back(view);
     out->images.push_back(std::move(im));
   }
   return absl::OkStatus();
@@ -209,6 +218,10 @@ absl::StatusOr<LabeledDataset> ReadLabeledData(const std::vector<std::string>& d
           " has [", absl::StrJoin(data.class_names, ", "), "]: read folders of the same classes"));
     }
     for (auto& im : part.images) data.images.push_back(std::move(im));
+    for (LabeledView& v : part.views) {
+      v.source = data.sources.size();
+      data.views.push_back(v);
+    }
     data.sources.push_back(d);
   }
   if (data.images.empty()) return absl::InvalidArgumentError("no folders given");

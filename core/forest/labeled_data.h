@@ -3,10 +3,12 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/common/types.h"
 #include "core/forest/forest.h"
 
 namespace lifemap::forest {
@@ -24,8 +26,17 @@ struct LabeledDataOptions {
   SimClasses sim_classes = SimClasses::kGrouped;
 };
 
+// Where an image was taken, for evaluations that fuse views (one per image, same order).
+struct LabeledView {
+  size_t source = 0;            // index into LabeledDataset::sources
+  double timestamp_s = 0.0;     // TUM-format folders; 0 for mOSD
+  CameraIntrinsics intrinsics;  // the folder's intrinsics.txt or calibration; Kinect's for mOSD
+  std::optional<Pose> T_world_camera;  // ground truth where the folder has it
+};
+
 struct LabeledDataset {
   std::vector<LabeledImage> images;
+  std::vector<LabeledView> views;        // parallel to images
   std::vector<std::string> class_names;  // class 0 is the background
   std::vector<uint32_t> class_colors;    // 0xRRGGBB per class
   std::string kind;                      // "mosd", "sim" or "label-png"

@@ -8,6 +8,7 @@
 #include <limits>
 #include <sstream>
 #include <unordered_map>
+#include <unordered_set>
 #include <utility>
 
 #include <octomap/OcTreeNode.h>
@@ -251,6 +252,10 @@ absl::Status SemanticMapOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "observation uniform mix must be within [0, 1), got ", observation_uniform_mix));
   }
+  if (!(prior_weight >= 0.0 && prior_weight <= 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("prior weight must be within [0, 1], got ", prior_weight));
+  }
   if (!(min_class_probability > 0.0 && min_class_probability < 0.1)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "minimum class probability must be within (0, 0.1), got ", min_class_probability));
@@ -283,8 +288,11 @@ absl::StatusOr<std::unique_ptr<SemanticMap>> SemanticMap::Create(
   const double floor = options.min_class_probability;
   std::vector<float> log_prior;
   for (double p : class_prior) {
-    log_prior.push_back(static_cast<float>(std::log(std::max(p / sum, floor))));
+    log_prior.push_back(
+        static_cast<float>(options.prior_weight * std::log(std::max(p / sum, floor))));
   }
+  const float norm = LogSumExp(log_prior);
+  for (float& l : log_prior) l -= norm;
   return std::unique_ptr<SemanticMap>(
       new SemanticMap(std::make_unique<Impl>(class_count, std::move(log_prior), options)));
 }
@@ -319,8 +327,14 @@ absl::StatusOr<FusionStats> SemanticMap::Fuse(const cv::Mat& depth_m,
   std::vector<float> sums;                // classes per voxel
   std::vector<int> labelled;              // labelled pixels per voxel
   std::vector<Eigen::Vector3d> ray_ends;  // free-space ray ends (map frame)
+  voxel_of.reserve(static_cast<size_t>(depth_m.total()) / static_cast<size_t>(stride * stride));
   FusionStats stats;
   const int free_stride = m.options.free_space_stride;
+  // The free-space rays start at a different quarter point of their stride cell each keyframe
+  // (on the endpoints' grid), so four keyframes together cast a twice as dense grid.
+  const int half = free_stride / 2 / stride * stride;
+  const int free_u = static_cast<int>(m.keyframes % 2) * half;
+  const int free_v = static_cast<int>((m.keyframes / 2) % 2) * half;
   for (int v = 0; v < depth_m.rows; v += stride) {
     const float* depth = depth_m.ptr<float>(v);
     for (int u = 0; u < depth_m.cols; u += stride) {
@@ -331,7 +345,7 @@ absl::StatusOr<FusionStats> SemanticMap::Fuse(const cv::Mat& depth_m,
       const Eigen::Vector3d camera_point((u - intrinsics.cx) * z / intrinsics.fx,
                                          (v - intrinsics.cy) * z / intrinsics.fy, z);
       const Eigen::Vector3d point = T * camera_point;
-      if (free_stride > 0 && u % free_stride == 0 && v % free_stride == 0) {
+      if (free_stride > 0 && (u - free_u) % free_stride == 0 && (v - free_v) % free_stride == 0) {
         ray_ends.push_back(point);
       }
       if (!in_range) continue;
@@ -368,16 +382,18 @@ absl::StatusOr<FusionStats> SemanticMap::Fuse(const cv::Mat& depth_m,
   if (!ray_ends.empty()) {
     const octomap::point3d o(static_cast<float>(origin.x()), static_cast<float>(origin.y()),
                              static_cast<float>(origin.z()));
-    octomap::KeySet free_keys;
+    std::unordered_set<octomap::OcTreeKey, octomap::OcTreeKey::KeyHash> free_keys;
+    free_keys.reserve(ray_ends.size() * 16);
     octomap::KeyRay ray;
     for (const Eigen::Vector3d& e : ray_ends) {
       const octomap::point3d end(static_cast<float>(e.x()), static_cast<float>(e.y()),
                                  static_cast<float>(e.z()));
       if (!m.tree.computeRayKeys(o, end, ray)) continue;
-      for (const octomap::OcTreeKey& k : ray) {
-        if (voxel_of.count(k) == 0) free_keys.insert(k);
-      }
+      free_keys.insert(ray.begin(), ray.end());
     }
+    for (const octomap::OcTreeKey& k : keys) free_keys.erase(k);
+    // Not lazily: OctoMap then keeps inner nodes and pruning up to date on every update
+    // (lazy updates with a periodic whole-tree pass measured slower, see docs/BENCHMARKS.md).
     for (const octomap::OcTreeKey& k : free_keys) m.tree.updateNode(k, false, false);
     stats.free_voxels = static_cast<int64_t>(free_keys.size());
   }
@@ -423,14 +439,26 @@ absl::StatusOr<RenderedLabels> SemanticMap::Render(const cv::Mat& depth_m,
   const float max_range = static_cast<float>(m.options.max_range_m);
   const double step = m.tree.getResolution();
   // The voxel a point falls in; else one voxel nearer or farther along the ray (depth noise
-  // and pose error move a surface by about a voxel between views).
+  // and pose error move a surface by about a voxel between views). Neighbouring pixels often
+  // fall into the same voxel: the last lookup is remembered.
+  octomap::OcTreeKey last_key;
+  const SemanticNode* last_node = nullptr;
+  bool have_last = false;
   auto lookup = [&](const Eigen::Vector3d& camera_point) -> const SemanticNode* {
     const double norm = camera_point.norm();
     for (const double shift : {0.0, -step, step}) {
       const Eigen::Vector3d p = T * (camera_point * ((norm + shift) / norm));
       octomap::OcTreeKey key;
       if (!m.tree.coordToKeyChecked(p.x(), p.y(), p.z(), key)) continue;
-      const SemanticNode* node = m.tree.search(key);
+      const SemanticNode* node = nullptr;
+      if (have_last && key == last_key) {
+        node = last_node;
+      } else {
+        node = m.tree.search(key);
+        last_key = key;
+        last_node = node;
+        have_last = true;
+      }
       if (node != nullptr && !node->belief.empty()) return node;
     }
     return nullptr;

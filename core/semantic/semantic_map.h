@@ -36,6 +36,9 @@ struct SemanticMapOptions {
   int free_space_stride = 8;             // every n-th pixel casts a free-space ray; 0 = none
   double observation_uniform_mix = 0.1;  // α: p' = (1 - α) p + α / C
   double min_class_probability = 1e-4;   // belief floor per class
+  // Bel_0 ∝ p(c | D)^prior_weight: 1 is eq. 9's prior as is, 0 (default) a uniform start; see
+  // docs/RESULTS.md for why 0 (chosen on one synthetic place, reported on another).
+  double prior_weight = 0.0;
 
   // InvalidArgument naming the field and its range.
   absl::Status Validate() const;

@@ -132,7 +132,9 @@ TEST(SemanticMap, FusingViewsCorrectsSingleViewErrors) {
 }
 
 TEST(SemanticMap, PriorDecidesWhenObservationsAreUninformative) {
-  auto map = NewMap();
+  SemanticMapOptions options;
+  options.prior_weight = 1.0;  // eq. 9's prior as is
+  auto map = NewMap(options);
   std::mt19937 rng(1);
   const View view = WallView(At(0, 0), 1.0 / kClasses, 0.0, &rng);
   ASSERT_TRUE(map->Fuse(view.depth, Camera(), At(0, 0), view.probabilities).ok());
@@ -140,6 +142,14 @@ TEST(SemanticMap, PriorDecidesWhenObservationsAreUninformative) {
   ASSERT_EQ(belief.size(), 3u);
   EXPECT_NEAR(belief[0], 0.5, 1e-3);
   EXPECT_NEAR(belief[1], 0.25, 1e-3);
+
+  // The default starts uniform: the same observations leave every class at 1/3.
+  auto uniform = NewMap();
+  ASSERT_TRUE(uniform->Fuse(view.depth, Camera(), At(0, 0), view.probabilities).ok());
+  const std::vector<float> flat = uniform->BeliefAt(-0.2, 0.0, 2.03);
+  ASSERT_EQ(flat.size(), 3u);
+  EXPECT_NEAR(flat[0], 1.0 / 3, 1e-3);
+  EXPECT_NEAR(flat[2], 1.0 / 3, 1e-3);
 }
 
 TEST(SemanticMap, AVoxelThatTurnsFreeForgetsItsClass) {

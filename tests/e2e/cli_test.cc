@@ -803,6 +803,51 @@ TEST_F(CliTest, EvalEntropyMatchingOnTumFramesFarApart) {
   EXPECT_EQ(r.code, 2) << "no data at all";
 }
 
+// Paper 002's fusion evaluation end to end on a synthetic visit (a pipeline check: the model is
+// tiny and scored on its own training visit; docs/RESULTS.md has the held-out figures).
+TEST_F(CliTest, EvalFusionComparesSingleFrameAndFusedLabels) {
+  auto r = Run({"sim", "--seed", "3", "--place-shape", "rect", "--visits", "1", "--frames", "20",
+                "--out", tmp_.File("s")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string visit = tmp_.File("s/visit_00");
+  r = Run({"--json", "train", "--data", visit, "--frame-stride", "5", "--trees", "1", "--depth",
+           "10", "--pixels", "400", "--candidates", "100", "--out", tmp_.File("m.model")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "eval", "fusion", "--model", tmp_.File("m.model"), "--data", visit, "--stride",
+           "4", "--out", tmp_.File("fusion")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json s = json::parse(Slurp(tmp_.File("fusion/summary.json")));
+  for (const char* part : {"single", "fused"}) {
+    for (const char* key : {"accuracy", "accuracy_no_bg", "precision", "recall", "confusion"}) {
+      EXPECT_TRUE(s[part].contains(key)) << part << "." << key;
+    }
+    EXPECT_TRUE(s[part]["recall"].contains("structure")) << "per class name";
+  }
+  EXPECT_TRUE(s.contains("gain_no_bg"));
+  EXPECT_EQ(s["images"].get<int>(), 4);
+  EXPECT_GT(s["fused_coverage"].get<double>(), 0.9) << "the octree labels what the views saw";
+  EXPECT_GT(s["fused"]["accuracy"].get<double>(), 0.5);
+  EXPECT_GT(s["visits"][0]["labelled_voxels"].get<int64_t>(), 1000);
+
+  // Labelled images without poses cannot be fused: a clear error.
+  testing::WriteSyntheticTum(tmp_.File("pngs"), 2, 0.02, 64, 48);
+  std::filesystem::remove(tmp_.File("pngs/groundtruth.txt"));
+  std::filesystem::create_directories(tmp_.File("pngs/labels"));
+  std::ofstream(tmp_.File("pngs/labels/classes.txt")) << "structure\nfurniture\nprop\nperson\n";
+  for (const auto& e : std::filesystem::directory_iterator(tmp_.File("pngs/rgb"))) {
+    cv::imwrite(tmp_.File("pngs/labels/" + e.path().filename().string()),
+                cv::Mat(48, 64, CV_8UC1, cv::Scalar(1)));
+  }
+  r = Run({"eval", "fusion", "--model", tmp_.File("m.model"), "--data", tmp_.File("pngs"),
+           "--frame-stride", "1"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("needs every image's pose"), std::string::npos) << r.err;
+  r = Run(
+      {"eval", "fusion", "--model", tmp_.File("m.model"), "--data", visit, "--resolution", "5"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("resolution"), std::string::npos) << r.err;
+}
+
 TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
   LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
   auto r = Run({"--json", "train", "--data", dir + "/learn", "--trees", "2", "--depth", "12",
