@@ -35,6 +35,16 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
           "no model is active: lifemap models upload FILE NAME; lifemap models activate NAME");
     }
   }
+  // Fused labels: for posed frames of a visit labelled by a model, once a keyframe is fused.
+  if (!ctx_->config.semantic_enabled) {
+    facts.fusion =
+        absl::FailedPreconditionError("disabled in this server's config (semantic.enabled)");
+  } else if (!facts.labeller.ok()) {
+    facts.fusion = absl::FailedPreconditionError(
+        absl::StrCat("fused labels need a model: ", facts.labeller.message()));
+  } else {
+    facts.fusion = absl::OkStatus();
+  }
   FillOutputStatuses(ctx_->config.pipeline, facts, resp->mutable_outputs());
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));

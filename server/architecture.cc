@@ -134,71 +134,27 @@ void RebuildArchitecture(store::Store* store, PlaceIndex* index, int64_t map_id,
 }
 
 ArchitectureWorker::ArchitectureWorker(store::Store* store, PlaceIndex* index)
-    : store_(store), index_(index), thread_([this] { Run(); }) {}
-
-ArchitectureWorker::~ArchitectureWorker() {
-  {
-    absl::MutexLock lock(&mu_);
-    stopping_ = true;
-  }
-  thread_.join();
-}
+    : store_(store), index_(index) {}
 
 uint64_t ArchitectureWorker::Submit(Visit visit, cv::Mat depth_m, const CameraIntrinsics& k,
                                     const Pose& T_world_camera) {
-  absl::MutexLock lock(&mu_);
-  const uint64_t ticket = ++submitted_;
-  queue_.push_back({ticket, std::move(visit), std::move(depth_m), k, T_world_camera});
-  return ticket;
+  return worker_.Submit([this, v = std::move(visit), depth = std::move(depth_m), k,
+                         T_world_camera] {
+    if (FoldArchitectureKeyframe(depth, k, T_world_camera, v.arch)) {
+      UpdateArchitectureRanking(index_, v.visit_id, v.map_id, v.map_name(), /*store=*/true, v.arch);
+    }
+  });
 }
 
 uint64_t ArchitectureWorker::SubmitRebuild(Visit visit) {
-  absl::MutexLock lock(&mu_);
-  const uint64_t ticket = ++submitted_;
-  queue_.push_back({ticket, std::move(visit), cv::Mat(), {}, {}, /*rebuild=*/true});
-  return ticket;
+  return worker_.Submit([this, v = std::move(visit)] {
+    RebuildArchitecture(store_, index_, v.map_id, v.visit_id, v.map_name(), /*store_plan=*/true,
+                        v.arch);
+  });
 }
 
-void ArchitectureWorker::Wait(uint64_t ticket) {
-  absl::MutexLock lock(&mu_);
-  struct Arg {
-    const ArchitectureWorker* worker;
-    uint64_t ticket;
-  } arg{this, ticket};
-  mu_.Await(absl::Condition(
-      +[](Arg* a) ABSL_NO_THREAD_SAFETY_ANALYSIS { return a->worker->done_ >= a->ticket; }, &arg));
-}
+void ArchitectureWorker::Wait(uint64_t ticket) { worker_.Wait(ticket); }
 
-uint64_t ArchitectureWorker::last_ticket() const {
-  absl::MutexLock lock(&mu_);
-  return submitted_;
-}
-
-void ArchitectureWorker::Run() {
-  for (;;) {
-    Job job;
-    {
-      absl::MutexLock lock(&mu_);
-      mu_.Await(absl::Condition(
-          +[](ArchitectureWorker* w)
-               ABSL_NO_THREAD_SAFETY_ANALYSIS { return w->stopping_ || !w->queue_.empty(); },
-          this));
-      if (queue_.empty()) return;  // stopping and drained
-      job = std::move(queue_.front());
-      queue_.pop_front();
-    }
-    Visit& v = job.visit;
-    if (job.rebuild) {
-      RebuildArchitecture(store_, index_, v.map_id, v.visit_id, v.map_name(), /*store_plan=*/true,
-                          v.arch);
-    } else if (FoldArchitectureKeyframe(job.depth_m, job.k, job.T_world_camera, v.arch)) {
-      UpdateArchitectureRanking(index_, v.visit_id, v.map_id, v.map_name(), /*store=*/true, v.arch);
-    }
-    const uint64_t ticket = job.ticket;
-    job = Job();  // releases the depth and the visit before the ticket counts as done
-    absl::MutexLock lock(&mu_);
-    done_ = std::max(done_, ticket);
-  }
-}
+uint64_t ArchitectureWorker::last_ticket() const { return worker_.last_ticket(); }
 
 }  // namespace lifemap::server

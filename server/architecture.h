@@ -8,12 +8,10 @@
 #pragma once
 
 #include <cstdint>
-#include <deque>
 #include <functional>
 #include <memory>
 #include <optional>
 #include <string>
-#include <thread>
 #include <unordered_map>
 #include <vector>
 
@@ -22,6 +20,7 @@
 #include "core/common/rgbd_frame.h"
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
+#include "server/serial_worker.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
@@ -111,8 +110,8 @@ void RebuildArchitecture(store::Store* store, PlaceIndex* index, int64_t map_id,
 class ArchitectureWorker {
  public:
   ArchitectureWorker(store::Store* store, PlaceIndex* index);
-  // Finishes every queued key frame, then stops.
-  ~ArchitectureWorker();
+  // Finishes every queued key frame, then stops (the worker member goes first).
+  ~ArchitectureWorker() = default;
   ArchitectureWorker(const ArchitectureWorker&) = delete;
   ArchitectureWorker& operator=(const ArchitectureWorker&) = delete;
 
@@ -138,24 +137,9 @@ class ArchitectureWorker {
   uint64_t last_ticket() const;
 
  private:
-  struct Job {
-    uint64_t ticket = 0;
-    Visit visit;
-    cv::Mat depth_m;
-    CameraIntrinsics k;
-    Pose T_world_camera;
-    bool rebuild = false;  // RebuildArchitecture instead of folding `depth_m`
-  };
-  void Run();
-
   store::Store* const store_;
   PlaceIndex* const index_;
-  mutable absl::Mutex mu_;
-  std::deque<Job> queue_ ABSL_GUARDED_BY(mu_);
-  uint64_t submitted_ ABSL_GUARDED_BY(mu_) = 0;
-  uint64_t done_ ABSL_GUARDED_BY(mu_) = 0;
-  bool stopping_ ABSL_GUARDED_BY(mu_) = false;
-  std::thread thread_;
+  SerialWorker worker_;  // last: destroyed (drained) first, while store_ and index_ are valid
 };
 
 // How many places a frame result lists.

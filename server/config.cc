@@ -53,6 +53,11 @@ absl::Status ServerConfig::Validate() const {
   if (auto s = pipeline.Validate(); !s.ok()) return s;
   if (auto s = appearance.Validate(); !s.ok()) return s;
   if (auto s = pose_graph.Validate(); !s.ok()) return s;
+  if (auto s = semantic.Validate(); !s.ok()) return s;
+  if (semantic_render_stride < 1 || semantic_render_stride > 16) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "semantic.render_stride must be within [1, 16], got ", semantic_render_stride));
+  }
   return keyframe.Validate();
 }
 
@@ -193,6 +198,25 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key labels.", k));
+          }
+        }
+      } else if (key == "semantic") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "enabled") {
+            c.semantic_enabled = v.get<bool>();
+          } else if (k == "resolution_m") {
+            c.semantic.resolution_m = v.get<double>();
+          } else if (k == "max_range_m") {
+            c.semantic.max_range_m = v.get<double>();
+          } else if (k == "pixel_stride") {
+            c.semantic.pixel_stride = v.get<int>();
+          } else if (k == "free_space_stride") {
+            c.semantic.free_space_stride = v.get<int>();
+          } else if (k == "render_stride") {
+            c.semantic_render_stride = v.get<int>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key semantic.", k));
           }
         }
       } else if (key == "appearance") {

@@ -10,6 +10,7 @@
 #include "core/appearance/recognizer.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/pipeline/keyframe.h"
+#include "core/semantic/semantic_map.h"
 #include "core/tracking/keyframe_selector.h"
 
 namespace lifemap::server {
@@ -77,6 +78,13 @@ struct ServerConfig {
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
   AppearanceOptions appearance;
   PoseGraphOptions pose_graph;
+  // Paper 002's semantic octree per visit: keyframes' class distributions fused, rendered into
+  // every posed frame of the visit (FrameResult.fused_labels).
+  bool semantic_enabled = true;
+  semantic::SemanticMapOptions semantic;
+  // Fused labels are looked up every n-th pixel (copied to the cell). 8: a 5 cm voxel spans 8
+  // pixels or more of a 640-pixel-wide Kinect view up to 3.3 m away.
+  int semantic_render_stride = 8;
   // Keyframe colour the client sent as PNG or raw is stored as JPEG at this quality, [1, 100]
   // (unless its map keeps originals); JPEG from the client is stored as it came.
   int keyframe_color_jpeg_quality = 85;
@@ -95,7 +103,9 @@ struct ServerConfig {
 // labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb},
 // appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
 // max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
-// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality}.
+// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality},
+// semantic {enabled, resolution_m, max_range_m, pixel_stride, free_space_stride,
+// render_stride}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

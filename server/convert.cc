@@ -377,8 +377,7 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
                          : "queried on keyframes only (FrameOptions.appearance_interval_s "
                            "asks for other frames)"));
   }
-  add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, false,
-      "not implemented in this server yet (semantic octree, paper 002)");
+  add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, facts.fusion.ok(), facts.fusion.message());
 }
 
 }  // namespace lifemap::server

@@ -86,6 +86,9 @@ struct OutputFacts {
   // was computed for the server's own use.
   bool entropy_skipped = false;
   bool labels_skipped = false;
+  // Fused labels (the visit's semantic octree rendered into the frame): OK, or why not.
+  absl::Status fusion =
+      absl::FailedPreconditionError("frames of a visit only: send the frame into a visit");
 };
 using pipeline::kNotRequested;
 inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";

@@ -145,6 +145,7 @@ struct FrameSettings {
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
   v1::ResultImages result_images = kDefaultResultImages;
   bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
+  bool skip_fusion = false;  // no fused labels rendered (the visit's keyframes still fuse)
   bool refine_pose = false;  // FrameOptions.refine_pose: client poses refined by the tracker
 };
 
@@ -300,8 +301,9 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   r.mutable_timing()->set_process_ms(analysis->process_ms);
   // The frame waits for its turn in the visit holding only what placing it needs: the sent
   // depth bytes never (the record encodes the decoded depth), the sent colour bytes only when a
-  // keyframe's record would keep them as they came, the per-class probabilities not at all
-  // (nothing reads them yet). A stream holds up to max_inflight_frames such frames.
+  // keyframe's record would keep them as they came, the per-class probabilities only for
+  // frames of a visit with semantic fusion on (a keyframe's are fused). A stream holds up to
+  // max_inflight_frames such frames.
   // (Swapped with an empty string: clearing keeps the capacity.)
   std::string().swap(*a.frame.mutable_depth()->mutable_data());
   const auto color_encoding = a.frame.color().encoding();
@@ -309,7 +311,9 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
         (a.keep_original_color && color_encoding == v1::COLOR_PNG))) {
     std::string().swap(*a.frame.mutable_color()->mutable_data());
   }
-  if (analysis->labels) analysis->labels->probabilities = {};
+  if (analysis->labels && (map_id == 0 || !ctx->config.semantic_enabled)) {
+    analysis->labels->probabilities = {};
+  }
   if (map_id != 0 && (!f.T_world_camera || settings.refine_pose)) {
     // What tracking needs of the frame alone, made here beside other frames' analyses; the
     // visit's tracker then only aligns it, in order.
@@ -363,6 +367,66 @@ absl::StatusOr<std::pair<Pose, std::string>> PlaceByAppearance(ServiceContext* c
                         match.keyframe_id, match.inliers, match.reprojection_px));
   }
   return absl::NotFoundError("no stored keyframe of the visit matched strictly enough");
+}
+
+// The visit's semantic octree rendered into the frame (paper 002's back-projection), into
+// `out`; OK when rendered, else why not (for the output's status).
+absl::Status RenderFusedLabels(ServiceContext* ctx, const AnalysedFrame& a,
+                               const FrameSettings& settings, VisitState* visit,
+                               v1::LabelOutput* out) {
+  if (settings.skip_fusion) return absl::FailedPreconditionError(kNotRequested);
+  if (!ctx->config.semantic_enabled) {
+    return absl::FailedPreconditionError("disabled in this server's config (semantic.enabled)");
+  }
+  if (!a.labeller.ok()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("fused labels need the frame's model: ", a.labeller.message()));
+  }
+  const RgbdFrame& f = a.analysis->frame;
+  if (!f.T_world_camera) {
+    return absl::FailedPreconditionError(
+        "the frame has no pose (send Frame.pose, or frames the server can track)");
+  }
+  auto rendered = visit->semantics.Render(a.model->name, f.depth_m, f.intrinsics, *f.T_world_camera,
+                                          ctx->config.semantic_render_stride);
+  if (!rendered.ok()) return rendered.status();
+  if (rendered->labelled_pixels == 0) {
+    return absl::FailedPreconditionError(
+        "the visit's octree has no labelled voxel where this frame looks");
+  }
+  pipeline::FrameLabels labels;
+  labels.labels = std::move(rendered->labels);
+  labels.confidence = std::move(rendered->confidence);
+  labels.class_pixels = std::move(rendered->class_pixels);
+  labels.class_mean_confidence = std::move(rendered->class_mean_confidence);
+  labels.labelled_pixels = rendered->labelled_pixels;
+  labels.mean_confidence = rendered->mean_confidence;
+  labels.stride = rendered->stride;
+  LabelsToProto(labels, *a.model, settings.result_images, out);
+  return absl::OkStatus();
+}
+
+// Queues a posed, labelled keyframe for fusion into its visit's octree (off the reply path, in
+// keyframe order). The probabilities move to the job.
+void SubmitForFusion(ServiceContext* ctx, AnalysedFrame& a,
+                     const std::shared_ptr<VisitState>& visit_state) {
+  if (!ctx->config.semantic_enabled || ctx->semantic_worker == nullptr || !a.model ||
+      !a.analysis->labels || a.analysis->labels->probabilities.empty()) {
+    return;
+  }
+  const RgbdFrame& f = a.analysis->frame;
+  if (!f.T_world_camera) return;
+  auto keyframe = std::make_shared<SemanticKeyframe>();
+  keyframe->model = a.model->name;
+  keyframe->class_count = a.model->forest.class_count();
+  keyframe->class_prior = a.model->forest.class_prior();
+  keyframe->depth_m = f.depth_m;  // shared, not copied: the frame is not written afterwards
+  keyframe->intrinsics = f.intrinsics;
+  keyframe->T_visit_camera = *f.T_world_camera;
+  keyframe->probabilities = std::move(a.analysis->labels->probabilities);
+  ctx->semantic_worker->Submit([visit_state, keyframe, options = ctx->config.semantic] {
+    visit_state->semantics.Fuse(*keyframe, options);
+  });
 }
 
 // Places an analysed frame in its visit, in the visit's frame order: the keyframe decision, the
@@ -552,6 +616,11 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
                                                         f.depth_m, f.intrinsics, *f.T_world_camera);
     }
   }
+  // Rendered from the octree as fused so far (before this keyframe joins it); a keyframe's
+  // class distributions then go to the fusion worker.
+  facts.fusion = RenderFusedLabels(ctx, a, settings, visit, r.mutable_fused_labels());
+  if (!facts.fusion.ok()) r.clear_fused_labels();
+  if (decision.selected && p.commit) SubmitForFusion(ctx, a, visit_state);
   // Every result carries the visit's ranking by architecture (paper 004) as known now.
   facts.architecture = visit->architecture.Ranking();
   for (const auto& m : facts.architecture->matches) PlaceMatchToProto(m, r.add_place_matches());
@@ -605,11 +674,14 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
       settings.request.entropy_masks = false;
     } else if (output == v1::FRAME_OUTPUT_CLASS_LABELS) {
       settings.skip_labels = true;
+    } else if (output == v1::FRAME_OUTPUT_SEMANTIC_FUSION) {
+      settings.skip_fusion = true;
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "options.skip_outputs: ",
           v1::FrameOutput_IsValid(output) ? v1::FrameOutput_Name(output) : std::to_string(output),
-          " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK and FRAME_OUTPUT_CLASS_LABELS can"));
+          " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK, FRAME_OUTPUT_CLASS_LABELS and "
+          "FRAME_OUTPUT_SEMANTIC_FUSION can"));
     }
   }
   settings.refine_pose = o.refine_pose();

@@ -28,6 +28,7 @@ struct LifemapServer::Impl {
   // Waits for commits (before the committer goes) and queues rebuilds on the architecture
   // worker (before it goes).
   std::unique_ptr<PoseGraphWorker> pose_graph;
+  std::unique_ptr<SerialWorker> semantic_worker;  // fuses keyframes into visits' octrees
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
@@ -69,6 +70,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->places = std::make_unique<PlaceIndex>(impl->store.get());
   impl->architecture = std::make_unique<ArchitectureWorker>(impl->store.get(), impl->places.get());
   impl->pose_graph = std::make_unique<PoseGraphWorker>(impl->store.get(), config.pose_graph);
+  impl->semantic_worker = std::make_unique<SerialWorker>();
   impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
@@ -81,6 +83,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.places = impl->places.get();
   ctx.architecture = impl->architecture.get();
   ctx.pose_graph = impl->pose_graph.get();
+  ctx.semantic_worker = impl->semantic_worker.get();
   ctx.models = impl->models.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
@@ -142,6 +145,7 @@ void LifemapServer::Shutdown() {
   // what is still queued, then close the store.
   // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
   impl_->pose_graph.reset();
+  impl_->semantic_worker.reset();
   impl_->architecture.reset();
   impl_->committer.reset();
   impl_->appearance.reset();

@@ -18,6 +18,8 @@
 #include "server/keyframe_committer.h"
 #include "server/model_registry.h"
 #include "server/pose_graph_worker.h"
+#include "server/semantics.h"
+#include "server/serial_worker.h"
 #include "server/store/store.h"
 #include "server/visit_registry.h"
 
@@ -37,6 +39,7 @@ struct ServiceContext {
   ArchitectureWorker* architecture = nullptr;
   AppearanceIndex* appearance = nullptr;
   PoseGraphWorker* pose_graph = nullptr;
+  SerialWorker* semantic_worker = nullptr;  // fuses keyframes into their visits' octrees
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};

@@ -18,6 +18,7 @@
 #include "core/tracking/keyframe_selector.h"
 #include "core/tracking/odometry.h"
 #include "server/architecture.h"
+#include "server/semantics.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
@@ -79,6 +80,9 @@ struct VisitState {
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;
+  // Paper 002's semantic octree of the visit; it guards itself (see VisitSemantics): the
+  // semantic worker fuses keyframes into it, frames render from it.
+  VisitSemantics semantics;
 
   // OK if a frame from `writer` (0: a unary ProcessFrame) may be added now; else the status
   // to answer: `closed`, or FAILED_PRECONDITION naming the stream that writes the visit.

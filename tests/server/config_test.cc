@@ -168,6 +168,43 @@ TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
             std::string::npos);
 }
 
+TEST(ConfigFile, ReadsAndChecksTheSemanticSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"semantic": {"enabled": false, "resolution_m": 0.1, "max_range_m": 4.0,
+             "pixel_stride": 2, "free_space_stride": 8, "render_stride": 4}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_FALSE(c->semantic_enabled);
+  EXPECT_DOUBLE_EQ(c->semantic.resolution_m, 0.1);
+  EXPECT_DOUBLE_EQ(c->semantic.max_range_m, 4.0);
+  EXPECT_EQ(c->semantic.pixel_stride, 2);
+  EXPECT_EQ(c->semantic.free_space_stride, 8);
+  EXPECT_EQ(c->semantic_render_stride, 4);
+  const std::pair<const char*, const char*> bad[] = {
+      {"resolution.json", R"({"semantic": {"resolution_m": 0}})"},
+      {"range.json", R"({"semantic": {"max_range_m": 50}})"},
+      {"free.json", R"({"semantic": {"free_space_stride": -1}})"},
+      {"render.json", R"({"semantic": {"render_stride": 0}})"},
+      {"key.json", R"({"semantic": {"resolution": 0.05}})"},
+  };
+  for (const auto& [file, text] : bad) {
+    std::ofstream(tmp.File(file)) << text;
+    auto r = LoadConfigFile(tmp.File(file), ServerConfig());
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << file << ": " << r.status();
+  }
+  EXPECT_NE(LoadConfigFile(tmp.File("key.json"), ServerConfig())
+                .status()
+                .message()
+                .find("semantic.resolution"),
+            std::string::npos);
+  EXPECT_NE(LoadConfigFile(tmp.File("render.json"), ServerConfig())
+                .status()
+                .message()
+                .find("render_stride"),
+            std::string::npos);
+}
+
 TEST(ConfigFile, ReadsAndChecksTheStorageSection) {
   testing::TempDir tmp;
   EXPECT_EQ(ServerConfig().keyframe_color_jpeg_quality, 85);
