@@ -78,12 +78,12 @@ std::unique_ptr<SemanticMap> NewMap(const SemanticMapOptions& options) {
   return std::move(*SemanticMap::Create(kClasses, {0.7, 0.2, 0.08, 0.02}, options));
 }
 
-// One keyframe into a map that has the visit's first 10 keyframes. Arg: the free-space stride
-// (0 = occupied endpoints only).
+// One keyframe into a map that has the visit's first 10 keyframes.
 void BM_SemanticFuse(benchmark::State& state) {
   const Visit& visit = RenderedVisit(3, "rect");
   SemanticMapOptions options;
   options.free_space_stride = static_cast<int>(state.range(0));
+  options.free_space_band_m = static_cast<double>(state.range(1)) / 10.0;
   auto map = NewMap(options);
   for (size_t i = 0; i < 10; ++i) {
     const Keyframe& kf = visit.keyframes[i];
@@ -101,7 +101,15 @@ void BM_SemanticFuse(benchmark::State& state) {
   state.counters["free_voxels"] = free_voxels / n;
   state.counters["occupied_voxels"] = occupied / n;
 }
-BENCHMARK(BM_SemanticFuse)->Arg(0)->Arg(8)->Arg(16)->Unit(benchmark::kMillisecond);
+// Args: free-space stride, band (decimetres; 0 = whole rays).
+BENCHMARK(BM_SemanticFuse)
+    ->Args({0, 0})
+    ->Args({8, 0})
+    ->Args({16, 0})
+    ->Args({8, 10})
+    ->Args({16, 10})
+    ->Args({16, 20})
+    ->Unit(benchmark::kMillisecond);
 
 // Labels of a whole visit rendered into one of its views. Arg: the render stride.
 void BM_SemanticRender(benchmark::State& state) {

@@ -248,6 +248,11 @@ absl::Status SemanticMapOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "semantic free-space stride must be within [0, 64] (0 = none), got ", free_space_stride));
   }
+  if (!(free_space_band_m >= 0.0 && free_space_band_m <= 20.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("semantic free-space band must be within [0, 20] m (0 = whole rays), got ",
+                     free_space_band_m));
+  }
   if (!(observation_uniform_mix >= 0.0 && observation_uniform_mix < 1.0)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "observation uniform mix must be within [0, 1), got ", observation_uniform_mix));
@@ -385,10 +390,18 @@ absl::StatusOr<FusionStats> SemanticMap::Fuse(const cv::Mat& depth_m,
     std::unordered_set<octomap::OcTreeKey, octomap::OcTreeKey::KeyHash> free_keys;
     free_keys.reserve(ray_ends.size() * 16);
     octomap::KeyRay ray;
+    const double band = m.options.free_space_band_m;
     for (const Eigen::Vector3d& e : ray_ends) {
       const octomap::point3d end(static_cast<float>(e.x()), static_cast<float>(e.y()),
                                  static_cast<float>(e.z()));
-      if (!m.tree.computeRayKeys(o, end, ray)) continue;
+      octomap::point3d ray_start = o;
+      const double length = (e - origin).norm();
+      if (band > 0.0 && length > band) {
+        const Eigen::Vector3d b = e + (origin - e) * (band / length);
+        ray_start = octomap::point3d(static_cast<float>(b.x()), static_cast<float>(b.y()),
+                                     static_cast<float>(b.z()));
+      }
+      if (!m.tree.computeRayKeys(ray_start, end, ray)) continue;
       free_keys.insert(ray.begin(), ray.end());
     }
     for (const octomap::OcTreeKey& k : keys) free_keys.erase(k);

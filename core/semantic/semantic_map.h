@@ -30,10 +30,17 @@
 namespace lifemap::semantic {
 
 struct SemanticMapOptions {
-  double resolution_m = 0.05;            // leaf voxel edge
-  double max_range_m = 4.5;              // readings farther are not fused (rays stop there)
-  int pixel_stride = 4;                  // every n-th pixel in x and y is an endpoint
-  int free_space_stride = 8;             // every n-th pixel casts a free-space ray; 0 = none
+  double resolution_m = 0.05;  // leaf voxel edge
+  double max_range_m = 4.5;    // readings farther are not fused (rays stop there)
+  int pixel_stride = 4;        // every n-th pixel in x and y is an endpoint
+  // Every n-th pixel casts a free-space ray (0 = none), from a different quarter point of its
+  // cell each keyframe. 16 keeps a keyframe near 25 ms (docs/BENCHMARKS.md); at 4.5 m its
+  // rays are 14 cm apart in one keyframe, 7 cm over four.
+  int free_space_stride = 16;
+  // Free space is cleared only along the last `free_space_band_m` of each ray (0 = the whole
+  // ray): objects move near surfaces, and the space near the camera is cleared by the rays of
+  // every keyframe anyway.
+  double free_space_band_m = 0.0;
   double observation_uniform_mix = 0.1;  // α: p' = (1 - α) p + α / C
   double min_class_probability = 1e-4;   // belief floor per class
   // Bel_0 ∝ p(c | D)^prior_weight: 1 is eq. 9's prior as is, 0 (default) a uniform start; see
