@@ -424,9 +424,12 @@ void SubmitForFusion(ServiceContext* ctx, AnalysedFrame& a,
   keyframe->intrinsics = f.intrinsics;
   keyframe->T_visit_camera = *f.T_world_camera;
   keyframe->probabilities = std::move(a.analysis->labels->probabilities);
-  ctx->semantic_worker->Submit([visit_state, keyframe, options = ctx->config.semantic] {
-    visit_state->semantics.Fuse(*keyframe, options);
-  });
+  ctx->semantic_worker->Submit(
+      [visit_state, keyframe, options = ctx->config.semantic, store = ctx->store] {
+        visit_state->semantics.Fuse(*keyframe, options);
+        StoreSemanticSnapshotIfDue(store, visit_state->visit_id, &visit_state->semantics,
+                                   kSemanticSnapshotKeyframes);
+      });
 }
 
 // Places an analysed frame in its visit, in the visit's frame order: the keyframe decision, the

@@ -1,5 +1,7 @@
 #include "server/semantics.h"
 
+#include <chrono>
+
 #include "absl/strings/str_cat.h"
 #include "spdlog/spdlog.h"
 
@@ -24,6 +26,7 @@ void VisitSemantics::Fuse(const SemanticKeyframe& keyframe,
   auto stats = map_->Fuse(keyframe.depth_m, keyframe.intrinsics, keyframe.T_visit_camera,
                           keyframe.probabilities);
   error_ = stats.status();
+  if (stats.ok()) ++fused_since_snapshot_;
   if (!stats.ok()) {
     spdlog::warn("semantic fusion refused a keyframe: {}", std::string(stats.status().message()));
   }
@@ -52,6 +55,50 @@ absl::StatusOr<semantic::RenderedLabels> VisitSemantics::Render(const std::strin
 semantic::SemanticSummary VisitSemantics::Summarize() const {
   absl::ReaderMutexLock lock(&mu_);
   return map_ ? map_->Summarize() : semantic::SemanticSummary{};
+}
+
+std::optional<store::SemanticSnapshotRecord> VisitSemantics::SnapshotIfDue(int64_t visit_id,
+                                                                           int every) {
+  absl::MutexLock lock(&mu_);
+  if (map_ == nullptr || fused_since_snapshot_ == 0 || fused_since_snapshot_ < every) {
+    return std::nullopt;
+  }
+  fused_since_snapshot_ = 0;
+  store::SemanticSnapshotRecord r;
+  r.visit_id = visit_id;
+  r.model = model_;
+  r.class_count = map_->class_count();
+  r.resolution_m = map_->resolution_m();
+  r.keyframes = map_->Summarize().keyframes;
+  r.bytes = map_->Serialize();
+  r.updated_time_s =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  return r;
+}
+
+void VisitSemantics::Restore(const store::SemanticSnapshotRecord& snapshot,
+                             const semantic::SemanticMapOptions& options) {
+  auto map = semantic::SemanticMap::Deserialize(snapshot.bytes, options);
+  if (!map.ok()) {
+    spdlog::warn("visit {}: stored semantic octree not restored ({}); it starts empty",
+                 snapshot.visit_id, std::string(map.status().message()));
+    return;
+  }
+  absl::MutexLock lock(&mu_);
+  map_ = *std::move(map);
+  model_ = snapshot.model;
+  error_ = absl::OkStatus();
+  fused_since_snapshot_ = 0;
+}
+
+void StoreSemanticSnapshotIfDue(store::Store* store, int64_t visit_id, VisitSemantics* semantics,
+                                int every) {
+  auto snapshot = semantics->SnapshotIfDue(visit_id, every);
+  if (!snapshot) return;
+  if (auto s = store->PutSemanticSnapshot(*snapshot); !s.ok()) {
+    spdlog::warn("visit {}: semantic octree snapshot not stored: {}", visit_id,
+                 std::string(s.message()));
+  }
 }
 
 }  // namespace lifemap::server

@@ -3,12 +3,14 @@
 // every posed frame of the visit gets the octree's labels rendered into it.
 //
 // One octree per visit, in the visit's frame: client poses, or the server's tracking (with the
-// pose-graph correction known when the keyframe was fused). Not yet: octrees per map (visits
-// merged once aligned), snapshots in the store (a restarted server starts the visit's octree
-// empty), export.
+// pose-graph correction known when the keyframe was fused). Snapshots go to the store every
+// kSemanticSnapshotKeyframes fused keyframes and when the visit ends, and a resumed visit
+// starts from its snapshot. Not yet: octrees per map (visits merged once aligned), export, a
+// rebuild from stored keyframes.
 #pragma once
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -18,8 +20,12 @@
 #include "absl/synchronization/mutex.h"
 #include "core/common/types.h"
 #include "core/semantic/semantic_map.h"
+#include "server/store/store.h"
 
 namespace lifemap::server {
+
+// Keyframes fused between two snapshots of a visit's octree (and one when the visit ends).
+inline constexpr int kSemanticSnapshotKeyframes = 10;
 
 // What the worker fuses of one keyframe.
 struct SemanticKeyframe {
@@ -50,11 +56,25 @@ class VisitSemantics {
 
   semantic::SemanticSummary Summarize() const;
 
+  // A snapshot for the store when at least `every` keyframes were fused since the last one
+  // (any, with `every` 0), else nullopt. Counts it as taken.
+  std::optional<store::SemanticSnapshotRecord> SnapshotIfDue(int64_t visit_id, int every);
+  // Restores a stored snapshot (a resumed visit after a restart). A damaged or incompatible
+  // one (resolution changed in the config) is logged and skipped: the octree starts empty.
+  void Restore(const store::SemanticSnapshotRecord& snapshot,
+               const semantic::SemanticMapOptions& options);
+
  private:
   mutable absl::Mutex mu_;
   std::unique_ptr<semantic::SemanticMap> map_ ABSL_GUARDED_BY(mu_);
   std::string model_ ABSL_GUARDED_BY(mu_);
   absl::Status error_ ABSL_GUARDED_BY(mu_);  // the last fusion's, if it failed
+  int fused_since_snapshot_ ABSL_GUARDED_BY(mu_) = 0;
 };
+
+// Stores the visit's octree when a snapshot is due (VisitSemantics::SnapshotIfDue); a failed
+// write is logged (the octree stays in memory and the next snapshot tries again).
+void StoreSemanticSnapshotIfDue(store::Store* store, int64_t visit_id, VisitSemantics* semantics,
+                                int every);
 
 }  // namespace lifemap::server

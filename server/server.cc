@@ -71,7 +71,9 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->architecture = std::make_unique<ArchitectureWorker>(impl->store.get(), impl->places.get());
   impl->pose_graph = std::make_unique<PoseGraphWorker>(impl->store.get(), config.pose_graph);
   impl->semantic_worker = std::make_unique<SerialWorker>();
-  impl->visits = std::make_unique<VisitRegistry>(impl->store.get(), impl->places.get());
+  impl->visits = std::make_unique<VisitRegistry>(
+      impl->store.get(), impl->places.get(),
+      config.semantic_enabled ? std::optional(config.semantic) : std::nullopt);
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
 
   ServiceContext& ctx = impl->ctx;

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "spdlog/spdlog.h"
 
 namespace lifemap::server {
 
@@ -108,6 +109,15 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   // A resumed visit's architecture from its stored key frames (stored already).
   RebuildArchitecture(store_, places_, state->map_id, visit_id, visit->map_name,
                       /*store_plan=*/false, &state->architecture);
+  // And its semantic octree from its last snapshot.
+  if (semantic_) {
+    if (auto snapshot = store_->GetSemanticSnapshot(visit_id); snapshot.ok()) {
+      state->semantics.Restore(*snapshot, *semantic_);
+    } else if (!absl::IsNotFound(snapshot.status())) {
+      spdlog::warn("visit {}: stored semantic octree unreadable ({}); it starts empty", visit_id,
+                   std::string(snapshot.status().message()));
+    }
+  }
   absl::MutexLock lock(&mu_);
   auto [it, inserted] = visits_.emplace(visit_id, std::move(state));
   return it->second;  // another thread may have loaded it first: use that one

@@ -111,7 +111,11 @@ class VisitWriter {
 // Thread-safe.
 class VisitRegistry {
  public:
-  VisitRegistry(store::Store* store, PlaceIndex* places) : store_(store), places_(places) {}
+  // `semantic`: the options a resumed visit's stored semantic octree is restored with (nullopt:
+  // semantic fusion off, nothing restored).
+  VisitRegistry(store::Store* store, PlaceIndex* places,
+                std::optional<semantic::SemanticMapOptions> semantic = std::nullopt)
+      : store_(store), places_(places), semantic_(std::move(semantic)) {}
 
   // The state of an open visit, loaded from the store on first use (the selector resumes from
   // the visit's last keyframe; the architecture is rebuilt from its stored key frames).
@@ -144,6 +148,7 @@ class VisitRegistry {
  private:
   store::Store* const store_;
   PlaceIndex* const places_;
+  const std::optional<semantic::SemanticMapOptions> semantic_;
   absl::Mutex mu_;
   std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
   std::unordered_map<int64_t, MapSettings> map_settings_ ABSL_GUARDED_BY(mu_);

@@ -47,6 +47,13 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
               "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
   // Its floor plan too: what was sent before the end is folded, stored and ranked.
   ctx_->architecture->Wait(ctx_->architecture->last_ticket());
+  // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
+  if (state.ok() && ctx_->semantic_worker != nullptr) {
+    ctx_->semantic_worker->Wait(
+        ctx_->semantic_worker->Submit([visit = *state, store = ctx_->store] {
+          StoreSemanticSnapshotIfDue(store, visit->visit_id, &visit->semantics, /*every=*/0);
+        }));
+  }
   auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
   if (!drained.ok()) return ToGrpcStatus(drained.status());
   auto visit = ctx_->store->EndVisit(id, NowSeconds(), frames);

@@ -279,6 +279,25 @@ ALTER TABLE visits ADD COLUMN anchor_residual_m REAL;
 ALTER TABLE visits ADD COLUMN anchor_residual_deg REAL;
 ALTER TABLE visits ADD COLUMN anchored_time_s REAL;
 )sql",
+    // 10 -> 11: each visit's semantic octree (issue 16): a header and the snapshot's bytes in
+    // chunks (a snapshot is replaced whole, in one transaction).
+    R"sql(
+CREATE TABLE semantic_octrees (
+  visit_id INTEGER PRIMARY KEY REFERENCES visits(id) ON DELETE CASCADE,
+  model TEXT NOT NULL,
+  class_count INTEGER NOT NULL,
+  resolution_m REAL NOT NULL,
+  keyframes INTEGER NOT NULL,
+  bytes INTEGER NOT NULL,
+  updated_time_s REAL NOT NULL
+);
+CREATE TABLE semantic_octree_chunks (
+  visit_id INTEGER NOT NULL REFERENCES semantic_octrees(visit_id) ON DELETE CASCADE,
+  chunk INTEGER NOT NULL,
+  data BLOB NOT NULL,
+  PRIMARY KEY (visit_id, chunk)
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");

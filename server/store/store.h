@@ -235,6 +235,17 @@ struct VisitPlaceRecord {
   double updated_time_s = 0;
 };
 
+// A visit's semantic octree (core/semantic's snapshot bytes) and what made it.
+struct SemanticSnapshotRecord {
+  int64_t visit_id = 0;
+  std::string model;  // the model whose classes it holds
+  int class_count = 0;
+  double resolution_m = 0.0;
+  int64_t keyframes = 0;  // keyframes fused
+  std::string bytes;      // SemanticMap::Serialize
+  double updated_time_s = 0.0;
+};
+
 class Store {
  public:
   // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
@@ -245,7 +256,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 10;
+  static constexpr int kSchemaVersion = 11;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -322,6 +333,13 @@ class Store {
   absl::Status PutVisitPlace(const VisitPlaceRecord& record);
   absl::StatusOr<std::vector<VisitPlaceRecord>> ListVisitPlaces(const std::string& map_name);
   absl::StatusOr<VisitPlaceRecord> GetVisitPlace(int64_t visit_id);
+
+  // Semantic octree snapshots (issue 16). Put replaces the visit's snapshot in one transaction
+  // (its bytes in chunks of kSemanticChunkBytes): a crash leaves the previous one whole.
+  // NOT_FOUND for an unknown visit (Put) or a visit without a snapshot (Get).
+  absl::Status PutSemanticSnapshot(const SemanticSnapshotRecord& record);
+  absl::StatusOr<SemanticSnapshotRecord> GetSemanticSnapshot(int64_t visit_id);
+  static constexpr size_t kSemanticChunkBytes = 4 << 20;
 
   // Appearance vocabularies. Put stores a new one (it becomes the one in use; its id is
   // returned); Latest returns the one in use, nullopt when none was stored.

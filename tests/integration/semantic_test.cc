@@ -121,5 +121,37 @@ TEST_F(ServerTest, FusedLabelsNeedAModel) {
   }
 }
 
+TEST_F(ServerTest, AResumedVisitStartsFromItsStoredOctree) {
+  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  v1::StreamStart start;
+  start.set_map("lab");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  const uint64_t visit_id = (*stream)->started().visit_id();
+  // Twelve keyframes (a second apart): a snapshot is stored once ten are fused.
+  for (uint64_t i = 0; i < 12; ++i) {
+    ASSERT_TRUE((*stream)->Send(PosedFrame(i)));
+    v1::FrameResult r;
+    ASSERT_TRUE((*stream)->Receive(&r));
+  }
+  (*stream)->CloseSend();
+  EXPECT_TRUE((*stream)->Finish().ok());
+
+  RestartServer();
+  start.set_visit_id(visit_id);
+  stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  ASSERT_TRUE((*stream)->Send(PosedFrame(20)));
+  v1::FrameResult resumed;
+  ASSERT_TRUE((*stream)->Receive(&resumed));
+  (*stream)->CloseSend();
+  EXPECT_TRUE((*stream)->Finish().ok());
+  EXPECT_TRUE(resumed.has_fused_labels())
+      << "the resumed visit's first frame is labelled from the stored octree: "
+      << FusionStatus(resumed)->reason();
+}
+
 }  // namespace
 }  // namespace lifemap

@@ -553,3 +553,51 @@ TEST(MapName, ValidatesCharactersAndLength) {
 
 }  // namespace
 }  // namespace lifemap::store
+
+namespace lifemap::store {
+namespace {
+
+TEST(SemanticSnapshotStore, ReplacesWholeSnapshotsInChunksAndCascades) {
+  testing::TempDir tmp;
+  auto store = Store::Open(tmp.File("db"));
+  ASSERT_TRUE(store.ok()) << store.status();
+  Store& s = **store;
+  ASSERT_TRUE(s.CreateMap("m", "", 1.0).ok());
+  auto visit = s.StartVisit("m", "", "", 1.0);
+  ASSERT_TRUE(visit.ok());
+  EXPECT_TRUE(absl::IsNotFound(s.GetSemanticSnapshot(visit->id).status()));
+
+  SemanticSnapshotRecord r;
+  r.visit_id = visit->id;
+  r.model = "desk";
+  r.class_count = 4;
+  r.resolution_m = 0.05;
+  r.keyframes = 12;
+  r.bytes = std::string(Store::kSemanticChunkBytes * 2 + 17, 'a');  // three chunks
+  r.bytes[Store::kSemanticChunkBytes] = 'b';
+  r.updated_time_s = 5.0;
+  ASSERT_TRUE(s.PutSemanticSnapshot(r).ok());
+  auto got = s.GetSemanticSnapshot(visit->id);
+  ASSERT_TRUE(got.ok()) << got.status();
+  EXPECT_TRUE(got->bytes == r.bytes);
+  EXPECT_EQ(got->model, "desk");
+  EXPECT_EQ(got->class_count, 4);
+  EXPECT_EQ(got->keyframes, 12);
+
+  // A smaller snapshot replaces it whole (no chunk of the old one left behind).
+  r.bytes = "small";
+  r.keyframes = 13;
+  ASSERT_TRUE(s.PutSemanticSnapshot(r).ok());
+  got = s.GetSemanticSnapshot(visit->id);
+  ASSERT_TRUE(got.ok()) << got.status();
+  EXPECT_EQ(got->bytes, "small");
+  EXPECT_EQ(got->keyframes, 13);
+
+  r.visit_id = 999;
+  EXPECT_TRUE(absl::IsNotFound(s.PutSemanticSnapshot(r)));
+  ASSERT_TRUE(s.DeleteMap("m").ok());  // its visits, and their snapshots, go with it
+  EXPECT_TRUE(absl::IsNotFound(s.GetSemanticSnapshot(visit->id).status()));
+}
+
+}  // namespace
+}  // namespace lifemap::store
