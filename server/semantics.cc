@@ -26,8 +26,9 @@ void VisitSemantics::Fuse(const SemanticKeyframe& keyframe,
   auto stats = map_->Fuse(keyframe.depth_m, keyframe.intrinsics, keyframe.T_visit_camera,
                           keyframe.probabilities);
   error_ = stats.status();
-  if (stats.ok()) ++fused_since_snapshot_;
-  if (!stats.ok()) {
+  if (stats.ok()) {
+    ++fused_since_snapshot_;
+  } else {
     spdlog::warn("semantic fusion refused a keyframe: {}", std::string(stats.status().message()));
   }
 }
@@ -52,11 +53,6 @@ absl::StatusOr<semantic::RenderedLabels> VisitSemantics::Render(const std::strin
   return map_->Render(depth_m, intrinsics, T_visit_camera, stride);
 }
 
-semantic::SemanticSummary VisitSemantics::Summarize() const {
-  absl::ReaderMutexLock lock(&mu_);
-  return map_ ? map_->Summarize() : semantic::SemanticSummary{};
-}
-
 std::optional<store::SemanticSnapshotRecord> VisitSemantics::SnapshotIfDue(int64_t visit_id,
                                                                            int every) {
   absl::MutexLock lock(&mu_);
@@ -69,7 +65,7 @@ std::optional<store::SemanticSnapshotRecord> VisitSemantics::SnapshotIfDue(int64
   r.model = model_;
   r.class_count = map_->class_count();
   r.resolution_m = map_->resolution_m();
-  r.keyframes = map_->Summarize().keyframes;
+  r.keyframes = map_->keyframes();
   r.bytes = map_->Serialize();
   r.updated_time_s =
       std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();

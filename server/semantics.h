@@ -54,8 +54,6 @@ class VisitSemantics {
                                                   const CameraIntrinsics& intrinsics,
                                                   const Pose& T_visit_camera, int stride) const;
 
-  semantic::SemanticSummary Summarize() const;
-
   // A snapshot for the store when at least `every` keyframes were fused since the last one
   // (any, with `every` 0), else nullopt. Counts it as taken.
   std::optional<store::SemanticSnapshotRecord> SnapshotIfDue(int64_t visit_id, int every);

@@ -200,6 +200,21 @@ json Scores(const std::vector<std::vector<int64_t>>& confusion,
           {"per_class", per_class}};
 }
 
+// Counts every pixel that has a class in both `truth` and `guess` (CV_8UC1; kIgnore, and ids
+// beyond the matrix, are skipped) into a confusion matrix (rows: truth, columns: guess).
+void Tally(const cv::Mat& truth, const cv::Mat& guess,
+           std::vector<std::vector<int64_t>>* confusion) {
+  const size_t n = confusion->size();
+  for (int r = 0; r < truth.rows; ++r) {
+    const uint8_t* t = truth.ptr<uint8_t>(r);
+    const uint8_t* g = guess.ptr<uint8_t>(r);
+    for (int c = 0; c < truth.cols; ++c) {
+      if (t[c] >= n || g[c] >= n) continue;
+      ++(*confusion)[t[c]][g[c]];
+    }
+  }
+}
+
 int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
   forest::ModelDescription description;
   auto model = LoadModel(a.model, &description);
@@ -216,16 +231,7 @@ int RunEvalSegmentation(const CliContext& ctx, const EvalArgs& a) {
     for (const auto& im : data->images) {
       auto predicted = label(im);
       if (!predicted.ok()) return predicted.status();
-      for (int r = 0; r < im.labels.rows; ++r) {
-        for (int c = 0; c < im.labels.cols; ++c) {
-          const uint8_t truth = im.labels.at<uint8_t>(r, c);
-          const uint8_t guess = predicted->at<uint8_t>(r, c);
-          if (truth == forest::kIgnore || guess == forest::kIgnore || truth >= n || guess >= n) {
-            continue;
-          }
-          ++confusion[truth][guess];
-        }
-      }
+      Tally(im.labels, *predicted, &confusion);
     }
     return Scores(confusion, names);
   };
@@ -297,20 +303,6 @@ struct FusionArgs {
   semantic::SemanticMapOptions map;
 };
 
-// Accumulates pixels with a label and a depth reading into a confusion matrix.
-void Tally(const cv::Mat& truth, const cv::Mat& guess,
-           std::vector<std::vector<int64_t>>* confusion) {
-  const size_t n = confusion->size();
-  for (int r = 0; r < truth.rows; ++r) {
-    const uint8_t* t = truth.ptr<uint8_t>(r);
-    const uint8_t* g = guess.ptr<uint8_t>(r);
-    for (int c = 0; c < truth.cols; ++c) {
-      if (t[c] >= n || g[c] >= n) continue;
-      ++(*confusion)[t[c]][g[c]];
-    }
-  }
-}
-
 // Scores as `eval fusion` reports them: precision and recall per class name (their means
 // beside), the confusion matrix (rows: truth, columns: labels).
 json FusionScores(const std::vector<std::vector<int64_t>>& confusion,
@@ -332,12 +324,6 @@ json FusionScores(const std::vector<std::vector<int64_t>>& confusion,
     out["pixels"][name] = c["pixels"];
   }
   return out;
-}
-
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0.0;
-  std::sort(v.begin(), v.end());
-  return v[static_cast<size_t>(q * static_cast<double>(v.size() - 1) + 0.5)];
 }
 
 // Paper 002's Tables I-IV: per visit, every image is labelled alone (single), all of the
@@ -434,8 +420,8 @@ int RunEvalFusion(const CliContext& ctx, const FusionArgs& a) {
       {"fused_coverage",
        depth_pixels > 0 ? static_cast<double>(rendered_pixels) / static_cast<double>(depth_pixels)
                         : 0.0},
-      {"fusion_ms", {{"p50", Percentile(fuse_ms, 0.5)}, {"max", Percentile(fuse_ms, 1.0)}}},
-      {"render_ms", {{"p50", Percentile(render_ms, 0.5)}, {"max", Percentile(render_ms, 1.0)}}},
+      {"fusion_ms", {{"p50", Percentile(fuse_ms, 50)}, {"max", Percentile(fuse_ms, 100)}}},
+      {"render_ms", {{"p50", Percentile(render_ms, 50)}, {"max", Percentile(render_ms, 100)}}},
       {"visits", visits}};
   summary["gain_no_bg"] = summary["fused"]["accuracy_no_bg"].get<double>() -
                           summary["single"]["accuracy_no_bg"].get<double>();
@@ -461,7 +447,7 @@ int RunEvalFusion(const CliContext& ctx, const FusionArgs& a) {
   }
   std::cout << absl::StrFormat(
       "gain without background: %+.3f; fusion %.1f ms (p50), render %.1f ms (p50)\n",
-      summary["gain_no_bg"].get<double>(), Percentile(fuse_ms, 0.5), Percentile(render_ms, 0.5));
+      summary["gain_no_bg"].get<double>(), Percentile(fuse_ms, 50), Percentile(render_ms, 50));
   return 0;
 }
 

@@ -1,5 +1,6 @@
 #include "client/cli/output.h"
 
+#include <algorithm>
 #include <ctime>
 #include <iostream>
 
@@ -64,6 +65,14 @@ std::string HumanTime(double seconds_since_epoch) {
   char buf[32];
   std::strftime(buf, sizeof(buf), "%Y-%m-%d %H:%M:%S UTC", &tm);
   return buf;
+}
+
+double Percentile(std::vector<double> values, double percent) {
+  if (values.empty()) return 0.0;
+  std::sort(values.begin(), values.end());
+  const size_t i =
+      std::min(values.size() - 1, static_cast<size_t>(percent / 100.0 * (values.size() - 1) + 0.5));
+  return values[i];
 }
 
 }  // namespace lifemap::cli

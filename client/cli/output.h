@@ -2,6 +2,7 @@
 #pragma once
 
 #include <string>
+#include <vector>
 
 #include <google/protobuf/message.h>
 
@@ -27,5 +28,8 @@ int UsageError(const std::string& message);
 std::string HumanBytes(uint64_t bytes);
 // "2026-11-23 14:05:09 UTC".
 std::string HumanTime(double seconds_since_epoch);
+
+// The nearest-rank `percent` percentile (0..100) of `values`; 0 when empty.
+double Percentile(std::vector<double> values, double percent);
 
 }  // namespace lifemap::cli

@@ -39,13 +39,6 @@ struct StreamArgs {
   bool compact = false;  // --send compact: JPEG colour, paletted depth (client::CompactFrame)
 };
 
-double Percentile(std::vector<double> v, double p) {
-  if (v.empty()) return 0.0;
-  std::sort(v.begin(), v.end());
-  const size_t i = std::min(v.size() - 1, static_cast<size_t>(p / 100.0 * (v.size() - 1) + 0.5));
-  return v[i];
-}
-
 int RunStream(const CliContext& ctx, const StreamArgs& a) {
   if (a.rate_hz > 1000.0) {
     return UsageError("--rate must be at most 1000 Hz (0 = as fast as the server takes)");

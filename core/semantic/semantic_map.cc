@@ -530,21 +530,20 @@ absl::Status SemanticMap::Merge(const SemanticMap& other, const Pose& T_this_oth
   const Eigen::Isometry3d T = T_this_other.ToIsometry();
   if (auto s = m.CheckInCube(T.translation()); !s.ok()) return s;
   std::vector<float> p(static_cast<size_t>(m.class_count));
-  for (const LabelledVoxel& v : other.LabelledVoxels()) {
-    const octomap::point3d centre(v.x, v.y, v.z);
-    const octomap::OcTreeKey other_key = o.tree.coordToKey(centre);
-    const SemanticNode* source = o.tree.search(other_key);
-    if (source == nullptr || source->belief.empty()) continue;
-    for (size_t c = 0; c < p.size(); ++c) p[c] = std::exp(source->belief[c]);
+  for (auto it = o.tree.begin_leafs(), end = o.tree.end_leafs(); it != end; ++it) {
+    if (it->belief.empty() || !o.tree.isNodeOccupied(*it)) continue;
+    for (size_t c = 0; c < p.size(); ++c) p[c] = std::exp(it->belief[c]);
+    const octomap::point3d centre = it.getCoordinate();
+    const double size = it.getSize();
+    const double h = m.options.resolution_m;
     // A pruned voxel stands for (size / resolution)^3 leaves: fuse each.
-    const int n = std::max(1, static_cast<int>(std::lround(v.size_m / m.options.resolution_m)));
+    const int n = std::max(1, static_cast<int>(std::lround(size / h)));
     for (int i = 0; i < n; ++i) {
       for (int j = 0; j < n; ++j) {
         for (int k = 0; k < n; ++k) {
-          const double h = m.options.resolution_m;
-          const Eigen::Vector3d local(v.x - v.size_m / 2 + (i + 0.5) * h,
-                                      v.y - v.size_m / 2 + (j + 0.5) * h,
-                                      v.z - v.size_m / 2 + (k + 0.5) * h);
+          const Eigen::Vector3d local(centre.x() - size / 2 + (i + 0.5) * h,
+                                      centre.y() - size / 2 + (j + 0.5) * h,
+                                      centre.z() - size / 2 + (k + 0.5) * h);
           const Eigen::Vector3d q = T * local;
           octomap::OcTreeKey key;
           if (!m.tree.coordToKeyChecked(q.x(), q.y(), q.z(), key)) continue;
@@ -723,6 +722,7 @@ std::string SemanticMap::ToOctomapColor(const std::vector<uint32_t>& class_color
 
 int SemanticMap::class_count() const { return impl_->class_count; }
 double SemanticMap::resolution_m() const { return impl_->tree.getResolution(); }
+int64_t SemanticMap::keyframes() const { return impl_->keyframes; }
 const SemanticMapOptions& SemanticMap::options() const { return impl_->options; }
 
 }  // namespace lifemap::semantic

@@ -149,6 +149,7 @@ class SemanticMap {
 
   int class_count() const;
   double resolution_m() const;
+  int64_t keyframes() const;  // keyframes fused (SemanticSummary::keyframes, without the walk)
   const SemanticMapOptions& options() const;
 
  private:
