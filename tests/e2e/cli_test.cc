@@ -846,6 +846,10 @@ TEST_F(CliTest, EvalFusionComparesSingleFrameAndFusedLabels) {
       {"eval", "fusion", "--model", tmp_.File("m.model"), "--data", visit, "--resolution", "5"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("resolution"), std::string::npos) << r.err;
+  r = Run(
+      {"eval", "fusion", "--model", tmp_.File("m.model"), "--data", visit, "--prior-weight", "2"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("prior weight must be within [0, 1]"), std::string::npos) << r.err;
 }
 
 TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
