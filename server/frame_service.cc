@@ -203,6 +203,10 @@ struct AnalysedFrame {
   std::optional<float> entropy_threshold;    // the threshold in effect (request, map, server)
   // A frame of a visit sent without a pose, prepared for the visit's tracker (issue 15).
   std::shared_ptr<tracking::TrackingInput> tracking_input;
+  // Brings the frame's pose into its visit's own frame (where the visit's semantic octree is):
+  // identity, except for a tracked pose reported in the map's frame after the visit was
+  // anchored during this run (then T_map_visit⁻¹).
+  Pose T_visit_world;
 };
 
 // Reads the visit's writability and map name (a unary frame has neither to check).
@@ -387,7 +391,9 @@ absl::Status RenderFusedLabels(ServiceContext* ctx, const AnalysedFrame& a,
     return absl::FailedPreconditionError(
         "the frame has no pose (send Frame.pose, or frames the server can track)");
   }
-  auto rendered = visit->semantics.Render(a.model->name, f.depth_m, f.intrinsics, *f.T_world_camera,
+  const Pose T_visit_camera =
+      Pose::FromIsometry(a.T_visit_world.ToIsometry() * f.T_world_camera->ToIsometry());
+  auto rendered = visit->semantics.Render(a.model->name, f.depth_m, f.intrinsics, T_visit_camera,
                                           ctx->config.semantic_render_stride);
   if (!rendered.ok()) return rendered.status();
   if (rendered->labelled_pixels == 0) {
@@ -422,7 +428,8 @@ void SubmitForFusion(ServiceContext* ctx, AnalysedFrame& a,
   keyframe->class_prior = a.model->forest.class_prior();
   keyframe->depth_m = f.depth_m;  // shared, not copied: the frame is not written afterwards
   keyframe->intrinsics = f.intrinsics;
-  keyframe->T_visit_camera = *f.T_world_camera;
+  keyframe->T_visit_camera =
+      Pose::FromIsometry(a.T_visit_world.ToIsometry() * f.T_world_camera->ToIsometry());
   keyframe->probabilities = std::move(a.analysis->labels->probabilities);
   ctx->semantic_worker->Submit(
       [visit_state, keyframe, options = ctx->config.semantic, store = ctx->store] {
@@ -496,6 +503,9 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
       absl::MutexLock correction(&visit->correction_mu);
       f.T_world_camera = Pose::FromIsometry(visit->world_from_odom.ToIsometry() *
                                             tracked.T_world_camera->ToIsometry());
+      if (visit->T_map_visit) {
+        a.T_visit_world = Pose::FromIsometry(visit->T_map_visit->ToIsometry().inverse());
+      }
       PoseToProto(*f.T_world_camera, r.mutable_pose());
     } else {
       t->set_reason(tracked.reason);
@@ -606,6 +616,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
           absl::MutexLock correction(&visit_state->correction_mu);
           visit_state->world_from_odom = Pose::FromIsometry(
               T_map_visit.ToIsometry() * visit_state->world_from_odom.ToIsometry());
+          visit_state->T_map_visit = T_map_visit;
         }
         // Its stored key frames moved into the map's frame: its floor plan follows them (the
         // key frames folded from now on are placed there).

@@ -3,10 +3,12 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "core/common/rgbd_frame.h"
 #include "core/io/tum_dataset.h"
 #include "core/mapping/point_cloud.h"
 #include "server/convert.h"
+#include "server/semantic_export.h"
 #include "server/services.h"
 
 namespace lifemap::server {
@@ -263,9 +265,62 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
       cloud = mapping::VoxelDownsample(cloud, voxel);
       return SendChunks(io::EncodePlyBinary(cloud), "application/ply", cloud.size(), writer);
     }
+    case v1::EXPORT_OCTREE_BT:
+    case v1::EXPORT_OCTREE_OT:
+    case v1::EXPORT_SEMANTIC_CLOUD_PLY:
+    case v1::EXPORT_SEMANTIC_SUMMARY_JSON:
+      return ExportSemantic(*map, *req, writer);
     default:
+      return grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat(
+              "format must be one of EXPORT_POSES_TUM, EXPORT_CLOUD_PLY, EXPORT_OCTREE_BT, "
+              "EXPORT_OCTREE_OT, EXPORT_SEMANTIC_CLOUD_PLY, EXPORT_SEMANTIC_SUMMARY_JSON; "
+              "got ",
+              static_cast<int>(req->format())));
+  }
+}
+
+grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
+                                            const v1::ExportMapRequest& req,
+                                            grpc::ServerWriter<v1::ExportChunk>* writer) {
+  auto e = CollectSemanticExport(ctx_->store, ctx_->visits, ctx_->semantic_worker, map,
+                                 static_cast<int64_t>(req.visit_id()), ctx_->config.semantic);
+  if (!e.ok()) return ToGrpcStatus(e.status());
+  int only_class = -1;
+  if (!req.class_name().empty()) {
+    for (size_t c = 0; c < e->class_names.size(); ++c) {
+      if (e->class_names[c] == req.class_name()) only_class = static_cast<int>(c);
+    }
+    if (only_class < 0) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                          "format must be EXPORT_POSES_TUM or EXPORT_CLOUD_PLY");
+                          absl::StrCat("class '", req.class_name(), "' is not one of model '",
+                                       e->model, "''s: ", absl::StrJoin(e->class_names, ", ")));
+    }
+    if (req.format() == v1::EXPORT_SEMANTIC_SUMMARY_JSON) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          "class_name selects voxels of octrees and semantic clouds; the summary "
+                          "covers every class (leave class_name empty)");
+    }
+  }
+  const std::unique_ptr<semantic::SemanticMap> selected =
+      only_class >= 0 ? e->map->OnlyClass(only_class) : nullptr;
+  const semantic::SemanticMap& octree = selected ? *selected : *e->map;
+  switch (req.format()) {
+    case v1::EXPORT_OCTREE_BT:
+      return SendChunks(octree.ToOctomapBinary(), "application/octet-stream",
+                        static_cast<uint64_t>(octree.Summarize().occupied_voxels), writer);
+    case v1::EXPORT_OCTREE_OT:
+      return SendChunks(octree.ToOctomapColor(e->class_colors), "application/octet-stream",
+                        static_cast<uint64_t>(octree.Summarize().occupied_voxels), writer);
+    case v1::EXPORT_SEMANTIC_CLOUD_PLY: {
+      const auto voxels = octree.LabelledVoxels();
+      return SendChunks(semantic::LabelledVoxelsToPly(voxels, e->class_colors), "application/ply",
+                        voxels.size(), writer);
+    }
+    default:
+      return SendChunks(SemanticExportSummaryJson(*e), "application/json", e->visits.size(),
+                        writer);
   }
 }
 

@@ -5,8 +5,8 @@
 // One octree per visit, in the visit's frame: client poses, or the server's tracking (with the
 // pose-graph correction known when the keyframe was fused). Snapshots go to the store every
 // kSemanticSnapshotKeyframes fused keyframes and when the visit ends, and a resumed visit
-// starts from its snapshot. Not yet: octrees per map (visits merged once aligned), export, a
-// rebuild from stored keyframes.
+// starts from its snapshot. A map's octree is merged from its visits' snapshots when exported
+// (server/semantic_export.h). Not yet: a rebuild from stored keyframes.
 #pragma once
 
 #include <memory>

@@ -147,6 +147,13 @@ void LifemapServer::Shutdown() {
   // what is still queued, then close the store.
   // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
   impl_->pose_graph.reset();
+  // Every open visit's octree into the store once its queued keyframes are fused (the periodic
+  // snapshot may be up to 9 keyframes behind): a restart resumes with all of them.
+  for (const auto& visit : impl_->visits->AllLoaded()) {
+    impl_->semantic_worker->Submit([visit, store = impl_->store.get()] {
+      StoreSemanticSnapshotIfDue(store, visit->visit_id, &visit->semantics, /*every=*/0);
+    });
+  }
   impl_->semantic_worker.reset();
   impl_->architecture.reset();
   impl_->committer.reset();

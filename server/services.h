@@ -71,6 +71,10 @@ class MapServiceImpl final : public v1::MapService::Service {
                          v1::Map*) override;
 
  private:
+  // ExportMap's semantic octree formats (server/semantic_export.h).
+  grpc::Status ExportSemantic(const store::MapRecord& map, const v1::ExportMapRequest& req,
+                              grpc::ServerWriter<v1::ExportChunk>* writer);
+
   ServiceContext* ctx_;
 };
 

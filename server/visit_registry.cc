@@ -123,6 +123,19 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   return it->second;  // another thread may have loaded it first: use that one
 }
 
+std::shared_ptr<VisitState> VisitRegistry::Loaded(int64_t visit_id) {
+  absl::MutexLock lock(&mu_);
+  auto it = visits_.find(visit_id);
+  return it != visits_.end() ? it->second : nullptr;
+}
+
+std::vector<std::shared_ptr<VisitState>> VisitRegistry::AllLoaded() {
+  absl::MutexLock lock(&mu_);
+  std::vector<std::shared_ptr<VisitState>> out;
+  for (const auto& [id, state] : visits_) out.push_back(state);
+  return out;
+}
+
 int64_t VisitRegistry::CloseVisit(int64_t visit_id, const absl::Status& why) {
   std::shared_ptr<VisitState> state;
   {

@@ -77,6 +77,10 @@ struct VisitState {
   // loop closes; set by the PoseGraphWorker.
   absl::Mutex correction_mu;
   Pose world_from_odom ABSL_GUARDED_BY(correction_mu);
+  // Set when the visit was anchored during this server run (PoseGraphWorker): world_from_odom
+  // then leads into the map's frame, and tracked poses are reported there. The visit's semantic
+  // octree stays in the visit's own frame (T_map_visit⁻¹ brings a pose back into it).
+  std::optional<Pose> T_map_visit ABSL_GUARDED_BY(correction_mu);
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;
@@ -121,6 +125,10 @@ class VisitRegistry {
   // the visit's last keyframe; the architecture is rebuilt from its stored key frames).
   // NOT_FOUND for an unknown visit; FAILED_PRECONDITION if ended.
   absl::StatusOr<std::shared_ptr<VisitState>> Get(int64_t visit_id);
+  // The state of a visit if it is loaded now (nullptr otherwise); never loads it.
+  std::shared_ptr<VisitState> Loaded(int64_t visit_id);
+  // Every visit loaded now.
+  std::vector<std::shared_ptr<VisitState>> AllLoaded();
 
   // Claims `state` for a stream from `peer` until the returned writer is destroyed.
   // FAILED_PRECONDITION naming the visit and the stream that holds it, or the visit's

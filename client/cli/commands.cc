@@ -5,6 +5,7 @@
 #include <fstream>
 #include <iostream>
 
+#include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -379,32 +380,64 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
 }
 
 void AddExportCommand(CLI::App* app, CliContext* ctx) {
-  auto* exp = app->add_subcommand("export", "Export a map's poses (TUM format) or cloud (PLY)");
+  auto* exp = app->add_subcommand(
+      "export",
+      "Export a map's poses (TUM format), cloud (PLY) or semantic octree (OctoMap .ot/.bt, a "
+      "labelled voxel PLY, a JSON summary)");
   struct Args {
-    std::string map, what, out;
+    std::string map, what, out, format, class_name;
     uint64_t visit = 0;
     double voxel_m = 0.0;
     uint32_t stride = 0;
   };
   auto a = std::make_shared<Args>();
   exp->add_option("--map", a->map, "map name")->required();
-  exp->add_option("--what", a->what, "poses | cloud")
+  exp->add_option("--what", a->what, "poses | cloud | octree | semantic-cloud | semantic-summary")
       ->required()
-      ->check(CLI::IsMember({"poses", "cloud"}));
+      ->check(CLI::IsMember({"poses", "cloud", "octree", "semantic-cloud", "semantic-summary"}));
   exp->add_option("--out", a->out, "output file")->required();
   exp->add_option("--visit", a->visit, "only this visit");
   exp->add_option("--voxel", a->voxel_m, "cloud voxel size in metres (default 0.02)");
   exp->add_option("--stride", a->stride, "cloud: use every N-th pixel (default 4)");
+  exp->add_option("--format", a->format,
+                  "octree: ot (ColorOcTree, class colours) or bt (OcTree, occupancy); default "
+                  "from --out's extension, else ot")
+      ->check(CLI::IsMember({"ot", "bt"}));
+  exp->add_option("--class", a->class_name,
+                  "octree, semantic-cloud: only voxels of this class (a name of the map's model)");
   exp->callback([ctx, a] {
     ctx->run = [ctx, a]() -> int {
-      auto c = ctx->Connect();
-      if (!c.ok()) return Fail(c.status());
+      const bool semantic = a->what == "octree" || a->what == "semantic-cloud";
+      if (!a->format.empty() && a->what != "octree") {
+        return UsageError("--format applies to --what octree only");
+      }
+      if (!a->class_name.empty() && !semantic) {
+        return UsageError("--class applies to --what octree and semantic-cloud");
+      }
+      if ((a->voxel_m != 0.0 || a->stride != 0) && a->what != "cloud") {
+        return UsageError("--voxel and --stride apply to --what cloud only");
+      }
       v1::ExportMapRequest req;
       req.set_map(a->map);
-      req.set_format(a->what == "poses" ? v1::EXPORT_POSES_TUM : v1::EXPORT_CLOUD_PLY);
+      if (a->what == "poses") {
+        req.set_format(v1::EXPORT_POSES_TUM);
+      } else if (a->what == "cloud") {
+        req.set_format(v1::EXPORT_CLOUD_PLY);
+      } else if (a->what == "octree") {
+        const bool bt =
+            a->format == "bt" || (a->format.empty() && fs::path(a->out).extension() == ".bt");
+        req.set_format(bt ? v1::EXPORT_OCTREE_BT : v1::EXPORT_OCTREE_OT);
+      } else if (a->what == "semantic-cloud") {
+        req.set_format(v1::EXPORT_SEMANTIC_CLOUD_PLY);
+      } else {
+        req.set_format(v1::EXPORT_SEMANTIC_SUMMARY_JSON);
+      }
       req.set_visit_id(a->visit);
       req.set_voxel_size_m(a->voxel_m);
       req.set_pixel_stride(a->stride);
+      req.set_class_name(a->class_name);
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
       uint64_t items = 0;
       auto s = WriteFileAtomically(a->out, [&](std::ostream* out) -> absl::Status {
         auto n = (*c)->ExportMap(req, out);
@@ -413,12 +446,15 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
         return absl::OkStatus();
       });
       if (!s.ok()) return Fail(s);
+      const char* unit = a->what == "poses"              ? "poses"
+                         : a->what == "cloud"            ? "points"
+                         : a->what == "semantic-summary" ? "visits"
+                                                         : "voxels";
       if (ctx->json) {
-        std::cout << absl::StrFormat("{\"out\": \"%s\", \"what\": \"%s\", \"items\": %d}\n", a->out,
-                                     a->what, items);
+        std::cout << nlohmann::json{{"out", a->out}, {"what", a->what}, {"items", items}}.dump()
+                  << "\n";
       } else {
-        std::cout << "wrote " << items << (a->what == "poses" ? " poses" : " points") << " to "
-                  << a->out << "\n";
+        std::cout << "wrote " << items << " " << unit << " to " << a->out << "\n";
       }
       return 0;
     };

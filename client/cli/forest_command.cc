@@ -70,6 +70,8 @@ struct TrainArgs {
   std::vector<std::string> data;
   std::string out;
   int trees = 3, depth = 20, pixels = 2000, candidates = 2000, stride = 10;
+  float max_offset = 80.0f, max_size = 40.0f, depth_share = 0.8f;
+  bool global_balance = false;
   uint64_t seed = 1;
   std::string sim_classes = "grouped";
 };
@@ -82,6 +84,10 @@ int RunTrain(const CliContext& ctx, const TrainArgs& a) {
   o.max_depth = a.depth;
   o.pixels_per_image = a.pixels;
   o.candidates = a.candidates;
+  o.max_offset = a.max_offset;
+  o.max_size = a.max_size;
+  o.depth_feature_share = a.depth_share;
+  o.global_balance = a.global_balance;
   o.seed = a.seed;
   const auto start = std::chrono::steady_clock::now();
   o.progress = [&](int done, int total) {
@@ -122,6 +128,8 @@ int RunTrain(const CliContext& ctx, const TrainArgs& a) {
                                      {"candidates", o.candidates},
                                      {"max_offset", o.max_offset},
                                      {"max_size", o.max_size},
+                                     {"depth_feature_share", o.depth_feature_share},
+                                     {"global_balance", o.global_balance},
                                      {"seed", o.seed}}},
                                    {"nodes", model->node_count()},
                                    {"seconds", seconds},
@@ -469,6 +477,20 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
       ->check(CLI::Range(1, 100000));
   train->add_option("--frame-stride", t->stride, "synthetic visits: every N-th frame (default 10)")
       ->check(CLI::Range(1, 1000));
+  train
+      ->add_option("--max-offset", t->max_offset,
+                   "largest feature offset, pixels at 1 m depth (default 80)")
+      ->check(CLI::Range(0.0f, 10000.0f));
+  train
+      ->add_option("--max-size", t->max_size,
+                   "largest feature rectangle side, pixels at 1 m depth (default 40)")
+      ->check(CLI::Range(1.0f, 10000.0f));
+  train
+      ->add_option("--depth-features", t->depth_share,
+                   "share of features comparing depth, the rest colour (default 0.8)")
+      ->check(CLI::Range(0.0f, 1.0f));
+  train->add_flag("--global-balance", t->global_balance,
+                  "weigh every class equally across all images, not only within each image");
   train->add_option("--seed", t->seed, "seed");
   train
       ->add_option("--sim-classes", t->sim_classes,

@@ -118,7 +118,13 @@ Feature RandomFeature(std::mt19937_64* rng, const TrainOptions& o) {
   f.offset2_x = offset(*rng), f.offset2_y = offset(*rng);
   f.size2_x = size(*rng), f.size2_y = size(*rng);
   // Depth against depth, or colour against colour (any two of L*, a*, b*).
-  if ((*rng)() % 2 == 0) {
+  // A uniform number in [0, 1) whose most significant bit is the draw's lowest: at a share of
+  // 0.5 the choice is the draw's parity, as before the share was an option (models trained
+  // before with an even split are reproduced by --depth-features 0.5).
+  const uint64_t draw = (*rng)();
+  double u = 0, bit = 0.5;
+  for (int b = 0; b < 53; ++b, bit /= 2) u += static_cast<double>((draw >> b) & 1) * bit;
+  if (u < o.depth_feature_share) {
     f.channel1 = f.channel2 = 0;
   } else {
     f.channel1 = static_cast<uint8_t>(1 + (*rng)() % 3);
@@ -161,10 +167,12 @@ double InformationGain(const std::vector<double>& parent, const std::vector<doub
 absl::Status TrainOptions::Validate() const {
   if (trees < 1 || trees > 64 || max_depth < 1 || max_depth > 40 || min_samples < 1 ||
       pixels_per_image < 1 || candidates < 1 || threads < 1 || !(max_offset >= 0) ||
-      !(max_size >= 1)) {
+      !(max_size >= 1) || !(depth_feature_share >= 0 && depth_feature_share <= 1)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "training options out of range: trees [1, 64] (", trees, "), depth [1, 40] (", max_depth,
-        "), min_samples, pixels_per_image, candidates, threads >= 1, max_size >= 1"));
+        "), min_samples, pixels_per_image, candidates, threads >= 1, max_offset >= 0 (", max_offset,
+        "), max_size >= 1 (", max_size, "), depth_feature_share [0, 1] (", depth_feature_share,
+        ")"));
   }
   return absl::OkStatus();
 }
@@ -251,6 +259,18 @@ absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, in
         for (int n = 0; n < per_class; ++n) samples.push_back(v[pick(rng)]);
       }
     }
+    // Weight of one sample of each class: 1, or (with global balance) such that every class
+    // present weighs as much as an even share of all samples.
+    std::vector<double> weight(static_cast<size_t>(class_count), 1.0);
+    if (options.global_balance) {
+      std::vector<double> count(static_cast<size_t>(class_count), 0.0);
+      for (const Sample& s : samples) count[s.label] += 1;
+      int present = 0;
+      for (double c : count) present += c > 0;
+      for (size_t c = 0; c < count.size(); ++c) {
+        if (count[c] > 0) weight[c] = static_cast<double>(samples.size()) / (present * count[c]);
+      }
+    }
     Tree& tree = forest.trees_[static_cast<size_t>(k)];
     struct Work {
       int node;
@@ -264,13 +284,14 @@ absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, in
       const Work w = stack.back();
       stack.pop_back();
       std::vector<double> hist(static_cast<size_t>(class_count), 0.0);
-      for (size_t i = w.begin; i < w.end; ++i) hist[samples[i].label] += 1;
+      for (size_t i = w.begin; i < w.end; ++i) hist[samples[i].label] += weight[samples[i].label];
       int nonzero = 0;
       for (double h : hist) nonzero += h > 0;
       auto make_leaf = [&]() {
         tree.nodes[static_cast<size_t>(w.node)].leaf =
             static_cast<int32_t>(tree.leaves.size() / static_cast<size_t>(class_count));
-        const double n = static_cast<double>(w.end - w.begin);
+        double n = 0;
+        for (double h : hist) n += h;
         for (double h : hist) tree.leaves.push_back(n > 0 ? static_cast<float>(h / n) : 0.0f);
       };
       if (w.depth >= options.max_depth ||
@@ -293,7 +314,8 @@ absl::StatusOr<Forest> Forest::Train(const std::vector<LabeledImage>& images, in
         const float threshold = values[pick(rng) - w.begin];
         std::vector<double> left(hist.size(), 0.0), right(hist.size(), 0.0);
         for (size_t i = w.begin; i < w.end; ++i) {
-          (values[i - w.begin] < threshold ? left : right)[samples[i].label] += 1;
+          (values[i - w.begin] < threshold ? left : right)[samples[i].label] +=
+              weight[samples[i].label];
         }
         const double gain = InformationGain(hist, left, right);
         if (gain > best_gain) {

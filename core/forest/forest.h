@@ -40,6 +40,15 @@ struct TrainOptions {
   int candidates = 2000;        // P (feature, threshold) pairs tried per node
   float max_offset = 80.0f;     // pixel metres
   float max_size = 40.0f;       // pixel metres
+  // Share of candidate features comparing depth with depth (the rest compare colours). 0.8,
+  // not an even split: chosen on synthetic place 5 and mOSD (docs/RESULTS.md, issue 16): shape
+  // carries over to unseen places and cluttered tables better than colour does.
+  float depth_feature_share = 0.8f;
+  // Balancing the N pixels per image evens the classes within an image; a class present in
+  // few images (props, people) still holds few of all the samples. `global_balance` also
+  // weighs every sample by the inverse of its class's share of all samples, in the gain
+  // (eq. 3) and the leaves, so that every class weighs the same in each tree.
+  bool global_balance = false;
   uint64_t seed = 1;
   int threads = 2;
   // Called after each tree is trained with (trees done, trees in all), one call at a time

@@ -39,6 +39,22 @@ class SemanticNode : public octomap::OcTreeNode {
   std::vector<float> belief;
 };
 
+// Calls fn(centre) for each leaf cell (edge `h`) of a voxel of edge `size` centred at `centre`:
+// a pruned voxel stands for (size / h)^3 leaves.
+template <typename Fn>
+void ForEachLeafCell(const octomap::point3d& centre, double size, double h, Fn fn) {
+  const int n = std::max(1, static_cast<int>(std::lround(size / h)));
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) {
+      for (int k = 0; k < n; ++k) {
+        fn(Eigen::Vector3d(centre.x() - size / 2 + (i + 0.5) * h,
+                           centre.y() - size / 2 + (j + 0.5) * h,
+                           centre.z() - size / 2 + (k + 0.5) * h));
+      }
+    }
+  }
+}
+
 // The tree: OctoMap's occupancy logic as is; a voxel that the sensor model makes free forgets
 // its class (the object that was there has gone). Serialization is ours (bounded depth,
 // checked reads) rather than OctoMap's readData, which trusts its input.
@@ -533,25 +549,22 @@ absl::Status SemanticMap::Merge(const SemanticMap& other, const Pose& T_this_oth
   for (auto it = o.tree.begin_leafs(), end = o.tree.end_leafs(); it != end; ++it) {
     if (it->belief.empty() || !o.tree.isNodeOccupied(*it)) continue;
     for (size_t c = 0; c < p.size(); ++c) p[c] = std::exp(it->belief[c]);
-    const octomap::point3d centre = it.getCoordinate();
-    const double size = it.getSize();
-    const double h = m.options.resolution_m;
-    // A pruned voxel stands for (size / resolution)^3 leaves: fuse each.
-    const int n = std::max(1, static_cast<int>(std::lround(size / h)));
-    for (int i = 0; i < n; ++i) {
-      for (int j = 0; j < n; ++j) {
-        for (int k = 0; k < n; ++k) {
-          const Eigen::Vector3d local(centre.x() - size / 2 + (i + 0.5) * h,
-                                      centre.y() - size / 2 + (j + 0.5) * h,
-                                      centre.z() - size / 2 + (k + 0.5) * h);
-          const Eigen::Vector3d q = T * local;
-          octomap::OcTreeKey key;
-          if (!m.tree.coordToKeyChecked(q.x(), q.y(), q.z(), key)) continue;
-          SemanticNode* node = m.tree.updateNode(key, true, false);
-          if (node != nullptr && m.tree.isNodeOccupied(node)) m.Observe(node, p.data());
-        }
-      }
-    }
+    ForEachLeafCell(it.getCoordinate(), it.getSize(), m.options.resolution_m,
+                    [&](const Eigen::Vector3d& local) {
+                      const Eigen::Vector3d q = T * local;
+                      octomap::OcTreeKey key;
+                      if (!m.tree.coordToKeyChecked(q.x(), q.y(), q.z(), key)) return;
+                      SemanticNode* node = m.tree.updateNode(key, true, false);
+                      if (node == nullptr || !m.tree.isNodeOccupied(node)) return;
+                      // A voxel this map has no class for takes the other's belief as it is
+                      // (merging into an empty map copies it); one it has a belief for fuses
+                      // it as one observation.
+                      if (node->belief.empty()) {
+                        node->belief = it->belief;
+                      } else {
+                        m.Observe(node, p.data());
+                      }
+                    });
   }
   m.keyframes += o.keyframes;
   return absl::OkStatus();
@@ -603,6 +616,60 @@ std::vector<LabelledVoxel> SemanticMap::LabelledVoxels(int only_class) const {
     const octomap::point3d c = it.getCoordinate();
     out.push_back({c.x(), c.y(), c.z(), static_cast<float>(it.getSize()),
                    static_cast<uint8_t>(label), std::exp(*best)});
+  }
+  return out;
+}
+
+std::unique_ptr<SemanticMap> SemanticMap::OnlyClass(int class_id) const {
+  const Impl& m = *impl_;
+  auto copy = std::unique_ptr<SemanticMap>(
+      new SemanticMap(std::make_unique<Impl>(m.class_count, m.log_prior, m.options)));
+  Impl& c = *copy->impl_;
+  c.keyframes = m.keyframes;
+  const double h = m.tree.getResolution();
+  for (auto it = m.tree.begin_leafs(), end = m.tree.end_leafs(); it != end; ++it) {
+    if (it->belief.empty() || !m.tree.isNodeOccupied(*it)) continue;
+    const auto best = std::max_element(it->belief.begin(), it->belief.end());
+    if (best - it->belief.begin() != class_id) continue;
+    // Leaf by leaf, pruned again below.
+    ForEachLeafCell(it.getCoordinate(), it.getSize(), h, [&](const Eigen::Vector3d& q) {
+      SemanticNode* node = c.tree.updateNode(c.tree.coordToKey(q.x(), q.y(), q.z()),
+                                             it->getLogOdds(), /*lazy_eval=*/true);
+      node->belief = it->belief;
+    });
+  }
+  c.tree.updateInnerOccupancy();
+  c.tree.prune();
+  return copy;
+}
+
+std::string LabelledVoxelsToPly(const std::vector<LabelledVoxel>& voxels,
+                                const std::vector<uint32_t>& class_colors) {
+  std::string out = absl::StrCat(
+      "ply\nformat binary_little_endian 1.0\ncomment written by lifemap (semantic octree)\n"
+      "element vertex ",
+      voxels.size(),
+      "\nproperty float x\nproperty float y\nproperty float z\nproperty uchar class\n"
+      "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+      "property float confidence\nproperty float size\nend_header\n");
+  constexpr size_t kRecord = 3 * sizeof(float) + 4 + 2 * sizeof(float);
+  const size_t header = out.size();
+  out.resize(header + voxels.size() * kRecord);
+  char* p = out.data() + header;
+  static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "PLY body is written little-endian");
+  for (const LabelledVoxel& v : voxels) {
+    const uint32_t rgb =
+        v.class_id < class_colors.size() ? class_colors[v.class_id] : uint32_t{0x808080};
+    std::memcpy(p, &v.x, 4);
+    std::memcpy(p + 4, &v.y, 4);
+    std::memcpy(p + 8, &v.z, 4);
+    p[12] = static_cast<char>(v.class_id);
+    p[13] = static_cast<char>(rgb >> 16);
+    p[14] = static_cast<char>(rgb >> 8);
+    p[15] = static_cast<char>(rgb);
+    std::memcpy(p + 16, &v.confidence, 4);
+    std::memcpy(p + 20, &v.size_m, 4);
+    p += kRecord;
   }
   return out;
 }
@@ -675,14 +742,17 @@ absl::StatusOr<std::unique_ptr<SemanticMap>> SemanticMap::Deserialize(
                         resolution, options.resolution_m));
   }
   if (classes < 2 || classes > 254) return absl::DataLossError("bad class count in snapshot");
-  std::vector<double> prior(classes);
-  for (double& q : prior) {
-    float log_p = 0;
-    if (!take(&log_p)) return absl::DataLossError("semantic octree snapshot truncated");
-    q = std::exp(static_cast<double>(log_p));
+  std::vector<float> log_prior(classes);
+  for (float& log_p : log_prior) {
+    if (!take(&log_p) || !std::isfinite(log_p)) {
+      return absl::DataLossError("semantic octree snapshot truncated");
+    }
   }
-  auto map = Create(static_cast<int>(classes), prior, options);
+  // Made with a uniform prior, then given the stored one as it is: it was weighted
+  // (prior_weight) when the map was made.
+  auto map = Create(static_cast<int>(classes), std::vector<double>(classes, 1.0), options);
   if (!map.ok()) return map.status();
+  (*map)->impl_->log_prior = std::move(log_prior);
   int64_t keyframes = 0;
   uint8_t has_root = 0;
   if (!take(&keyframes) || !take(&has_root)) {

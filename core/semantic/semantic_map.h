@@ -2,8 +2,9 @@
 // voxels also keep a distribution over the labelling model's classes, fused over keyframes by
 // eq. 16, and rendered back into any view with a pose.
 //
-// Belief per voxel, in log space: Bel_0(c) = p(c | D), the class frequencies of the training
-// set (eq. 9's prior, applied once); each keyframe that sees the voxel multiplies in its
+// Belief per voxel, in log space: Bel_0(c) ∝ p(c | D)^w, the class frequencies of the training
+// set (eq. 9's prior, applied once) with a weight w (`prior_weight`, 0 by default: a uniform
+// start, see docs/RESULTS.md); each keyframe that sees the voxel multiplies in its
 // per-pixel class distribution p(c | q, F) as the forest predicts it on balanced classes, then
 // renormalises (eq. 16's η). The pixels of one keyframe that fall into one voxel are averaged
 // first, so a voxel seen by many pixels of one view counts once per view (views are the
@@ -95,6 +96,12 @@ struct LabelledVoxel {
   float confidence;  // the arg-max class's belief
 };
 
+// Binary little-endian PLY of labelled voxels: x y z (float, metres), class (uchar), red green
+// blue (uchar, `class_colors[class]` 0xRRGGBB, grey beyond them), confidence (float, the
+// class's belief), size (float, voxel edge in metres).
+std::string LabelledVoxelsToPly(const std::vector<LabelledVoxel>& voxels,
+                                const std::vector<uint32_t>& class_colors);
+
 class SemanticMap {
  public:
   // A map for a model with `class_count` classes (2..254) whose training prior is
@@ -124,8 +131,13 @@ class SemanticMap {
 
   // Merges `other` (same class count and resolution; FailedPrecondition otherwise) into this
   // map after moving it by T_this_other: its occupied labelled voxels are fused as one
-  // observation each, weighted by their belief.
+  // observation each, weighted by their belief, where this map has a class for the voxel, and
+  // copied as they are where it has none (so merging into an empty map copies, resampled at
+  // this map's voxels when the move turns them).
   absl::Status Merge(const SemanticMap& other, const Pose& T_this_other);
+  // A copy holding only the occupied voxels whose most likely class is `class_id`, with their
+  // occupancy and belief (for exporting one class in OctoMap's formats).
+  std::unique_ptr<SemanticMap> OnlyClass(int class_id) const;
 
   SemanticSummary Summarize() const;
   // Occupied voxels with a class belief; only those whose arg-max is `only_class` if >= 0.

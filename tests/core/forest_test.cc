@@ -63,6 +63,51 @@ TEST(Forest, LearnsSeparableCasesPerfectly) {
   }
 }
 
+TEST(Forest, TheFeatureShareDecidesWhatTheTreesCanSee) {
+  // Colour halves on one depth: colour-only features learn them, depth-only cannot.
+  const LabeledImage colour = Halves(/*by_depth=*/false);
+  TrainOptions o = Small();
+  o.depth_feature_share = 0.0f;
+  auto by_colour = Forest::Train({colour, colour}, 2, o);
+  ASSERT_TRUE(by_colour.ok()) << by_colour.status();
+  EXPECT_DOUBLE_EQ(Accuracy(*by_colour, colour), 1.0);
+  o.depth_feature_share = 1.0f;
+  auto by_depth = Forest::Train({colour, colour}, 2, o);
+  ASSERT_TRUE(by_depth.ok()) << by_depth.status();
+  EXPECT_LT(Accuracy(*by_depth, colour), 0.75) << "depth is flat: nothing to learn from";
+  o.depth_feature_share = 1.5f;
+  EXPECT_EQ(Forest::Train({colour}, 2, o).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// Class 1 appears in one image of ten, as a small patch whose colour differs slightly. Balanced
+// within each image only, its samples are a small share of the tree's; globally balanced, they
+// weigh as much as class 0's, and the leaves say so.
+TEST(Forest, GlobalBalanceWeighsARareClassAsMuchAsACommonOne) {
+  std::vector<LabeledImage> images;
+  for (int i = 0; i < 10; ++i) {
+    LabeledImage im = Halves(/*by_depth=*/false);
+    im.labels.setTo(0);
+    if (i == 0) im.labels(cv::Rect(0, 0, 40, 60)).setTo(1);
+    images.push_back(im);
+  }
+  TrainOptions o = Small();
+  o.trees = 1;
+  o.max_depth = 1;  // one split at most: the root's leaves show the weighting
+  o.pixels_per_image = 400;
+  auto Share = [&](bool global) {
+    o.global_balance = global;
+    auto forest = Forest::Train(images, 2, o);
+    EXPECT_TRUE(forest.ok()) << forest.status();
+    auto p = forest->Predict(images[0].depth_m, images[0].color_bgr);
+    EXPECT_TRUE(p.ok());
+    return cv::mean(p->probabilities[1](cv::Rect(0, 0, 40, 60)))[0];
+  };
+  // The left (red) half is class 1 in one image and class 0 in nine: p(1 | red) is 1/10 of the
+  // red samples balanced per image (1 image's 200 of 2000), about 1/2 balanced globally.
+  EXPECT_LT(Share(false), 0.3);
+  EXPECT_GT(Share(true), 0.4);
+}
+
 TEST(Forest, InformationGainMatchesHandComputedValues) {
   EXPECT_NEAR(HistogramEntropy({2, 2}), std::log(2.0), 1e-12);
   EXPECT_NEAR(HistogramEntropy({4, 0}), 0.0, 1e-12);

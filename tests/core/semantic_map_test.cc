@@ -1,6 +1,7 @@
 #include "core/semantic/semantic_map.h"
 
 #include <cmath>
+#include <cstring>
 #include <random>
 #include <sstream>
 
@@ -293,6 +294,72 @@ TEST(SemanticMap, MergesAnotherMapMovedIntoItsFrame) {
   auto other = SemanticMap::Create(4, {1, 1, 1, 1}, {});
   ASSERT_TRUE(other.ok());
   EXPECT_EQ(a->Merge(**other, At(0, 0)).code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(SemanticMap, MergingIntoAnEmptyMapCopiesTheBeliefs) {
+  auto a = NewMap();
+  std::mt19937 rng(3);
+  const View view = WallView(At(0, 0), 0.7, 0.0, &rng);
+  ASSERT_TRUE(a->Fuse(view.depth, Camera(), At(0, 0), view.probabilities).ok());
+  auto empty = NewMap();
+  ASSERT_TRUE(empty->Merge(*a, At(0, 0)).ok());
+  const auto voxels = a->LabelledVoxels();
+  ASSERT_FALSE(voxels.empty());
+  for (const LabelledVoxel& v : voxels) {
+    const std::vector<float> before = a->BeliefAt(v.x, v.y, v.z);
+    const std::vector<float> after = empty->BeliefAt(v.x, v.y, v.z);
+    ASSERT_EQ(after.size(), before.size());
+    for (size_t c = 0; c < before.size(); ++c) EXPECT_NEAR(after[c], before[c], 1e-6);
+  }
+  EXPECT_EQ(empty->LabelledVoxels().size(), voxels.size());
+}
+
+TEST(SemanticMap, OneClassAloneForExport) {
+  auto map = NewMap();
+  std::mt19937 rng(5);
+  const View view = WallView(At(0, 0), 0.8, 0.0, &rng);
+  ASSERT_TRUE(map->Fuse(view.depth, Camera(), At(0, 0), view.probabilities).ok());
+  const auto left = map->LabelledVoxels(1);
+  const auto right = map->LabelledVoxels(2);
+  ASSERT_FALSE(left.empty());
+  ASSERT_FALSE(right.empty());
+  const auto only_left = map->OnlyClass(1);
+  EXPECT_EQ(only_left->LabelledVoxels().size(), left.size());
+  EXPECT_TRUE(only_left->LabelledVoxels(2).empty());
+  EXPECT_EQ(only_left->BeliefAt(left[0].x, left[0].y, left[0].z),
+            map->BeliefAt(left[0].x, left[0].y, left[0].z));
+  EXPECT_TRUE(only_left->BeliefAt(right[0].x, right[0].y, right[0].z).empty());
+  // Its .bt holds the left half's voxels only, occupied.
+  std::istringstream bt(only_left->ToOctomapBinary());
+  octomap::OcTree tree(0.05);
+  ASSERT_TRUE(tree.readBinary(bt));
+  const octomap::OcTreeNode* node = tree.search(left[0].x, left[0].y, left[0].z);
+  ASSERT_NE(node, nullptr);
+  EXPECT_TRUE(tree.isNodeOccupied(node));
+  EXPECT_EQ(tree.search(right[0].x, right[0].y, right[0].z), nullptr);
+}
+
+TEST(SemanticMap, LabelledVoxelsAsPly) {
+  const std::vector<LabelledVoxel> voxels = {{1.0f, 2.0f, 3.0f, 0.05f, 2, 0.75f},
+                                             {-1.0f, 0.5f, 2.0f, 0.1f, 9, 0.5f}};
+  const std::string ply = LabelledVoxelsToPly(voxels, {0x000000, 0x112233, 0xff8000});
+  const size_t body = ply.find("end_header\n");
+  ASSERT_NE(body, std::string::npos);
+  EXPECT_NE(ply.find("element vertex 2\n"), std::string::npos);
+  const char* p = ply.data() + body + 11;
+  ASSERT_EQ(ply.size() - (body + 11), 2u * 24u);
+  float x = 0, confidence = 0, size = 0;
+  std::memcpy(&x, p, 4);
+  std::memcpy(&confidence, p + 16, 4);
+  std::memcpy(&size, p + 20, 4);
+  EXPECT_EQ(x, 1.0f);
+  EXPECT_EQ(p[12], 2);
+  EXPECT_EQ(static_cast<uint8_t>(p[13]), 0xff);
+  EXPECT_EQ(static_cast<uint8_t>(p[14]), 0x80);
+  EXPECT_EQ(confidence, 0.75f);
+  EXPECT_EQ(size, 0.05f);
+  // A class beyond the colours given is grey.
+  EXPECT_EQ(static_cast<uint8_t>(p[24 + 13]), 0x80);
 }
 
 TEST(SemanticMap, RevisitingTheSameSceneDoesNotGrowTheTree) {

@@ -244,6 +244,18 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
   r = Run({"export", "--map", "lab", "--what", "cloud", "--out", tmp_.File("c.ply")});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(Slurp(tmp_.File("c.ply")).rfind("ply\n", 0), 0u);
+  // No model labelled its frames: no semantic octree, and the operator is told how to get one.
+  r = Run({"export", "--map", "lab", "--what", "octree", "--out", tmp_.File("o.ot")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("has no semantic octree"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(tmp_.File("o.ot"))) << "nothing written on failure";
+  r = Run({"export", "--map", "lab", "--what", "poses", "--format", "bt", "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--format applies to --what octree only"), std::string::npos) << r.err;
+  r = Run(
+      {"export", "--map", "lab", "--what", "cloud", "--class", "chair", "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--class applies"), std::string::npos) << r.err;
 
   ASSERT_EQ(Run({"maps", "rename", "lab", "lab2"}).code, 0);
   r = Run({"maps", "delete", "lab2"});
@@ -828,6 +840,39 @@ TEST_F(CliTest, EvalFusionComparesSingleFrameAndFusedLabels) {
   EXPECT_GT(s["fused_coverage"].get<double>(), 0.9) << "the octree labels what the views saw";
   EXPECT_GT(s["fused"]["accuracy"].get<double>(), 0.5);
   EXPECT_GT(s["visits"][0]["labelled_voxels"].get<int64_t>(), 1000);
+
+  // The same visit streamed to the server with that model: its octree exported in OctoMap's
+  // formats, as a labelled voxel cloud and as a summary.
+  ASSERT_EQ(Run({"models", "upload", tmp_.File("m.model"), "sim"}).code, 0);
+  ASSERT_EQ(Run({"models", "activate", "sim"}).code, 0);
+  ASSERT_EQ(Run({"maps", "create", "room"}).code, 0);
+  r = Run({"stream", "--map", "room", "--tum", visit, "--use-groundtruth", "--rate", "0"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "export", "--map", "room", "--what", "semantic-summary", "--out",
+           tmp_.File("octree.json")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json octree = json::parse(Slurp(tmp_.File("octree.json")));
+  EXPECT_EQ(octree["model"], "sim");
+  EXPECT_EQ(octree["frame"], "map");
+  EXPECT_GT(octree["labelled_voxels"].get<int64_t>(), 1000);
+  EXPECT_GT(octree["class_volume_m3"]["structure"].get<double>(), 0.1);
+  r = Run({"export", "--map", "room", "--what", "octree", "--out", tmp_.File("room.bt")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(Slurp(tmp_.File("room.bt")).rfind("# Octomap OcTree binary file", 0), 0u)
+      << "the extension chooses .bt";
+  r = Run({"export", "--map", "room", "--what", "octree", "--format", "ot", "--out",
+           tmp_.File("room.octree")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(Slurp(tmp_.File("room.octree")).find("id ColorOcTree"), std::string::npos);
+  r = Run({"export", "--map", "room", "--what", "semantic-cloud", "--class", "structure", "--out",
+           tmp_.File("walls.ply")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("voxels"), std::string::npos) << r.out;
+  EXPECT_NE(Slurp(tmp_.File("walls.ply")).find("property uchar class"), std::string::npos);
+  r = Run({"export", "--map", "room", "--what", "semantic-cloud", "--class", "unicorn", "--out",
+           tmp_.File("u.ply")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("structure, furniture, prop, person"), std::string::npos) << r.err;
 
   // Labelled images without poses cannot be fused: a clear error.
   testing::WriteSyntheticTum(tmp_.File("pngs"), 2, 0.02, 64, 48);

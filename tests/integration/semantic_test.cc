@@ -1,7 +1,13 @@
 // Integration tests of the served semantic octree (issue 16): a visit's keyframes fused off the
 // reply path, and every posed frame of the visit given the octree's labels (fused_labels), or
 // told why not.
+#include <sstream>
+
 #include <gtest/gtest.h>
+#include <octomap/AbstractOcTree.h>
+#include <octomap/ColorOcTree.h>
+#include <octomap/OcTree.h>
+#include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include "tests/integration/model_fixture.h"
@@ -121,36 +127,163 @@ TEST_F(ServerTest, FusedLabelsNeedAModel) {
   }
 }
 
-TEST_F(ServerTest, AResumedVisitStartsFromItsStoredOctree) {
-  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
-  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
-  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
-  v1::StreamStart start;
-  start.set_map("lab");
-  auto stream = client_->OpenStream(start);
-  ASSERT_TRUE(stream.ok()) << stream.status();
-  const uint64_t visit_id = (*stream)->started().visit_id();
-  // Twelve keyframes (a second apart): a snapshot is stored once ten are fused.
-  for (uint64_t i = 0; i < 12; ++i) {
-    ASSERT_TRUE((*stream)->Send(PosedFrame(i)));
-    v1::FrameResult r;
-    ASSERT_TRUE((*stream)->Receive(&r));
-  }
-  (*stream)->CloseSend();
-  EXPECT_TRUE((*stream)->Finish().ok());
+// A visit of `keyframes` posed keyframes (a second apart), the server restarted, the visit
+// resumed: the result of its first frame after the restart.
+class SemanticRestartTest : public ServerTest {
+ protected:
+  v1::FrameResult FirstFrameAfterRestart(int keyframes) {
+    v1::FrameResult resumed;
+    EXPECT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+    EXPECT_TRUE(client_->ActivateModel("two-colors", "").ok());
+    EXPECT_TRUE(client_->CreateMap("lab", "").ok());
+    v1::StreamStart start;
+    start.set_map("lab");
+    auto stream = client_->OpenStream(start);
+    EXPECT_TRUE(stream.ok()) << stream.status();
+    if (!stream.ok()) return resumed;
+    const uint64_t visit_id = (*stream)->started().visit_id();
+    for (int i = 0; i < keyframes; ++i) {
+      EXPECT_TRUE((*stream)->Send(PosedFrame(static_cast<uint64_t>(i))));
+      v1::FrameResult r;
+      EXPECT_TRUE((*stream)->Receive(&r));
+    }
+    (*stream)->CloseSend();
+    EXPECT_TRUE((*stream)->Finish().ok());
 
-  RestartServer();
-  start.set_visit_id(visit_id);
-  stream = client_->OpenStream(start);
-  ASSERT_TRUE(stream.ok()) << stream.status();
-  ASSERT_TRUE((*stream)->Send(PosedFrame(20)));
-  v1::FrameResult resumed;
-  ASSERT_TRUE((*stream)->Receive(&resumed));
-  (*stream)->CloseSend();
-  EXPECT_TRUE((*stream)->Finish().ok());
+    RestartServer();
+    start.set_visit_id(visit_id);
+    stream = client_->OpenStream(start);
+    EXPECT_TRUE(stream.ok()) << stream.status();
+    if (!stream.ok()) return resumed;
+    EXPECT_TRUE((*stream)->Send(PosedFrame(20)));
+    EXPECT_TRUE((*stream)->Receive(&resumed));
+    (*stream)->CloseSend();
+    EXPECT_TRUE((*stream)->Finish().ok());
+    return resumed;
+  }
+};
+
+TEST_F(SemanticRestartTest, AResumedVisitStartsFromItsStoredOctree) {
+  // Twelve keyframes: a snapshot is stored once ten are fused.
+  const v1::FrameResult resumed = FirstFrameAfterRestart(12);
   EXPECT_TRUE(resumed.has_fused_labels())
       << "the resumed visit's first frame is labelled from the stored octree: "
       << FusionStatus(resumed)->reason();
+}
+
+TEST_F(SemanticRestartTest, ACleanShutdownStoresTheOctreesOfOpenVisits) {
+  // Four keyframes: fewer than a periodic snapshot needs.
+  const v1::FrameResult resumed = FirstFrameAfterRestart(4);
+  EXPECT_TRUE(resumed.has_fused_labels())
+      << "the octree was stored at shutdown: " << FusionStatus(resumed)->reason();
+}
+
+// Streams `frames` posed keyframes into a new visit of `map` and leaves it open.
+uint64_t StreamVisit(client::Client* client, const std::string& map, int frames,
+                     std::unique_ptr<client::FrameStream>* stream) {
+  v1::StreamStart start;
+  start.set_map(map);
+  auto opened = client->OpenStream(start);
+  EXPECT_TRUE(opened.ok()) << opened.status();
+  if (!opened.ok()) return 0;
+  *stream = *std::move(opened);
+  for (int i = 0; i < frames; ++i) {
+    EXPECT_TRUE((*stream)->Send(PosedFrame(static_cast<uint64_t>(i))));
+    v1::FrameResult r;
+    EXPECT_TRUE((*stream)->Receive(&r));
+  }
+  return (*stream)->started().visit_id();
+}
+
+absl::StatusOr<std::string> Export(client::Client* client, v1::ExportFormat format,
+                                   uint64_t visit_id = 0, const std::string& class_name = "",
+                                   uint64_t* items = nullptr) {
+  v1::ExportMapRequest req;
+  req.set_map("lab");
+  req.set_format(format);
+  req.set_visit_id(visit_id);
+  req.set_class_name(class_name);
+  std::ostringstream out;
+  auto n = client->ExportMap(req, &out);
+  if (!n.ok()) return n.status();
+  if (items != nullptr) *items = *n;
+  return out.str();
+}
+
+TEST_F(ServerTest, ExportsTheOctreeInOctomapsFormats) {
+  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  // No octree yet: the operator is told how to get one.
+  auto none = Export(client_.get(), v1::EXPORT_OCTREE_OT);
+  EXPECT_EQ(none.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(none.status().message().find("has no semantic octree"), std::string::npos)
+      << none.status();
+
+  // A live visit (6 keyframes, fewer than a periodic snapshot needs): the export snapshots it.
+  std::unique_ptr<client::FrameStream> stream;
+  const uint64_t first = StreamVisit(client_.get(), "lab", 6, &stream);
+  auto summary_text = Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON);
+  ASSERT_TRUE(summary_text.ok()) << summary_text.status();
+  const nlohmann::json summary = nlohmann::json::parse(*summary_text);
+  EXPECT_EQ(summary["model"], "two-colors");
+  EXPECT_EQ(summary["frame"], "map");
+  EXPECT_EQ(summary["visits"], nlohmann::json::array({first}));
+  EXPECT_GE(summary["keyframes"].get<int>(), 4);
+  EXPECT_GT(summary["labelled_voxels"].get<int>(), 100);
+  EXPECT_GT(summary["class_volume_m3"]["wall"].get<double>(), 0.0);
+  EXPECT_GT(summary["class_volume_m3"]["door"].get<double>(), 0.0);
+
+  // .bt: an OcTree; .ot: a ColorOcTree whose occupied voxels carry the class colours.
+  uint64_t voxels = 0;
+  auto bt = Export(client_.get(), v1::EXPORT_OCTREE_BT, 0, "", &voxels);
+  ASSERT_TRUE(bt.ok()) << bt.status();
+  std::istringstream bt_in(*bt);
+  octomap::OcTree tree(0.1);
+  ASSERT_TRUE(tree.readBinary(bt_in));
+  EXPECT_DOUBLE_EQ(tree.getResolution(), summary["resolution_m"].get<double>());
+  EXPECT_GT(voxels, 100u);
+  auto ot = Export(client_.get(), v1::EXPORT_OCTREE_OT);
+  ASSERT_TRUE(ot.ok()) << ot.status();
+  std::istringstream ot_in(*ot);
+  std::unique_ptr<octomap::AbstractOcTree> read(octomap::AbstractOcTree::read(ot_in));
+  auto* color = dynamic_cast<octomap::ColorOcTree*>(read.get());
+  ASSERT_NE(color, nullptr);
+  int green = 0;
+  for (auto it = color->begin_leafs(); it != color->end_leafs(); ++it) {
+    if (color->isNodeOccupied(*it) &&
+        it->getColor() == octomap::ColorOcTreeNode::Color(0, 255, 0)) {
+      ++green;
+    }
+  }
+  EXPECT_GT(green, 10) << "door voxels in the door's colour";
+
+  // One class: a semantic cloud of door voxels only.
+  uint64_t doors = 0;
+  auto cloud = Export(client_.get(), v1::EXPORT_SEMANTIC_CLOUD_PLY, 0, "door", &doors);
+  ASSERT_TRUE(cloud.ok()) << cloud.status();
+  EXPECT_GT(doors, 10u);
+  EXPECT_NE(cloud->find("element vertex " + std::to_string(doors) + "\n"), std::string::npos);
+  const size_t body = cloud->find("end_header\n") + 11;
+  ASSERT_EQ(cloud->size() - body, doors * 24);
+  for (uint64_t i = 0; i < doors; ++i) EXPECT_EQ((*cloud)[body + i * 24 + 12], 1) << i;
+  auto unknown = Export(client_.get(), v1::EXPORT_SEMANTIC_CLOUD_PLY, 0, "window");
+  EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(unknown.status().message().find("wall, door"), std::string::npos) << unknown.status();
+
+  // A second visit with client poses is in the map's frame too: the map's octree merges both.
+  stream->CloseSend();
+  EXPECT_TRUE(stream->Finish().ok());
+  std::unique_ptr<client::FrameStream> second_stream;
+  const uint64_t second = StreamVisit(client_.get(), "lab", 4, &second_stream);
+  second_stream->CloseSend();
+  EXPECT_TRUE(second_stream->Finish().ok());
+  auto merged = Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON);
+  ASSERT_TRUE(merged.ok()) << merged.status();
+  EXPECT_EQ(nlohmann::json::parse(*merged)["visits"], nlohmann::json::array({first, second}));
+  auto one = Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON, second);
+  ASSERT_TRUE(one.ok()) << one.status();
+  EXPECT_EQ(nlohmann::json::parse(*one)["visits"], nlohmann::json::array({second}));
 }
 
 }  // namespace
