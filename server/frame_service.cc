@@ -207,6 +207,12 @@ struct AnalysedFrame {
   // identity, except for a tracked pose reported in the map's frame after the visit was
   // anchored during this run (then T_map_visit⁻¹).
   Pose T_visit_world;
+
+  // The frame's camera in its visit's own frame (its pose must be set).
+  Pose T_visit_camera() const {
+    return Pose::FromIsometry(T_visit_world.ToIsometry() *
+                              analysis->frame.T_world_camera->ToIsometry());
+  }
 };
 
 // Reads the visit's writability and map name (a unary frame has neither to check).
@@ -391,10 +397,8 @@ absl::Status RenderFusedLabels(ServiceContext* ctx, const AnalysedFrame& a,
     return absl::FailedPreconditionError(
         "the frame has no pose (send Frame.pose, or frames the server can track)");
   }
-  const Pose T_visit_camera =
-      Pose::FromIsometry(a.T_visit_world.ToIsometry() * f.T_world_camera->ToIsometry());
-  auto rendered = visit->semantics.Render(a.model->name, f.depth_m, f.intrinsics, T_visit_camera,
-                                          ctx->config.semantic_render_stride);
+  auto rendered = visit->semantics.Render(a.model->name, f.depth_m, f.intrinsics,
+                                          a.T_visit_camera(), ctx->config.semantic_render_stride);
   if (!rendered.ok()) return rendered.status();
   if (rendered->labelled_pixels == 0) {
     return absl::FailedPreconditionError(
@@ -428,8 +432,7 @@ void SubmitForFusion(ServiceContext* ctx, AnalysedFrame& a,
   keyframe->class_prior = a.model->forest.class_prior();
   keyframe->depth_m = f.depth_m;  // shared, not copied: the frame is not written afterwards
   keyframe->intrinsics = f.intrinsics;
-  keyframe->T_visit_camera =
-      Pose::FromIsometry(a.T_visit_world.ToIsometry() * f.T_world_camera->ToIsometry());
+  keyframe->T_visit_camera = a.T_visit_camera();
   keyframe->probabilities = std::move(a.analysis->labels->probabilities);
   ctx->semantic_worker->Submit(
       [visit_state, keyframe, options = ctx->config.semantic, store = ctx->store] {

@@ -40,9 +40,7 @@ absl::StatusOr<SemanticExport> CollectSemanticExport(store::Store* store, VisitR
   if (worker != nullptr) {
     for (const auto& v : chosen) {
       if (auto state = visits->Loaded(v.id); state != nullptr) {
-        worker->Wait(worker->Submit([state, store] {
-          StoreSemanticSnapshotIfDue(store, state->visit_id, &state->semantics, /*every=*/0);
-        }));
+        worker->Wait(QueueSemanticSnapshot(worker, store, state));
       }
     }
   }

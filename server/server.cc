@@ -150,9 +150,7 @@ void LifemapServer::Shutdown() {
   // Every open visit's octree into the store once its queued keyframes are fused (the periodic
   // snapshot may be up to 9 keyframes behind): a restart resumes with all of them.
   for (const auto& visit : impl_->visits->AllLoaded()) {
-    impl_->semantic_worker->Submit([visit, store = impl_->store.get()] {
-      StoreSemanticSnapshotIfDue(store, visit->visit_id, &visit->semantics, /*every=*/0);
-    });
+    QueueSemanticSnapshot(impl_->semantic_worker.get(), impl_->store.get(), visit);
   }
   impl_->semantic_worker.reset();
   impl_->architecture.reset();

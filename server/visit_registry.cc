@@ -123,6 +123,13 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   return it->second;  // another thread may have loaded it first: use that one
 }
 
+uint64_t QueueSemanticSnapshot(SerialWorker* worker, store::Store* store,
+                               std::shared_ptr<VisitState> visit) {
+  return worker->Submit([visit = std::move(visit), store] {
+    StoreSemanticSnapshotIfDue(store, visit->visit_id, &visit->semantics, /*every=*/0);
+  });
+}
+
 std::shared_ptr<VisitState> VisitRegistry::Loaded(int64_t visit_id) {
   absl::MutexLock lock(&mu_);
   auto it = visits_.find(visit_id);

@@ -19,6 +19,7 @@
 #include "core/tracking/odometry.h"
 #include "server/architecture.h"
 #include "server/semantics.h"
+#include "server/serial_worker.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
@@ -92,6 +93,12 @@ struct VisitState {
   // to answer: `closed`, or FAILED_PRECONDITION naming the stream that writes the visit.
   absl::Status CheckWritable(uint64_t writer) const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu);
 };
+
+// Queues on `worker`, behind the keyframes already queued for fusion, storing the visit's octree
+// however few keyframes were fused since its last snapshot (EndVisit, an export, shutdown).
+// Returns the job's ticket for SerialWorker::Wait.
+uint64_t QueueSemanticSnapshot(SerialWorker* worker, store::Store* store,
+                               std::shared_ptr<VisitState> visit);
 
 // Makes a stream the one writer of a visit for its lifetime. Movable, not copyable.
 class VisitWriter {

@@ -49,10 +49,7 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
   ctx_->architecture->Wait(ctx_->architecture->last_ticket());
   // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
   if (state.ok() && ctx_->semantic_worker != nullptr) {
-    ctx_->semantic_worker->Wait(
-        ctx_->semantic_worker->Submit([visit = *state, store = ctx_->store] {
-          StoreSemanticSnapshotIfDue(store, visit->visit_id, &visit->semantics, /*every=*/0);
-        }));
+    ctx_->semantic_worker->Wait(QueueSemanticSnapshot(ctx_->semantic_worker, ctx_->store, *state));
   }
   auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
   if (!drained.ok()) return ToGrpcStatus(drained.status());

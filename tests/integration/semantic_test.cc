@@ -34,10 +34,59 @@ v1::Frame PosedFrame(uint64_t sequence) {
   return f;
 }
 
-TEST_F(ServerTest, PosedFramesOfAVisitGetTheOctreesLabels) {
-  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
-  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
-  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+// Streams `frames` posed keyframes into a new visit of `map` and leaves it open.
+uint64_t StreamVisit(client::Client* client, const std::string& map, int frames,
+                     std::unique_ptr<client::FrameStream>* stream) {
+  v1::StreamStart start;
+  start.set_map(map);
+  auto opened = client->OpenStream(start);
+  EXPECT_TRUE(opened.ok()) << opened.status();
+  if (!opened.ok()) return 0;
+  *stream = *std::move(opened);
+  for (int i = 0; i < frames; ++i) {
+    EXPECT_TRUE((*stream)->Send(PosedFrame(static_cast<uint64_t>(i))));
+    v1::FrameResult r;
+    EXPECT_TRUE((*stream)->Receive(&r));
+  }
+  return (*stream)->started().visit_id();
+}
+
+// Servers with the two-colour model active by default and a map "lab".
+class SemanticServerTest : public ServerTest {
+ protected:
+  void SetUp() override {
+    ServerTest::SetUp();
+    ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+    ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
+    ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  }
+
+  // A visit of `keyframes` posed keyframes (a second apart), the server restarted, the visit
+  // resumed: the result of its first frame after the restart.
+  v1::FrameResult FirstFrameAfterRestart(int keyframes) {
+    v1::FrameResult resumed;
+    std::unique_ptr<client::FrameStream> stream;
+    const uint64_t visit_id = StreamVisit(client_.get(), "lab", keyframes, &stream);
+    if (stream == nullptr) return resumed;
+    stream->CloseSend();
+    EXPECT_TRUE(stream->Finish().ok());
+
+    RestartServer();
+    v1::StreamStart start;
+    start.set_map("lab");
+    start.set_visit_id(visit_id);
+    auto resumed_stream = client_->OpenStream(start);
+    EXPECT_TRUE(resumed_stream.ok()) << resumed_stream.status();
+    if (!resumed_stream.ok()) return resumed;
+    EXPECT_TRUE((*resumed_stream)->Send(PosedFrame(20)));
+    EXPECT_TRUE((*resumed_stream)->Receive(&resumed));
+    (*resumed_stream)->CloseSend();
+    EXPECT_TRUE((*resumed_stream)->Finish().ok());
+    return resumed;
+  }
+};
+
+TEST_F(SemanticServerTest, PosedFramesOfAVisitGetTheOctreesLabels) {
   v1::StreamStart start;
   start.set_map("lab");
   auto stream = client_->OpenStream(start);
@@ -127,43 +176,7 @@ TEST_F(ServerTest, FusedLabelsNeedAModel) {
   }
 }
 
-// A visit of `keyframes` posed keyframes (a second apart), the server restarted, the visit
-// resumed: the result of its first frame after the restart.
-class SemanticRestartTest : public ServerTest {
- protected:
-  v1::FrameResult FirstFrameAfterRestart(int keyframes) {
-    v1::FrameResult resumed;
-    EXPECT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
-    EXPECT_TRUE(client_->ActivateModel("two-colors", "").ok());
-    EXPECT_TRUE(client_->CreateMap("lab", "").ok());
-    v1::StreamStart start;
-    start.set_map("lab");
-    auto stream = client_->OpenStream(start);
-    EXPECT_TRUE(stream.ok()) << stream.status();
-    if (!stream.ok()) return resumed;
-    const uint64_t visit_id = (*stream)->started().visit_id();
-    for (int i = 0; i < keyframes; ++i) {
-      EXPECT_TRUE((*stream)->Send(PosedFrame(static_cast<uint64_t>(i))));
-      v1::FrameResult r;
-      EXPECT_TRUE((*stream)->Receive(&r));
-    }
-    (*stream)->CloseSend();
-    EXPECT_TRUE((*stream)->Finish().ok());
-
-    RestartServer();
-    start.set_visit_id(visit_id);
-    stream = client_->OpenStream(start);
-    EXPECT_TRUE(stream.ok()) << stream.status();
-    if (!stream.ok()) return resumed;
-    EXPECT_TRUE((*stream)->Send(PosedFrame(20)));
-    EXPECT_TRUE((*stream)->Receive(&resumed));
-    (*stream)->CloseSend();
-    EXPECT_TRUE((*stream)->Finish().ok());
-    return resumed;
-  }
-};
-
-TEST_F(SemanticRestartTest, AResumedVisitStartsFromItsStoredOctree) {
+TEST_F(SemanticServerTest, AResumedVisitStartsFromItsStoredOctree) {
   // Twelve keyframes: a snapshot is stored once ten are fused.
   const v1::FrameResult resumed = FirstFrameAfterRestart(12);
   EXPECT_TRUE(resumed.has_fused_labels())
@@ -171,28 +184,11 @@ TEST_F(SemanticRestartTest, AResumedVisitStartsFromItsStoredOctree) {
       << FusionStatus(resumed)->reason();
 }
 
-TEST_F(SemanticRestartTest, ACleanShutdownStoresTheOctreesOfOpenVisits) {
+TEST_F(SemanticServerTest, ACleanShutdownStoresTheOctreesOfOpenVisits) {
   // Four keyframes: fewer than a periodic snapshot needs.
   const v1::FrameResult resumed = FirstFrameAfterRestart(4);
   EXPECT_TRUE(resumed.has_fused_labels())
       << "the octree was stored at shutdown: " << FusionStatus(resumed)->reason();
-}
-
-// Streams `frames` posed keyframes into a new visit of `map` and leaves it open.
-uint64_t StreamVisit(client::Client* client, const std::string& map, int frames,
-                     std::unique_ptr<client::FrameStream>* stream) {
-  v1::StreamStart start;
-  start.set_map(map);
-  auto opened = client->OpenStream(start);
-  EXPECT_TRUE(opened.ok()) << opened.status();
-  if (!opened.ok()) return 0;
-  *stream = *std::move(opened);
-  for (int i = 0; i < frames; ++i) {
-    EXPECT_TRUE((*stream)->Send(PosedFrame(static_cast<uint64_t>(i))));
-    v1::FrameResult r;
-    EXPECT_TRUE((*stream)->Receive(&r));
-  }
-  return (*stream)->started().visit_id();
 }
 
 absl::StatusOr<std::string> Export(client::Client* client, v1::ExportFormat format,
@@ -210,10 +206,7 @@ absl::StatusOr<std::string> Export(client::Client* client, v1::ExportFormat form
   return out.str();
 }
 
-TEST_F(ServerTest, ExportsTheOctreeInOctomapsFormats) {
-  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
-  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
-  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+TEST_F(SemanticServerTest, ExportsTheOctreeInOctomapsFormats) {
   // No octree yet: the operator is told how to get one.
   auto none = Export(client_.get(), v1::EXPORT_OCTREE_OT);
   EXPECT_EQ(none.status().code(), absl::StatusCode::kFailedPrecondition);
