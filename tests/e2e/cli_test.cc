@@ -256,6 +256,14 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
       {"export", "--map", "lab", "--what", "cloud", "--class", "chair", "--out", tmp_.File("x")});
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("--class applies"), std::string::npos) << r.err;
+  r = Run(
+      {"export", "--map", "lab", "--what", "octree", "--voxel", "0.1", "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--voxel and --stride apply to --what cloud only"), std::string::npos)
+      << r.err;
+  r = Run(
+      {"export", "--map", "lab", "--what", "octree", "--format", "ply", "--out", tmp_.File("x")});
+  EXPECT_EQ(r.code, 2) << "ot or bt only";
 
   ASSERT_EQ(Run({"maps", "rename", "lab", "lab2"}).code, 0);
   r = Run({"maps", "delete", "lab2"});
@@ -840,6 +848,17 @@ TEST_F(CliTest, EvalFusionComparesSingleFrameAndFusedLabels) {
   EXPECT_GT(s["fused_coverage"].get<double>(), 0.9) << "the octree labels what the views saw";
   EXPECT_GT(s["fused"]["accuracy"].get<double>(), 0.5);
   EXPECT_GT(s["visits"][0]["labelled_voxels"].get<int64_t>(), 1000);
+
+  // Training options out of range are refused before any work.
+  for (const std::vector<std::string>& bad : {std::vector<std::string>{"--depth-features", "1.5"},
+                                              {"--max-offset", "-1"},
+                                              {"--max-size", "0"}}) {
+    std::vector<std::string> args = {"train", "--data", visit, "--out", tmp_.File("bad.model")};
+    args.insert(args.end(), bad.begin(), bad.end());
+    r = Run(args);
+    EXPECT_EQ(r.code, 2) << bad[0];
+    EXPECT_NE(r.err.find(bad[0]), std::string::npos) << r.err;
+  }
 
   // The same visit streamed to the server with that model: its octree exported in OctoMap's
   // formats, as a labelled voxel cloud and as a summary.

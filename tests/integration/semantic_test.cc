@@ -263,6 +263,14 @@ TEST_F(SemanticServerTest, ExportsTheOctreeInOctomapsFormats) {
   auto unknown = Export(client_.get(), v1::EXPORT_SEMANTIC_CLOUD_PLY, 0, "window");
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(unknown.status().message().find("wall, door"), std::string::npos) << unknown.status();
+  auto summary_of_one = Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON, 0, "door");
+  EXPECT_EQ(summary_of_one.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(summary_of_one.status().message().find("leave class_name empty"), std::string::npos)
+      << summary_of_one.status();
+  auto no_such_format = Export(client_.get(), static_cast<v1::ExportFormat>(99));
+  EXPECT_EQ(no_such_format.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(no_such_format.status().message().find("EXPORT_OCTREE_OT"), std::string::npos)
+      << no_such_format.status();
 
   // A second visit with client poses is in the map's frame too: the map's octree merges both.
   stream->CloseSend();
