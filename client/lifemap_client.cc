@@ -224,6 +224,15 @@ class GrpcClient final : public Client {
     if (!*out) return absl::DataLossError("writing the export failed");
     return items;
   }
+  absl::Status RebuildSemanticOctrees(
+      const v1::RebuildSemanticOctreesRequest& request,
+      const std::function<void(const v1::SemanticOctreeRebuild&)>& on_visit) override {
+    grpc::ClientContext context;
+    auto reader = maps_->RebuildSemanticOctrees(&context, request);
+    v1::SemanticOctreeRebuild visit;
+    while (reader->Read(&visit)) on_visit(visit);
+    return FromGrpc(reader->Finish());
+  }
 
   absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) override {
     return Unary(&v1::VisitService::Stub::StartVisit, visits_.get(), request);

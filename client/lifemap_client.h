@@ -9,6 +9,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <ostream>
 #include <string>
@@ -79,6 +80,11 @@ class Client {
   // Streams the export into `out`; returns the number of items (poses or points) written.
   virtual absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
                                              std::ostream* out) = 0;
+  // Rebuilds semantic octrees from stored keyframes; `on_visit` gets each visit's outcome as
+  // the server decides it (no deadline: a large map takes minutes).
+  virtual absl::Status RebuildSemanticOctrees(
+      const v1::RebuildSemanticOctreesRequest& request,
+      const std::function<void(const v1::SemanticOctreeRebuild&)>& on_visit) = 0;
 
   virtual absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) = 0;
   virtual absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) = 0;

@@ -9,6 +9,7 @@
 #include "core/mapping/point_cloud.h"
 #include "server/convert.h"
 #include "server/semantic_export.h"
+#include "server/semantic_rebuild.h"
 #include "server/services.h"
 
 namespace lifemap::server {
@@ -20,6 +21,30 @@ constexpr size_t kDescriptionMaxBytes = 4096;
 absl::StatusOr<store::MapRecord> FindMap(store::Store* store, const std::string& name) {
   if (auto s = store::ValidateMapName(name); !s.ok()) return s;
   return store->GetMap(name);
+}
+
+// OK when `visit_id` is 0 (every visit) or one of `map`'s visits; else NOT_FOUND.
+absl::Status CheckVisitOfMap(store::Store* store, const store::MapRecord& map, int64_t visit_id) {
+  if (visit_id == 0) return absl::OkStatus();
+  auto visit = store->GetVisit(visit_id);
+  if (!visit.ok()) return visit.status();
+  if (visit->map_id != map.id) {
+    return absl::NotFoundError(
+        absl::StrCat("visit ", visit_id, " is not a visit of map '", map.name, "'"));
+  }
+  return absl::OkStatus();
+}
+
+v1::SemanticOctreeRebuild::Outcome OutcomeToProto(SemanticRebuild::Outcome o) {
+  switch (o) {
+    case SemanticRebuild::Outcome::kRebuilt:
+      return v1::SemanticOctreeRebuild::OUTCOME_REBUILT;
+    case SemanticRebuild::Outcome::kUpToDate:
+      return v1::SemanticOctreeRebuild::OUTCOME_UP_TO_DATE;
+    case SemanticRebuild::Outcome::kLeftOut:
+      return v1::SemanticOctreeRebuild::OUTCOME_LEFT_OUT;
+  }
+  return v1::SemanticOctreeRebuild::OUTCOME_UNSPECIFIED;
 }
 
 // Sends `body` in chunks of at most kExportChunkBytes; the last chunk carries the item count.
@@ -196,15 +221,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
   auto map = FindMap(ctx_->store, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto visit_id = static_cast<int64_t>(req->visit_id());
-  if (visit_id != 0) {
-    auto visit = ctx_->store->GetVisit(visit_id);
-    if (!visit.ok()) return ToGrpcStatus(visit.status());
-    if (visit->map_id != map->id) {
-      return grpc::Status(
-          grpc::StatusCode::NOT_FOUND,
-          absl::StrCat("visit ", visit_id, " is not a visit of map '", req->map(), "'"));
-    }
-  }
+  if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
       auto keyframes = ctx_->store->ListKeyframes(map->id, visit_id);
@@ -238,12 +255,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
           map->id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
             if (context->IsCancelled()) return absl::CancelledError("export cancelled");
             if (!k.T_world_camera) return absl::OkStatus();
-            EncodedRgbdFrame encoded;
-            encoded.timestamp_s = k.timestamp_s;
-            encoded.intrinsics = k.intrinsics;
-            encoded.depth = store::StoredDepth(k);
-            encoded.color = store::StoredColor(k);
-            auto frame = DecodeRgbdFrame(encoded);
+            auto frame = DecodeRgbdFrame(store::StoredFrame(k));
             if (!frame.ok()) {
               return absl::DataLossError(absl::StrCat(
                   "stored keyframe ", k.id, " cannot be decoded: ", frame.status().message()));
@@ -322,6 +334,48 @@ grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
       return SendChunks(SemanticExportSummaryJson(*e), "application/json", e->visits.size(),
                         writer);
   }
+}
+
+grpc::Status MapServiceImpl::RebuildSemanticOctrees(
+    grpc::ServerContext* context, const v1::RebuildSemanticOctreesRequest* req,
+    grpc::ServerWriter<v1::SemanticOctreeRebuild>* writer) {
+  auto map = FindMap(ctx_->store, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  const auto visit_id = static_cast<int64_t>(req->visit_id());
+  if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
+  if (!ctx_->config.semantic_enabled || ctx_->semantic_worker == nullptr) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "semantic fusion is disabled in this server's config (semantic.enabled): "
+                        "enable it and restart the server to rebuild octrees");
+  }
+  auto model = ctx_->models->ForMap(map->id);
+  if (!model.ok()) return ToGrpcStatus(model.status());
+  if (*model == nullptr) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("no model labels map '", map->name,
+                                     "': activate one (lifemap models activate NAME --map ",
+                                     map->name, ") to rebuild its octrees"));
+  }
+  const SemanticRebuildContext rebuild{ctx_->store, ctx_->pipeline, ctx_->visits,
+                                       ctx_->semantic_worker, ctx_->config.semantic};
+  bool client_gone = false;
+  const absl::Status s = server::RebuildSemanticOctrees(
+      rebuild, *map, visit_id, req->all(), **model,
+      [&] { return client_gone || context->IsCancelled(); },
+      [&](const SemanticRebuild& r) {
+        v1::SemanticOctreeRebuild out;
+        out.set_visit_id(static_cast<uint64_t>(r.visit_id));
+        out.set_outcome(OutcomeToProto(r.outcome));
+        out.set_reason(r.reason);
+        out.set_model(r.model);
+        out.set_keyframes_fused(static_cast<uint64_t>(r.keyframes_fused));
+        out.set_keyframes_skipped(static_cast<uint64_t>(r.keyframes_skipped));
+        out.set_labelled_voxels(static_cast<uint64_t>(r.labelled_voxels));
+        out.set_bytes(static_cast<uint64_t>(r.bytes));
+        out.set_seconds(r.seconds);
+        client_gone = client_gone || !writer->Write(out);
+      });
+  return ToGrpcStatus(s);
 }
 
 grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext*, grpc::ServerReader<v1::ImportChunk>*,

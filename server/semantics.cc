@@ -10,6 +10,7 @@ namespace lifemap::server {
 void VisitSemantics::Fuse(const SemanticKeyframe& keyframe,
                           const semantic::SemanticMapOptions& options) {
   absl::MutexLock lock(&mu_);
+  ++fusions_;
   if (map_ == nullptr || model_ != keyframe.model || map_->class_count() != keyframe.class_count) {
     auto map = semantic::SemanticMap::Create(keyframe.class_count, keyframe.class_prior, options);
     if (!map.ok()) {
@@ -60,13 +61,18 @@ std::optional<store::SemanticSnapshotRecord> VisitSemantics::SnapshotIfDue(int64
     return std::nullopt;
   }
   fused_since_snapshot_ = 0;
+  return SemanticSnapshotOf(visit_id, model_, *map_);
+}
+
+store::SemanticSnapshotRecord SemanticSnapshotOf(int64_t visit_id, const std::string& model,
+                                                 const semantic::SemanticMap& map) {
   store::SemanticSnapshotRecord r;
   r.visit_id = visit_id;
-  r.model = model_;
-  r.class_count = map_->class_count();
-  r.resolution_m = map_->resolution_m();
-  r.keyframes = map_->keyframes();
-  r.bytes = map_->Serialize();
+  r.model = model;
+  r.class_count = map.class_count();
+  r.resolution_m = map.resolution_m();
+  r.keyframes = map.keyframes();
+  r.bytes = map.Serialize();
   r.updated_time_s =
       std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
   return r;
@@ -80,11 +86,20 @@ void VisitSemantics::Restore(const store::SemanticSnapshotRecord& snapshot,
                  snapshot.visit_id, std::string(map.status().message()));
     return;
   }
+  Replace(*std::move(map), snapshot.model);
+}
+
+void VisitSemantics::Replace(std::unique_ptr<semantic::SemanticMap> map, const std::string& model) {
   absl::MutexLock lock(&mu_);
-  map_ = *std::move(map);
-  model_ = snapshot.model;
+  map_ = std::move(map);
+  model_ = model;
   error_ = absl::OkStatus();
   fused_since_snapshot_ = 0;
+}
+
+int64_t VisitSemantics::fusions() const {
+  absl::ReaderMutexLock lock(&mu_);
+  return fusions_;
 }
 
 void StoreSemanticSnapshotIfDue(store::Store* store, int64_t visit_id, VisitSemantics* semantics,

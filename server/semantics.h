@@ -6,7 +6,8 @@
 // pose-graph correction known when the keyframe was fused). Snapshots go to the store every
 // kSemanticSnapshotKeyframes fused keyframes and when the visit ends, and a resumed visit
 // starts from its snapshot. A map's octree is merged from its visits' snapshots when exported
-// (server/semantic_export.h). Not yet: a rebuild from stored keyframes.
+// (server/semantic_export.h). A visit's octree can be rebuilt from its stored keyframes
+// (server/semantic_rebuild.h).
 #pragma once
 
 #include <memory>
@@ -61,6 +62,11 @@ class VisitSemantics {
   // one (resolution changed in the config) is logged and skipped: the octree starts empty.
   void Restore(const store::SemanticSnapshotRecord& snapshot,
                const semantic::SemanticMapOptions& options);
+  // Puts `map` (labelled by `model`, stored already) in place of the octree: a rebuild.
+  void Replace(std::unique_ptr<semantic::SemanticMap> map, const std::string& model);
+  // Keyframes given to Fuse so far (fused or refused): a rebuild checks that none came while
+  // it ran.
+  int64_t fusions() const;
 
  private:
   mutable absl::Mutex mu_;
@@ -68,7 +74,12 @@ class VisitSemantics {
   std::string model_ ABSL_GUARDED_BY(mu_);
   absl::Status error_ ABSL_GUARDED_BY(mu_);  // the last fusion's, if it failed
   int fused_since_snapshot_ ABSL_GUARDED_BY(mu_) = 0;
+  int64_t fusions_ ABSL_GUARDED_BY(mu_) = 0;
 };
+
+// The store's record of `map`, a visit's octree labelled by `model`, stamped now.
+store::SemanticSnapshotRecord SemanticSnapshotOf(int64_t visit_id, const std::string& model,
+                                                 const semantic::SemanticMap& map);
 
 // Stores the visit's octree when a snapshot is due (VisitSemantics::SnapshotIfDue); a failed
 // write is logged (the octree stays in memory and the next snapshot tries again).

@@ -69,6 +69,9 @@ class MapServiceImpl final : public v1::MapService::Service {
                          grpc::ServerWriter<v1::ExportChunk>*) override;
   grpc::Status ImportMap(grpc::ServerContext*, grpc::ServerReader<v1::ImportChunk>*,
                          v1::Map*) override;
+  grpc::Status RebuildSemanticOctrees(grpc::ServerContext*,
+                                      const v1::RebuildSemanticOctreesRequest*,
+                                      grpc::ServerWriter<v1::SemanticOctreeRebuild>*) override;
 
  private:
   // ExportMap's semantic octree formats (server/semantic_export.h).

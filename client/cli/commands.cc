@@ -1,5 +1,6 @@
 #include "client/cli/commands.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -176,6 +177,58 @@ void AddServerCommands(CLI::App* app, CliContext* ctx) {
       });
 }
 
+// `lifemap maps rebuild-octree`.
+void AddRebuildOctreeCommand(CLI::App* maps, CliContext* ctx) {
+  auto* rebuild = maps->add_subcommand(
+      "rebuild-octree",
+      "Rebuild visits' semantic octrees from their stored keyframes (missing or stale ones, or "
+      "--all)");
+  auto req = std::make_shared<v1::RebuildSemanticOctreesRequest>();
+  rebuild->add_option("NAME", *req->mutable_map(), "map name")->required();
+  rebuild->add_option_function<uint64_t>(
+      "--visit", [req](uint64_t v) { req->set_visit_id(v); }, "only this visit");
+  rebuild->add_flag_function(
+      "--all", [req](int64_t n) { req->set_all(n > 0); },
+      "also visits whose octree is up to date (after pose-graph corrections, say)");
+  rebuild->callback([ctx, req] {
+    ctx->run = [ctx, req] {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      int counts[4] = {0, 0, 0, 0};
+      const absl::Status s =
+          (*c)->RebuildSemanticOctrees(*req, [&](const v1::SemanticOctreeRebuild& r) {
+            ++counts[std::clamp(static_cast<int>(r.outcome()), 0, 3)];
+            if (ctx->json) {
+              std::cout << ToJson(r) << std::endl;
+              return;
+            }
+            switch (r.outcome()) {
+              case v1::SemanticOctreeRebuild::OUTCOME_REBUILT:
+                std::cout << absl::StrFormat(
+                    "visit %d: rebuilt from %d keyframes (%d skipped) by '%s': %d labelled "
+                    "voxels, %s, %.1f s (%s)\n",
+                    r.visit_id(), r.keyframes_fused(), r.keyframes_skipped(), r.model(),
+                    r.labelled_voxels(), HumanBytes(r.bytes()), r.seconds(), r.reason());
+                break;
+              case v1::SemanticOctreeRebuild::OUTCOME_UP_TO_DATE:
+                std::cout << absl::StrFormat("visit %d: up to date: %s\n", r.visit_id(),
+                                             r.reason());
+                break;
+              default:
+                std::cout << absl::StrFormat("visit %d: left out: %s\n", r.visit_id(), r.reason());
+            }
+            std::cout.flush();
+          });
+      if (!s.ok()) return Fail(s);
+      if (!ctx->json) {
+        std::cout << absl::StrFormat("%d rebuilt, %d up to date, %d left out\n", counts[1],
+                                     counts[2], counts[3]);
+      }
+      return 0;
+    };
+  });
+}
+
 void AddMapCommands(CLI::App* app, CliContext* ctx) {
   auto* maps = app->add_subcommand("maps", "Create, list, inspect, rename and delete maps");
   maps->require_subcommand(1);
@@ -273,6 +326,8 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
           *ctx, [&](client::Client& c) { return c.UpdateMap(req); }, PrintMap);
     };
   });
+
+  AddRebuildOctreeCommand(maps, ctx);
 
   auto* del = maps->add_subcommand("delete", "Delete a map with all its visits and keyframes");
   auto del_name = std::make_shared<std::string>();

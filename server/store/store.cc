@@ -874,6 +874,17 @@ EncodedColor StoredColor(const KeyframeRecord& k) {
       k.color, k.intrinsics.width, k.intrinsics.height};
 }
 
+EncodedRgbdFrame StoredFrame(const KeyframeRecord& k) {
+  EncodedRgbdFrame f;
+  f.sequence = k.sequence;
+  f.timestamp_s = k.timestamp_s;
+  f.intrinsics = k.intrinsics;
+  f.depth = StoredDepth(k);
+  f.color = StoredColor(k);
+  f.T_world_camera = k.T_world_camera;
+  return f;
+}
+
 absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
                                     const std::vector<VisitFrameCount>& frame_counts) {
   absl::MutexLock lock(&impl_->write_mu);

@@ -19,6 +19,7 @@
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
 #include "core/common/image_codec.h"
+#include "core/common/rgbd_frame.h"
 #include "core/common/types.h"
 #include "core/entropy/superjut_scores.h"
 #include "core/features/keypoints.h"
@@ -139,6 +140,8 @@ struct KeyframeRecord {
 // A stored keyframe's images as the codecs take them (views into `k`, which must outlive them).
 EncodedDepth StoredDepth(const KeyframeRecord& k);
 EncodedColor StoredColor(const KeyframeRecord& k);
+// The keyframe as a frame to decode: its images, intrinsics, time and pose.
+EncodedRgbdFrame StoredFrame(const KeyframeRecord& k);
 
 // A visit's frame counter, written in the same transaction as its keyframes.
 struct VisitFrameCount {

@@ -893,6 +893,20 @@ TEST_F(CliTest, EvalFusionComparesSingleFrameAndFusedLabels) {
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("structure, furniture, prop, person"), std::string::npos) << r.err;
 
+  // The operator's rebuild from stored keyframes: up to date, unless every visit is asked for.
+  r = Run({"maps", "rebuild-octree", "room"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("0 rebuilt, 1 up to date, 0 left out"), std::string::npos) << r.out;
+  r = Run({"--json", "maps", "rebuild-octree", "room", "--all"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json rebuilt = json::parse(r.out);
+  EXPECT_EQ(rebuilt["outcome"], "OUTCOME_REBUILT") << r.out;
+  EXPECT_EQ(rebuilt["keyframes_fused"], std::to_string(octree["keyframes"].get<int64_t>()))
+      << r.out;
+  r = Run({"maps", "rebuild-octree", "room", "--visit", "999"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("visit 999"), std::string::npos) << r.err;
+
   // Labelled images without poses cannot be fused: a clear error.
   testing::WriteSyntheticTum(tmp_.File("pngs"), 2, 0.02, 64, 48);
   std::filesystem::remove(tmp_.File("pngs/groundtruth.txt"));

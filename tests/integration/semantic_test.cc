@@ -287,5 +287,98 @@ TEST_F(SemanticServerTest, ExportsTheOctreeInOctomapsFormats) {
   EXPECT_EQ(nlohmann::json::parse(*one)["visits"], nlohmann::json::array({second}));
 }
 
+absl::StatusOr<std::vector<v1::SemanticOctreeRebuild>> Rebuild(client::Client* client,
+                                                               uint64_t visit_id, bool all) {
+  v1::RebuildSemanticOctreesRequest req;
+  req.set_map("lab");
+  req.set_visit_id(visit_id);
+  req.set_all(all);
+  std::vector<v1::SemanticOctreeRebuild> visits;
+  auto s = client->RebuildSemanticOctrees(
+      req, [&](const v1::SemanticOctreeRebuild& r) { visits.push_back(r); });
+  if (!s.ok()) return s;
+  return visits;
+}
+
+TEST_F(ServerTest, RebuildsOctreesFromStoredKeyframes) {
+  // Five posed keyframes stored while no model labelled the map: no octree.
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  std::unique_ptr<client::FrameStream> stream;
+  const uint64_t visit = StreamVisit(client_.get(), "lab", 5, &stream);
+  stream->CloseSend();
+  ASSERT_TRUE(stream->Finish().ok());
+  EXPECT_EQ(Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  auto no_model = Rebuild(client_.get(), 0, false);
+  EXPECT_EQ(no_model.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(no_model.status().message().find("lifemap models activate"), std::string::npos)
+      << no_model.status();
+
+  // With a model: the keyframes are labelled and fused again, and the octree is stored.
+  ASSERT_TRUE(client_->UploadModel("two-colors", testing::TwoColorModel()).ok());
+  ASSERT_TRUE(client_->ActivateModel("two-colors", "").ok());
+  auto rebuilt = Rebuild(client_.get(), 0, false);
+  ASSERT_TRUE(rebuilt.ok()) << rebuilt.status();
+  ASSERT_EQ(rebuilt->size(), 1u);
+  const v1::SemanticOctreeRebuild& r = rebuilt->front();
+  EXPECT_EQ(r.visit_id(), visit);
+  EXPECT_EQ(r.outcome(), v1::SemanticOctreeRebuild::OUTCOME_REBUILT) << r.reason();
+  EXPECT_EQ(r.reason(), "no octree stored");
+  EXPECT_EQ(r.model(), "two-colors");
+  EXPECT_EQ(r.keyframes_fused(), 5u);
+  EXPECT_EQ(r.keyframes_skipped(), 0u);
+  EXPECT_GT(r.labelled_voxels(), 100u);
+  auto summary_text = Export(client_.get(), v1::EXPORT_SEMANTIC_SUMMARY_JSON);
+  ASSERT_TRUE(summary_text.ok()) << summary_text.status();
+  const nlohmann::json summary = nlohmann::json::parse(*summary_text);
+  EXPECT_EQ(summary["keyframes"], 5);
+  EXPECT_EQ(summary["labelled_voxels"].get<uint64_t>(), r.labelled_voxels());
+  EXPECT_GT(summary["class_volume_m3"]["wall"].get<double>(), 0.0);
+  EXPECT_GT(summary["class_volume_m3"]["door"].get<double>(), 0.0);
+
+  // Up to date now: left as it is, unless every visit is asked for.
+  auto again = Rebuild(client_.get(), visit, false);
+  ASSERT_TRUE(again.ok()) << again.status();
+  ASSERT_EQ(again->size(), 1u);
+  EXPECT_EQ(again->front().outcome(), v1::SemanticOctreeRebuild::OUTCOME_UP_TO_DATE);
+  EXPECT_NE(again->front().reason().find("holds all 5 posed keyframes"), std::string::npos)
+      << again->front().reason();
+  auto forced = Rebuild(client_.get(), visit, true);
+  ASSERT_TRUE(forced.ok()) << forced.status();
+  EXPECT_EQ(forced->front().outcome(), v1::SemanticOctreeRebuild::OUTCOME_REBUILT);
+
+  // The visit is still open (its stream ended, it was not): its frames are labelled from the
+  // rebuilt octree now.
+  v1::ProcessFrameRequest req;
+  req.set_map("lab");
+  req.set_visit_id(visit);
+  *req.mutable_frame() = PosedFrame(30);
+  auto labelled = client_->ProcessFrame(req);
+  ASSERT_TRUE(labelled.ok()) << labelled.status();
+  EXPECT_TRUE(labelled->has_fused_labels()) << FusionStatus(*labelled)->reason();
+
+  // A visit being streamed is left out, saying so; rebuilt once its stream has ended.
+  const uint64_t streamed = StreamVisit(client_.get(), "lab", 3, &stream);
+  auto while_streamed = Rebuild(client_.get(), streamed, true);
+  ASSERT_TRUE(while_streamed.ok()) << while_streamed.status();
+  EXPECT_EQ(while_streamed->front().outcome(), v1::SemanticOctreeRebuild::OUTCOME_LEFT_OUT);
+  EXPECT_NE(while_streamed->front().reason().find("being streamed"), std::string::npos)
+      << while_streamed->front().reason();
+  stream->CloseSend();
+  ASSERT_TRUE(stream->Finish().ok());
+  auto after = Rebuild(client_.get(), streamed, true);
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_EQ(after->front().outcome(), v1::SemanticOctreeRebuild::OUTCOME_REBUILT)
+      << after->front().reason();
+  EXPECT_EQ(after->front().keyframes_fused(), 3u);
+
+  // Bad input: another map's visit, a map that does not exist.
+  EXPECT_EQ(Rebuild(client_.get(), 999, false).status().code(), absl::StatusCode::kNotFound);
+  v1::RebuildSemanticOctreesRequest bad;
+  bad.set_map("no-such-map");
+  EXPECT_EQ(client_->RebuildSemanticOctrees(bad, [](const v1::SemanticOctreeRebuild&) {}).code(),
+            absl::StatusCode::kNotFound);
+}
+
 }  // namespace
 }  // namespace lifemap
