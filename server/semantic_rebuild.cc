@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/pipeline/frame_pipeline.h"
+#include "server/semantic_export.h"
 #include "server/semantics.h"
 #include "spdlog/spdlog.h"
 
@@ -186,14 +187,17 @@ absl::Status RebuildSemanticOctrees(const SemanticRebuildContext& ctx, const sto
                                     const std::function<void(const SemanticRebuild&)>& done) {
   auto visits = ctx.store->ListVisits(map.name);
   if (!visits.ok()) return visits.status();
-  bool found = visit_id == 0;
+  bool found = visit_id == 0, rebuilt = false;
   for (const auto& v : *visits) {
     if (visit_id != 0 && v.id != visit_id) continue;
     found = true;
     SemanticRebuild r;
     if (auto s = RebuildVisit(ctx, map, v, all, model, cancelled, &r); !s.ok()) return s;
+    rebuilt = rebuilt || r.outcome == SemanticRebuild::Outcome::kRebuilt;
     done(r);
   }
+  // The map's octree merged again from the new snapshots.
+  if (rebuilt) RefreshMapSemanticOctree(ctx.store, map.name, ctx.options);
   if (!found) {
     return absl::NotFoundError(
         absl::StrCat("visit ", visit_id, " is not a visit of map '", map.name, "'"));

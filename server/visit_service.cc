@@ -2,6 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "server/convert.h"
+#include "server/semantic_export.h"
 #include "server/services.h"
 
 namespace lifemap::server {
@@ -48,8 +49,17 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
   // Its floor plan too: what was sent before the end is folded, stored and ranked.
   ctx_->architecture->Wait(ctx_->architecture->last_ticket());
   // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
+  // The map's octree is merged again with it afterwards, off the reply path.
   if (state.ok() && ctx_->semantic_worker != nullptr) {
     ctx_->semantic_worker->Wait(QueueSemanticSnapshot(ctx_->semantic_worker, ctx_->store, *state));
+    std::string map_name;
+    {
+      absl::MutexLock lock(&(*state)->mu);
+      map_name = (*state)->map_name;
+    }
+    ctx_->semantic_worker->Submit([store = ctx_->store, map_name, options = ctx_->config.semantic] {
+      RefreshMapSemanticOctree(store, map_name, options);
+    });
   }
   auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
   if (!drained.ok()) return ToGrpcStatus(drained.status());

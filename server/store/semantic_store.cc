@@ -1,60 +1,86 @@
-// Store: each visit's semantic octree snapshot (issue 16), chunked.
-#include <algorithm>
+// Store: semantic octree snapshots (issue 16), each visit's and each map's, chunked. Both kinds
+// have the same header columns and chunk table layout, keyed by their owner's id.
+#include <functional>
+#include <string>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "server/store/store_impl.h"
 
 namespace lifemap::store {
+namespace {
 
-absl::Status Store::PutSemanticSnapshot(const SemanticSnapshotRecord& r) {
-  absl::MutexLock lock(&impl_->write_mu);
-  Database* db = impl_->write_db.get();
+struct OctreeTables {
+  const char* header;
+  const char* chunks;
+  const char* key;    // the owner's id column
+  const char* owner;  // "visit" or "map", for messages
+};
+constexpr OctreeTables kVisitOctrees{"semantic_octrees", "semantic_octree_chunks", "visit_id",
+                                     "visit"};
+constexpr OctreeTables kMapOctrees{"semantic_map_octrees", "semantic_map_octree_chunks", "map_id",
+                                   "map"};
+constexpr char kHeaderColumns[] =
+    "model, class_count, resolution_m, keyframes, bytes, updated_time_s";
+
+// Replaces `key`'s header and chunks in one transaction. `extra` names columns after the common
+// ones (", sources, merged") whose values `bind_extra` binds from parameter 8 on.
+absl::Status PutOctree(Database* db, const OctreeTables& t, int64_t key,
+                       const SemanticSnapshotRecord& r, const std::string& extra,
+                       const std::function<void(Statement&)>& bind_extra) {
   Transaction tx(db);
   if (auto s = tx.Begin(); !s.ok()) return s;
   {
-    auto stmt = db->Prepare(
-        "INSERT INTO semantic_octrees (visit_id, model, class_count, resolution_m, keyframes, "
-        "bytes, updated_time_s) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7) ON CONFLICT(visit_id) DO "
-        "UPDATE SET model = excluded.model, class_count = excluded.class_count, resolution_m = "
-        "excluded.resolution_m, keyframes = excluded.keyframes, bytes = excluded.bytes, "
-        "updated_time_s = excluded.updated_time_s");
+    const std::vector<std::string> columns =
+        absl::StrSplit(absl::StrCat(kHeaderColumns, extra), ", ");
+    std::string values = "?1", updates;
+    for (size_t i = 0; i < columns.size(); ++i) {
+      absl::StrAppend(&values, ", ?", i + 2);
+      absl::StrAppend(&updates, i == 0 ? "" : ", ", columns[i], " = excluded.", columns[i]);
+    }
+    auto stmt = db->Prepare(absl::StrCat("INSERT INTO ", t.header, " (", t.key, ", ",
+                                         kHeaderColumns, extra, ") VALUES (", values,
+                                         ") ON CONFLICT(", t.key, ") DO UPDATE SET ", updates));
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
-    s->Bind(1, r.visit_id).Bind(2, r.model).Bind(3, int64_t{r.class_count});
+    s->Bind(1, key).Bind(2, r.model).Bind(3, int64_t{r.class_count});
     s->Bind(4, r.resolution_m).Bind(5, r.keyframes);
     s->Bind(6, static_cast<int64_t>(r.bytes.size())).Bind(7, r.updated_time_s);
+    if (bind_extra) bind_extra(**stmt);
     if (auto st = s->Run(); !st.ok()) {
       if (absl::IsFailedPrecondition(st)) {
-        return absl::NotFoundError(absl::StrCat("visit ", r.visit_id, " does not exist"));
+        return absl::NotFoundError(absl::StrCat(t.owner, " ", key, " does not exist"));
       }
       return st;
     }
   }
   {
-    auto stmt = db->Prepare("DELETE FROM semantic_octree_chunks WHERE visit_id = ?1");
+    auto stmt = db->Prepare(absl::StrCat("DELETE FROM ", t.chunks, " WHERE ", t.key, " = ?1"));
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
-    s->Bind(1, r.visit_id);
+    s->Bind(1, key);
     if (auto st = s->Run(); !st.ok()) return st;
   }
-  auto insert =
-      db->Prepare("INSERT INTO semantic_octree_chunks (visit_id, chunk, data) VALUES (?1, ?2, ?3)");
+  auto insert = db->Prepare(
+      absl::StrCat("INSERT INTO ", t.chunks, " (", t.key, ", chunk, data) VALUES (?1, ?2, ?3)"));
   if (!insert.ok()) return insert.status();
   const std::string_view bytes(r.bytes);
   for (size_t offset = 0, chunk = 0; offset < bytes.size();
-       offset += kSemanticChunkBytes, ++chunk) {
+       offset += Store::kSemanticChunkBytes, ++chunk) {
     StatementScope s(*insert);
-    s->Bind(1, r.visit_id).Bind(2, static_cast<int64_t>(chunk));
-    s->BindBlob(3, bytes.substr(offset, kSemanticChunkBytes));
+    s->Bind(1, key).Bind(2, static_cast<int64_t>(chunk));
+    s->BindBlob(3, bytes.substr(offset, Store::kSemanticChunkBytes));
     if (auto st = s->Run(); !st.ok()) return st;
   }
   return tx.Commit();
 }
 
-absl::StatusOr<SemanticSnapshotRecord> Store::GetSemanticSnapshot(int64_t visit_id) {
-  absl::MutexLock lock(&impl_->read_mu);
-  Database* db = impl_->read_db.get();
-  // One read transaction: the header and its chunks from the same snapshot.
+// Reads `key`'s header and chunks in one read transaction (the same snapshot of both); columns
+// after the common ones (`extra`) are read by `read_extra` from column 6 on.
+absl::StatusOr<SemanticSnapshotRecord> GetOctree(
+    Database* db, const OctreeTables& t, int64_t key, const std::string& extra,
+    const std::function<void(Statement&)>& read_extra) {
   if (auto s = db->Exec("BEGIN"); !s.ok()) return s;
   struct End {
     Database* db;
@@ -63,30 +89,29 @@ absl::StatusOr<SemanticSnapshotRecord> Store::GetSemanticSnapshot(int64_t visit_
   SemanticSnapshotRecord r;
   int64_t size = 0;
   {
-    auto stmt = db->Prepare(
-        "SELECT model, class_count, resolution_m, keyframes, bytes, updated_time_s FROM "
-        "semantic_octrees WHERE visit_id = ?1");
+    auto stmt = db->Prepare(absl::StrCat("SELECT ", kHeaderColumns, extra, " FROM ", t.header,
+                                         " WHERE ", t.key, " = ?1"));
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
-    s->Bind(1, visit_id);
+    s->Bind(1, key);
     auto row = s->Step();
     if (!row.ok()) return row.status();
     if (!*row) {
-      return absl::NotFoundError(absl::StrCat("visit ", visit_id, " has no semantic octree"));
+      return absl::NotFoundError(absl::StrCat(t.owner, " ", key, " has no semantic octree"));
     }
-    r.visit_id = visit_id;
     r.model = s->ColumnText(0);
     r.class_count = static_cast<int>(s->ColumnInt(1));
     r.resolution_m = s->ColumnDouble(2);
     r.keyframes = s->ColumnInt(3);
     size = s->ColumnInt(4);
     r.updated_time_s = s->ColumnDouble(5);
+    if (read_extra) read_extra(**stmt);
   }
-  auto stmt =
-      db->Prepare("SELECT data FROM semantic_octree_chunks WHERE visit_id = ?1 ORDER BY chunk");
+  auto stmt = db->Prepare(
+      absl::StrCat("SELECT data FROM ", t.chunks, " WHERE ", t.key, " = ?1 ORDER BY chunk"));
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
-  s->Bind(1, visit_id);
+  s->Bind(1, key);
   for (;;) {
     auto row = s->Step();
     if (!row.ok()) return row.status();
@@ -94,9 +119,68 @@ absl::StatusOr<SemanticSnapshotRecord> Store::GetSemanticSnapshot(int64_t visit_
     r.bytes += s->ColumnBlob(0);
   }
   if (static_cast<int64_t>(r.bytes.size()) != size) {
-    return absl::DataLossError(absl::StrCat("visit ", visit_id, "'s semantic octree has ",
+    return absl::DataLossError(absl::StrCat(t.owner, " ", key, "'s semantic octree has ",
                                             r.bytes.size(), " bytes of ", size));
   }
+  return r;
+}
+
+}  // namespace
+
+absl::Status Store::PutSemanticSnapshot(const SemanticSnapshotRecord& r) {
+  absl::MutexLock lock(&impl_->write_mu);
+  return PutOctree(impl_->write_db.get(), kVisitOctrees, r.visit_id, r, "", nullptr);
+}
+
+absl::StatusOr<SemanticSnapshotRecord> Store::GetSemanticSnapshot(int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto r = GetOctree(impl_->read_db.get(), kVisitOctrees, visit_id, "", nullptr);
+  if (r.ok()) r->visit_id = visit_id;
+  return r;
+}
+
+absl::StatusOr<std::vector<SemanticSnapshotRecord>> Store::ListSemanticSnapshots(int64_t map_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(absl::StrCat(
+      "SELECT o.visit_id, ", kHeaderColumns,
+      " FROM semantic_octrees o JOIN visits v ON v.id = o.visit_id WHERE v.map_id = ?1 ORDER BY "
+      "o.visit_id"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id);
+  std::vector<SemanticSnapshotRecord> out;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    SemanticSnapshotRecord& r = out.emplace_back();
+    r.visit_id = s->ColumnInt(0);
+    r.model = s->ColumnText(1);
+    r.class_count = static_cast<int>(s->ColumnInt(2));
+    r.resolution_m = s->ColumnDouble(3);
+    r.keyframes = s->ColumnInt(4);
+    r.updated_time_s = s->ColumnDouble(6);
+  }
+  return out;
+}
+
+absl::Status Store::PutMapSemanticSnapshot(const MapSemanticSnapshotRecord& r) {
+  absl::MutexLock lock(&impl_->write_mu);
+  return PutOctree(impl_->write_db.get(), kMapOctrees, r.map_id, r.octree, ", sources, merged",
+                   [&](Statement& s) { s.Bind(8, r.sources).Bind(9, r.merged); });
+}
+
+absl::StatusOr<MapSemanticSnapshotRecord> Store::GetMapSemanticSnapshot(int64_t map_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  MapSemanticSnapshotRecord r;
+  r.map_id = map_id;
+  auto octree =
+      GetOctree(impl_->read_db.get(), kMapOctrees, map_id, ", sources, merged", [&](Statement& s) {
+        r.sources = s.ColumnText(6);
+        r.merged = s.ColumnText(7);
+      });
+  if (!octree.ok()) return octree.status();
+  r.octree = *std::move(octree);
   return r;
 }
 

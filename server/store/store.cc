@@ -298,6 +298,27 @@ CREATE TABLE semantic_octree_chunks (
   PRIMARY KEY (visit_id, chunk)
 );
 )sql",
+    // 11 -> 12: each map's own semantic octree (issue 16), its visits' merged in the map's
+    // frame, stored like a visit's, with what it was merged from.
+    R"sql(
+CREATE TABLE semantic_map_octrees (
+  map_id INTEGER PRIMARY KEY REFERENCES maps(id) ON DELETE CASCADE,
+  model TEXT NOT NULL,
+  class_count INTEGER NOT NULL,
+  resolution_m REAL NOT NULL,
+  keyframes INTEGER NOT NULL,
+  bytes INTEGER NOT NULL,
+  updated_time_s REAL NOT NULL,
+  sources TEXT NOT NULL,
+  merged TEXT NOT NULL
+);
+CREATE TABLE semantic_map_octree_chunks (
+  map_id INTEGER NOT NULL REFERENCES semantic_map_octrees(map_id) ON DELETE CASCADE,
+  chunk INTEGER NOT NULL,
+  data BLOB NOT NULL,
+  PRIMARY KEY (map_id, chunk)
+);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");

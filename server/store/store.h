@@ -249,6 +249,16 @@ struct SemanticSnapshotRecord {
   double updated_time_s = 0.0;
 };
 
+// A map's semantic octree: its visits' merged in the map's frame (server/semantic_export.h).
+struct MapSemanticSnapshotRecord {
+  int64_t map_id = 0;
+  SemanticSnapshotRecord octree;  // octree.visit_id is 0
+  // What it was merged from, as its writer describes it (kept as is): a reader compares it
+  // with what it would merge now to tell whether the stored one is current.
+  std::string sources;
+  std::string merged;  // its writer's account of the visits merged and left out
+};
+
 class Store {
  public:
   // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
@@ -259,7 +269,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 11;
+  static constexpr int kSchemaVersion = 12;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -342,6 +352,12 @@ class Store {
   // NOT_FOUND for an unknown visit (Put) or a visit without a snapshot (Get).
   absl::Status PutSemanticSnapshot(const SemanticSnapshotRecord& record);
   absl::StatusOr<SemanticSnapshotRecord> GetSemanticSnapshot(int64_t visit_id);
+  // The map's visits' snapshots without their bytes (what each holds, and when it was made).
+  absl::StatusOr<std::vector<SemanticSnapshotRecord>> ListSemanticSnapshots(int64_t map_id);
+  // The map's own octree (schema 12), replaced whole like a visit's. NOT_FOUND for an unknown
+  // map (Put) or a map without one (Get).
+  absl::Status PutMapSemanticSnapshot(const MapSemanticSnapshotRecord& record);
+  absl::StatusOr<MapSemanticSnapshotRecord> GetMapSemanticSnapshot(int64_t map_id);
   static constexpr size_t kSemanticChunkBytes = 4 << 20;
 
   // Appearance vocabularies. Put stores a new one (it becomes the one in use; its id is

@@ -57,7 +57,6 @@ class SemanticExportTest : public ::testing::Test {
     k[0].depth = "d";
     k[0].color = "c";
     EXPECT_TRUE(store_->InsertKeyframes(&k, {}).ok());
-    keyframes_.push_back(k[0].id);
     store::SemanticSnapshotRecord r;
     r.visit_id = v->id;
     r.model = std::move(model);
@@ -70,6 +69,24 @@ class SemanticExportTest : public ::testing::Test {
     return *v;
   }
 
+  // Anchors `visit` to `to` (by their first keyframes) with its frame 1 m to the right of the
+  // map's (x + 1).
+  absl::Status AnchorOneMetreRight(const store::VisitRecord& visit, const store::VisitRecord& to) {
+    store::PoseEdgeRecord edge;
+    edge.map_id = map_.id;
+    edge.kind = store::StoredEdgeKind::kAnchor;
+    auto from_keyframes = store_->ListKeyframes(map_.id, visit.id);
+    auto to_keyframes = store_->ListKeyframes(map_.id, to.id);
+    if (!from_keyframes.ok() || !to_keyframes.ok()) return absl::InternalError("no keyframes");
+    edge.from_keyframe = from_keyframes->front().id;
+    edge.to_keyframe = to_keyframes->front().id;
+    edge.accepted = true;
+    store::VisitAnchor anchor;
+    anchor.to_visit_id = to.id;
+    anchor.T_map_visit.translation = {1.0, 0.0, 0.0};
+    return store_->AnchorVisit(visit.id, edge, &anchor);
+  }
+
   absl::StatusOr<SemanticExport> Collect(int64_t visit_id) {
     VisitRegistry registry(store_.get(), nullptr);
     return CollectSemanticExport(store_.get(), &registry, nullptr, map_, visit_id, options_);
@@ -79,7 +96,6 @@ class SemanticExportTest : public ::testing::Test {
   std::unique_ptr<store::Store> store_;
   store::MapRecord map_;
   semantic::SemanticMapOptions options_;
-  std::vector<int64_t> keyframes_;
 };
 
 TEST_F(SemanticExportTest, MergesTheVisitsInTheMapsFrameOnly) {
@@ -87,16 +103,7 @@ TEST_F(SemanticExportTest, MergesTheVisitsInTheMapsFrameOnly) {
   const store::VisitRecord anchored = Visit(/*tracked=*/true, 2);
   const store::VisitRecord adrift = Visit(/*tracked=*/true, 2);
   // The anchored visit's frame lies 1 m to the right of the map's (x + 1).
-  store::PoseEdgeRecord edge;
-  edge.map_id = map_.id;
-  edge.kind = store::StoredEdgeKind::kAnchor;
-  edge.from_keyframe = keyframes_[0];
-  edge.to_keyframe = keyframes_[1];
-  edge.accepted = true;
-  store::VisitAnchor anchor;
-  anchor.to_visit_id = first.id;
-  anchor.T_map_visit.translation = {1.0, 0.0, 0.0};
-  ASSERT_TRUE(store_->AnchorVisit(anchored.id, edge, &anchor).ok());
+  ASSERT_TRUE(AnchorOneMetreRight(anchored, first).ok());
 
   auto e = Collect(0);
   ASSERT_TRUE(e.ok()) << e.status();
@@ -135,6 +142,54 @@ TEST_F(SemanticExportTest, OctreesOfAnotherModelAreLeftOut) {
   ASSERT_EQ(e->left_out.size(), 1u);
   EXPECT_NE(e->left_out[0].find("model 'old'"), std::string::npos) << e->left_out[0];
   (void)old_model;
+}
+
+TEST_F(SemanticExportTest, TheMapsOctreeIsStoredAndMergedAgainWhenAVisitChanges) {
+  const store::VisitRecord first = Visit(/*tracked=*/false, 1);
+  const store::VisitRecord tracked = Visit(/*tracked=*/true, 2);
+  auto merged = Collect(0);
+  ASSERT_TRUE(merged.ok()) << merged.status();
+  EXPECT_FALSE(merged->stored);
+  EXPECT_EQ(merged->visits, (std::vector<int64_t>{first.id}));
+  auto stored = store_->GetMapSemanticSnapshot(map_.id);
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  EXPECT_EQ(stored->octree.model, "forest");
+
+  // Nothing changed: the stored one is read back, the same octree, the same account.
+  auto again = Collect(0);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_TRUE(again->stored);
+  EXPECT_EQ(again->visits, merged->visits);
+  EXPECT_EQ(again->left_out, merged->left_out);
+  EXPECT_EQ(again->map->Serialize(), merged->map->Serialize());
+  EXPECT_EQ(nlohmann::json::parse(SemanticExportSummaryJson(*again))["map_octree"], "stored");
+
+  // The tracked visit anchored: merged again, with it.
+  ASSERT_TRUE(AnchorOneMetreRight(tracked, first).ok());
+  auto anchored = Collect(0);
+  ASSERT_TRUE(anchored.ok()) << anchored.status();
+  EXPECT_FALSE(anchored->stored);
+  EXPECT_EQ(anchored->visits, (std::vector<int64_t>{first.id, tracked.id}));
+
+  // A visit's snapshot replaced: the refresh after a visit ends merges again, exports read it.
+  auto snapshot = store_->GetSemanticSnapshot(first.id);
+  ASSERT_TRUE(snapshot.ok());
+  snapshot->bytes = WallOctree(0, options_);
+  snapshot->updated_time_s += 10;
+  ASSERT_TRUE(store_->PutSemanticSnapshot(*snapshot).ok());
+  RefreshMapSemanticOctree(store_.get(), "m", options_);
+  auto refreshed = Collect(0);
+  ASSERT_TRUE(refreshed.ok()) << refreshed.status();
+  EXPECT_TRUE(refreshed->stored);
+  EXPECT_GT(refreshed->map->BeliefAt(-0.6, 0.0, 2.02)[0], 0.5f) << "the new snapshot's class";
+
+  // One visit's export is never the map's stored octree.
+  auto one = Collect(first.id);
+  ASSERT_TRUE(one.ok());
+  EXPECT_FALSE(one->stored);
+
+  ASSERT_TRUE(store_->DeleteMap("m").ok());
+  EXPECT_TRUE(absl::IsNotFound(store_->GetMapSemanticSnapshot(map_.id).status()));
 }
 
 TEST_F(SemanticExportTest, NoOctreeSaysHowToGetOne) {
