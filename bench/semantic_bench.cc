@@ -111,6 +111,25 @@ BENCHMARK(BM_SemanticFuse)
     ->Args({16, 20})
     ->Unit(benchmark::kMillisecond);
 
+// A whole visit (30 keyframes round the room) fused into a new octree per iteration: the same
+// work every run, for comparing builds (BM_SemanticFuse's keyframes depend on its iteration
+// count). Reported per keyframe. Arg: free-space stride.
+void BM_SemanticFuseVisit(benchmark::State& state) {
+  const Visit& visit = RenderedVisit(3, "rect");
+  SemanticMapOptions options;
+  options.free_space_stride = static_cast<int>(state.range(0));
+  for (auto _ : state) {
+    auto map = NewMap(options);
+    for (const Keyframe& kf : visit.keyframes) {
+      map->Fuse(kf.depth, visit.k, kf.pose, kf.probabilities).IgnoreError();
+    }
+  }
+  state.counters["ms_per_keyframe"] =
+      benchmark::Counter(static_cast<double>(state.iterations() * visit.keyframes.size()) / 1e3,
+                         benchmark::Counter::kIsRate | benchmark::Counter::kInvert);
+}
+BENCHMARK(BM_SemanticFuseVisit)->Arg(16)->Arg(8)->Unit(benchmark::kMillisecond);
+
 // Labels of a whole visit rendered into one of its views. Arg: the render stride.
 void BM_SemanticRender(benchmark::State& state) {
   const Visit& visit = RenderedVisit(3, "rect");

@@ -56,11 +56,16 @@ absl::StatusOr<semantic::RenderedLabels> VisitSemantics::Render(const std::strin
 
 std::optional<store::SemanticSnapshotRecord> VisitSemantics::SnapshotIfDue(int64_t visit_id,
                                                                            int every) {
-  absl::MutexLock lock(&mu_);
-  if (map_ == nullptr || fused_since_snapshot_ == 0 || fused_since_snapshot_ < every) {
-    return std::nullopt;
+  {
+    absl::MutexLock lock(&mu_);
+    if (map_ == nullptr || fused_since_snapshot_ == 0 || fused_since_snapshot_ < every) {
+      return std::nullopt;
+    }
+    fused_since_snapshot_ = 0;
   }
-  fused_since_snapshot_ = 0;
+  // Serialised under the reader lock: frames go on rendering meanwhile. Only the worker that
+  // calls this fuses or replaces the octree, so it cannot change in between.
+  absl::ReaderMutexLock lock(&mu_);
   return SemanticSnapshotOf(visit_id, model_, *map_);
 }
 

@@ -56,7 +56,8 @@ class VisitSemantics {
                                                   const Pose& T_visit_camera, int stride) const;
 
   // A snapshot for the store when at least `every` keyframes were fused since the last one
-  // (any, with `every` 0), else nullopt. Counts it as taken.
+  // (any, with `every` 0), else nullopt. Counts it as taken. Call it from the thread that
+  // fuses (the semantic worker): frames render while the octree is serialised.
   std::optional<store::SemanticSnapshotRecord> SnapshotIfDue(int64_t visit_id, int every);
   // Restores a stored snapshot (a resumed visit after a restart). A damaged or incompatible
   // one (resolution changed in the config) is logged and skipped: the octree starts empty.
