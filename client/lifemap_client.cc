@@ -145,9 +145,9 @@ class GrpcClient final : public Client {
   absl::StatusOr<v1::Stats> GetStats() override {
     return Unary(&v1::AdminService::Stub::GetStats, admin_.get(), v1::GetStatsRequest());
   }
-  absl::StatusOr<v1::BackupResponse> Backup(const std::string& server_path) override {
+  absl::StatusOr<v1::BackupResponse> Backup(const std::string& name) override {
     v1::BackupRequest req;
-    req.set_path(server_path);
+    req.set_name(name);
     return Unary(&v1::AdminService::Stub::Backup, admin_.get(), req);
   }
   absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() override {

@@ -60,7 +60,8 @@ class Client {
 
   virtual absl::StatusOr<v1::ServerInfo> GetServerInfo() = 0;
   virtual absl::StatusOr<v1::Stats> GetStats() = 0;
-  virtual absl::StatusOr<v1::BackupResponse> Backup(const std::string& server_path) = 0;
+  // `name`: the file's name in the server's backup directory.
+  virtual absl::StatusOr<v1::BackupResponse> Backup(const std::string& name) = 0;
   virtual absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() = 0;
   virtual absl::StatusOr<v1::VacuumResponse> Vacuum() = 0;
   virtual absl::StatusOr<v1::AppearanceIndexInfo> RebuildAppearanceIndex(bool retrain) = 0;

@@ -113,11 +113,13 @@ grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext*,
 
 grpc::Status AdminServiceImpl::Backup(grpc::ServerContext*, const v1::BackupRequest* req,
                                       v1::BackupResponse* resp) {
-  if (auto s = ctx_->store->Backup(req->path()); !s.ok()) return ToGrpcStatus(s);
+  auto path = BackupPath(ctx_->config, req->name());
+  if (!path.ok()) return ToGrpcStatus(path.status());
+  if (auto s = ctx_->store->Backup(*path); !s.ok()) return ToGrpcStatus(s);
   std::error_code ec;
-  resp->set_path(req->path());
-  resp->set_bytes(static_cast<uint64_t>(std::filesystem::file_size(req->path(), ec)));
-  spdlog::info("backup written to {}", req->path());
+  resp->set_path(*path);
+  resp->set_bytes(static_cast<uint64_t>(std::filesystem::file_size(*path, ec)));
+  spdlog::info("backup written to {}", *path);
   return grpc::Status::OK;
 }
 

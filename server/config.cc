@@ -1,6 +1,8 @@
 #include "server/config.h"
 
+#include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <set>
 
@@ -286,6 +288,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
         for (const auto& [k, v] : value.items()) {
           if (k == "color_jpeg_quality") {
             c.keyframe_color_jpeg_quality = v.get<int>();
+          } else if (k == "backup_dir") {
+            c.backup_dir = v.get<std::string>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key storage.", k));
@@ -304,6 +308,43 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
     return absl::InvalidArgumentError(absl::StrCat("config file ", path, ": ", s.message()));
   }
   return c;
+}
+
+std::string BackupDirectory(const ServerConfig& config) {
+  if (!config.backup_dir.empty()) return config.backup_dir;
+  const std::filesystem::path db(config.db_path);
+  return (db.has_parent_path() ? db.parent_path() / "backups" : std::filesystem::path("backups"))
+      .string();
+}
+
+absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name) {
+  const bool allowed = !name.empty() && name.size() <= 128 && name[0] != '.' &&
+                       std::all_of(name.begin(), name.end(), [](char ch) {
+                         return (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') ||
+                                (ch >= '0' && ch <= '9') || ch == '.' || ch == '_' || ch == '-';
+                       });
+  if (!allowed) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "backup name '", name.substr(0, 140),
+        "' is not a file name: use 1-128 characters of [A-Za-z0-9._-], not starting with '.' "
+        "(the server writes it into its backup directory, storage.backup_dir)"));
+  }
+  std::error_code ec;
+  const std::filesystem::path dir = std::filesystem::absolute(BackupDirectory(config), ec);
+  if (ec) return absl::InternalError(absl::StrCat("backup directory: ", ec.message()));
+  std::filesystem::create_directories(dir, ec);
+  if (ec || !std::filesystem::is_directory(dir)) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("the server's backup directory ", dir.string(), " cannot be created",
+                     ec ? absl::StrCat(": ", ec.message()) : "", " (storage.backup_dir)"));
+  }
+  const std::filesystem::path path = dir / name;
+  // symlink_status: a link of that name, even a dangling one, counts as taken.
+  if (std::filesystem::symlink_status(path, ec).type() != std::filesystem::file_type::not_found) {
+    return absl::AlreadyExistsError(absl::StrCat("backup '", name, "' exists already in ",
+                                                 dir.string(), ": choose another name"));
+  }
+  return path.string();
 }
 
 }  // namespace lifemap::server

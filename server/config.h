@@ -88,10 +88,20 @@ struct ServerConfig {
   // Keyframe colour the client sent as PNG or raw is stored as JPEG at this quality, [1, 100]
   // (unless its map keeps originals); JPEG from the client is stored as it came.
   int keyframe_color_jpeg_quality = 85;
+  // Where Backup writes (a client names only the file). Empty: "backups" beside the database
+  // file. Created on the first backup.
+  std::string backup_dir;
 
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
 };
+
+// The server's backup directory: `backup_dir`, else "backups" beside the database file.
+std::string BackupDirectory(const ServerConfig& config);
+// Where a backup named `name` goes: inside BackupDirectory (created if missing). The name is a
+// file name, never a path: 1-128 characters of [A-Za-z0-9._-], not starting with '.'
+// (INVALID_ARGUMENT saying so); ALREADY_EXISTS when something (a file, a link) has that name.
+absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name);
 
 // Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
 // Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
@@ -103,7 +113,7 @@ struct ServerConfig {
 // labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb},
 // appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
 // max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
-// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality},
+// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality, backup_dir},
 // semantic {enabled, resolution_m, max_range_m, pixel_stride, free_space_stride,
 // render_stride}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);

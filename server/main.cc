@@ -44,6 +44,9 @@ int main(int argc, char** argv) {
                  "frames per stream in processing before the server stops reading (default 4)");
   app.add_option("--shutdown-grace-s", grace_s, "time streams get to finish on SIGTERM");
   app.add_option("--log-level", log_level, "trace, debug, info, warn, error, off");
+  std::string backup_dir;
+  app.add_option("--backup-dir", backup_dir,
+                 "directory Backup writes into (default: backups/ beside the database)");
   CLI11_PARSE(app, argc, argv);
   // Logs go to stderr (journald under systemd); stdout carries only the "listening on port"
   // line that scripts read.
@@ -78,6 +81,7 @@ int main(int argc, char** argv) {
   if (given("--max-inflight-frames")) config.max_inflight_frames = max_inflight;
   if (given("--shutdown-grace-s")) config.shutdown_grace_s = grace_s;
   if (given("--log-level")) config.log_level = log_level;
+  if (given("--backup-dir")) config.backup_dir = backup_dir;
   if (auto s = config.Validate(); !s.ok()) {
     std::cerr << "lifemapd: " << s.message() << "\n";
     return 2;

@@ -665,9 +665,13 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
           });
     };
   });
-  auto* backup = admin->add_subcommand("backup", "Online copy of the database on the server");
+  auto* backup = admin->add_subcommand(
+      "backup", "Online copy of the database into the server's backup directory");
   auto path = std::make_shared<std::string>();
-  backup->add_option("PATH", *path, "absolute path on the server's machine (must not exist)")
+  backup
+      ->add_option("NAME", *path,
+                   "the backup file's name (not a path): it is written into the server's backup "
+                   "directory (storage.backup_dir) and must not exist there")
       ->required();
   backup->callback([ctx, path] {
     ctx->run = [ctx, path] {

@@ -4,6 +4,9 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/impl/codegen/client_unary_call.h>
 
+#include <unistd.h>
+
+#include <filesystem>
 #include <set>
 #include <thread>
 
@@ -227,6 +230,38 @@ TEST_F(ServerTest, ACompactFrameIsServedWithTheSameDepth) {
 
 // GetStats reports the process's CPU time, and processing frames adds to it (what the load
 // generator's CPU per frame is made of).
+// Issue 17: a client names the backup; the server writes it into its backup directory only.
+TEST_F(ServerTest, BackupsGoIntoTheBackupDirectoryUnderANameNeverAPath) {
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  auto written = client_->Backup("nightly-2026-12-03.db");
+  ASSERT_TRUE(written.ok()) << written.status();
+  const std::string dir = tmp_.File("backups");
+  EXPECT_EQ(written->path(), dir + "/nightly-2026-12-03.db");
+  EXPECT_GT(written->bytes(), 0u);
+  auto copy = store::Store::Open(written->path());
+  ASSERT_TRUE(copy.ok()) << copy.status();
+  EXPECT_TRUE((*copy)->GetMap("lab").ok()) << "the backup holds the map";
+
+  auto again = client_->Backup("nightly-2026-12-03.db");
+  EXPECT_EQ(again.status().code(), absl::StatusCode::kAlreadyExists) << again.status();
+  // A link of that name, even to a file that does not exist, is not followed.
+  const std::string outside = tmp_.File("outside.db");
+  ASSERT_EQ(symlink(outside.c_str(), (dir + "/link.db").c_str()), 0);
+  EXPECT_EQ(client_->Backup("link.db").status().code(), absl::StatusCode::kAlreadyExists);
+  EXPECT_FALSE(std::filesystem::exists(outside));
+
+  for (const std::string& bad :
+       {std::string("../escape.db"), tmp_.File("abs.db"), std::string("a/b.db"),
+        std::string(".hidden"), std::string(""), std::string(200, 'x'), std::string("..")}) {
+    auto refused = client_->Backup(bad);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_NE(refused.status().message().find("not a file name"), std::string::npos)
+        << refused.status();
+  }
+  EXPECT_FALSE(std::filesystem::exists(tmp_.File("escape.db")));
+  EXPECT_FALSE(std::filesystem::exists(tmp_.File("abs.db")));
+}
+
 TEST_F(ServerTest, StatsCountTheServersCpuTime) {
   auto before = client_->GetStats();
   ASSERT_TRUE(before.ok()) << before.status();

@@ -190,10 +190,17 @@ TEST(ConfigFile, ReadsAndChecksTheSemanticSection) {
 TEST(ConfigFile, ReadsAndChecksTheStorageSection) {
   testing::TempDir tmp;
   EXPECT_EQ(ServerConfig().keyframe_color_jpeg_quality, 85);
-  std::ofstream(tmp.File("ok.json")) << R"({"storage": {"color_jpeg_quality": 70}})";
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"storage": {"color_jpeg_quality": 70, "backup_dir": "/srv/lifemap-backups"}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->keyframe_color_jpeg_quality, 70);
+  EXPECT_EQ(BackupDirectory(*c), "/srv/lifemap-backups");
+  ServerConfig defaults;
+  defaults.db_path = "/var/lib/lifemap/lifemap.db";
+  EXPECT_EQ(BackupDirectory(defaults), "/var/lib/lifemap/backups") << "beside the database";
+  defaults.db_path = "lifemap.db";
+  EXPECT_EQ(BackupDirectory(defaults), "backups");
   ExpectRefused(tmp,
                 {
                     {"zero.json", R"({"storage": {"color_jpeg_quality": 0}})"},
