@@ -454,6 +454,64 @@ std::unique_ptr<Process> CliTest::StreamUntilAcknowledged(const std::string& tum
   return stream;
 }
 
+// Issue 17's faults: 64 robots that connect and vanish mid-stream (SIGKILL: no goodbye, their
+// sockets just close), more than the server's 16 streams. The server lets go of every stream,
+// loses no acknowledged keyframe, and serves the next robot.
+TEST_F(CliTest, SixtyFourClientsThatVanishMidStreamLoseNothingAcknowledged) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 300, 0.02, 64, 48);  // 10 s at 30 Hz, a keyframe every 5 frames
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  std::vector<std::unique_ptr<Process>> robots;
+  for (int i = 0; i < 64; ++i) {
+    robots.push_back(std::make_unique<Process>(
+        Cli({"--json", "stream", "--map", "m", "--tum", tum, "--use-groundtruth"}),
+        tmp_.File("robot" + std::to_string(i) + ".out"),
+        tmp_.File("robot" + std::to_string(i) + ".err")));
+  }
+  // Killed once every robot has had a keyframe acknowledged or been refused (64 clients
+  // starting on 2 cores take seconds; the first 16 hold their streams for 10 s).
+  auto refused = [](Process& robot) {
+    return robot.err().find("RESOURCE_EXHAUSTED") != std::string::npos;
+  };
+  const auto end = Clock::now() + std::chrono::seconds(60);
+  for (bool waiting = true; waiting && Clock::now() < end;) {
+    waiting = false;
+    for (auto& robot : robots) {
+      waiting = waiting || (AcknowledgedKeyframes(robot->out()).empty() && !refused(*robot) &&
+                            !robot->WaitFor(std::chrono::milliseconds(0)));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  for (auto& robot : robots) robot->Signal(SIGKILL);
+  std::set<uint64_t> acked;
+  int streamed = 0, refusals = 0;
+  for (auto& robot : robots) {
+    robot->Wait();
+    const std::set<uint64_t> ids = AcknowledgedKeyframes(robot->out());
+    acked.insert(ids.begin(), ids.end());
+    streamed += ids.empty() ? 0 : 1;
+    refusals += refused(*robot) ? 1 : 0;
+  }
+  EXPECT_GE(streamed, 16) << "the server's 16 streams were all used";
+  EXPECT_GT(refusals, 0) << "64 streams at once are more than the server's 16";
+
+  // Every vanished stream is let go of.
+  uint64_t active = 1;
+  for (int i = 0; i < 100 && active != 0; ++i) {
+    const RunResult stats = Run({"--json", "admin", "stats"});
+    ASSERT_EQ(stats.code, 0) << stats.err;
+    active = json::parse(stats.out).value("active_streams", uint64_t{1});
+    if (active != 0) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_EQ(active, 0u) << "streams of vanished robots still counted as active";
+  // The next robot streams the whole recording.
+  const RunResult next = Run({"stream", "--map", "m", "--tum", tum, "--use-groundtruth"});
+  EXPECT_EQ(next.code, 0) << next.err;
+  const std::set<uint64_t> stored = ListedKeyframes("m");
+  for (uint64_t id : acked) EXPECT_TRUE(stored.count(id)) << "acknowledged keyframe " << id;
+  EXPECT_TRUE(server_->WaitFor(std::chrono::milliseconds(0)) == false) << "the server is up";
+}
+
 TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 150, 0.02);  // 5 s at 30 Hz, a keyframe every 5 frames
