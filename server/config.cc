@@ -1,6 +1,5 @@
 #include "server/config.h"
 
-#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -9,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "server/store/store.h"
 
 namespace lifemap::server {
 
@@ -318,16 +318,12 @@ std::string BackupDirectory(const ServerConfig& config) {
 }
 
 absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name) {
-  const bool allowed = !name.empty() && name.size() <= 128 && name[0] != '.' &&
-                       std::all_of(name.begin(), name.end(), [](char ch) {
-                         return (ch >= 'a' && ch <= 'z') || (ch >= 'A' && ch <= 'Z') ||
-                                (ch >= '0' && ch <= '9') || ch == '.' || ch == '_' || ch == '-';
-                       });
-  if (!allowed) {
+  // The names maps and models follow, longer: a file name, never a path.
+  if (auto s = store::ValidateName(name, "backup", 128); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "backup name '", name.substr(0, 140),
-        "' is not a file name: use 1-128 characters of [A-Za-z0-9._-], not starting with '.' "
-        "(the server writes it into its backup directory, storage.backup_dir)"));
+        "backup name is not a file name: ", s.message(),
+        " (use 1-128 characters of [A-Za-z0-9._-], not starting with '.'; the server writes it "
+        "into its backup directory, storage.backup_dir)"));
   }
   std::error_code ec;
   const std::filesystem::path dir = std::filesystem::absolute(BackupDirectory(config), ec);

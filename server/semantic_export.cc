@@ -27,6 +27,15 @@ bool IsIdentity(const Pose& T) {
   return T.translation.isZero(0) && T.rotation.coeffs() == Eigen::Quaterniond::Identity().coeffs();
 }
 
+// The listed snapshot header of visit `visit_id`, or nullptr when it has none.
+const store::SemanticSnapshotRecord* HeaderOf(
+    const std::vector<store::SemanticSnapshotRecord>& headers, int64_t visit_id) {
+  auto h =
+      std::find_if(headers.begin(), headers.end(),
+                   [&](const store::SemanticSnapshotRecord& r) { return r.visit_id == visit_id; });
+  return h == headers.end() ? nullptr : &*h;
+}
+
 // What a map's octree is merged from: each visit's snapshot (when it was made, what it holds)
 // and where the visit's frame lies in the map's. A stored map octree whose sources differ is
 // out of date.
@@ -34,10 +43,8 @@ std::string Sources(const std::vector<store::VisitRecord>& visits,
                     const std::vector<store::SemanticSnapshotRecord>& headers) {
   std::string out;
   for (const auto& v : visits) {
-    auto h =
-        std::find_if(headers.begin(), headers.end(),
-                     [&](const store::SemanticSnapshotRecord& r) { return r.visit_id == v.id; });
-    if (h == headers.end()) continue;
+    const store::SemanticSnapshotRecord* h = HeaderOf(headers, v.id);
+    if (h == nullptr) continue;
     absl::StrAppend(&out, v.id, "@", absl::StrFormat("%.6f", h->updated_time_s), " ", h->model, " ",
                     h->resolution_m, " ");
     if (std::optional<Pose> T = MapFromVisit(v); !T) {
@@ -65,10 +72,8 @@ absl::Status MergeVisits(store::Store* store, const store::MapRecord& map,
   };
   std::vector<Stored> stored;
   for (const auto& v : chosen) {
-    auto h =
-        std::find_if(headers.begin(), headers.end(),
-                     [&](const store::SemanticSnapshotRecord& r) { return r.visit_id == v.id; });
-    if (h == headers.end()) {
+    const store::SemanticSnapshotRecord* h = HeaderOf(headers, v.id);
+    if (h == nullptr) {
       out->left_out.push_back(absl::StrCat("visit ", v.id, ": no semantic octree"));
       continue;
     }
@@ -171,7 +176,8 @@ absl::StatusOr<SemanticExport> CollectSemanticExport(store::Store* store, VisitR
   }
   auto headers = store->ListSemanticSnapshots(map.id);
   if (!headers.ok()) return headers.status();
-  const std::string sources = Sources(chosen, *headers);
+  // Only the map's octree is stored, with what it was merged from.
+  const std::string sources = visit_id == 0 ? Sources(chosen, *headers) : "";
   SemanticExport out;
   if (visit_id == 0) {
     // The map's stored octree, when merged from the snapshots there are now.

@@ -24,6 +24,16 @@ constexpr OctreeTables kMapOctrees{"semantic_map_octrees", "semantic_map_octree_
 constexpr char kHeaderColumns[] =
     "model, class_count, resolution_m, keyframes, bytes, updated_time_s";
 
+// Reads kHeaderColumns from column `first` on into `r`; returns the stored byte count.
+int64_t ReadHeader(const Statement& s, int first, SemanticSnapshotRecord* r) {
+  r->model = s.ColumnText(first);
+  r->class_count = static_cast<int>(s.ColumnInt(first + 1));
+  r->resolution_m = s.ColumnDouble(first + 2);
+  r->keyframes = s.ColumnInt(first + 3);
+  r->updated_time_s = s.ColumnDouble(first + 5);
+  return s.ColumnInt(first + 4);
+}
+
 // Replaces `key`'s header and chunks in one transaction. `extra` names columns after the common
 // ones (", sources, merged") whose values `bind_extra` binds from parameter 8 on.
 absl::Status PutOctree(Database* db, const OctreeTables& t, int64_t key,
@@ -99,12 +109,7 @@ absl::StatusOr<SemanticSnapshotRecord> GetOctree(
     if (!*row) {
       return absl::NotFoundError(absl::StrCat(t.owner, " ", key, " has no semantic octree"));
     }
-    r.model = s->ColumnText(0);
-    r.class_count = static_cast<int>(s->ColumnInt(1));
-    r.resolution_m = s->ColumnDouble(2);
-    r.keyframes = s->ColumnInt(3);
-    size = s->ColumnInt(4);
-    r.updated_time_s = s->ColumnDouble(5);
+    size = ReadHeader(**stmt, 0, &r);
     if (read_extra) read_extra(**stmt);
   }
   auto stmt = db->Prepare(
@@ -155,11 +160,7 @@ absl::StatusOr<std::vector<SemanticSnapshotRecord>> Store::ListSemanticSnapshots
     if (!*row) break;
     SemanticSnapshotRecord& r = out.emplace_back();
     r.visit_id = s->ColumnInt(0);
-    r.model = s->ColumnText(1);
-    r.class_count = static_cast<int>(s->ColumnInt(2));
-    r.resolution_m = s->ColumnDouble(3);
-    r.keyframes = s->ColumnInt(4);
-    r.updated_time_s = s->ColumnDouble(6);
+    ReadHeader(**stmt, 1, &r);
   }
   return out;
 }

@@ -538,10 +538,10 @@ MapRecord ReadMap(const Statement& s) {
 
 }  // namespace
 
-absl::Status ValidateName(const std::string& name, absl::string_view kind) {
-  if (name.empty() || name.size() > 64) {
+absl::Status ValidateName(const std::string& name, absl::string_view kind, size_t max_length) {
+  if (name.empty() || name.size() > max_length) {
     return absl::InvalidArgumentError(
-        absl::StrCat(kind, " name must be 1 to 64 characters, got ", name.size()));
+        absl::StrCat(kind, " name must be 1 to ", max_length, " characters, got ", name.size()));
   }
   if (name[0] == '.') {
     return absl::InvalidArgumentError(absl::StrCat(kind, " name must not start with '.'"));

@@ -406,9 +406,9 @@ class Store {
   std::string path_;
 };
 
-// InvalidArgument unless the name is 1–64 characters of [A-Za-z0-9._-] not starting with '.';
-// the message calls it a `kind` name ("map", "model").
-absl::Status ValidateName(const std::string& name, absl::string_view kind);
+// InvalidArgument unless the name is 1–max_length characters of [A-Za-z0-9._-] not starting
+// with '.'; the message calls it a `kind` name ("map", "model", "backup").
+absl::Status ValidateName(const std::string& name, absl::string_view kind, size_t max_length = 64);
 absl::Status ValidateMapName(const std::string& name);
 
 }  // namespace lifemap::store

@@ -509,7 +509,7 @@ TEST_F(CliTest, SixtyFourClientsThatVanishMidStreamLoseNothingAcknowledged) {
   EXPECT_EQ(next.code, 0) << next.err;
   const std::set<uint64_t> stored = ListedKeyframes("m");
   for (uint64_t id : acked) EXPECT_TRUE(stored.count(id)) << "acknowledged keyframe " << id;
-  EXPECT_TRUE(server_->WaitFor(std::chrono::milliseconds(0)) == false) << "the server is up";
+  EXPECT_FALSE(server_->WaitFor(std::chrono::milliseconds(0))) << "the server is up";
 }
 
 TEST_F(CliTest, SigkillMidStreamLosesNoAcknowledgedKeyframe) {
