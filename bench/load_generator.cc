@@ -97,7 +97,7 @@ lifemap::v1::Frame WithTime(lifemap::v1::Frame f, double t, uint64_t seq) {
 
 // The server process's CPU seconds so far (AdminService.GetStats), or -1 when not answered.
 double ServerCpuSeconds(const std::string& target) {
-  auto client = lifemap::client::Client::Connect({target});
+  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
   if (!client.ok()) return -1;
   auto stats = (*client)->GetStats();
   return stats.ok() ? stats->process_cpu_s() : -1;
@@ -117,7 +117,7 @@ RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::
                       int count, const lifemap::v1::FrameOptions& options) {
   RunReport report;
   report.name = "baseline: ProcessFrame, no store";
-  auto client = lifemap::client::Client::Connect({target});
+  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
   if (!client.ok()) {
     std::cerr << client.status() << "\n";
     std::exit(1);
@@ -156,7 +156,7 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
   const auto start = Clock::now();
   for (int s = 0; s < streams; ++s) {
     threads.emplace_back([&, s] {
-      auto client = lifemap::client::Client::Connect({target});
+      auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
       if (!client.ok()) return;
       lifemap::v1::StreamStart st;
       st.set_map("load");
@@ -319,7 +319,7 @@ int main(int argc, char** argv) {
     target = "127.0.0.1:" + std::to_string(server->port());
   }
   {
-    auto client = lifemap::client::Client::Connect({target});
+    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
     if (!client.ok()) {
       std::cerr << "load_generator: " << client.status().message() << "\n";
       return 1;
@@ -338,7 +338,7 @@ int main(int argc, char** argv) {
         target, [&] { return RunStreams(target, loaded, 1, frames, rate, options); }));
     runs.back().name += ", no labels";
     auto bytes = lifemap::ReadFileBytes(model);
-    auto client = lifemap::client::Client::Connect({target});
+    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
     absl::Status s = bytes.status();
     if (bytes.ok() && client.ok()) {
       const std::string name = "load-" + std::to_string(std::time(nullptr));

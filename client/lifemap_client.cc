@@ -1,10 +1,12 @@
 #include "client/lifemap_client.h"
 
 #include <chrono>
+#include <cstdlib>
 
 #include <grpcpp/grpcpp.h>
 #include <opencv2/imgcodecs.hpp>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/depth_codec.h"
 #include "core/common/image_codec.h"
@@ -93,6 +95,7 @@ class GrpcClient final : public Client {
                                             const std::string& bytes) override {
     constexpr size_t kChunk = 1 << 20;
     grpc::ClientContext context;
+    AddKey(&context);
     // The unary deadline plus a second per MiB: large models on slow links still make it.
     context.set_deadline(
         std::chrono::system_clock::now() +
@@ -162,6 +165,22 @@ class GrpcClient final : public Client {
     req.set_retrain(retrain);
     return Unary(&v1::AdminService::Stub::RebuildAppearanceIndex, admin_.get(), req);
   }
+  absl::StatusOr<v1::CreateApiKeyResponse> CreateApiKey(
+      const v1::CreateApiKeyRequest& request) override {
+    return Unary(&v1::AdminService::Stub::CreateApiKey, admin_.get(), request);
+  }
+  absl::StatusOr<v1::ListApiKeysResponse> ListApiKeys() override {
+    return Unary(&v1::AdminService::Stub::ListApiKeys, admin_.get(), v1::ListApiKeysRequest());
+  }
+  absl::StatusOr<v1::ApiKey> RevokeApiKey(const std::string& name) override {
+    v1::RevokeApiKeyRequest req;
+    req.set_name(name);
+    return Unary(&v1::AdminService::Stub::RevokeApiKey, admin_.get(), req);
+  }
+  absl::StatusOr<v1::ListAuditEventsResponse> ListAuditEvents(
+      const v1::ListAuditEventsRequest& request) override {
+    return Unary(&v1::AdminService::Stub::ListAuditEvents, admin_.get(), request);
+  }
 
   absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                     const std::string& description) override {
@@ -208,6 +227,7 @@ class GrpcClient final : public Client {
   absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
                                      std::ostream* out) override {
     grpc::ClientContext context;
+    AddKey(&context);
     auto reader = maps_->ExportMap(&context, request);
     v1::ExportChunk chunk;
     uint64_t items = 0;
@@ -228,6 +248,7 @@ class GrpcClient final : public Client {
       const v1::RebuildSemanticOctreesRequest& request,
       const std::function<void(const v1::SemanticOctreeRebuild&)>& on_visit) override {
     grpc::ClientContext context;
+    AddKey(&context);
     auto reader = maps_->RebuildSemanticOctrees(&context, request);
     v1::SemanticOctreeRebuild visit;
     while (reader->Read(&visit)) on_visit(visit);
@@ -254,6 +275,7 @@ class GrpcClient final : public Client {
 
   absl::StatusOr<std::unique_ptr<FrameStream>> OpenStream(const v1::StreamStart& start) override {
     auto context = std::make_unique<grpc::ClientContext>();
+    AddKey(context.get());
     auto stream = frames_->StreamFrames(context.get());
     v1::StreamFramesRequest request;
     *request.mutable_start() = start;
@@ -274,12 +296,20 @@ class GrpcClient final : public Client {
                                                               Response*),
                                  Stub* stub, const Request& request) {
     grpc::ClientContext context;
+    AddKey(&context);
     context.set_deadline(
         std::chrono::system_clock::now() +
         std::chrono::milliseconds(static_cast<int64_t>(options_.call_timeout_s * 1000)));
     Response response;
     if (auto s = FromGrpc((stub->*method)(&context, request, &response)); !s.ok()) return s;
     return response;
+  }
+
+  // The API key, if any, as `authorization: Bearer KEY` (gRPC's call credentials would not be
+  // sent over a plaintext channel, which a server on loopback may use with keys).
+  void AddKey(grpc::ClientContext* context) const {
+    if (!options_.api_key.empty())
+      context->AddMetadata("authorization", "Bearer " + options_.api_key);
   }
 
   ClientOptions options_;
@@ -293,6 +323,24 @@ class GrpcClient final : public Client {
 
 }  // namespace
 
+absl::StatusOr<std::string> ResolveApiKey(const std::string& key, const std::string& key_file) {
+  if (!key.empty()) return key;
+  if (!key_file.empty()) {
+    auto bytes = ReadFileBytes(key_file);
+    if (!bytes.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat("API key file: ", bytes.status().message()));
+    }
+    const std::string line(absl::StripAsciiWhitespace(bytes->substr(0, bytes->find('\n'))));
+    if (line.empty()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("API key file ", key_file, " is empty: its first line must be the key"));
+    }
+    return line;
+  }
+  const char* env = std::getenv("LIFEMAP_API_KEY");
+  return std::string(env != nullptr ? env : "");
+}
+
 absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& options) {
   const auto colon = options.target.rfind(':');
   if (options.target.empty() || colon == std::string::npos || colon + 1 == options.target.size()) {
@@ -302,15 +350,36 @@ absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& opt
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(options.max_message_bytes);
   args.SetMaxSendMessageSize(options.max_message_bytes);
-  auto channel =
-      grpc::CreateCustomChannel(options.target, grpc::InsecureChannelCredentials(), args);
+  const bool tls = options.tls || !options.tls_ca_file.empty() || !options.tls_cert_file.empty() ||
+                   !options.tls_key_file.empty();
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (tls) {
+    if (options.tls_cert_file.empty() != options.tls_key_file.empty()) {
+      return absl::InvalidArgumentError(
+          "a client certificate needs its private key: give both --tls-cert and --tls-key");
+    }
+    grpc::SslCredentialsOptions ssl;
+    for (auto [file, pem] : {std::pair{&options.tls_ca_file, &ssl.pem_root_certs},
+                             std::pair{&options.tls_cert_file, &ssl.pem_cert_chain},
+                             std::pair{&options.tls_key_file, &ssl.pem_private_key}}) {
+      if (file->empty()) continue;
+      auto bytes = ReadFileBytes(*file);
+      if (!bytes.ok()) return bytes.status();
+      *pem = *std::move(bytes);
+    }
+    credentials = grpc::SslCredentials(ssl);
+  }
+  auto channel = grpc::CreateCustomChannel(options.target, credentials, args);
   const auto deadline =
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(options.connect_timeout_s * 1000));
   if (!channel->WaitForConnected(deadline)) {
     return absl::UnavailableError(absl::StrCat(
         "cannot reach lifemapd at ", options.target, " within ", options.connect_timeout_s,
-        " s: is it running? (set --server or LIFEMAP_SERVER)"));
+        " s: is it running? (set --server or LIFEMAP_SERVER)",
+        tls ? "; over TLS: does the server speak TLS, and is its certificate signed by the CA "
+              "given (--tls-ca) for this host name?"
+            : "; if the server speaks TLS, connect with --tls-ca FILE"));
   }
   return std::unique_ptr<Client>(new GrpcClient(std::move(channel), options));
 }

@@ -13,6 +13,7 @@
 #include <memory>
 #include <ostream>
 #include <string>
+#include <utility>
 
 #include "absl/status/statusor.h"
 #include "lifemap/v1/admin_service.pb.h"
@@ -29,7 +30,27 @@ struct ClientOptions {
   int max_message_bytes = 64 << 20;        // largest message this client accepts/sends
   double connect_timeout_s = 5.0;          // Connect() waits this long for the server
   double call_timeout_s = 60.0;            // deadline of unary calls (not of streams)
+  // Sent with every call as `authorization: Bearer KEY` when not empty (ResolveApiKey).
+  std::string api_key;
+  // TLS: on when `tls` is set or any file is given. The server's certificate is verified
+  // against `tls_ca_file` (PEM; empty: the system's roots); a client certificate and key
+  // (PEM, both or neither) are presented to servers that require them (mTLS).
+  bool tls = false;
+  std::string tls_ca_file;
+  std::string tls_cert_file;
+  std::string tls_key_file;
+
+  // The defaults, for the server at `target`.
+  static ClientOptions At(std::string target) {
+    ClientOptions options;
+    options.target = std::move(target);
+    return options;
+  }
 };
+
+// The API key to send: `key` if given, else the first line of `key_file` if given, else
+// $LIFEMAP_API_KEY, else "" (none). InvalidArgument for an unreadable or empty file.
+absl::StatusOr<std::string> ResolveApiKey(const std::string& key, const std::string& key_file);
 
 // One visit's frame stream. Send() and Receive() may run on two different threads; each of them
 // is thread-compatible on its own.
@@ -65,6 +86,12 @@ class Client {
   virtual absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() = 0;
   virtual absl::StatusOr<v1::VacuumResponse> Vacuum() = 0;
   virtual absl::StatusOr<v1::AppearanceIndexInfo> RebuildAppearanceIndex(bool retrain) = 0;
+  virtual absl::StatusOr<v1::CreateApiKeyResponse> CreateApiKey(
+      const v1::CreateApiKeyRequest& request) = 0;
+  virtual absl::StatusOr<v1::ListApiKeysResponse> ListApiKeys() = 0;
+  virtual absl::StatusOr<v1::ApiKey> RevokeApiKey(const std::string& name) = 0;
+  virtual absl::StatusOr<v1::ListAuditEventsResponse> ListAuditEvents(
+      const v1::ListAuditEventsRequest& request) = 0;
 
   virtual absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                             const std::string& description) = 0;

@@ -1,6 +1,7 @@
 #include <sys/resource.h>
 
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 
 #include <spdlog/spdlog.h>
@@ -15,8 +16,11 @@ double NowSeconds() {
   return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
-grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::GetServerInfoRequest*,
+grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
+                                             const v1::GetServerInfoRequest*,
                                              v1::ServerInfo* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/GetServerInfo");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   resp->set_version(LIFEMAP_VERSION);
   resp->set_api_version("lifemap.v1");
   // A server-level answer: poses count as computed only when the client sends them.
@@ -49,10 +53,19 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext*, const v1::Get
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));
   resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));
-  resp->set_db_path(std::filesystem::absolute(ctx_->config.db_path).string());
+  // Where the database lives is for those who administer it.
+  if (caller->role >= Role::kOperator) {
+    resp->set_db_path(std::filesystem::absolute(ctx_->config.db_path).string());
+  }
   resp->set_schema_version(static_cast<uint32_t>(ctx_->store->schema_version()));
   resp->set_started_time_s(ctx_->started_time_s);
   resp->set_default_result_images(kDefaultResultImages);
+  resp->set_auth_required(ctx_->keys->required());
+  if (ctx_->keys->required()) {
+    resp->set_caller_key(caller->key_name);
+    resp->set_caller_role(RoleToProto(caller->role));
+  }
+  resp->set_tls(!ctx_->config.tls_cert.empty());
   return grpc::Status::OK;
 }
 
@@ -68,8 +81,10 @@ double ProcessCpuSeconds() {
 
 }  // namespace
 
-grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext*, const v1::GetStatsRequest*,
+grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::GetStatsRequest*,
                                         v1::Stats* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/GetStats");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto st = ctx_->store->Stats();
   if (!st.ok()) return ToGrpcStatus(st.status());
   resp->set_maps(static_cast<uint32_t>(st->maps));
@@ -100,9 +115,11 @@ void AdminServiceImpl::AppearanceInfoToProto(const AppearanceIndexStats& s,
       static_cast<uint32_t>(ctx_->appearance->options().min_training_keyframes));
 }
 
-grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext*,
+grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext* context,
                                                       const v1::RebuildAppearanceIndexRequest* req,
                                                       v1::AppearanceIndexInfo* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/RebuildAppearanceIndex");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto stats = ctx_->appearance->Rebuild(req->retrain());
   if (!stats.ok()) return ToGrpcStatus(stats.status());
   spdlog::info("appearance index rebuilt{}: {} keyframes", req->retrain() ? " (retrained)" : "",
@@ -111,8 +128,10 @@ grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext*,
   return grpc::Status::OK;
 }
 
-grpc::Status AdminServiceImpl::Backup(grpc::ServerContext*, const v1::BackupRequest* req,
+grpc::Status AdminServiceImpl::Backup(grpc::ServerContext* context, const v1::BackupRequest* req,
                                       v1::BackupResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/Backup");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto path = BackupPath(ctx_->config, req->name());
   if (!path.ok()) return ToGrpcStatus(path.status());
   if (auto s = ctx_->store->Backup(*path); !s.ok()) return ToGrpcStatus(s);
@@ -123,9 +142,11 @@ grpc::Status AdminServiceImpl::Backup(grpc::ServerContext*, const v1::BackupRequ
   return grpc::Status::OK;
 }
 
-grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext*,
+grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext* context,
                                               const v1::CheckIntegrityRequest*,
                                               v1::CheckIntegrityResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/CheckIntegrity");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto problems = ctx_->store->CheckIntegrity();
   if (!problems.ok()) return ToGrpcStatus(problems.status());
   resp->set_ok(problems->empty());
@@ -133,8 +154,10 @@ grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext*,
   return grpc::Status::OK;
 }
 
-grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext*, const v1::VacuumRequest*,
+grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext* context, const v1::VacuumRequest*,
                                       v1::VacuumResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/Vacuum");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto before = ctx_->store->Stats();
   if (!before.ok()) return ToGrpcStatus(before.status());
   if (auto s = ctx_->store->Vacuum(); !s.ok()) return ToGrpcStatus(s);
@@ -146,11 +169,88 @@ grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext*, const v1::VacuumRequ
   return grpc::Status::OK;
 }
 
-grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
-                                            v1::CreateApiKeyResponse*) {
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                      "API keys are not implemented yet: this server has no authentication; "
-                      "listen on loopback or a private network only");
+grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext* context,
+                                            const v1::CreateApiKeyRequest* req,
+                                            v1::CreateApiKeyResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/CreateApiKey");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  const std::optional<Role> role = RoleFromProto(req->role());
+  if (!role) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "role is required: ROLE_ROBOT, ROLE_OPERATOR or ROLE_ADMIN");
+  }
+  const std::vector<std::string> maps(req->maps().begin(), req->maps().end());
+  store::KeyLimits limits;
+  limits.max_streams = req->limits().max_streams();
+  limits.max_frames_per_s = req->limits().max_frames_per_s();
+  limits.max_maps = req->limits().max_maps();
+  limits.max_keyframes_per_map =
+      static_cast<int64_t>(std::min<uint64_t>(req->limits().max_keyframes_per_map(), INT64_MAX));
+  limits.max_model_bytes =
+      static_cast<int64_t>(std::min<uint64_t>(req->limits().max_model_bytes(), INT64_MAX));
+  auto created = server::CreateApiKey(ctx_->store, req->name(), *role, maps, limits, NowSeconds());
+  if (!created.ok()) return ToGrpcStatus(created.status());
+  if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
+  spdlog::info("API key '{}' ({}) created by '{}'", req->name(), std::string(RoleName(*role)),
+               caller->key_name);
+  resp->set_key(created->first);
+  ApiKeyToProto(created->second, resp->mutable_info());
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::ListApiKeys(grpc::ServerContext* context,
+                                           const v1::ListApiKeysRequest*,
+                                           v1::ListApiKeysResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/ListApiKeys");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto keys = ctx_->store->ListApiKeys();
+  if (!keys.ok()) return ToGrpcStatus(keys.status());
+  for (const auto& k : *keys) ApiKeyToProto(k, resp->add_keys());
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::RevokeApiKey(grpc::ServerContext* context,
+                                            const v1::RevokeApiKeyRequest* req, v1::ApiKey* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/RevokeApiKey");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = store::ValidateName(req->name(), "API key"); !s.ok()) return ToGrpcStatus(s);
+  auto revoked = ctx_->store->RevokeApiKey(req->name(), NowSeconds());
+  if (!revoked.ok()) return ToGrpcStatus(revoked.status());
+  ctx_->keys->MarkRevoked(req->name());
+  if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
+  spdlog::info("API key '{}' revoked by '{}'", req->name(), caller->key_name);
+  ApiKeyToProto(*revoked, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status AdminServiceImpl::ListAuditEvents(grpc::ServerContext* context,
+                                               const v1::ListAuditEventsRequest* req,
+                                               v1::ListAuditEventsResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/ListAuditEvents");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  constexpr uint32_t kMaxEvents = 10000;
+  if (req->limit() > kMaxEvents) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("limit must be at most ", kMaxEvents, " (0 = 100)"));
+  }
+  if (!std::isfinite(req->since_time_s()) || req->since_time_s() < 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "since_time_s must be >= 0 seconds since the Unix epoch");
+  }
+  auto events = ctx_->store->ListAuditEvents(
+      req->since_time_s(), req->limit() == 0 ? 100 : static_cast<int>(req->limit()));
+  if (!events.ok()) return ToGrpcStatus(events.status());
+  for (const auto& e : *events) {
+    auto* out = resp->add_events();
+    out->set_time_s(e.time_s);
+    out->set_key(e.key_name);
+    out->set_method(e.method);
+    out->set_request(e.request);
+    out->set_code(e.code);
+    out->set_message(e.message);
+    out->set_peer(e.peer);
+  }
+  return grpc::Status::OK;
 }
 
 }  // namespace lifemap::server

@@ -8,11 +8,31 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "server/auth.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
 
+bool ServerConfig::AuthRequired() const {
+  return require_auth || (!insecure_no_auth && !IsLoopbackAddress(listen));
+}
+
 absl::Status ServerConfig::Validate() const {
+  if (require_auth && insecure_no_auth) {
+    return absl::InvalidArgumentError(
+        "security.require_auth and security.insecure_no_auth (--require-auth, "
+        "--insecure-no-auth) contradict each other: choose one");
+  }
+  if (tls_cert.empty() != tls_key.empty()) {
+    return absl::InvalidArgumentError(
+        "TLS needs both a certificate and its private key (security.tls_cert and "
+        "security.tls_key, or --tls-cert and --tls-key)");
+  }
+  if (!tls_client_ca.empty() && tls_cert.empty()) {
+    return absl::InvalidArgumentError(
+        "security.tls_client_ca (--tls-client-ca) verifies clients over TLS: give the server's "
+        "certificate and key too (--tls-cert, --tls-key)");
+  }
   if (listen.empty() || listen.rfind(':') == std::string::npos) {
     return absl::InvalidArgumentError(
         absl::StrCat("listen address '", listen, "' must be HOST:PORT, e.g. 127.0.0.1:50051"));
@@ -282,6 +302,23 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key pose_graph.", k));
+          }
+        }
+      } else if (key == "security") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "require_auth") {
+            c.require_auth = v.get<bool>();
+          } else if (k == "insecure_no_auth") {
+            c.insecure_no_auth = v.get<bool>();
+          } else if (k == "tls_cert") {
+            c.tls_cert = v.get<std::string>();
+          } else if (k == "tls_key") {
+            c.tls_key = v.get<std::string>();
+          } else if (k == "tls_client_ca") {
+            c.tls_client_ca = v.get<std::string>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key security.", k));
           }
         }
       } else if (key == "storage") {

@@ -91,7 +91,18 @@ struct ServerConfig {
   // Where Backup writes (a client names only the file). Empty: "backups" beside the database
   // file. Created on the first backup.
   std::string backup_dir;
+  // Security (issue 17; docs/OPERATIONS.md). Calls need an API key when `require_auth`, and
+  // whenever `listen` is beyond loopback unless `insecure_no_auth` says the network is trusted.
+  bool require_auth = false;
+  bool insecure_no_auth = false;
+  // TLS: the server's certificate chain and private key (PEM files; both or neither), and a
+  // CA whose client certificates the server then requires (mTLS; optional).
+  std::string tls_cert;
+  std::string tls_key;
+  std::string tls_client_ca;
 
+  // Whether calls need an API key, from the three settings above.
+  bool AuthRequired() const;
   // InvalidArgument naming the bad setting and its allowed range.
   absl::Status Validate() const;
 };
@@ -115,7 +126,7 @@ absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::st
 // max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
 // vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality, backup_dir},
 // semantic {enabled, resolution_m, max_range_m, pixel_stride, free_space_stride,
-// render_stride}.
+// render_stride}, security {require_auth, insecure_no_auth, tls_cert, tls_key, tls_client_ca}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

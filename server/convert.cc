@@ -1,5 +1,6 @@
 #include "server/convert.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
@@ -225,6 +226,59 @@ absl::StatusOr<std::optional<double>> EntropyThresholdFromProto(double value, co
         absl::StrCat(field, " must be within [0, 1] (0 = the server default), got ", value));
   }
   return std::optional<double>(value);
+}
+
+v1::Role RoleToProto(Role role) {
+  switch (role) {
+    case Role::kRobot:
+      return v1::ROLE_ROBOT;
+    case Role::kOperator:
+      return v1::ROLE_OPERATOR;
+    case Role::kAdmin:
+      return v1::ROLE_ADMIN;
+  }
+  return v1::ROLE_UNSPECIFIED;
+}
+
+std::optional<Role> RoleFromProto(v1::Role role) {
+  switch (role) {
+    case v1::ROLE_ROBOT:
+      return Role::kRobot;
+    case v1::ROLE_OPERATOR:
+      return Role::kOperator;
+    case v1::ROLE_ADMIN:
+      return Role::kAdmin;
+    default:
+      return std::nullopt;
+  }
+}
+
+void ApiKeyToProto(const store::ApiKeyRecord& k, v1::ApiKey* out) {
+  out->set_name(k.name);
+  if (auto role = ParseRole(k.role)) out->set_role(RoleToProto(*role));
+  out->set_every_map(k.every_map);
+  for (const auto& m : k.map_names) out->add_maps(m);
+  out->set_created_time_s(k.created_time_s);
+  out->set_last_used_time_s(k.last_used_time_s);
+  out->set_revoked_time_s(k.revoked_time_s);
+  auto* limits = out->mutable_limits();
+  limits->set_max_streams(static_cast<uint32_t>(k.limits.max_streams));
+  limits->set_max_frames_per_s(k.limits.max_frames_per_s);
+  limits->set_max_maps(static_cast<uint32_t>(k.limits.max_maps));
+  limits->set_max_keyframes_per_map(static_cast<uint64_t>(k.limits.max_keyframes_per_map));
+  limits->set_max_model_bytes(static_cast<uint64_t>(k.limits.max_model_bytes));
+}
+
+void KeepCallersMatches(const Principal& caller,
+                        google::protobuf::RepeatedPtrField<v1::PlaceMatch>* matches) {
+  if (caller.every_map) return;
+  const auto& names = caller.map_names;
+  matches->erase(std::remove_if(matches->begin(), matches->end(),
+                                [&names](const v1::PlaceMatch& m) {
+                                  return std::find(names.begin(), names.end(), m.map()) ==
+                                         names.end();
+                                }),
+                 matches->end());
 }
 
 void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {

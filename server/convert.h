@@ -19,11 +19,20 @@
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
 #include "server/architecture.h"
+#include "server/auth.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
 
 grpc::Status ToGrpcStatus(const absl::Status& status);
+
+v1::Role RoleToProto(Role role);
+std::optional<Role> RoleFromProto(v1::Role role);  // nullopt for ROLE_UNSPECIFIED or unknown
+void ApiKeyToProto(const store::ApiKeyRecord& k, v1::ApiKey* out);
+
+// Removes the place matches of maps a limited key may not use (by map name; server/auth.h).
+void KeepCallersMatches(const Principal& caller,
+                        google::protobuf::RepeatedPtrField<v1::PlaceMatch>* matches);
 
 // Validates the message's fields and views its image bytes (the message must outlive the
 // result). InvalidArgument names the field: "frame.intrinsics.fx must be > 0", ... Without

@@ -147,7 +147,24 @@ struct FrameSettings {
   bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
   bool skip_fusion = false;  // no fused labels rendered (the visit's keyframes still fuse)
   bool refine_pose = false;  // FrameOptions.refine_pose: client poses refined by the tracker
+  // The caller's key: a keyframe is not stored once its map holds this many (0: no limit).
+  std::string key_name;
+  int64_t max_keyframes_per_map = 0;
 };
+
+// RESOURCE_EXHAUSTED when the caller's key limits the keyframes of a map and `map_id` holds
+// that many (stored; the few still being committed are not counted).
+absl::Status CheckKeyframeLimit(ServiceContext* ctx, const FrameSettings& settings,
+                                int64_t map_id) {
+  if (settings.max_keyframes_per_map <= 0) return absl::OkStatus();
+  auto map = ctx->store->GetMapById(map_id);
+  if (!map.ok()) return map.status();
+  if (map->keyframe_count < settings.max_keyframes_per_map) return absl::OkStatus();
+  return absl::ResourceExhaustedError(
+      absl::StrCat("map '", map->name, "' holds ", map->keyframe_count, " keyframes and API key '",
+                   settings.key_name, "' may add keyframes only up to ",
+                   settings.max_keyframes_per_map, " (its max_keyframes_per_map limit)"));
+}
 
 // Appearance matches of a frame (paper 000) into the result: the view's pruned features against
 // every stored keyframe but those of its own visit it has only just passed (closer than
@@ -237,8 +254,10 @@ absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_
 
 // Decodes and analyses one frame (masks, labels, result images) with its map's settings and
 // model. Reads no visit state but the map: safe on any thread, in any order.
+// `refused`: not OK when the frame is refused before any work (the key's frame rate).
 AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
-                           const std::string& map_name, const FrameSettings& settings) {
+                           const std::string& map_name, const FrameSettings& settings,
+                           const absl::Status& refused = absl::OkStatus()) {
   AnalysedFrame a;
   a.frame = std::move(frame);
   PendingResult& p = a.pending;
@@ -253,6 +272,7 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
     spdlog::debug("frame {} rejected: {}", a.frame.sequence(), std::string(s.message()));
     return std::move(a);
   };
+  if (!refused.ok()) return reject(refused);
   auto encoded = FrameFromProto(a.frame);
   if (!encoded.ok()) return reject(encoded.status());
   pipeline::FrameRequest effective = settings.request;
@@ -555,7 +575,10 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   if (decision.selected || query_appearance) {
     tasks.push_back([&] { features = QueryFeatures(ctx, a, facts.entropy_skipped); });
   }
-  if (decision.selected) {
+  const absl::Status keyframe_allowed =
+      decision.selected ? CheckKeyframeLimit(ctx, settings, visit->map_id) : absl::OkStatus();
+  if (!keyframe_allowed.ok()) record = keyframe_allowed;
+  if (decision.selected && keyframe_allowed.ok()) {
     tasks.push_back([&] {
       record = MakeKeyframeRecord(a.frame, f, visit->visit_id, a.keep_original_color,
                                   ctx->config.keyframe_color_jpeg_quality);
@@ -758,6 +781,11 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
 grpc::Status FrameServiceImpl::StreamFrames(
     grpc::ServerContext* context,
     grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream) {
+  // Before a stream slot is taken: a caller without a key holds none.
+  auto caller = ctx_->keys->Authorize(*context, "FrameService/StreamFrames");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = caller->OpenStream(); !s.ok()) return ToGrpcStatus(s);
+  absl::Cleanup close_stream = [&caller] { caller->CloseStream(); };
   if (ctx_->active_streams.fetch_add(1) >= ctx_->config.max_streams) {
     ctx_->active_streams.fetch_sub(1);
     return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
@@ -776,8 +804,13 @@ grpc::Status FrameServiceImpl::StreamFrames(
                         "the first message of a stream must be StreamStart (map, visit)");
   }
   const v1::StreamStart start = request.start();
+  if (auto m = FindCallersMap(ctx_->store, *caller, start.map()); !m.ok()) {
+    return ToGrpcStatus(m.status());
+  }
   auto settings = FrameSettingsFromProto(start.options(), ctx_->config);
   if (!settings.ok()) return ToGrpcStatus(settings.status());
+  settings->key_name = caller->key_name;
+  settings->max_keyframes_per_map = caller->limits.max_keyframes_per_map;
   bool created = false;
   auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(), start.visit_label(),
                             false, &created);
@@ -828,6 +861,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
       if (!client_gone.load()) {  // else still wait for commits: they complete regardless
         v1::StreamFramesResponse response;
         *response.mutable_result() = std::move(p->result);
+        KeepCallersMatches(*caller, response.mutable_result()->mutable_place_matches());
         if (!stream->Write(response)) client_gone.store(true);
       }
       slots.Release();
@@ -879,6 +913,11 @@ grpc::Status FrameServiceImpl::StreamFrames(
                             "only the first message of a stream may be StreamStart; send frames");
       break;
     }
+    if (auto s = caller->CheckNotRevoked(); !s.ok()) {  // revoked while streaming
+      slots.Release();
+      status = ToGrpcStatus(s);
+      break;
+    }
     // Refused before any work when the visit can no longer be written (`placer` checks again
     // where the frame is added).
     std::string map_name;
@@ -888,11 +927,12 @@ grpc::Status FrameServiceImpl::StreamFrames(
       spdlog::info("stream for visit {} ends: {}", visit->id, std::string(s.message()));
       break;
     }
-    analysing.Push(
-        TaskPool::Shared().Submit([this, frame = std::move(*request.mutable_frame()), map_id,
-                                   map_name = std::move(map_name), &settings]() mutable {
-          return AnalyseFrame(ctx_, std::move(frame), map_id, map_name, *settings);
-        }));
+    // Over the key's frame rate the frame is answered with the error, the stream goes on.
+    analysing.Push(TaskPool::Shared().Submit([this, frame = std::move(*request.mutable_frame()),
+                                              map_id, map_name = std::move(map_name), &settings,
+                                              over_rate = caller->TakeFrame()]() mutable {
+      return AnalyseFrame(ctx_, std::move(frame), map_id, map_name, *settings, over_rate);
+    }));
     ++frames;
   }
   analysing.Close();
@@ -926,13 +966,23 @@ grpc::Status FrameServiceImpl::StreamFrames(
   return status;
 }
 
-grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
+grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext* context,
                                             const v1::ProcessFrameRequest* req,
                                             v1::FrameResult* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "FrameService/ProcessFrame");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = caller->TakeFrame(); !s.ok()) return ToGrpcStatus(s);
   auto settings = FrameSettingsFromProto(req->options(), ctx_->config);
   if (!settings.ok()) return ToGrpcStatus(settings.status());
+  settings->key_name = caller->key_name;
+  settings->max_keyframes_per_map = caller->limits.max_keyframes_per_map;
   std::shared_ptr<VisitState> state;
   if (!req->map().empty()) {
+    if (!caller->every_map) {
+      if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+        return ToGrpcStatus(m.status());
+      }
+    }
     bool created = false;
     auto visit = ResolveVisit(ctx_, req->map(), req->visit_id(), "", "", true, &created);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
@@ -956,6 +1006,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext*,
   }
   FinishResult(&p);
   *resp = std::move(p.result);
+  KeepCallersMatches(*caller, resp->mutable_place_matches());
   return grpc::Status::OK;
 }
 

@@ -1,11 +1,14 @@
 // lifemapd: the lifemap server.
 //
 //   lifemapd --listen 127.0.0.1:50051 --db /var/lib/lifemap/lifemap.db [--config FILE]
+//   lifemapd keys create --db FILE --name NAME --role admin   (the first key, on this machine)
+//   lifemapd keys list --db FILE | lifemapd keys revoke --db FILE --name NAME
 //
 // SIGTERM / SIGINT: stop accepting calls, let streams drain, commit pending keyframes, exit 0.
 #include <malloc.h>
 
 #include <algorithm>
+#include <chrono>
 #include <csignal>
 #include <cstdlib>
 #include <iostream>
@@ -15,8 +18,74 @@
 #include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 
+#include "absl/strings/str_join.h"
+#include "server/auth.h"
 #include "server/config.h"
 #include "server/server.h"
+#include "server/store/store.h"
+
+namespace {
+
+double Now() {
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+}
+
+// `lifemapd keys ...`: API keys administered on the server's machine, straight in the database
+// (a running server counts a new key, or a revoked one, within KeyRing::kReloadIntervalS). The
+// only way to make the first admin key of a server that requires keys.
+int RunKeysCommand(const std::string& action, const std::string& db, const std::string& name,
+                   const std::string& role_name, const std::vector<std::string>& maps) {
+  using lifemap::server::Role;
+  auto store = lifemap::store::Store::Open(db, {});
+  if (!store.ok()) {
+    std::cerr << "lifemapd keys: " << store.status().message() << "\n";
+    return 1;
+  }
+  if (action == "create") {
+    const auto role = lifemap::server::ParseRole(role_name);
+    if (!role) {
+      std::cerr << "lifemapd keys create: --role must be robot, operator or admin\n";
+      return 2;
+    }
+    auto created = lifemap::server::CreateApiKey(store->get(), name, *role, maps, {}, Now());
+    if (!created.ok()) {
+      std::cerr << "lifemapd keys create: " << created.status().message() << "\n";
+      return 1;
+    }
+    // The secret alone on stdout (`> admin.key`); what it is on stderr.
+    std::cout << created->first << std::endl;
+    std::cerr << "API key '" << name << "' (" << role_name << ", "
+              << (maps.empty() ? std::string("every map") : "maps " + absl::StrJoin(maps, ", "))
+              << ") created. This is the only time its secret is shown: keep it in a file only "
+                 "its user can read (chmod 600) and pass it with lifemap --api-key-file FILE.\n";
+    return 0;
+  }
+  if (action == "revoke") {
+    auto revoked = (*store)->RevokeApiKey(name, Now());
+    if (!revoked.ok()) {
+      std::cerr << "lifemapd keys revoke: " << revoked.status().message() << "\n";
+      return 1;
+    }
+    std::cerr << "API key '" << name << "' revoked\n";
+    return 0;
+  }
+  auto keys = (*store)->ListApiKeys();
+  if (!keys.ok()) {
+    std::cerr << "lifemapd keys list: " << keys.status().message() << "\n";
+    return 1;
+  }
+  std::cout << "name\trole\tmaps\tcreated_time_s\tlast_used_time_s\trevoked_time_s\n";
+  for (const auto& k : *keys) {
+    std::cout << k.name << "\t" << k.role << "\t"
+              << (k.every_map ? std::string("*") : absl::StrJoin(k.map_names, ",")) << "\t"
+              << static_cast<int64_t>(k.created_time_s) << "\t"
+              << static_cast<int64_t>(k.last_used_time_s) << "\t"
+              << static_cast<int64_t>(k.revoked_time_s) << "\n";
+  }
+  return 0;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   using lifemap::server::ServerConfig;
@@ -47,7 +116,41 @@ int main(int argc, char** argv) {
   std::string backup_dir;
   app.add_option("--backup-dir", backup_dir,
                  "directory Backup writes into (default: backups/ beside the database)");
+  bool require_auth = false, insecure_no_auth = false;
+  app.add_flag("--require-auth", require_auth,
+               "calls need an API key even on loopback (beyond loopback they always do)");
+  app.add_flag("--insecure-no-auth", insecure_no_auth,
+               "serve beyond loopback without API keys (trusted networks only)");
+  std::string tls_cert, tls_key, tls_client_ca;
+  app.add_option("--tls-cert", tls_cert, "TLS: the server's certificate chain (PEM)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-key", tls_key, "TLS: the server's private key (PEM)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-client-ca", tls_client_ca,
+                 "mTLS: require client certificates signed by this CA (PEM)")
+      ->check(CLI::ExistingFile);
+
+  auto* keys = app.add_subcommand("keys", "API keys, straight in the database (no server needed)");
+  keys->require_subcommand(1);
+  std::string keys_db, key_name, key_role;
+  std::vector<std::string> key_maps;
+  auto* keys_create = keys->add_subcommand("create", "create a key; prints its secret once");
+  keys_create->add_option("--db", keys_db, "the server's database file")->required();
+  keys_create->add_option("--name", key_name, "the key's name")->required();
+  keys_create->add_option("--role", key_role, "robot, operator or admin")->required();
+  keys_create->add_option("--maps", key_maps, "only these maps (not for admin keys)")
+      ->delimiter(',');
+  auto* keys_list = keys->add_subcommand("list", "list keys (never their secrets)");
+  keys_list->add_option("--db", keys_db, "the server's database file")->required();
+  auto* keys_revoke = keys->add_subcommand("revoke", "revoke a key");
+  keys_revoke->add_option("--db", keys_db, "the server's database file")->required();
+  keys_revoke->add_option("--name", key_name, "the key's name")->required();
   CLI11_PARSE(app, argc, argv);
+  for (auto* action : {keys_create, keys_list, keys_revoke}) {
+    if (action->parsed()) {
+      return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps);
+    }
+  }
   // Logs go to stderr (journald under systemd); stdout carries only the "listening on port"
   // line that scripts read.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lifemapd"));
@@ -82,6 +185,11 @@ int main(int argc, char** argv) {
   if (given("--shutdown-grace-s")) config.shutdown_grace_s = grace_s;
   if (given("--log-level")) config.log_level = log_level;
   if (given("--backup-dir")) config.backup_dir = backup_dir;
+  if (given("--require-auth")) config.require_auth = true;
+  if (given("--insecure-no-auth")) config.insecure_no_auth = true;
+  if (given("--tls-cert")) config.tls_cert = tls_cert;
+  if (given("--tls-key")) config.tls_key = tls_key;
+  if (given("--tls-client-ca")) config.tls_client_ca = tls_client_ca;
   if (auto s = config.Validate(); !s.ok()) {
     std::cerr << "lifemapd: " << s.message() << "\n";
     return 2;

@@ -18,11 +18,6 @@ namespace {
 constexpr size_t kExportChunkBytes = 1 << 20;
 constexpr size_t kDescriptionMaxBytes = 4096;
 
-absl::StatusOr<store::MapRecord> FindMap(store::Store* store, const std::string& name) {
-  if (auto s = store::ValidateMapName(name); !s.ok()) return s;
-  return store->GetMap(name);
-}
-
 // OK when `visit_id` is 0 (every visit) or one of `map`'s visits; else NOT_FOUND.
 absl::Status CheckVisitOfMap(store::Store* store, const store::MapRecord& map, int64_t visit_id) {
   if (visit_id == 0) return absl::OkStatus();
@@ -70,8 +65,11 @@ grpc::Status SendChunks(const std::string& body, const std::string& content_type
 
 }  // namespace
 
-grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext*, const v1::CreateMapRequest* req,
-                                       v1::Map* resp) {
+grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext* context,
+                                       const v1::CreateMapRequest* req, v1::Map* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/CreateMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = caller->CheckEveryMap("creating maps"); !s.ok()) return ToGrpcStatus(s);
   if (auto s = store::ValidateMapName(req->name()); !s.ok()) return ToGrpcStatus(s);
   if (req->description().size() > kDescriptionMaxBytes) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -81,32 +79,41 @@ grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext*, const v1::CreateMap
   auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
   if (!threshold.ok()) return ToGrpcStatus(threshold.status());
   auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds(), *threshold,
-                                    req->keep_original_color());
+                                    req->keep_original_color(), caller->AsMapCreator());
   if (!map.ok()) return ToGrpcStatus(map.status());
   spdlog::info("created map '{}' (id {})", map->name, map->id);
   MapToProto(*map, resp);
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext*, const v1::ListMapsRequest*,
+grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext* context, const v1::ListMapsRequest*,
                                       v1::ListMapsResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/ListMaps");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto maps = ctx_->store->ListMaps();
   if (!maps.ok()) return ToGrpcStatus(maps.status());
-  for (const auto& m : *maps) MapToProto(m, resp->add_maps());
+  for (const auto& m : *maps) {
+    if (caller->MayUseMap(m.id)) MapToProto(m, resp->add_maps());
+  }
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::GetMap(grpc::ServerContext*, const v1::GetMapRequest* req,
+grpc::Status MapServiceImpl::GetMap(grpc::ServerContext* context, const v1::GetMapRequest* req,
                                     v1::Map* resp) {
-  auto map = FindMap(ctx_->store, req->name());
+  auto caller = ctx_->keys->Authorize(*context, "MapService/GetMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   MapToProto(*map, resp);
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMapRequest* req,
+grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext* context,
+                                       const v1::DeleteMapRequest* req,
                                        v1::DeleteMapResponse* resp) {
-  auto map = FindMap(ctx_->store, req->name());
+  auto caller = ctx_->keys->Authorize(*context, "MapService/DeleteMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   auto deleted = ctx_->store->DeleteMap(req->name());
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
@@ -124,9 +131,13 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext*, const v1::DeleteMap
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMapRequest* req,
-                                       v1::Map* resp) {
-  if (auto s = store::ValidateMapName(req->name()); !s.ok()) return ToGrpcStatus(s);
+grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext* context,
+                                       const v1::RenameMapRequest* req, v1::Map* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/RenameMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto m = FindCallersMap(ctx_->store, *caller, req->name()); !m.ok()) {
+    return ToGrpcStatus(m.status());
+  }
   if (auto s = store::ValidateMapName(req->new_name()); !s.ok()) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         absl::StrCat("new_name: ", s.message()));
@@ -139,9 +150,11 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext*, const v1::RenameMap
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext*, const v1::UpdateMapRequest* req,
-                                       v1::Map* resp) {
-  auto map = FindMap(ctx_->store, req->name());
+grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext* context,
+                                       const v1::UpdateMapRequest* req, v1::Map* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/UpdateMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   store::MapUpdate update;
   if (req->has_description()) {
@@ -166,10 +179,12 @@ grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext*, const v1::UpdateMap
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext*,
+grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext* context,
                                            const v1::ListKeyframesRequest* req,
                                            v1::ListKeyframesResponse* resp) {
-  auto map = FindMap(ctx_->store, req->map());
+  auto caller = ctx_->keys->Authorize(*context, "MapService/ListKeyframes");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   if (req->visit_id() != 0) {
     auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
@@ -186,9 +201,11 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext*,
   return grpc::Status::OK;
 }
 
-grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyframeRequest* req,
-                                         v1::Keyframe* resp) {
-  auto map = FindMap(ctx_->store, req->map());
+grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext* context,
+                                         const v1::GetKeyframeRequest* req, v1::Keyframe* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/GetKeyframe");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   auto k = ctx_->store->GetKeyframe(map->id, static_cast<int64_t>(req->keyframe_id()));
   if (!k.ok()) return ToGrpcStatus(k.status());
@@ -218,7 +235,9 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext*, const v1::GetKeyf
 grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
                                        const v1::ExportMapRequest* req,
                                        grpc::ServerWriter<v1::ExportChunk>* writer) {
-  auto map = FindMap(ctx_->store, req->map());
+  auto caller = ctx_->keys->Authorize(*context, "MapService/ExportMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto visit_id = static_cast<int64_t>(req->visit_id());
   if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
@@ -339,7 +358,9 @@ grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
 grpc::Status MapServiceImpl::RebuildSemanticOctrees(
     grpc::ServerContext* context, const v1::RebuildSemanticOctreesRequest* req,
     grpc::ServerWriter<v1::SemanticOctreeRebuild>* writer) {
-  auto map = FindMap(ctx_->store, req->map());
+  auto caller = ctx_->keys->Authorize(*context, "MapService/RebuildSemanticOctrees");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto visit_id = static_cast<int64_t>(req->visit_id());
   if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
@@ -378,8 +399,11 @@ grpc::Status MapServiceImpl::RebuildSemanticOctrees(
   return ToGrpcStatus(s);
 }
 
-grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext*, grpc::ServerReader<v1::ImportChunk>*,
-                                       v1::Map*) {
+grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
+                                       grpc::ServerReader<v1::ImportChunk>*, v1::Map*) {
+  auto caller = ctx_->keys->Authorize(*context, "MapService/ImportMap");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = caller->CheckEveryMap("importing maps"); !s.ok()) return ToGrpcStatus(s);
   return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
                       "ImportMap is not implemented yet: map import/export of whole maps is "
                       "planned; use AdminService.Backup to copy a server's database");

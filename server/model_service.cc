@@ -47,10 +47,21 @@ absl::Status ValidateDescription(const forest::ModelDescription& d) {
 
 }  // namespace
 
-grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext*,
+grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext* context,
                                            grpc::ServerReader<v1::UploadModelChunk>* reader,
                                            v1::ModelInfo* resp) {
-  const size_t limit = static_cast<size_t>(ctx_->config.max_model_mb) << 20;
+  auto caller = ctx_->keys->Authorize(*context, "ModelService/UploadModel");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  // Models are shared by every map (any map may activate one).
+  if (auto s = caller->CheckEveryMap("uploading models"); !s.ok()) return ToGrpcStatus(s);
+  size_t limit = static_cast<size_t>(ctx_->config.max_model_mb) << 20;
+  std::string limit_name = absl::StrCat(ctx_->config.max_model_mb, " MiB (labels.max_model_mb)");
+  if (caller->limits.max_model_bytes > 0 &&
+      static_cast<size_t>(caller->limits.max_model_bytes) < limit) {
+    limit = static_cast<size_t>(caller->limits.max_model_bytes);
+    limit_name =
+        absl::StrCat(limit, " bytes (API key '", caller->key_name, "''s max_model_bytes limit)");
+  }
   v1::UploadModelChunk chunk;
   std::string name, data;
   bool first = true;
@@ -65,8 +76,7 @@ grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext*,
     }
     if (data.size() + chunk.data().size() > limit) {
       return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                          absl::StrCat("model is larger than this server's limit of ",
-                                       ctx_->config.max_model_mb, " MiB (labels.max_model_mb)"));
+                          absl::StrCat("model is larger than the limit of ", limit_name));
     }
     data += chunk.data();
   }
@@ -99,19 +109,28 @@ grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext*,
   return grpc::Status::OK;
 }
 
-grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext*, const v1::ListModelsRequest*,
+grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext* context,
+                                          const v1::ListModelsRequest*,
                                           v1::ListModelsResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "ModelService/ListModels");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto models = ctx_->store->ListModels();
   if (!models.ok()) return ToGrpcStatus(models.status());
   for (const auto& m : *models) ModelToProto(m, resp->add_models());
   return grpc::Status::OK;
 }
 
-grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*,
+grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext* context,
                                              const v1::ActivateModelRequest* req,
                                              v1::ActivateModelResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "ModelService/ActivateModel");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (!req->map().empty()) {
-    if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+    if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+      return ToGrpcStatus(m.status());
+    }
+  } else if (auto s = caller->CheckEveryMap("the server's default model"); !s.ok()) {
+    return ToGrpcStatus(s);
   }
   if (!req->name().empty()) {
     if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
@@ -134,8 +153,12 @@ grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext*,
   return grpc::Status::OK;
 }
 
-grpc::Status ModelServiceImpl::DeleteModel(grpc::ServerContext*, const v1::DeleteModelRequest* req,
+grpc::Status ModelServiceImpl::DeleteModel(grpc::ServerContext* context,
+                                           const v1::DeleteModelRequest* req,
                                            v1::DeleteModelResponse*) {
+  auto caller = ctx_->keys->Authorize(*context, "ModelService/DeleteModel");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto s = caller->CheckEveryMap("deleting models"); !s.ok()) return ToGrpcStatus(s);
   if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
   if (auto s = ctx_->store->DeleteModel(req->name()); !s.ok()) return ToGrpcStatus(s);
   ctx_->models->InvalidateActivations();
@@ -143,12 +166,14 @@ grpc::Status ModelServiceImpl::DeleteModel(grpc::ServerContext*, const v1::Delet
   return grpc::Status::OK;
 }
 
-grpc::Status ModelServiceImpl::ListClasses(grpc::ServerContext*, const v1::ListClassesRequest* req,
+grpc::Status ModelServiceImpl::ListClasses(grpc::ServerContext* context,
+                                           const v1::ListClassesRequest* req,
                                            v1::ListClassesResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "ModelService/ListClasses");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   int64_t map_id = 0;
   if (!req->map().empty()) {
-    if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
-    auto map = ctx_->store->GetMap(req->map());
+    auto map = FindCallersMap(ctx_->store, *caller, req->map());
     if (!map.ok()) return ToGrpcStatus(map.status());
     map_id = map->id;
   }

@@ -65,8 +65,11 @@ struct PlaceServiceImpl::MethodOutcome {
   std::string descriptor_text;      // architecture only
 };
 
-grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryPlaceRequest* req,
+grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
+                                          const v1::QueryPlaceRequest* req,
                                           v1::QueryPlaceResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "PlaceService/QueryPlace");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   bool architecture = req->methods().empty();
   bool appearance = req->methods().empty();
   for (int m : req->methods()) {
@@ -126,11 +129,20 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext*, const v1::QueryP
       if (!s.ok()) return s;
     }
   } else {
-    auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
+    auto visit = FindCallersVisit(ctx_->store, *caller, static_cast<int64_t>(req->visit_id()));
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (architecture) ArchitectureOfVisit(*visit, max_results, &by_architecture);
     if (appearance) AppearanceOfVisit(*visit, max_results, &by_appearance);
   }
+  // A key limited to some maps sees matches in those only.
+  for (auto* outcome : {&by_architecture, &by_appearance}) {
+    auto& m = outcome->matches;
+    m.erase(
+        std::remove_if(m.begin(), m.end(),
+                       [&](const PlaceMatch& match) { return !caller->MayUseMap(match.map_id); }),
+        m.end());
+  }
+  for (auto& frame : *resp->mutable_frames()) KeepCallersMatches(*caller, frame.mutable_matches());
   // A single method's failure is the call's; with both, the call fails only when neither
   // answered.
   const bool any =
@@ -315,15 +327,20 @@ void PlaceServiceImpl::AppearanceOfVisit(const store::VisitRecord& visit, size_t
   out->matches = BestPerVisit(all, max_results);
 }
 
-grpc::Status PlaceServiceImpl::ListPlaces(grpc::ServerContext*, const v1::ListPlacesRequest* req,
+grpc::Status PlaceServiceImpl::ListPlaces(grpc::ServerContext* context,
+                                          const v1::ListPlacesRequest* req,
                                           v1::ListPlacesResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "PlaceService/ListPlaces");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (!req->map().empty()) {
-    if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
-    if (auto m = ctx_->store->GetMap(req->map()); !m.ok()) return ToGrpcStatus(m.status());
+    if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+      return ToGrpcStatus(m.status());
+    }
   }
   auto stored = ctx_->store->ListVisitPlaces(req->map());
   if (!stored.ok()) return ToGrpcStatus(stored.status());
   for (const auto& r : *stored) {
+    if (!caller->MayUseMap(r.map_id)) continue;
     auto* p = resp->add_places();
     p->set_map(r.map_name);
     p->set_visit_id(static_cast<uint64_t>(r.visit_id));

@@ -1,16 +1,23 @@
 #include "server/server.h"
 
+#include <cerrno>
 #include <chrono>
+#include <cstring>
+#include <fstream>
+#include <sstream>
 #include <vector>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server.h>
 #include <grpcpp/server_builder.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
+#include "server/audit_interceptor.h"
+#include "server/auth.h"
 #include "server/instance_lock.h"
 #include "server/services.h"
 #include "server/status_interceptor.h"
@@ -31,6 +38,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<SerialWorker> semantic_worker;  // fuses keyframes into visits' octrees
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
+  std::unique_ptr<KeyRing> keys;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<MapServiceImpl> map_service;
   std::unique_ptr<VisitServiceImpl> visit_service;
@@ -43,6 +51,65 @@ struct LifemapServer::Impl {
   absl::Mutex shutdown_mu;
   bool shut_down ABSL_GUARDED_BY(shutdown_mu) = false;
 };
+
+namespace {
+
+// With auth required the store must hold a live key, or nobody could call anything; the first
+// is made on the server's machine (no chicken-and-egg).
+absl::Status CheckAuthCanWork(const ServerConfig& config, store::Store* store) {
+  if (!config.AuthRequired()) return absl::OkStatus();
+  auto keys = store->ListApiKeys();
+  if (!keys.ok()) return keys.status();
+  for (const auto& k : *keys) {
+    if (k.revoked_time_s == 0 && k.role == RoleName(Role::kAdmin)) return absl::OkStatus();
+  }
+  return absl::FailedPreconditionError(absl::StrCat(
+      "calls to ", config.listen,
+      config.require_auth ? " need API keys (security.require_auth)"
+                          : " need API keys (it is beyond loopback)",
+      " and the database has no live admin key: create one on this machine with `lifemapd keys "
+      "create --db ",
+      config.db_path,
+      " --name NAME --role admin` (it prints the key once), or, on a trusted network only, "
+      "start with --insecure-no-auth"));
+}
+
+absl::StatusOr<std::string> ReadPemFile(const std::string& path, absl::string_view what) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("cannot read the ", what, " file ", path, " (", std::strerror(errno), ")"));
+  }
+  std::ostringstream data;
+  data << in.rdbuf();
+  if (data.str().find("-----BEGIN ") == std::string::npos) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the ", what, " file ", path, " holds no PEM block (-----BEGIN ...)"));
+  }
+  return data.str();
+}
+
+// Plaintext, or TLS from the configured PEM files (with client certificates required and
+// verified against tls_client_ca when given).
+absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> ServerCredentialsFor(
+    const ServerConfig& config) {
+  if (config.tls_cert.empty()) return grpc::InsecureServerCredentials();
+  auto cert = ReadPemFile(config.tls_cert, "TLS certificate (--tls-cert)");
+  if (!cert.ok()) return cert.status();
+  auto key = ReadPemFile(config.tls_key, "TLS private key (--tls-key)");
+  if (!key.ok()) return key.status();
+  grpc::SslServerCredentialsOptions options;
+  options.pem_key_cert_pairs.push_back({*key, *cert});
+  if (!config.tls_client_ca.empty()) {
+    auto ca = ReadPemFile(config.tls_client_ca, "client CA (--tls-client-ca)");
+    if (!ca.ok()) return ca.status();
+    options.pem_root_certs = *ca;
+    options.client_certificate_request = GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
+  }
+  return grpc::SslServerCredentials(options);
+}
+
+}  // namespace
 
 LifemapServer::LifemapServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
 
@@ -75,6 +142,10 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
       impl->store.get(), impl->places.get(),
       config.semantic_enabled ? std::optional(config.semantic) : std::nullopt);
   impl->models = std::make_unique<ModelRegistry>(impl->store.get());
+  impl->keys = std::make_unique<KeyRing>(impl->store.get(), config.AuthRequired());
+  if (auto s = CheckAuthCanWork(config, impl->store.get()); !s.ok()) return s;
+  auto credentials = ServerCredentialsFor(config);
+  if (!credentials.ok()) return credentials.status();
 
   ServiceContext& ctx = impl->ctx;
   ctx.config = config;
@@ -87,6 +158,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.pose_graph = impl->pose_graph.get();
   ctx.semantic_worker = impl->semantic_worker.get();
   ctx.models = impl->models.get();
+  ctx.keys = impl->keys.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
   ctx.pipeline = impl->pipeline.get();
   ctx.started_time_s = NowSeconds();
@@ -98,12 +170,16 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->model_service = std::make_unique<ModelServiceImpl>(&ctx);
   impl->admin_service = std::make_unique<AdminServiceImpl>(&ctx);
 
+  // Health checking answers anyone (load balancers, systemd probes carry no key).
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  // Reflection describes the API to anyone who asks, so it is served only without auth. The
+  // plugin is registered for the whole process: in one process (the tests) a server with auth
+  // started after one without still offers it; lifemapd runs one server a process.
+  if (!config.AuthRequired()) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   // No SO_REUSEPORT: a second server on a busy port must fail, not share the clients.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  builder.AddListeningPort(config.listen, grpc::InsecureServerCredentials(), &impl->port);
+  builder.AddListeningPort(config.listen, *credentials, &impl->port);
   builder.SetMaxReceiveMessageSize(config.max_message_bytes);
   builder.SetMaxSendMessageSize(config.max_message_bytes);
   builder.RegisterService(impl->map_service.get());
@@ -114,6 +190,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   builder.RegisterService(impl->admin_service.get());
   std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
   interceptors.push_back(std::make_unique<StatusInterceptorFactory>());
+  interceptors.push_back(std::make_unique<AuditInterceptorFactory>(&ctx));
   builder.experimental().SetInterceptorCreators(std::move(interceptors));
   impl->grpc_server = builder.BuildAndStart();
   if (!impl->grpc_server || impl->port == 0) {
@@ -122,8 +199,15 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         " (the port is in use, perhaps by another lifemapd, or the address is not one of this "
         "host's)"));
   }
-  spdlog::info("lifemapd {} listening on port {} with database {}", LIFEMAP_VERSION, impl->port,
-               config.db_path);
+  spdlog::info("lifemapd {} listening on port {} ({}, {}) with database {}", LIFEMAP_VERSION,
+               impl->port, config.tls_cert.empty() ? "plaintext" : "TLS",
+               config.AuthRequired() ? "API keys required" : "no authentication", config.db_path);
+  if (config.insecure_no_auth && !IsLoopbackAddress(config.listen)) {
+    spdlog::warn(
+        "--insecure-no-auth: anyone who can reach {} may call every method, delete "
+        "maps included",
+        config.listen);
+  }
   return std::unique_ptr<LifemapServer>(new LifemapServer(std::move(impl)));
 }
 

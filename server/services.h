@@ -14,6 +14,7 @@
 #include "lifemap/v1/visit_service.grpc.pb.h"
 #include "server/appearance.h"
 #include "server/architecture.h"
+#include "server/auth.h"
 #include "server/config.h"
 #include "server/keyframe_committer.h"
 #include "server/model_registry.h"
@@ -35,6 +36,7 @@ struct ServiceContext {
   KeyframeCommitter* committer = nullptr;
   VisitRegistry* visits = nullptr;
   ModelRegistry* models = nullptr;
+  KeyRing* keys = nullptr;  // who may call what (server/auth.h)
   PlaceIndex* places = nullptr;
   ArchitectureWorker* architecture = nullptr;
   AppearanceIndex* appearance = nullptr;
@@ -161,6 +163,12 @@ class AdminServiceImpl final : public v1::AdminService::Service {
   grpc::Status Vacuum(grpc::ServerContext*, const v1::VacuumRequest*, v1::VacuumResponse*) override;
   grpc::Status CreateApiKey(grpc::ServerContext*, const v1::CreateApiKeyRequest*,
                             v1::CreateApiKeyResponse*) override;
+  grpc::Status ListApiKeys(grpc::ServerContext*, const v1::ListApiKeysRequest*,
+                           v1::ListApiKeysResponse*) override;
+  grpc::Status RevokeApiKey(grpc::ServerContext*, const v1::RevokeApiKeyRequest*,
+                            v1::ApiKey*) override;
+  grpc::Status ListAuditEvents(grpc::ServerContext*, const v1::ListAuditEventsRequest*,
+                               v1::ListAuditEventsResponse*) override;
   grpc::Status RebuildAppearanceIndex(grpc::ServerContext*,
                                       const v1::RebuildAppearanceIndexRequest*,
                                       v1::AppearanceIndexInfo*) override;

@@ -12,9 +12,13 @@ constexpr size_t kLabelMaxBytes = 256;
 
 }  // namespace
 
-grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext*, const v1::StartVisitRequest* req,
-                                          v1::Visit* resp) {
-  if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext* context,
+                                          const v1::StartVisitRequest* req, v1::Visit* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/StartVisit");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+    return ToGrpcStatus(m.status());
+  }
   if (req->robot().size() > kLabelMaxBytes || req->label().size() > kLabelMaxBytes) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         absl::StrCat("robot and label must be at most ", kLabelMaxBytes, " bytes"));
@@ -33,10 +37,17 @@ grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext*, const v1::StartV
   return grpc::Status::OK;
 }
 
-grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisitRequest* req,
-                                        v1::Visit* resp) {
+grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext* context,
+                                        const v1::EndVisitRequest* req, v1::Visit* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/EndVisit");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
   const auto id = static_cast<int64_t>(req->visit_id());
   if (id <= 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
+  if (!caller->every_map) {
+    if (auto v = FindCallersVisit(ctx_->store, *caller, id); !v.ok()) {
+      return ToGrpcStatus(v.status());
+    }
+  }
   auto state = ctx_->visits->Get(id);
   if (!state.ok() && !absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
     return ToGrpcStatus(state.status());
@@ -69,9 +80,14 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext*, const v1::EndVisit
   return grpc::Status::OK;
 }
 
-grpc::Status VisitServiceImpl::ListVisits(grpc::ServerContext*, const v1::ListVisitsRequest* req,
+grpc::Status VisitServiceImpl::ListVisits(grpc::ServerContext* context,
+                                          const v1::ListVisitsRequest* req,
                                           v1::ListVisitsResponse* resp) {
-  if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/ListVisits");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+    return ToGrpcStatus(m.status());
+  }
   auto visits = ctx_->store->ListVisits(req->map());
   if (!visits.ok()) return ToGrpcStatus(visits.status());
   for (const auto& v : *visits) VisitToProto(v, resp->add_visits());

@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "client/cli/output.h"
 #include "core/common/image_codec.h"
@@ -148,7 +149,27 @@ absl::StatusOr<std::unique_ptr<client::Client>> CliContext::Connect() const {
   client::ClientOptions options;
   options.target = server;
   options.connect_timeout_s = timeout_s;
+  auto key = client::ResolveApiKey(api_key, api_key_file);
+  if (!key.ok()) return key.status();
+  options.api_key = *key;
+  options.tls = tls;
+  options.tls_ca_file = tls_ca;
+  options.tls_cert_file = tls_cert;
+  options.tls_key_file = tls_key;
   return client::Client::Connect(options);
+}
+
+std::string RoleName(v1::Role role) {
+  switch (role) {
+    case v1::ROLE_ROBOT:
+      return "robot";
+    case v1::ROLE_OPERATOR:
+      return "operator";
+    case v1::ROLE_ADMIN:
+      return "admin";
+    default:
+      return "unknown";
+  }
 }
 
 void AddServerCommands(CLI::App* app, CliContext* ctx) {
@@ -172,6 +193,12 @@ void AddServerCommands(CLI::App* app, CliContext* ctx) {
                   std::cout << absl::StrFormat("  %-16s %s\n", OutputName(o.output()),
                                                o.computed() ? "yes" : "no: " + o.reason());
                 }
+                std::cout << "transport: " << (info.tls() ? "TLS" : "plaintext") << "\nauth:      "
+                          << (info.auth_required()
+                                  ? absl::StrCat("API keys required; you are '", info.caller_key(),
+                                                 "' (", RoleName(info.caller_role()), ")")
+                                  : std::string("none (every caller may do everything)"))
+                          << "\n";
               });
         };
       });
@@ -647,6 +674,104 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
   });
 }
 
+// "streams 2, 30 frames/s, ..." for the limits a key has; "-" for none.
+std::string LimitsText(const v1::KeyLimits& l) {
+  std::vector<std::string> parts;
+  if (l.max_streams() > 0) parts.push_back(absl::StrCat("streams ", l.max_streams()));
+  if (l.max_frames_per_s() > 0) parts.push_back(absl::StrCat(l.max_frames_per_s(), " frames/s"));
+  if (l.max_maps() > 0) parts.push_back(absl::StrCat("maps ", l.max_maps()));
+  if (l.max_keyframes_per_map() > 0) {
+    parts.push_back(absl::StrCat("keyframes/map ", l.max_keyframes_per_map()));
+  }
+  if (l.max_model_bytes() > 0) parts.push_back("model " + HumanBytes(l.max_model_bytes()));
+  return parts.empty() ? "-" : absl::StrJoin(parts, ", ");
+}
+
+// `lifemap keys create|list|revoke` (admin role).
+void AddKeyCommands(CLI::App* app, CliContext* ctx) {
+  auto* keys = app->add_subcommand("keys", "API keys (needs an admin key)");
+  keys->require_subcommand(1);
+  auto* create = keys->add_subcommand("create", "Create a key; prints its secret once");
+  auto req = std::make_shared<v1::CreateApiKeyRequest>();
+  auto role = std::make_shared<std::string>();
+  auto maps = std::make_shared<std::vector<std::string>>();
+  create->add_option("NAME", *req->mutable_name(), "the key's name")->required();
+  create->add_option("--role", *role, "robot, operator or admin")
+      ->required()
+      ->check(CLI::IsMember({"robot", "operator", "admin"}));
+  create->add_option("--maps", *maps, "only these maps (comma-separated; not for admin keys)")
+      ->delimiter(',');
+  auto* limits = req->mutable_limits();
+  create->add_option_function<uint32_t>(
+      "--max-streams", [limits](uint32_t n) { limits->set_max_streams(n); },
+      "frame streams it may have open at once");
+  create->add_option_function<double>(
+      "--max-fps", [limits](double f) { limits->set_max_frames_per_s(f); },
+      "frames a second it may send (streams and single frames together)");
+  create->add_option_function<uint32_t>(
+      "--max-maps", [limits](uint32_t n) { limits->set_max_maps(n); },
+      "maps it may have created at once");
+  create->add_option_function<uint64_t>(
+      "--max-keyframes-per-map", [limits](uint64_t n) { limits->set_max_keyframes_per_map(n); },
+      "keyframes a map may hold for it to add another");
+  create->add_option_function<uint64_t>(
+      "--max-model-mb", [limits](uint64_t mb) { limits->set_max_model_bytes(mb << 20); },
+      "largest model it may upload, MiB");
+  create->callback([ctx, req, role, maps] {
+    ctx->run = [ctx, req, role, maps] {
+      req->set_role(*role == "robot"      ? v1::ROLE_ROBOT
+                    : *role == "operator" ? v1::ROLE_OPERATOR
+                                          : v1::ROLE_ADMIN);
+      req->clear_maps();
+      for (const auto& m : *maps) req->add_maps(m);
+      return RunCall<v1::CreateApiKeyResponse>(
+          *ctx, [&](client::Client& c) { return c.CreateApiKey(*req); },
+          [](const v1::CreateApiKeyResponse& r) {
+            // The secret alone on stdout (`> robot.key`); what it is on stderr.
+            std::cout << r.key() << "\n";
+            std::cerr << "API key '" << r.info().name() << "' (" << RoleName(r.info().role())
+                      << ", "
+                      << (r.info().every_map() ? std::string("every map")
+                                               : "maps " + absl::StrJoin(r.info().maps(), ", "))
+                      << ") created. This is the only time its secret is shown: keep it in a "
+                         "file only its user can read (chmod 600).\n";
+          });
+    };
+  });
+  keys->add_subcommand("list", "Every key (revoked too), never a secret")->callback([ctx] {
+    ctx->run = [ctx] {
+      return RunCall<v1::ListApiKeysResponse>(
+          *ctx, [](client::Client& c) { return c.ListApiKeys(); },
+          [](const v1::ListApiKeysResponse& r) {
+            std::cout << absl::StrFormat("%-24s %-9s %-23s %-23s %-23s %-12s %s\n", "NAME", "ROLE",
+                                         "CREATED", "LAST USED", "REVOKED", "MAPS", "LIMITS");
+            for (const auto& k : r.keys()) {
+              std::cout << absl::StrFormat(
+                  "%-24s %-9s %-23s %-23s %-23s %-12s %s\n", k.name(), RoleName(k.role()),
+                  HumanTime(k.created_time_s()),
+                  k.last_used_time_s() > 0 ? HumanTime(k.last_used_time_s()) : "never",
+                  k.revoked_time_s() > 0 ? HumanTime(k.revoked_time_s()) : "-",
+                  k.every_map() ? std::string("*") : absl::StrJoin(k.maps(), ","),
+                  LimitsText(k.limits()));
+            }
+          });
+    };
+  });
+  auto* revoke = keys->add_subcommand("revoke", "Refuse a key's calls from now on");
+  auto name = std::make_shared<std::string>();
+  revoke->add_option("NAME", *name, "the key's name")->required();
+  revoke->callback([ctx, name] {
+    ctx->run = [ctx, name] {
+      return RunCall<v1::ApiKey>(
+          *ctx, [&](client::Client& c) { return c.RevokeApiKey(*name); },
+          [](const v1::ApiKey& k) {
+            std::cout << "API key '" << k.name() << "' revoked at " << HumanTime(k.revoked_time_s())
+                      << "\n";
+          });
+    };
+  });
+}
+
 void AddAdminCommands(CLI::App* app, CliContext* ctx) {
   auto* admin = app->add_subcommand("admin", "Operate the server's database");
   admin->require_subcommand(1);
@@ -691,6 +816,28 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
             for (const auto& p : r.problems()) std::cout << "  " << p << "\n";
           },
           [](const v1::CheckIntegrityResponse& r) { return r.ok() ? 0 : 1; });
+    };
+  });
+  auto* audit = admin->add_subcommand("audit", "Administrative calls: who, what, when");
+  auto audit_req = std::make_shared<v1::ListAuditEventsRequest>();
+  audit->add_option_function<uint32_t>(
+      "--limit", [audit_req](uint32_t n) { audit_req->set_limit(n); },
+      "newest events to show (default 100, at most 10000)");
+  audit->add_option_function<double>(
+      "--since", [audit_req](double t) { audit_req->set_since_time_s(t); },
+      "only events at or after this time (seconds since the Unix epoch)");
+  audit->callback([ctx, audit_req] {
+    ctx->run = [ctx, audit_req] {
+      return RunCall<v1::ListAuditEventsResponse>(
+          *ctx, [&](client::Client& c) { return c.ListAuditEvents(*audit_req); },
+          [](const v1::ListAuditEventsResponse& r) {
+            for (const auto& e : r.events()) {
+              std::cout << absl::StrFormat("%s  %-16s %-36s %-18s %s%s\n", HumanTime(e.time_s()),
+                                           e.key().empty() ? "-" : e.key(), e.method(), e.code(),
+                                           e.request(),
+                                           e.message().empty() ? "" : "  (" + e.message() + ")");
+            }
+          });
     };
   });
   admin->add_subcommand("vacuum", "Compact the database file")->callback([ctx] {

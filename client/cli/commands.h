@@ -24,6 +24,12 @@ struct CliContext {
   std::string server;        // --server, LIFEMAP_SERVER, else 127.0.0.1:50051
   bool json = false;         // --json
   double timeout_s = 5.0;    // --connect-timeout
+  std::string api_key;       // --api-key (else --api-key-file, else $LIFEMAP_API_KEY)
+  std::string api_key_file;  // --api-key-file
+  bool tls = false;          // --tls (implied by the files below)
+  std::string tls_ca;        // --tls-ca
+  std::string tls_cert;      // --tls-cert (mTLS)
+  std::string tls_key;       // --tls-key (mTLS)
   std::function<int()> run;  // the chosen command
 
   absl::StatusOr<std::unique_ptr<client::Client>> Connect() const;
@@ -63,6 +69,7 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx);
 void AddExportCommand(CLI::App* app, CliContext* ctx);
 void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
+void AddKeyCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);
 void AddSimCommands(CLI::App* app, CliContext* ctx);

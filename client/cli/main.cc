@@ -17,6 +17,19 @@ int main(int argc, char** argv) {
                  "lifemapd HOST:PORT (default $LIFEMAP_SERVER, else 127.0.0.1:50051)");
   app.add_flag("--json", ctx.json, "machine-readable output");
   app.add_option("--connect-timeout", ctx.timeout_s, "seconds to wait for the server (default 5)");
+  app.add_option("--api-key", ctx.api_key,
+                 "API key for servers that require one (visible to other users in `ps`: prefer "
+                 "--api-key-file or $LIFEMAP_API_KEY)");
+  app.add_option("--api-key-file", ctx.api_key_file, "file whose first line is the API key")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--tls", ctx.tls, "connect over TLS, verifying the server with the system's CAs");
+  app.add_option("--tls-ca", ctx.tls_ca,
+                 "connect over TLS, verifying the server with this CA (PEM)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-cert", ctx.tls_cert, "mTLS: this client's certificate (PEM)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--tls-key", ctx.tls_key, "mTLS: this client's private key (PEM)")
+      ->check(CLI::ExistingFile);
   lifemap::cli::AddServerCommands(&app, &ctx);
   lifemap::cli::AddMapCommands(&app, &ctx);
   lifemap::cli::AddVisitCommands(&app, &ctx);
@@ -27,6 +40,7 @@ int main(int argc, char** argv) {
   lifemap::cli::AddModelCommands(&app, &ctx);
   lifemap::cli::AddPlaceCommands(&app, &ctx);
   lifemap::cli::AddAdminCommands(&app, &ctx);
+  lifemap::cli::AddKeyCommands(&app, &ctx);
   lifemap::cli::AddEvalCommands(&app, &ctx);
   lifemap::cli::AddSimCommands(&app, &ctx);
   try {

@@ -319,6 +319,43 @@ CREATE TABLE semantic_map_octree_chunks (
   PRIMARY KEY (map_id, chunk)
 );
 )sql",
+    // 12 -> 13: API keys (only each secret's SHA-256) with their limits (0 = none of the
+    // key's own), the maps a key is limited to, which key created each map, and the audit log
+    // of administrative calls (issue 17).
+    R"sql(
+CREATE TABLE api_keys (
+  id INTEGER PRIMARY KEY,
+  name TEXT NOT NULL UNIQUE,
+  role TEXT NOT NULL,
+  every_map INTEGER NOT NULL,
+  secret_sha256 TEXT NOT NULL UNIQUE,
+  created_time_s REAL NOT NULL,
+  last_used_time_s REAL NOT NULL DEFAULT 0,
+  revoked_time_s REAL NOT NULL DEFAULT 0,
+  max_streams INTEGER NOT NULL DEFAULT 0,
+  max_frames_per_s REAL NOT NULL DEFAULT 0,
+  max_maps INTEGER NOT NULL DEFAULT 0,
+  max_keyframes_per_map INTEGER NOT NULL DEFAULT 0,
+  max_model_bytes INTEGER NOT NULL DEFAULT 0
+);
+ALTER TABLE maps ADD COLUMN created_by_key_id INTEGER;
+CREATE TABLE api_key_maps (
+  key_id INTEGER NOT NULL REFERENCES api_keys(id) ON DELETE CASCADE,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  PRIMARY KEY (key_id, map_id)
+);
+CREATE TABLE audit_log (
+  id INTEGER PRIMARY KEY,
+  time_s REAL NOT NULL,
+  key_name TEXT NOT NULL,
+  method TEXT NOT NULL,
+  request TEXT NOT NULL,
+  code TEXT NOT NULL,
+  message TEXT NOT NULL,
+  peer TEXT NOT NULL
+);
+CREATE INDEX audit_log_time ON audit_log(time_s);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -675,12 +712,27 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
 absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::string& description,
                                            double created_time_s,
                                            std::optional<double> entropy_threshold,
-                                           bool keep_original_color) {
+                                           bool keep_original_color, const MapCreator& creator) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
+  // Counted under the write lock: two creates by one key cannot both pass the limit.
+  if (creator.max_maps > 0) {
+    auto count = db->Prepare("SELECT COUNT(*) FROM maps WHERE created_by_key_id = ?1");
+    if (!count.ok()) return count.status();
+    StatementScope s(*count);
+    s->Bind(1, creator.key_id);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (s->ColumnInt(0) >= creator.max_maps) {
+      return absl::ResourceExhaustedError(absl::StrCat(
+          "API key '", creator.key_name, "' may create at most ", creator.max_maps,
+          " maps (its max_maps limit) and ", s->ColumnInt(0),
+          " it created still exist: delete one, or ask an admin for a key with a higher limit"));
+    }
+  }
   auto stmt = db->Prepare(
       "INSERT INTO maps (name, description, created_time_s, entropy_threshold, "
-      "keep_original_color) VALUES (?1, ?2, ?3, ?4, ?5)");
+      "keep_original_color, created_by_key_id) VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
   if (!stmt.ok()) return stmt.status();
   {
     StatementScope s(*stmt);
@@ -691,6 +743,11 @@ absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::s
       s->BindNull(4);
     }
     s->Bind(5, int64_t{keep_original_color});
+    if (creator.key_id > 0) {
+      s->Bind(6, creator.key_id);
+    } else {
+      s->BindNull(6);
+    }
     if (auto st = s->Run(); !st.ok()) {
       if (absl::IsFailedPrecondition(st)) {
         return absl::AlreadyExistsError(absl::StrCat("map '", name, "' already exists"));

@@ -172,6 +172,50 @@ struct ModelRecord {
   std::vector<std::string> active_maps;  // maps whose own model this is
 };
 
+// Which API key creates a map, and how many maps it may have created (0: no limit).
+struct MapCreator {
+  int64_t key_id = 0;  // 0: none (auth off, or the store used directly)
+  std::string key_name;
+  int64_t max_maps = 0;
+};
+
+// An API key's own limits (0: only the server's): concurrent streams, frames a second (streams
+// and ProcessFrame together), maps it may have created at once, keyframes a map it writes may
+// hold, model size (server/auth.h enforces them).
+struct KeyLimits {
+  int64_t max_streams = 0;
+  double max_frames_per_s = 0;
+  int64_t max_maps = 0;
+  int64_t max_keyframes_per_map = 0;
+  int64_t max_model_bytes = 0;
+};
+
+// An API key as stored: never the secret, only its SHA-256 (hex).
+struct ApiKeyRecord {
+  int64_t id = 0;
+  std::string name;
+  std::string role;  // "robot" | "operator" | "admin" (server/auth.h)
+  bool every_map = true;
+  std::vector<int64_t> map_ids;        // when !every_map: the maps it may use
+  std::vector<std::string> map_names;  // their current names (List), same order
+  std::string secret_sha256;
+  double created_time_s = 0;
+  double last_used_time_s = 0;  // 0 = never
+  double revoked_time_s = 0;    // 0 = live
+  KeyLimits limits;
+};
+
+// One administrative call in the audit log.
+struct AuditEventRecord {
+  double time_s = 0;
+  std::string key_name;
+  std::string method;
+  std::string request;
+  std::string code;
+  std::string message;
+  std::string peer;
+};
+
 // A stored keyframe's descriptors as the appearance index needs them (no images, no points).
 struct KeyframeDescriptors {
   int64_t map_id = 0;
@@ -269,15 +313,18 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 12;
+  static constexpr int kSchemaVersion = 13;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
   // Maps. Names are validated by the caller (ValidateMapName). ALREADY_EXISTS / NOT_FOUND.
+  // `creator`: the API key creating it; with max_maps > 0, RESOURCE_EXHAUSTED when the maps it
+  // created that still exist number that many.
   absl::StatusOr<MapRecord> CreateMap(const std::string& name, const std::string& description,
                                       double created_time_s,
                                       std::optional<double> entropy_threshold = std::nullopt,
-                                      bool keep_original_color = false);
+                                      bool keep_original_color = false,
+                                      const MapCreator& creator = {});
   absl::StatusOr<MapRecord> UpdateMap(const std::string& name, const MapUpdate& update);
   absl::StatusOr<std::vector<MapRecord>> ListMaps();
   absl::StatusOr<MapRecord> GetMap(const std::string& name);
@@ -388,6 +435,19 @@ class Store {
   // A map's solves (of one visit, or all for 0), oldest first.
   absl::StatusOr<std::vector<PoseOptimisationRecord>> ListPoseOptimisations(int64_t map_id,
                                                                             int64_t visit_id);
+
+  // API keys (issue 17). Insert: ALREADY_EXISTS for a name in use (revoked keys keep theirs),
+  // NOT_FOUND for an unknown map id; assigns the id. List: every key (revoked too) by name,
+  // with the current names of the maps a limited key may use. Revoke: sets revoked_time_s once
+  // (a second call keeps the first time); NOT_FOUND for an unknown name. Touch: last_used.
+  absl::StatusOr<ApiKeyRecord> InsertApiKey(const ApiKeyRecord& record);
+  absl::StatusOr<std::vector<ApiKeyRecord>> ListApiKeys();
+  absl::StatusOr<ApiKeyRecord> RevokeApiKey(const std::string& name, double time_s);
+  absl::Status TouchApiKey(int64_t key_id, double time_s);
+  // The audit log: Append one event; List the newest `limit` at or after `since_time_s`,
+  // newest first.
+  absl::Status AppendAuditEvent(const AuditEventRecord& event);
+  absl::StatusOr<std::vector<AuditEventRecord>> ListAuditEvents(double since_time_s, int limit);
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();

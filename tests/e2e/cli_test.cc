@@ -6,7 +6,9 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cstdlib>
 #include <fstream>
 #include <map>
 #include <set>
@@ -128,12 +130,18 @@ class CliTest : public ::testing::Test {
     StartServer();
   }
 
-  void StartServer() {
+  // lifemapd on the fixture's database with `flags`, listening on 127.0.0.1:0 unless they
+  // give --listen (the CLI connects to 127.0.0.1 at the port it prints).
+  void StartServer(const std::vector<std::string>& flags = {}) {
     ++server_generation_;
+    std::vector<std::string> args = {kLifemapd, "--db",        Db(),  "--shutdown-grace-s",
+                                     "5",       "--log-level", "warn"};
+    if (std::find(flags.begin(), flags.end(), "--listen") == flags.end()) {
+      args.insert(args.end(), {"--listen", "127.0.0.1:0"});
+    }
+    args.insert(args.end(), flags.begin(), flags.end());
     server_ = std::make_unique<Process>(
-        std::vector<std::string>{kLifemapd, "--listen", "127.0.0.1:0", "--db", Db(),
-                                 "--shutdown-grace-s", "5", "--log-level", "warn"},
-        tmp_.File("server" + std::to_string(server_generation_) + ".out"),
+        args, tmp_.File("server" + std::to_string(server_generation_) + ".out"),
         tmp_.File("server" + std::to_string(server_generation_) + ".err"));
     ASSERT_TRUE(server_->started());
     const auto end = Clock::now() + std::chrono::seconds(20);
@@ -1066,7 +1074,7 @@ TEST_F(CliTest, TrainsAndEvaluatesTheForestOnMosd) {
 // waiting, and gRPC's flow control holds the sender meanwhile.
 TEST_F(CliTest, FastSenderCannotExhaustServerMemory) {
   ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
-  auto c = client::Client::Connect({address_});
+  auto c = client::Client::Connect(client::ClientOptions::At(address_));
   ASSERT_TRUE(c.ok()) << c.status();
   v1::StreamStart start;
   start.set_map("m");
@@ -1101,6 +1109,78 @@ TEST_F(CliTest, FastSenderCannotExhaustServerMemory) {
             << " MB of frames\n";
   EXPECT_LT(peak_kb, 160 * 1024) << "server peak memory " << peak_kb / 1024
                                  << " MB after receiving " << kFrames * 2.1 << " MB";
+}
+
+// Issue 17 as an operator meets it: beyond loopback lifemapd needs API keys, the first made on
+// its machine; the CLI sends them from a file or the environment; roles and revocation hold.
+TEST_F(CliTest, BeyondLoopbackTheServerNeedsKeysAndTheFirstIsMadeOnItsMachine) {
+  server_.reset();
+  Process refused({kLifemapd, "--listen", "0.0.0.0:0", "--db", Db()}, tmp_.File("refused.out"),
+                  tmp_.File("refused.err"));
+  EXPECT_EQ(refused.Wait(), 1);
+  EXPECT_NE(refused.err().find("lifemapd keys create --db"), std::string::npos) << refused.err();
+
+  const std::string admin_key = tmp_.File("admin.key");
+  Process create({kLifemapd, "keys", "create", "--db", Db(), "--name", "root", "--role", "admin"},
+                 admin_key, tmp_.File("create.err"));
+  ASSERT_EQ(create.Wait(), 0) << create.err();
+  EXPECT_EQ(Lines(create.out()).size(), 1u);  // the secret alone
+  EXPECT_NE(create.err().find("only time its secret is shown"), std::string::npos);
+
+  StartServer({"--listen", "0.0.0.0:0"});
+  RunResult r = Run({"maps", "list"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("UNAUTHENTICATED"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("--api-key-file"), std::string::npos) << r.err;
+
+  r = Run({"--api-key-file", admin_key, "maps", "create", "lab"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run(
+      {"--api-key-file", admin_key, "keys", "create", "bot", "--role", "robot", "--maps", "lab"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string bot_secret = Lines(r.out).at(0);
+  const std::string bot_key = tmp_.File("bot.key");
+  std::ofstream(bot_key) << bot_secret << "\n";
+
+  r = Run({"--api-key-file", bot_key, "maps", "create", "hall"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("needs the operator role"), std::string::npos) << r.err;
+  setenv("LIFEMAP_API_KEY", bot_secret.c_str(), 1);
+  r = Run({"server", "info"});
+  unsetenv("LIFEMAP_API_KEY");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("you are 'bot' (robot)"), std::string::npos) << r.out;
+
+  r = Run({"--api-key-file", admin_key, "--json", "keys", "list"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("\"bot\""), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find(bot_secret), std::string::npos) << "a listing never shows a secret";
+  ASSERT_EQ(Run({"--api-key-file", admin_key, "keys", "revoke", "bot"}).code, 0);
+  r = Run({"--api-key-file", bot_key, "maps", "list"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("revoked"), std::string::npos) << r.err;
+  r = Run({"--api-key-file", admin_key, "admin", "audit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("AdminService/RevokeApiKey"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("MapService/CreateMap"), std::string::npos) << r.out;
+
+  // --insecure-no-auth: served without keys, and said so.
+  server_.reset();
+  StartServer({"--listen", "0.0.0.0:0", "--insecure-no-auth"});
+  EXPECT_EQ(Run({"maps", "list"}).code, 0);
+}
+
+// TLS as an operator sets it up: lifemapd --tls-cert/--tls-key, lifemap --tls-ca.
+TEST_F(CliTest, OverTlsTheCliNeedsTheServersCa) {
+  ASSERT_TRUE(testing::MakeTestCertificates(tmp_.path()));
+  server_.reset();
+  StartServer({"--tls-cert", tmp_.File("server.pem"), "--tls-key", tmp_.File("server.key")});
+  RunResult r = Run({"--tls-ca", tmp_.File("ca.pem"), "server", "info"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("transport: TLS"), std::string::npos) << r.out;
+  r = Run({"--connect-timeout", "2", "maps", "list"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("connect with --tls-ca"), std::string::npos) << r.err;
 }
 
 }  // namespace

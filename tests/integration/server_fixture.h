@@ -63,7 +63,7 @@ class ServerTest : public ::testing::Test {
     ASSERT_TRUE(s.ok()) << s.status();
     server_ = *std::move(s);
     target_ = "127.0.0.1:" + std::to_string(server_->port());
-    auto c = client::Client::Connect({target_});
+    auto c = client::Client::Connect(client::ClientOptions::At(target_));
     ASSERT_TRUE(c.ok()) << c.status();
     client_ = *std::move(c);
   }

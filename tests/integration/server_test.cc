@@ -703,7 +703,7 @@ TEST_F(ServerTest, SeveralRobotsStreamAtOnceToTheSameAndDifferentMaps) {
   std::vector<bool> ordered(kRobots, true);
   for (int robot = 0; robot < kRobots; ++robot) {
     robots.emplace_back([&, robot] {
-      auto c = Client::Connect({target_});
+      auto c = Client::Connect(client::ClientOptions::At(target_));
       ASSERT_TRUE(c.ok());
       v1::StreamStart start;
       start.set_map(robot % 2 ? "a" : "b");

@@ -211,6 +211,39 @@ TEST(ConfigFile, ReadsAndChecksTheStorageSection) {
                 });
 }
 
+TEST(ConfigFile, ReadsAndChecksTheSecuritySection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json"))
+      << R"({"security": {"require_auth": true, "tls_cert": "c.pem", "tls_key": "k.pem",
+             "tls_client_ca": "ca.pem"}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_TRUE(c->require_auth);
+  EXPECT_EQ(c->tls_cert, "c.pem");
+  EXPECT_EQ(c->tls_key, "k.pem");
+  EXPECT_EQ(c->tls_client_ca, "ca.pem");
+  ExpectRefused(
+      tmp, {
+               {"both.json", R"({"security": {"require_auth": true, "insecure_no_auth": true}})",
+                "contradict"},
+               {"nokey.json", R"({"security": {"tls_cert": "c.pem"}})", "private key"},
+               {"noca.json", R"({"security": {"tls_client_ca": "ca.pem"}})", "--tls-cert"},
+               {"typo.json", R"({"security": {"require_uath": true}})", "security.require_uath"},
+           });
+}
+
+TEST(ServerConfig, KeysAreRequiredBeyondLoopbackUnlessToldOtherwise) {
+  ServerConfig c;
+  EXPECT_FALSE(c.AuthRequired());  // 127.0.0.1
+  c.require_auth = true;
+  EXPECT_TRUE(c.AuthRequired());
+  c = ServerConfig();
+  c.listen = "0.0.0.0:50051";
+  EXPECT_TRUE(c.AuthRequired());
+  c.insecure_no_auth = true;
+  EXPECT_FALSE(c.AuthRequired());
+}
+
 TEST(ConfigFile, ReadsAndChecksTheFramesSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))

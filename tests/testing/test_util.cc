@@ -6,6 +6,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
 #include <vector>
 
 #include <opencv2/imgcodecs.hpp>
@@ -115,6 +116,33 @@ void WriteSyntheticTum(const std::string& dir, int frames, double step_m, int wi
     std::snprintf(line, sizeof(line), "%.4f %.6f 0 0 0 0 0 1\n", t, step_m * 30.0 * (j / 100.0));
     gt << line;
   }
+}
+
+bool MakeTestCertificates(const std::string& dir) {
+  // P-256 keys: quick to make; valid for two days.
+  const std::string key = "-newkey ec -pkeyopt ec_paramgen_curve:prime256v1 -nodes";
+  std::ofstream(dir + "/server.ext") << "subjectAltName=DNS:localhost,IP:127.0.0.1\n";
+  std::ofstream(dir + "/client.ext") << "extendedKeyUsage=clientAuth\n";
+  const std::vector<std::string> commands = {
+      "openssl req -x509 " + key + " -keyout ca.key -out ca.pem -days 2 -subj /CN=lifemap-test-ca",
+      "openssl req -x509 " + key +
+          " -keyout other-ca.key -out other-ca.pem -days 2 -subj /CN=another-ca",
+      "openssl req " + key + " -keyout server.key -out server.csr -subj /CN=localhost",
+      "openssl x509 -req -in server.csr -CA ca.pem -CAkey ca.key -CAcreateserial -out "
+      "server.pem -days 2 -extfile server.ext",
+      "openssl req " + key + " -keyout client.key -out client.csr -subj /CN=robot-1",
+      "openssl x509 -req -in client.csr -CA ca.pem -CAkey ca.key -CAcreateserial -out "
+      "client.pem -days 2 -extfile client.ext",
+  };
+  for (const auto& c : commands) {
+    const std::string line = "cd '" + dir + "' && " + c + " > openssl.log 2>&1";
+    if (std::system(line.c_str()) != 0) {
+      std::ifstream log(dir + "/openssl.log");
+      std::cerr << "openssl failed: " << c << "\n" << log.rdbuf() << "\n";
+      return false;
+    }
+  }
+  return true;
 }
 
 }  // namespace lifemap::testing

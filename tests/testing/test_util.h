@@ -40,6 +40,12 @@ v1::Frame MakeFrame(int width = 640, int height = 480, double depth_m = 1.5,
 void WriteSyntheticTum(const std::string& dir, int frames, double step_m = 0.02, int width = 320,
                        int height = 240);
 
+// Test certificates made with `openssl` (Debian's) in `dir`: ca.pem/ca.key (a CA),
+// server.pem/server.key (signed by it, for localhost and 127.0.0.1), client.pem/client.key
+// (signed by it, for mTLS) and other-ca.pem (a CA that signed none of them). False, with
+// openssl's output on stderr, when openssl fails.
+bool MakeTestCertificates(const std::string& dir);
+
 // The PNG / JPEG bytes of an image.
 std::string PngBytes(const cv::Mat& image);
 std::string JpegBytes(const cv::Mat& image);

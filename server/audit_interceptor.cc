@@ -1,0 +1,189 @@
+#include "server/audit_interceptor.h"
+
+#include <string>
+#include "absl/strings/string_view.h"
+
+#include <google/protobuf/descriptor.h>
+#include <google/protobuf/message.h>
+#include <google/protobuf/reflection.h>
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "server/auth.h"
+#include "server/services.h"
+
+namespace lifemap::server {
+namespace {
+
+using google::protobuf::FieldDescriptor;
+using grpc::experimental::InterceptionHookPoints;
+
+constexpr size_t kMaxRequestText = 512;
+
+absl::string_view CodeName(grpc::StatusCode code) {
+  switch (code) {
+    case grpc::StatusCode::OK:
+      return "OK";
+    case grpc::StatusCode::CANCELLED:
+      return "CANCELLED";
+    case grpc::StatusCode::UNKNOWN:
+      return "UNKNOWN";
+    case grpc::StatusCode::INVALID_ARGUMENT:
+      return "INVALID_ARGUMENT";
+    case grpc::StatusCode::DEADLINE_EXCEEDED:
+      return "DEADLINE_EXCEEDED";
+    case grpc::StatusCode::NOT_FOUND:
+      return "NOT_FOUND";
+    case grpc::StatusCode::ALREADY_EXISTS:
+      return "ALREADY_EXISTS";
+    case grpc::StatusCode::PERMISSION_DENIED:
+      return "PERMISSION_DENIED";
+    case grpc::StatusCode::UNAUTHENTICATED:
+      return "UNAUTHENTICATED";
+    case grpc::StatusCode::RESOURCE_EXHAUSTED:
+      return "RESOURCE_EXHAUSTED";
+    case grpc::StatusCode::FAILED_PRECONDITION:
+      return "FAILED_PRECONDITION";
+    case grpc::StatusCode::ABORTED:
+      return "ABORTED";
+    case grpc::StatusCode::OUT_OF_RANGE:
+      return "OUT_OF_RANGE";
+    case grpc::StatusCode::UNIMPLEMENTED:
+      return "UNIMPLEMENTED";
+    case grpc::StatusCode::INTERNAL:
+      return "INTERNAL";
+    case grpc::StatusCode::UNAVAILABLE:
+      return "UNAVAILABLE";
+    case grpc::StatusCode::DATA_LOSS:
+      return "DATA_LOSS";
+    default:
+      return "UNKNOWN";
+  }
+}
+
+// "name=lab visit_id=3": the request's set scalar fields at the top level (strings, numbers,
+// booleans, enums, repeated strings); bytes and nested messages (frames, model data) left out.
+std::string RequestText(const google::protobuf::Message& m) {
+  const auto* reflection = m.GetReflection();
+  std::vector<const FieldDescriptor*> fields;
+  reflection->ListFields(m, &fields);
+  std::string out;
+  for (const FieldDescriptor* f : fields) {
+    if (f->type() == FieldDescriptor::TYPE_BYTES || f->type() == FieldDescriptor::TYPE_MESSAGE ||
+        f->type() == FieldDescriptor::TYPE_GROUP) {
+      continue;
+    }
+    std::string value;
+    if (f->is_repeated()) {
+      if (f->type() != FieldDescriptor::TYPE_STRING) continue;
+      for (int i = 0; i < reflection->FieldSize(m, f); ++i) {
+        absl::StrAppend(&value, i ? "," : "", reflection->GetRepeatedString(m, f, i));
+      }
+    } else {
+      switch (f->cpp_type()) {
+        case FieldDescriptor::CPPTYPE_STRING:
+          value = reflection->GetString(m, f);
+          break;
+        case FieldDescriptor::CPPTYPE_INT32:
+          value = absl::StrCat(reflection->GetInt32(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_INT64:
+          value = absl::StrCat(reflection->GetInt64(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_UINT32:
+          value = absl::StrCat(reflection->GetUInt32(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_UINT64:
+          value = absl::StrCat(reflection->GetUInt64(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_DOUBLE:
+          value = absl::StrCat(reflection->GetDouble(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_FLOAT:
+          value = absl::StrCat(reflection->GetFloat(m, f));
+          break;
+        case FieldDescriptor::CPPTYPE_BOOL:
+          value = reflection->GetBool(m, f) ? "true" : "false";
+          break;
+        case FieldDescriptor::CPPTYPE_ENUM:
+          value = reflection->GetEnum(m, f)->name();
+          break;
+        default:
+          continue;
+      }
+    }
+    absl::StrAppend(&out, out.empty() ? "" : " ", f->name(), "=", value);
+  }
+  if (out.size() > kMaxRequestText) out = absl::StrCat(out.substr(0, kMaxRequestText), "...");
+  return out;
+}
+
+class AuditInterceptor : public grpc::experimental::Interceptor {
+ public:
+  AuditInterceptor(ServiceContext* ctx, grpc::experimental::ServerRpcInfo* info, std::string method,
+                   Role role)
+      : ctx_(ctx), info_(info), method_(std::move(method)), role_(role) {}
+
+  void Intercept(grpc::experimental::InterceptorBatchMethods* methods) override {
+    if (methods->QueryInterceptionHookPoint(InterceptionHookPoints::POST_RECV_MESSAGE) &&
+        !have_request_) {
+      // The first message only (a stream's first names what it is about).
+      if (const void* message = methods->GetRecvMessage(); message != nullptr) {
+        request_ = RequestText(*static_cast<const google::protobuf::Message*>(message));
+        have_request_ = true;
+      }
+    }
+    if (methods->QueryInterceptionHookPoint(InterceptionHookPoints::PRE_SEND_STATUS)) {
+      Record(methods->GetSendStatus());
+    }
+    methods->Proceed();
+  }
+
+ private:
+  void Record(const grpc::Status& status) {
+    const grpc::StatusCode code = status.error_code();
+    grpc::ServerContextBase* context = info_->server_context();
+    if (code == grpc::StatusCode::UNAUTHENTICATED) {
+      spdlog::warn("{} from {} refused: {}", method_, context->peer(), status.error_message());
+      return;
+    }
+    if (role_ == Role::kRobot && code != grpc::StatusCode::PERMISSION_DENIED) return;
+    store::AuditEventRecord e;
+    e.time_s = NowSeconds();
+    e.key_name = ctx_->keys->KeyNameOf(*context);
+    e.method = method_;
+    e.request = request_;
+    e.code = std::string(CodeName(code));
+    if (code != grpc::StatusCode::OK) e.message = status.error_message();
+    e.peer = context->peer();
+    if (auto s = ctx_->store->AppendAuditEvent(e); !s.ok()) {
+      spdlog::error("audit log: could not record {} by '{}': {}", method_, e.key_name,
+                    std::string(s.message()));
+    }
+  }
+
+  ServiceContext* ctx_;
+  grpc::experimental::ServerRpcInfo* info_;
+  const std::string method_;
+  const Role role_;
+  bool have_request_ = false;
+  std::string request_;
+};
+
+}  // namespace
+
+grpc::experimental::Interceptor* AuditInterceptorFactory::CreateServerInterceptor(
+    grpc::experimental::ServerRpcInfo* info) {
+  // "/lifemap.v1.MapService/DeleteMap" -> "MapService/DeleteMap"; other services (health,
+  // reflection) are not audited.
+  constexpr absl::string_view kPrefix = "/lifemap.v1.";
+  const absl::string_view full = info->method();
+  if (!absl::StartsWith(full, kPrefix)) return nullptr;
+  const std::string method(full.substr(kPrefix.size()));
+  const std::optional<Role> role = RequiredRole(method);
+  if (!role) return nullptr;
+  return new AuditInterceptor(ctx_, info, method, *role);
+}
+
+}  // namespace lifemap::server

@@ -1,0 +1,158 @@
+// Who may call what (issue 17): API keys sent as `authorization: Bearer KEY`, each with a role
+// (robot < operator < admin) and optionally limited to some maps. The store keeps only each
+// secret's SHA-256; the KeyRing keeps the keys in memory and reads them again every few seconds
+// (keys created or revoked by `lifemapd keys` beside a running server count within that time;
+// by the RPCs, at once).
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+#include "absl/strings/string_view.h"
+
+#include "absl/container/flat_hash_map.h"
+#include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
+#include "server/store/store.h"
+
+namespace grpc {
+class ServerContextBase;
+}
+
+namespace lifemap::server {
+
+// Each role may do what the ones before it may.
+enum class Role { kRobot = 1, kOperator = 2, kAdmin = 3 };
+absl::string_view RoleName(Role role);  // "robot", "operator", "admin"
+std::optional<Role> ParseRole(absl::string_view name);
+
+// Every lifemap method, "Service/Method" (e.g. "MapService/DeleteMap"), with the role it needs:
+// the one table of the policy (docs/API.md prints it; the tests call every method with it).
+const std::vector<std::pair<absl::string_view, Role>>& MethodRoles();
+// The role `method` needs; nullopt for a method not in the table.
+std::optional<Role> RequiredRole(absl::string_view method);
+
+// A key's use of its limits while the server runs, shared by its calls: open streams and a
+// token bucket of frames (a second's worth of burst).
+class KeyUsage {
+ public:
+  // One more open stream, or RESOURCE_EXHAUSTED naming the limit when `max` are open (0: none).
+  absl::Status OpenStream(const std::string& key_name, int64_t max);
+  void CloseStream();
+  // One more frame, or RESOURCE_EXHAUSTED naming the limit when the key has sent
+  // `per_second` frames in the last second (0: no limit).
+  absl::Status TakeFrame(const std::string& key_name, double per_second);
+
+ private:
+  absl::Mutex mu_;
+  int64_t streams_ ABSL_GUARDED_BY(mu_) = 0;
+  double tokens_ ABSL_GUARDED_BY(mu_) = -1;  // < 0: not started
+  double refilled_s_ ABSL_GUARDED_BY(mu_) = 0;
+};
+
+// The caller of one call.
+struct Principal {
+  std::string key_name;  // "" when the server runs without auth
+  int64_t key_id = 0;
+  Role role = Role::kAdmin;
+  bool every_map = true;
+  std::vector<int64_t> map_ids;        // when !every_map
+  std::vector<std::string> map_names;  // their names when the call began, same order
+  // Set when the key is revoked while the call runs (a stream checks it at every frame).
+  std::shared_ptr<const std::atomic<bool>> revoked;
+  // The key's own limits (0: only the server's) and its use of them (null without auth).
+  store::KeyLimits limits;
+  std::shared_ptr<KeyUsage> usage;
+
+  bool MayUseMap(int64_t map_id) const;
+  // PERMISSION_DENIED naming the key's maps unless it may use the map.
+  absl::Status CheckMap(int64_t map_id, absl::string_view map_name) const;
+  // PERMISSION_DENIED unless the key may use every map: `what` ("creating maps") touches more
+  // than one map or the whole server.
+  absl::Status CheckEveryMap(absl::string_view what) const;
+  // UNAUTHENTICATED once the key has been revoked.
+  absl::Status CheckNotRevoked() const;
+  // KeyUsage's checks for this key (OK without a key).
+  absl::Status OpenStream() const;
+  void CloseStream() const;
+  absl::Status TakeFrame() const;
+  // Who creates a map, with the key's max_maps (store::Store::CreateMap).
+  store::MapCreator AsMapCreator() const;
+};
+
+// The map named `name` if the caller may use it. INVALID_ARGUMENT for a bad name; for a key
+// limited to other maps PERMISSION_DENIED whether the map exists or not (it learns nothing of
+// them); NOT_FOUND.
+absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Principal& caller,
+                                                const std::string& name);
+// The visit if the caller may use its map: NOT_FOUND, or PERMISSION_DENIED as above.
+absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const Principal& caller,
+                                                    int64_t visit_id);
+
+// INVALID_ARGUMENT for a negative or non-finite limit.
+absl::Status ValidateKeyLimits(const store::KeyLimits& limits);
+
+// A new key: validates the name (1-64 of [A-Za-z0-9._-]) and the maps (names; empty = every
+// map; not for admin keys, INVALID_ARGUMENT), stores its hash and returns the secret (shown
+// this once) with the stored record. ALREADY_EXISTS for a name in use; NOT_FOUND for a map.
+// Used by AdminService.CreateApiKey and by `lifemapd keys create` on the server's machine.
+absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> CreateApiKey(
+    store::Store* store, const std::string& name, Role role, const std::vector<std::string>& maps,
+    const store::KeyLimits& limits, double now_s);
+
+// A new secret: "lmk_" followed by 43 characters (32 random bytes from OpenSSL, base64url).
+std::string NewApiKeySecret();
+// The hex SHA-256 of a secret, as the store keeps it.
+std::string ApiKeyHash(absl::string_view secret);
+
+// True for a HOST:PORT on loopback (localhost, 127.0.0.0/8, [::1]) and for unix: sockets.
+bool IsLoopbackAddress(absl::string_view listen);
+
+class KeyRing {
+ public:
+  // `required`: calls need a live key; otherwise every call is an unlimited admin's.
+  KeyRing(store::Store* store, bool required);
+  bool required() const { return required_; }
+
+  // The caller of `method` ("Service/Method") from the call's `authorization` metadata.
+  // UNAUTHENTICATED without a key, with an unknown or revoked one; PERMISSION_DENIED when the
+  // key's role is below the method's (both say what to do). INTERNAL for a method missing from
+  // MethodRoles() (a programming error the tests catch).
+  absl::StatusOr<Principal> Authorize(const grpc::ServerContextBase& context,
+                                      absl::string_view method);
+  // The name of the live key the call carries, "" if none (for the audit log).
+  std::string KeyNameOf(const grpc::ServerContextBase& context);
+  // Reads the keys from the store now (after a key is created or revoked).
+  absl::Status Reload();
+  // Marks open calls of a revoked key (their principals' `revoked`).
+  void MarkRevoked(const std::string& name);
+
+  static constexpr double kReloadIntervalS = 2.0;
+  static constexpr double kTouchIntervalS = 60.0;  // last_used written at most this often
+
+ private:
+  // Replaced whole at each reload; `record` is never changed after, so a call may read it
+  // without the lock.
+  struct Entry {
+    store::ApiKeyRecord record;
+    std::shared_ptr<std::atomic<bool>> revoked;
+    std::shared_ptr<KeyUsage> usage;  // the same from reload to reload
+    double touched_s = 0;             // last_used_time_s as last written; guarded by mu_
+  };
+  // The live entry of `authorization`'s key, or UNAUTHENTICATED.
+  absl::StatusOr<std::shared_ptr<Entry>> Find(const grpc::ServerContextBase& context,
+                                              absl::string_view method);
+  absl::Status ReloadLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+
+  store::Store* const store_;
+  const bool required_;
+  absl::Mutex mu_;
+  absl::flat_hash_map<std::string, std::shared_ptr<Entry>> by_hash_ ABSL_GUARDED_BY(mu_);
+  double loaded_s_ ABSL_GUARDED_BY(mu_) = -1;
+};
+
+}  // namespace lifemap::server

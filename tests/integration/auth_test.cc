@@ -1,0 +1,420 @@
+// API keys, roles, maps a key is limited to, revocation and the audit log (issue 17), against a
+// real server that requires keys.
+#include <google/protobuf/descriptor.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/codegen/client_unary_call.h>
+
+#include <fstream>
+#include <iterator>
+#include <map>
+
+#include "server/auth.h"
+#include "server/store/store.h"
+#include "tests/integration/server_fixture.h"
+
+namespace lifemap {
+namespace {
+
+using server::Role;
+
+class AuthTest : public testing::ServerTest {
+ protected:
+  void SetUp() override {
+    // The bootstrap: the first admin key goes straight into the database, as `lifemapd keys
+    // create` does, before the server starts.
+    {
+      auto store = store::Store::Open(tmp_.File("lifemap.db"), {});
+      ASSERT_TRUE(store.ok()) << store.status();
+      auto admin = server::CreateApiKey(store->get(), "root", Role::kAdmin, {}, {}, 1.0);
+      ASSERT_TRUE(admin.ok()) << admin.status();
+      secrets_["root"] = admin->first;
+    }
+    server::ServerConfig config;
+    config.require_auth = true;
+    StartServer(config);
+    admin_ = ClientWith(secrets_["root"]);
+    for (const char* map : {"lab", "hall"}) ASSERT_TRUE(admin_->CreateMap(map, "").ok());
+    NewKey("robot", v1::ROLE_ROBOT);
+    NewKey("operator", v1::ROLE_OPERATOR);
+    NewKey("admin", v1::ROLE_ADMIN);
+    NewKey("lab-robot", v1::ROLE_ROBOT, {"lab"});
+  }
+
+  // A key made by the admin over the API; its secret goes into secrets_.
+  void NewKey(const std::string& name, v1::Role role, const std::vector<std::string>& maps = {},
+              const v1::KeyLimits& limits = {}) {
+    v1::CreateApiKeyRequest req;
+    req.set_name(name);
+    req.set_role(role);
+    *req.mutable_limits() = limits;
+    for (const auto& m : maps) req.add_maps(m);
+    auto created = admin_->CreateApiKey(req);
+    ASSERT_TRUE(created.ok()) << created.status();
+    secrets_[name] = created->key();
+  }
+
+  std::unique_ptr<client::Client> ClientWith(const std::string& key) {
+    client::ClientOptions options;
+    options.target = target_;
+    options.api_key = key;
+    auto c = client::Client::Connect(options);
+    EXPECT_TRUE(c.ok()) << c.status();
+    return c.ok() ? *std::move(c) : nullptr;
+  }
+
+  // `method` ("Service/Method") called with an empty request, as raw bytes: every method
+  // (streams too: one message, then the end) reaches its handler.
+  grpc::Status RawCall(const std::string& method, const std::string& key) {
+    auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+    grpc::ClientContext ctx;
+    if (!key.empty()) ctx.AddMetadata("authorization", "Bearer " + key);
+    ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    grpc::Slice empty(std::string(""));
+    grpc::ByteBuffer request(&empty, 1), response;
+    return grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
+        channel.get(),
+        grpc::internal::RpcMethod(("/lifemap.v1." + method).c_str(),
+                                  grpc::internal::RpcMethod::NORMAL_RPC),
+        &ctx, request, &response);
+  }
+
+  std::map<std::string, std::string> secrets_;
+  std::unique_ptr<client::Client> admin_;
+};
+
+TEST_F(AuthTest, EveryMethodOfEveryServiceHasARole) {
+  const auto* pool = google::protobuf::DescriptorPool::generated_pool();
+  size_t methods = 0;
+  for (const char* service : {"MapService", "VisitService", "FrameService", "PlaceService",
+                              "ModelService", "AdminService"}) {
+    const auto* s = pool->FindServiceByName(std::string("lifemap.v1.") + service);
+    ASSERT_NE(s, nullptr) << service;
+    for (int i = 0; i < s->method_count(); ++i) {
+      const std::string name = std::string(service) + "/" + s->method(i)->name();
+      EXPECT_TRUE(server::RequiredRole(name).has_value()) << name << " has no role";
+      ++methods;
+    }
+  }
+  EXPECT_EQ(server::MethodRoles().size(), methods) << "the policy names a method no service has";
+}
+
+// Every method, called without a key, with an unknown key, and with each role's key: refused
+// (UNAUTHENTICATED, PERMISSION_DENIED naming the role needed) exactly when the policy says.
+TEST_F(AuthTest, EveryMethodRefusesCallersWithoutTheRoleItNeeds) {
+  const std::map<std::string, Role> roles = {
+      {"robot", Role::kRobot}, {"operator", Role::kOperator}, {"admin", Role::kAdmin}};
+  for (const auto& [method, needed] : server::MethodRoles()) {
+    const std::string m(method);
+    for (const std::string& key : {std::string(), std::string("lmk_not-a-key")}) {
+      const grpc::Status s = RawCall(m, key);
+      EXPECT_EQ(s.error_code(), grpc::StatusCode::UNAUTHENTICATED)
+          << m << ": " << s.error_message();
+      EXPECT_NE(s.error_message().find("authorization: Bearer"), std::string::npos)
+          << s.error_message();
+    }
+    for (const auto& [name, role] : roles) {
+      const grpc::Status s = RawCall(m, secrets_[name]);
+      if (role < needed) {
+        EXPECT_EQ(s.error_code(), grpc::StatusCode::PERMISSION_DENIED)
+            << m << " with a " << name << " key: " << s.error_message();
+        EXPECT_NE(s.error_message().find(std::string(server::RoleName(needed)) + " role"),
+                  std::string::npos)
+            << s.error_message();
+      } else {
+        EXPECT_NE(s.error_code(), grpc::StatusCode::PERMISSION_DENIED)
+            << m << " with a " << name << " key: " << s.error_message();
+        EXPECT_NE(s.error_code(), grpc::StatusCode::UNAUTHENTICATED)
+            << m << " with a " << name << " key: " << s.error_message();
+      }
+    }
+  }
+}
+
+TEST_F(AuthTest, HealthCheckingNeedsNoKey) {
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  grpc::ClientContext ctx;
+  grpc::Slice empty(std::string(""));
+  grpc::ByteBuffer request(&empty, 1), response;
+  const grpc::Status s = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
+      channel.get(),
+      grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
+                                grpc::internal::RpcMethod::NORMAL_RPC),
+      &ctx, request, &response);
+  EXPECT_TRUE(s.ok()) << s.error_message();
+}
+
+TEST_F(AuthTest, AKeyLimitedToMapsSeesAndWritesOnlyThose) {
+  auto robot = ClientWith(secrets_["lab-robot"]);
+  auto maps = robot->ListMaps();
+  ASSERT_TRUE(maps.ok()) << maps.status();
+  ASSERT_EQ(maps->maps_size(), 1);
+  EXPECT_EQ(maps->maps(0).name(), "lab");
+  EXPECT_TRUE(robot->GetMap("lab").ok());
+  // Another map, existing or not: refused alike (the key learns nothing of other maps).
+  for (const char* other : {"hall", "nowhere"}) {
+    const auto s = robot->GetMap(other).status();
+    EXPECT_TRUE(absl::IsPermissionDenied(s)) << s;
+    EXPECT_NE(s.message().find("may use only the maps lab"), std::string::npos) << s;
+  }
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = testing::MakeFrame(320, 240);
+  req.set_map("lab");
+  EXPECT_TRUE(robot->ProcessFrame(req).ok());
+  req.set_map("hall");
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->ProcessFrame(req).status()));
+  v1::StreamStart start;
+  start.set_map("hall");
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->OpenStream(start).status()));
+  v1::StartVisitRequest visit;
+  visit.set_map("hall");
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->StartVisit(visit).status()));
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->ListVisits("hall").status()));
+  // A visit of another map, by id.
+  visit.set_map("hall");
+  auto hall_visit = admin_->StartVisit(visit);
+  ASSERT_TRUE(hall_visit.ok());
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->EndVisit(hall_visit->id()).status()));
+  auto places = robot->ListPlaces("");
+  ASSERT_TRUE(places.ok()) << places.status();
+  for (const auto& p : places->places()) EXPECT_EQ(p.map(), "lab");
+
+  // An operator limited to a map may not touch what every map shares.
+  NewKey("lab-operator", v1::ROLE_OPERATOR, {"lab"});
+  auto lab_operator = ClientWith(secrets_["lab-operator"]);
+  EXPECT_TRUE(absl::IsPermissionDenied(lab_operator->CreateMap("new", "").status()));
+  EXPECT_TRUE(absl::IsPermissionDenied(lab_operator->ActivateModel("", "").status()));
+  EXPECT_TRUE(absl::IsPermissionDenied(lab_operator->DeleteMap("hall").status()));
+  EXPECT_TRUE(admin_->GetMap("hall").ok());
+
+  // Deleting its only map leaves the key limited (to nothing), never unlimited.
+  ASSERT_TRUE(admin_->DeleteMap("lab").ok());
+  auto none = robot->ListMaps();
+  ASSERT_TRUE(none.ok());
+  EXPECT_EQ(none->maps_size(), 0);
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->GetMap("hall").status()));
+}
+
+TEST_F(AuthTest, CreateApiKeyValidatesWhatItIsGiven) {
+  v1::CreateApiKeyRequest req;
+  req.set_name("x");
+  EXPECT_TRUE(absl::IsInvalidArgument(admin_->CreateApiKey(req).status()));  // no role
+  req.set_role(v1::ROLE_ADMIN);
+  req.add_maps("lab");
+  EXPECT_TRUE(absl::IsInvalidArgument(admin_->CreateApiKey(req).status()));  // admin on a map
+  req.set_role(v1::ROLE_ROBOT);
+  req.set_maps(0, "nowhere");
+  EXPECT_TRUE(absl::IsNotFound(admin_->CreateApiKey(req).status()));
+  req.set_name("../etc");
+  EXPECT_TRUE(absl::IsInvalidArgument(admin_->CreateApiKey(req).status()));
+  req.set_name("robot");
+  req.set_maps(0, "lab");
+  EXPECT_TRUE(absl::IsAlreadyExists(admin_->CreateApiKey(req).status()));
+  EXPECT_TRUE(absl::IsNotFound(admin_->RevokeApiKey("nobody").status()));
+}
+
+TEST_F(AuthTest, OnlyTheSecretsHashIsStoredAndListingsNeverShowIt) {
+  auto keys = admin_->ListApiKeys();
+  ASSERT_TRUE(keys.ok()) << keys.status();
+  EXPECT_EQ(keys->keys_size(), 5);
+  EXPECT_EQ(secrets_.size(), 5u);
+  for (const auto& [name, secret] : secrets_) {
+    EXPECT_EQ(secret.rfind("lmk_", 0), 0u);
+    EXPECT_EQ(secret.size(), 47u);
+    EXPECT_EQ(keys->DebugString().find(secret), std::string::npos);
+  }
+  // The database holds each secret's SHA-256, never the secret.
+  server_.reset();
+  std::string db_bytes;
+  for (const char* f : {"lifemap.db", "lifemap.db-wal"}) {
+    std::ifstream in(tmp_.File(f), std::ios::binary);
+    db_bytes += std::string(std::istreambuf_iterator<char>(in), {});
+  }
+  for (const auto& [name, secret] : secrets_) {
+    EXPECT_EQ(db_bytes.find(secret), std::string::npos) << name;
+    EXPECT_NE(db_bytes.find(server::ApiKeyHash(secret)), std::string::npos) << name;
+  }
+}
+
+TEST_F(AuthTest, ARevokedKeyIsRefusedAndItsOpenStreamEnds) {
+  auto robot = ClientWith(secrets_["robot"]);
+  v1::StreamStart start;
+  start.set_map("lab");
+  auto stream = robot->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  v1::Frame frame = testing::MakeFrame(320, 240);
+  ASSERT_TRUE((*stream)->Send(frame));
+  v1::FrameResult result;
+  ASSERT_TRUE((*stream)->Receive(&result));
+  auto revoked = admin_->RevokeApiKey("robot");
+  ASSERT_TRUE(revoked.ok()) << revoked.status();
+  EXPECT_GT(revoked->revoked_time_s(), 0);
+  frame.set_sequence(1);
+  frame.set_timestamp_s(frame.timestamp_s() + 1);
+  (*stream)->Send(frame);
+  (*stream)->CloseSend();
+  while ((*stream)->Receive(&result)) {
+  }
+  const absl::Status ended = (*stream)->Finish();
+  EXPECT_TRUE(absl::IsUnauthenticated(ended)) << ended;
+  const auto refused = robot->ListMaps().status();
+  EXPECT_TRUE(absl::IsUnauthenticated(refused)) << refused;
+  EXPECT_NE(refused.message().find("'robot' has been revoked"), std::string::npos) << refused;
+  // Revoking twice keeps the first time.
+  auto again = admin_->RevokeApiKey("robot");
+  ASSERT_TRUE(again.ok());
+  EXPECT_EQ(again->revoked_time_s(), revoked->revoked_time_s());
+}
+
+TEST_F(AuthTest, TheAuditLogRecordsAdministrativeCallsAndRefusals) {
+  auto op = ClientWith(secrets_["operator"]);
+  auto robot = ClientWith(secrets_["robot"]);
+  ASSERT_TRUE(op->DeleteMap("hall").ok());
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->DeleteMap("lab").status()));
+  EXPECT_TRUE(robot->ListMaps().ok());  // a robot's own work is not audited
+  EXPECT_TRUE(absl::IsPermissionDenied(op->ListAuditEvents({}).status()));
+  auto events = admin_->ListAuditEvents({});
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_GE(events->events_size(), 3);
+  // Newest first: the operator's refused look at the log, the robot's refused delete, the
+  // operator's delete.
+  EXPECT_EQ(events->events(0).key(), "operator");
+  EXPECT_EQ(events->events(0).method(), "AdminService/ListAuditEvents");
+  EXPECT_EQ(events->events(0).code(), "PERMISSION_DENIED");
+  EXPECT_EQ(events->events(1).key(), "robot");
+  EXPECT_EQ(events->events(1).method(), "MapService/DeleteMap");
+  EXPECT_EQ(events->events(1).request(), "name=lab");
+  EXPECT_EQ(events->events(1).code(), "PERMISSION_DENIED");
+  EXPECT_EQ(events->events(2).key(), "operator");
+  EXPECT_EQ(events->events(2).method(), "MapService/DeleteMap");
+  EXPECT_EQ(events->events(2).request(), "name=hall");
+  EXPECT_EQ(events->events(2).code(), "OK");
+  for (const auto& e : events->events()) {
+    EXPECT_NE(e.method(), "MapService/ListMaps");
+    EXPECT_FALSE(e.peer().empty());
+    // A key's secret never reaches the log (CreateApiKey's answer is not logged).
+    for (const auto& [name, secret] : secrets_) {
+      EXPECT_EQ(e.DebugString().find(secret), std::string::npos);
+    }
+  }
+  v1::ListAuditEventsRequest limited;
+  limited.set_limit(1);
+  auto one = admin_->ListAuditEvents(limited);
+  ASSERT_TRUE(one.ok());
+  EXPECT_EQ(one->events_size(), 1);
+}
+
+TEST_F(AuthTest, EachKeysOwnLimitsHoldAndAreNamedWhenReached) {
+  v1::KeyLimits limits;
+  limits.set_max_maps(1);
+  NewKey("maps-1", v1::ROLE_OPERATOR, {}, limits);
+  auto maps_1 = ClientWith(secrets_["maps-1"]);
+  ASSERT_TRUE(maps_1->CreateMap("a", "").ok());
+  auto s = maps_1->CreateMap("b", "").status();
+  EXPECT_TRUE(absl::IsResourceExhausted(s)) << s;
+  EXPECT_NE(s.message().find("at most 1 maps (its max_maps limit)"), std::string::npos) << s;
+  ASSERT_TRUE(maps_1->DeleteMap("a").ok());
+  EXPECT_TRUE(maps_1->CreateMap("b", "").ok());
+
+  limits = {};
+  limits.set_max_streams(1);
+  NewKey("streams-1", v1::ROLE_ROBOT, {}, limits);
+  auto streams_1 = ClientWith(secrets_["streams-1"]);
+  v1::StreamStart start;
+  start.set_map("lab");
+  auto first = streams_1->OpenStream(start);
+  ASSERT_TRUE(first.ok()) << first.status();
+  start.set_map("hall");
+  s = streams_1->OpenStream(start).status();
+  EXPECT_TRUE(absl::IsResourceExhausted(s)) << s;
+  EXPECT_NE(s.message().find("max_streams"), std::string::npos) << s;
+  (*first)->CloseSend();
+  EXPECT_TRUE((*first)->Finish().ok());
+  auto second = streams_1->OpenStream(start);  // the first one's slot is free again
+  ASSERT_TRUE(second.ok()) << second.status();
+  (*second)->CloseSend();
+  EXPECT_TRUE((*second)->Finish().ok());
+
+  limits = {};
+  limits.set_max_frames_per_s(3);
+  NewKey("fps-3", v1::ROLE_ROBOT, {}, limits);
+  auto fps_3 = ClientWith(secrets_["fps-3"]);
+  v1::ProcessFrameRequest req;
+  *req.mutable_frame() = testing::MakeFrame(64, 48);
+  int served = 0, refused = 0;
+  for (int i = 0; i < 12; ++i) {
+    s = fps_3->ProcessFrame(req).status();
+    if (s.ok()) ++served;
+    if (absl::IsResourceExhausted(s)) {
+      ++refused;
+      EXPECT_NE(s.message().find("max_frames_per_s"), std::string::npos) << s;
+    }
+  }
+  EXPECT_GE(served, 3);
+  EXPECT_GE(refused, 1);
+  EXPECT_EQ(served + refused, 12);
+
+  limits = {};
+  limits.set_max_keyframes_per_map(2);
+  NewKey("keyframes-2", v1::ROLE_ROBOT, {}, limits);
+  auto keyframes_2 = ClientWith(secrets_["keyframes-2"]);
+  req.set_map("lab");
+  std::vector<v1::KeyframeDecision> decisions;
+  for (int i = 0; i < 3; ++i) {  // 2 s apart: each one a keyframe
+    *req.mutable_frame() = testing::MakeFrame(320, 240, 1.5, 1000.0 + 2 * i, i);
+    auto r = keyframes_2->ProcessFrame(req);
+    ASSERT_TRUE(r.ok()) << r.status();
+    decisions.push_back(r->keyframe());
+  }
+  EXPECT_TRUE(decisions[0].committed() && decisions[1].committed());
+  EXPECT_TRUE(decisions[2].selected());
+  EXPECT_FALSE(decisions[2].committed());
+  EXPECT_NE(decisions[2].reason().find("max_keyframes_per_map"), std::string::npos)
+      << decisions[2].reason();
+  EXPECT_EQ(admin_->GetMap("lab")->keyframe_count(), 2u);
+
+  limits = {};
+  limits.set_max_model_bytes(1000);
+  NewKey("model-1k", v1::ROLE_OPERATOR, {}, limits);
+  s = ClientWith(secrets_["model-1k"])->UploadModel("big", std::string(2000, 'x')).status();
+  EXPECT_TRUE(absl::IsResourceExhausted(s)) << s;
+  EXPECT_NE(s.message().find("max_model_bytes"), std::string::npos) << s;
+  auto listed = admin_->ListApiKeys();
+  ASSERT_TRUE(listed.ok());
+  for (const auto& k : listed->keys()) {
+    if (k.name() == "model-1k") {
+      EXPECT_EQ(k.limits().max_model_bytes(), 1000u);
+    }
+  }
+}
+
+TEST_F(AuthTest, ServerInfoSaysWhoIsCalling) {
+  auto robot = ClientWith(secrets_["robot"]);
+  auto info = robot->GetServerInfo();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_TRUE(info->auth_required());
+  EXPECT_EQ(info->caller_key(), "robot");
+  EXPECT_EQ(info->caller_role(), v1::ROLE_ROBOT);
+  EXPECT_TRUE(info->db_path().empty());  // where the database is, is for operators
+  auto admin_info = admin_->GetServerInfo();
+  ASSERT_TRUE(admin_info.ok());
+  EXPECT_FALSE(admin_info->db_path().empty());
+}
+
+TEST(AuthStartTest, AServerThatNeedsKeysRefusesToStartWithoutAnAdminKey) {
+  testing::TempDir tmp;
+  server::ServerConfig config;
+  config.db_path = tmp.File("lifemap.db");
+  config.listen = "0.0.0.0:0";  // beyond loopback: keys are required
+  auto s = server::LifemapServer::Start(config);
+  ASSERT_FALSE(s.ok());
+  EXPECT_TRUE(absl::IsFailedPrecondition(s.status())) << s.status();
+  EXPECT_NE(s.status().message().find("lifemapd keys create --db"), std::string::npos)
+      << s.status();
+  EXPECT_NE(s.status().message().find("--insecure-no-auth"), std::string::npos) << s.status();
+  config.insecure_no_auth = true;
+  auto insecure = server::LifemapServer::Start(config);
+  EXPECT_TRUE(insecure.ok()) << insecure.status();
+}
+
+}  // namespace
+}  // namespace lifemap
