@@ -12,11 +12,15 @@
 // `server_cpu_ms_per_frame`): the server alone with --server, with the generator's own CPU
 // included in-process.
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <ctime>
 #include <filesystem>
 #include <iostream>
+#include <map>
 #include <mutex>
+#include <set>
+#include <sstream>
 #include <thread>
 
 #include <CLI/CLI.hpp>
@@ -216,6 +220,212 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
   return report;
 }
 
+// Uploads the model file as "<prefix>-<time>" and makes it the server's default.
+absl::Status UploadAsDefault(const std::string& target, const std::string& file,
+                             const std::string& prefix) {
+  auto bytes = lifemap::ReadFileBytes(file);
+  if (!bytes.ok()) return bytes.status();
+  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  if (!client.ok()) return client.status();
+  const std::string name = prefix + "-" + std::to_string(std::time(nullptr));
+  if (auto s = (*client)->UploadModel(name, *bytes).status(); !s.ok()) return s;
+  return (*client)->ActivateModel(name, "").status();
+}
+
+// The soak (issue 17): `robots` streams of one visit each for `seconds`, an operator listing and
+// exporting meanwhile, the server's resident memory sampled every `sample_s`; afterwards every
+// acknowledged keyframe must be listed by the store.
+struct SoakReport {
+  RunReport run;
+  size_t operator_calls = 0;
+  size_t operator_errors = 0;
+  size_t acknowledged = 0;
+  size_t missing = 0;  // acknowledged keyframes the store does not list
+  // The server's resident memory and its appearance index's memory (which grows with every
+  // keyframe, by design: the map grows), sampled by the operator.
+  struct Sample {
+    double t_s;
+    uint64_t resident_bytes;
+    uint64_t index_bytes;
+  };
+  std::vector<Sample> samples;
+
+  // The sample of highest resident memory within [from_s, to_s].
+  Sample PeakIn(double from_s, double to_s) const {
+    Sample peak{0, 0, 0};
+    for (const auto& s : samples) {
+      if (s.t_s >= from_s && s.t_s <= to_s && s.resident_bytes >= peak.resident_bytes) peak = s;
+    }
+    return peak;
+  }
+  // The early window: the first third after the warm-up (the first minute, or third when
+  // shorter); the late window: the last third.
+  Sample Early(double seconds) const {
+    const double warm = std::min(60.0, seconds / 3);
+    return PeakIn(warm, warm + (seconds - warm) / 3);
+  }
+  Sample Late(double seconds) const {
+    const double warm = std::min(60.0, seconds / 3);
+    return PeakIn(seconds - (seconds - warm) / 3, 1e9);
+  }
+  // Resident memory gained from the early to the late peak beyond what the appearance index
+  // gained, as a share of the early peak: what a leak would show.
+  double UnexplainedGrowth(double seconds) const {
+    const Sample early = Early(seconds), late = Late(seconds);
+    if (early.resident_bytes == 0) return 0;
+    const double gained = static_cast<double>(late.resident_bytes) - early.resident_bytes -
+                          (static_cast<double>(late.index_bytes) - early.index_bytes);
+    return gained / static_cast<double>(early.resident_bytes);
+  }
+  nlohmann::json ToJson(double seconds) const {
+    nlohmann::json list = nlohmann::json::array();
+    for (const auto& s : samples) list.push_back({s.t_s, s.resident_bytes, s.index_bytes});
+    return {{"run", run.ToJson()},
+            {"operator_calls", operator_calls},
+            {"operator_errors", operator_errors},
+            {"keyframes_acknowledged", acknowledged},
+            {"keyframes_missing", missing},
+            {"rss_peak_bytes", PeakIn(0, 1e9).resident_bytes},
+            {"rss_peak_early_bytes", Early(seconds).resident_bytes},
+            {"rss_peak_late_bytes", Late(seconds).resident_bytes},
+            {"index_bytes_early", Early(seconds).index_bytes},
+            {"index_bytes_late", Late(seconds).index_bytes},
+            {"rss_unexplained_growth", UnexplainedGrowth(seconds)},
+            {"samples_t_rss_index", list}};
+  }
+};
+
+SoakReport RunSoak(const std::string& target, const std::vector<lifemap::v1::Frame>& frames,
+                   int robots, double seconds, double rate_hz,
+                   const lifemap::v1::FrameOptions& options, double sample_s) {
+  SoakReport soak;
+  RunReport& report = soak.run;
+  report.name = absl::StrFormat("soak: %d robot(s) x %.0f s at %s + an operator", robots, seconds,
+                                rate_hz > 0 ? absl::StrFormat("%.0f Hz", rate_hz) : "max rate");
+  std::mutex mu;
+  std::set<uint64_t> acknowledged;
+  Latencies server;
+  const auto start = Clock::now();
+  const auto end =
+      start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(seconds));
+  std::atomic<bool> done{false};
+  std::vector<std::thread> threads;
+  for (int s = 0; s < robots; ++s) {
+    threads.emplace_back([&, s] {
+      auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+      if (!client.ok()) {
+        std::lock_guard<std::mutex> lock(mu);
+        ++report.errors;
+        return;
+      }
+      lifemap::v1::StreamStart st;
+      st.set_map("load");
+      *st.mutable_options() = options;
+      st.set_robot(absl::StrFormat("soak-%d", s));
+      auto stream = (*client)->OpenStream(st);
+      if (!stream.ok()) {
+        std::lock_guard<std::mutex> lock(mu);
+        std::cerr << "robot " << s << ": " << stream.status() << "\n";
+        ++report.errors;
+        return;
+      }
+      std::mutex sent_mu;
+      std::map<uint64_t, Clock::time_point> sent;
+      const auto t0 = Clock::now();
+      std::thread sender([&] {
+        for (uint64_t i = 0; Clock::now() < end; ++i) {
+          if (rate_hz > 0) {
+            std::this_thread::sleep_until(t0 + std::chrono::duration_cast<Clock::duration>(
+                                                   std::chrono::duration<double>(i / rate_hz)));
+          }
+          {
+            std::lock_guard<std::mutex> lock(sent_mu);
+            sent[i] = Clock::now();
+          }
+          if (!(*stream)->Send(WithTime(frames[i % frames.size()], 1000.0 + i / 30.0, i))) break;
+        }
+        (*stream)->CloseSend();
+      });
+      lifemap::v1::FrameResult r;
+      std::vector<double> local, local_server;
+      std::vector<uint64_t> local_acks;
+      size_t errors = 0;
+      while ((*stream)->Receive(&r)) {
+        Clock::time_point when;
+        {
+          std::lock_guard<std::mutex> lock(sent_mu);
+          when = sent[r.sequence()];
+          sent.erase(r.sequence());
+        }
+        local.push_back(std::chrono::duration<double, std::milli>(Clock::now() - when).count());
+        local_server.push_back(r.timing().total_ms());
+        errors += r.has_error();
+        if (r.keyframe().committed()) local_acks.push_back(r.keyframe().keyframe_id());
+      }
+      sender.join();
+      const auto status = (*stream)->Finish();
+      std::lock_guard<std::mutex> lock(mu);
+      if (!status.ok()) {
+        std::cerr << "robot " << s << ": " << status << "\n";
+        ++errors;
+      }
+      report.frames += local.size();
+      report.errors += errors;
+      report.keyframes += local_acks.size();
+      acknowledged.insert(local_acks.begin(), local_acks.end());
+      report.latency.ms.insert(report.latency.ms.end(), local.begin(), local.end());
+      server.ms.insert(server.ms.end(), local_server.begin(), local_server.end());
+    });
+  }
+  // The operator: lists, exports and samples the server's memory while the robots stream.
+  std::thread operator_thread([&] {
+    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+    if (!client.ok()) {
+      ++soak.operator_errors;
+      return;
+    }
+    while (!done.load()) {
+      auto stats = (*client)->GetStats();
+      const double t = std::chrono::duration<double>(Clock::now() - start).count();
+      bool ok = stats.ok();
+      if (ok) {
+        soak.samples.push_back({t, stats->resident_bytes(), stats->appearance().memory_bytes()});
+      }
+      ok = ok && (*client)->ListMaps().ok();
+      ok = ok && (*client)->ListKeyframes("load", 0).ok();
+      lifemap::v1::ExportMapRequest req;
+      req.set_map("load");
+      req.set_format(lifemap::v1::EXPORT_POSES_TUM);
+      std::ostringstream exported;
+      ok = ok && (*client)->ExportMap(req, &exported).ok();
+      soak.operator_calls += 4;
+      if (!ok) ++soak.operator_errors;
+      for (int i = 0; i < static_cast<int>(sample_s * 10) && !done.load(); ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      }
+    }
+  });
+  for (auto& t : threads) t.join();
+  done.store(true);
+  operator_thread.join();
+  report.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+  report.server_total_p50_ms = server.Percentile(50);
+  // Every acknowledged keyframe is in the store.
+  soak.acknowledged = acknowledged.size();
+  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  auto listed = client.ok() ? (*client)->ListKeyframes("load", 0)
+                            : absl::StatusOr<lifemap::v1::ListKeyframesResponse>(client.status());
+  if (!listed.ok()) {
+    std::cerr << "soak: keyframes not listed: " << listed.status() << "\n";
+    soak.missing = acknowledged.size();
+  } else {
+    std::set<uint64_t> stored;
+    for (const auto& k : listed->keyframes()) stored.insert(k.id());
+    for (uint64_t id : acknowledged) soak.missing += stored.count(id) == 0;
+  }
+  return soak;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -254,6 +464,18 @@ int main(int argc, char** argv) {
   std::vector<std::string> skip;
   app.add_option("--skip", skip, "outputs the robot does not want (FrameOptions.skip_outputs)")
       ->check(CLI::IsMember({"entropy", "labels"}));
+  double soak_s = 0, sample_s = 5, max_rss_growth = 1.25;
+  app.add_option("--soak-s", soak_s,
+                 "soak instead of the runs: --streams robots for this many seconds with an "
+                 "operator listing and exporting; exit 1 on any error, a lost acknowledged "
+                 "keyframe or memory growth")
+      ->check(CLI::Range(1.0, 86400.0));
+  app.add_option("--sample-s", sample_s, "soak: seconds between the operator's rounds")
+      ->check(CLI::Range(0.5, 600.0));
+  app.add_option("--max-rss-growth", max_rss_growth,
+                 "soak: the late peak of resident memory may exceed the early one by at most "
+                 "(this - 1) x the early peak, beyond what the appearance index grew")
+      ->check(CLI::Range(1.0, 100.0));
   CLI11_PARSE(app, argc, argv);
   lifemap::v1::FrameOptions options;
   options.set_result_images(result_images == "raw"    ? lifemap::v1::RESULT_IMAGES_RAW
@@ -264,6 +486,13 @@ int main(int argc, char** argv) {
                                             : lifemap::v1::FRAME_OUTPUT_CLASS_LABELS);
   }
 
+  if (app.count("--tum") == 0 && !fs::is_directory(tum)) {
+    // The default recording lives in ../shared/data, which a checkout may not have: ctest
+    // counts exit code 77 as skipped.
+    std::cerr << "load_generator: skipped: no recording at " << tum
+              << " (../shared/data is absent; give --tum DIR)\n";
+    return 77;
+  }
   auto seq = lifemap::io::ReadTumSequence(tum);
   if (!seq.ok()) {
     std::cerr << "load_generator: " << seq.status().message() << "\n";
@@ -331,21 +560,51 @@ int main(int argc, char** argv) {
     }
   }
 
+  if (soak_s > 0) {
+    if (!model.empty()) {
+      if (auto s = UploadAsDefault(target, model, "soak"); !s.ok()) {
+        std::cerr << "load_generator: --model: " << s.message() << "\n";
+        return 1;
+      }
+    }
+    SoakReport soak = RunSoak(target, loaded, streams, soak_s, rate, options, sample_s);
+    const nlohmann::json j = soak.ToJson(soak_s);
+    const double early = static_cast<double>(soak.Early(soak_s).resident_bytes);
+    const double late = static_cast<double>(soak.Late(soak_s).resident_bytes);
+    const bool grew = soak.UnexplainedGrowth(soak_s) > max_rss_growth - 1;
+    if (json) {
+      std::cout << j.dump(2) << "\n";
+    } else {
+      soak.run.Print();
+      std::cout << absl::StrFormat(
+          "operator: %d calls, %d errors; keyframes acknowledged %d, missing from the store %d; "
+          "resident memory peak %.1f MB (early %.1f MB, late %.1f MB; the appearance index "
+          "%.1f -> %.1f MB; growth beyond the index %+.1f%% of the early peak)\n",
+          soak.operator_calls, soak.operator_errors, soak.acknowledged, soak.missing,
+          static_cast<double>(j["rss_peak_bytes"].get<uint64_t>()) / 1e6, early / 1e6, late / 1e6,
+          soak.Early(soak_s).index_bytes / 1e6, soak.Late(soak_s).index_bytes / 1e6,
+          100 * soak.UnexplainedGrowth(soak_s));
+    }
+    server.reset();
+    if (server_address.empty()) fs::remove_all(dir);
+    const bool failed = soak.run.errors > 0 || soak.operator_errors > 0 || soak.missing > 0 ||
+                        soak.acknowledged == 0 || grew;
+    if (failed) {
+      std::cerr << "soak FAILED: " << soak.run.errors << " frame/stream errors, "
+                << soak.operator_errors << " operator errors, " << soak.missing
+                << " acknowledged keyframes missing"
+                << (grew ? ", resident memory grew beyond --max-rss-growth" : "") << "\n";
+    }
+    return failed ? 1 : 0;
+  }
+
   std::vector<RunReport> runs;
   if (!model.empty()) {
     // The same-run baseline for labels: one stream before any model is active.
     runs.push_back(WithServerCpu(
         target, [&] { return RunStreams(target, loaded, 1, frames, rate, options); }));
     runs.back().name += ", no labels";
-    auto bytes = lifemap::ReadFileBytes(model);
-    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
-    absl::Status s = bytes.status();
-    if (bytes.ok() && client.ok()) {
-      const std::string name = "load-" + std::to_string(std::time(nullptr));
-      s = (*client)->UploadModel(name, *bytes).status();
-      if (s.ok()) s = (*client)->ActivateModel(name, "").status();
-    }
-    if (!s.ok()) {
+    if (auto s = UploadAsDefault(target, model, "load"); !s.ok()) {
       std::cerr << "load_generator: --model: " << s.message() << "\n";
       return 1;
     }

@@ -1,8 +1,10 @@
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 
 #include <spdlog/spdlog.h>
 
@@ -79,6 +81,14 @@ double ProcessCpuSeconds() {
   return seconds(usage.ru_utime) + seconds(usage.ru_stime);
 }
 
+// Resident memory of this process, bytes (0 when /proc is not there).
+uint64_t ResidentBytes() {
+  std::ifstream statm("/proc/self/statm");
+  uint64_t pages = 0, resident = 0;
+  if (!(statm >> pages >> resident)) return 0;
+  return resident * static_cast<uint64_t>(sysconf(_SC_PAGESIZE));
+}
+
 }  // namespace
 
 grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::GetStatsRequest*,
@@ -98,6 +108,7 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::
   resp->set_keyframes_committed(ctx_->committer->committed());
   resp->set_uptime_s(NowSeconds() - ctx_->started_time_s);
   resp->set_process_cpu_s(ProcessCpuSeconds());
+  resp->set_resident_bytes(ResidentBytes());
   AppearanceInfoToProto(ctx_->appearance->Stats(), resp->mutable_appearance());
   return grpc::Status::OK;
 }

@@ -155,6 +155,9 @@ int main(int argc, char** argv) {
   // line that scripts read.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lifemapd"));
 
+  // A file-size limit (ulimit -f) makes a write fail (the store answers RESOURCE_EXHAUSTED,
+  // like a full disk) instead of killing the server with SIGXFSZ.
+  std::signal(SIGXFSZ, SIG_IGN);
   // Signals are taken by a dedicated thread (sigwait), never by an async handler.
   sigset_t signals;
   sigemptyset(&signals);

@@ -124,6 +124,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->lock = *std::move(lock);
   store::StoreOptions store_options;
   store_options.synchronous_full = config.synchronous_full;
+  store_options.quick_check = true;  // a damaged file is refused at start, saying so
   auto store = store::Store::Open(config.db_path, store_options);
   if (!store.ok()) return store.status();
   impl->store = *std::move(store);

@@ -783,10 +783,11 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
             std::cout << absl::StrFormat(
                 "maps %d, visits %d, keyframes %d\ndatabase %s + WAL %s\nactive streams %d; "
                 "since start: %d frames processed, %d rejected, %d keyframes committed; "
-                "up %.0f s, %.1f s of CPU\n",
+                "up %.0f s, %.1f s of CPU, %s resident\n",
                 s.maps(), s.visits(), s.keyframes(), HumanBytes(s.db_bytes()),
                 HumanBytes(s.wal_bytes()), s.active_streams(), s.frames_processed(),
-                s.frames_rejected(), s.keyframes_committed(), s.uptime_s(), s.process_cpu_s());
+                s.frames_rejected(), s.keyframes_committed(), s.uptime_s(), s.process_cpu_s(),
+                HumanBytes(s.resident_bytes()));
           });
     };
   });

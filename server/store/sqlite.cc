@@ -9,14 +9,23 @@ namespace lifemap::store {
 absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what) {
   const std::string message =
       absl::StrCat(what, ": ", db ? sqlite3_errmsg(db) : sqlite3_errstr(rc), " (sqlite ", rc, ")");
+  // A full disk is SQLITE_FULL; a file-size limit (EFBIG) or a quota (EDQUOT) is a failed
+  // write (SQLITE_IOERR_WRITE; SQLite does not keep that write's errno reliably, so a failing
+  // disk reads the same). Either way the transaction was rolled back, nothing acknowledged is
+  // lost, and the next write succeeds once there is room: RESOURCE_EXHAUSTED, retry later.
+  if ((rc & 0xff) == SQLITE_FULL || rc == SQLITE_IOERR_WRITE) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        message,
+        ": the disk is full (or a file-size limit or quota was reached, or the disk failed) and "
+        "this write was not made; free space or check the disk (writes succeed again without a "
+        "restart)"));
+  }
   switch (rc & 0xff) {
     case SQLITE_CONSTRAINT:
       return absl::FailedPreconditionError(message);
     case SQLITE_BUSY:
     case SQLITE_LOCKED:
       return absl::UnavailableError(message);
-    case SQLITE_FULL:
-      return absl::ResourceExhaustedError(message);
     case SQLITE_CORRUPT:
     case SQLITE_NOTADB:
       return absl::DataLossError(message);

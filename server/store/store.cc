@@ -1,6 +1,9 @@
 #include "server/store/store.h"
 
 #include <sqlite3.h>
+#include <unistd.h>
+
+#include <cerrno>
 
 #include <algorithm>
 #include <cmath>
@@ -9,6 +12,7 @@
 #include <limits>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
 #include "absl/synchronization/mutex.h"
 #include "server/store/sqlite.h"
 #include "server/store/store_impl.h"
@@ -643,7 +647,8 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
   auto mode = db->Prepare("PRAGMA journal_mode=WAL");
   if (!mode.ok()) {
     return absl::FailedPreconditionError(
-        absl::StrCat(path, " is not a usable SQLite database: ", mode.status().message()));
+        absl::StrCat(path, " is not a usable SQLite database: ", mode.status().message(),
+                     "; restore a backup (lifemap admin backup makes them)"));
   }
   {
     StatementScope s(*mode);
@@ -691,6 +696,22 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
     }
     if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", v + 1)); !s.ok()) return s;
     if (auto s = tx.Commit(); !s.ok()) return s;
+  }
+  if (options.quick_check) {
+    auto check = db->Prepare("PRAGMA quick_check(1)");
+    if (!check.ok()) return check.status();
+    StatementScope s(*check);
+    auto row = s->Step();
+    if (!row.ok()) {
+      return absl::DataLossError(absl::StrCat(path, " is damaged (", row.status().message(),
+                                              "): restore a backup, or try `sqlite3 ", path,
+                                              " .recover` on a copy"));
+    }
+    if (*row && s->ColumnText(0) != "ok") {
+      return absl::DataLossError(
+          absl::StrCat(path, " is damaged: ", absl::StrReplaceAll(s->ColumnText(0), {{"\n", " "}}),
+                       "; restore a backup, or try `sqlite3 ", path, " .recover` on a copy"));
+    }
   }
   // Foreign keys are enforced from here on (migrations ran without them: a table rebuild must
   // not cascade).
@@ -1272,20 +1293,41 @@ absl::Status Store::Backup(const std::string& path) {
     return absl::NotFoundError(
         absl::StrCat("directory ", fs::path(path).parent_path().string(), " does not exist"));
   }
-  auto dest = Database::Open(path, true, false, 5000);
-  if (!dest.ok()) return dest.status();
-  absl::MutexLock lock(&impl_->read_mu);
-  sqlite3_backup* backup =
-      sqlite3_backup_init((*dest)->raw(), "main", impl_->read_db->raw(), "main");
-  if (backup == nullptr)
-    return SqliteError((*dest)->raw(), sqlite3_errcode((*dest)->raw()), "backup");
-  const int rc = sqlite3_backup_step(backup, -1);
-  sqlite3_backup_finish(backup);
-  if (rc != SQLITE_DONE) {
-    dest->reset();
-    fs::remove(path);
-    return SqliteError(nullptr, rc, "backup");
+  // Written under another name and linked into place when whole and closed (its WAL folded
+  // in): a kill meanwhile leaves only the .partial file, never a torn backup under `path`.
+  const std::string partial = path + ".partial";
+  std::error_code ec;
+  for (const char* suffix : {"", "-wal", "-shm", "-journal"}) fs::remove(partial + suffix, ec);
+  {
+    auto dest = Database::Open(partial, true, false, 5000);
+    if (!dest.ok()) return dest.status();
+    absl::MutexLock lock(&impl_->read_mu);
+    sqlite3_backup* backup =
+        sqlite3_backup_init((*dest)->raw(), "main", impl_->read_db->raw(), "main");
+    if (backup == nullptr) {
+      return SqliteError((*dest)->raw(), sqlite3_errcode((*dest)->raw()), "backup");
+    }
+    const int rc = sqlite3_backup_step(backup, -1);
+    sqlite3_backup_finish(backup);
+    if (rc != SQLITE_DONE) {
+      dest->reset();
+      fs::remove(partial, ec);
+      return SqliteError(nullptr, rc, "backup");
+    }
+    // Everything in the main file (journal_mode=DELETE), synced, before it gets its name.
+    if (auto s = (*dest)->Exec("PRAGMA journal_mode=DELETE"); !s.ok()) return s;
   }
+  // link() fails rather than replace a file that appeared under `path` meanwhile.
+  if (link(partial.c_str(), path.c_str()) != 0) {
+    const int err = errno;
+    fs::remove(partial, ec);
+    if (err == EEXIST) {
+      return absl::AlreadyExistsError(absl::StrCat(path, " exists; choose a new file name"));
+    }
+    return absl::InternalError(
+        absl::StrCat("backup: cannot name it ", path, ": ", std::strerror(err)));
+  }
+  fs::remove(partial, ec);
   return absl::OkStatus();
 }
 

@@ -33,6 +33,9 @@ struct StoreOptions {
   bool synchronous_full = true;  // false: synchronous=NORMAL (safe on a process crash only)
   int busy_timeout_ms = 5000;
   bool create_if_missing = true;
+  // PRAGMA quick_check before use: a damaged file is refused (DATA_LOSS naming the first
+  // problem) instead of failing later on the page that is damaged. Reads every page once.
+  bool quick_check = false;
 };
 
 struct MapRecord {
@@ -451,7 +454,9 @@ class Store {
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();
-  // Online backup to a new file (sqlite3 backup API); FailedPrecondition if `path` exists.
+  // Online backup to a new file (sqlite3 backup API), written as `path`.partial and linked to
+  // `path` once whole: a crash leaves no file at `path` or a whole one. ALREADY_EXISTS if `path`
+  // exists (also when it appears meanwhile: never overwritten).
   absl::Status Backup(const std::string& path);
   // PRAGMA integrity_check + foreign_key_check; returns the problems (empty = ok).
   absl::StatusOr<std::vector<std::string>> CheckIntegrity();

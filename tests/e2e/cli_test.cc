@@ -3,12 +3,16 @@
 #include <fcntl.h>
 #include <signal.h>
 #include <spawn.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cstdlib>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <set>
@@ -16,6 +20,7 @@
 #include <thread>
 
 #include <gtest/gtest.h>
+#include <sqlite3.h>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
@@ -134,8 +139,9 @@ class CliTest : public ::testing::Test {
   // give --listen (the CLI connects to 127.0.0.1 at the port it prints).
   void StartServer(const std::vector<std::string>& flags = {}) {
     ++server_generation_;
-    std::vector<std::string> args = {kLifemapd, "--db",        Db(),  "--shutdown-grace-s",
-                                     "5",       "--log-level", "warn"};
+    std::vector<std::string> args = launcher_;
+    args.insert(args.end(),
+                {kLifemapd, "--db", Db(), "--shutdown-grace-s", "5", "--log-level", "warn"});
     if (std::find(flags.begin(), flags.end(), "--listen") == flags.end()) {
       args.insert(args.end(), {"--listen", "127.0.0.1:0"});
     }
@@ -188,6 +194,7 @@ class CliTest : public ::testing::Test {
   }
 
   testing::TempDir tmp_;
+  std::vector<std::string> launcher_;  // runs lifemapd (e.g. prlimit ... --), same pid
   std::unique_ptr<Process> server_;
   std::string address_;
   int runs_ = 0;
@@ -1181,6 +1188,85 @@ TEST_F(CliTest, OverTlsTheCliNeedsTheServersCa) {
   r = Run({"--connect-timeout", "2", "maps", "list"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("connect with --tls-ca"), std::string::npos) << r.err;
+}
+
+// Issue 17, a full disk: lifemapd under a file-size limit (its writes fail with EFBIG as on a
+// full disk). Keyframes that do not fit are answered as not stored, saying why; every one
+// acknowledged is kept; once there is room again the same server stores keyframes again.
+TEST_F(CliTest, AFullDiskRefusesKeyframesLosesNoneAcknowledgedAndRecoversWithoutARestart) {
+  server_.reset();
+  // 1.5 MB a file (the soft limit: the test lifts it to the hard one, unlimited, later).
+  launcher_ = {"/usr/bin/prlimit", "--fsize=1500000:unlimited", "--"};
+  StartServer();
+  launcher_.clear();
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 300, 0.021);  // 60 keyframes: several MB
+  ASSERT_EQ(Run({"maps", "create", "lab"}).code, 0);
+  RunResult r = Run({"--json", "stream", "--map", "lab", "--tum", tum, "--use-groundtruth"});
+  EXPECT_EQ(r.code, 1) << "some keyframes should not have fit";
+  const std::set<uint64_t> acknowledged = AcknowledgedKeyframes(r.out);
+  EXPECT_GT(acknowledged.size(), 0u);
+  EXPECT_NE(r.out.find("the disk is full"), std::string::npos) << r.out.substr(0, 2000);
+  EXPECT_EQ(ListedKeyframes("lab"), acknowledged) << "stored keyframes = acknowledged ones";
+
+  // Room again (the limit lifted from the running server): the next visit is stored whole.
+  const rlimit unlimited{RLIM_INFINITY, RLIM_INFINITY};
+  ASSERT_EQ(prlimit(server_->pid(), RLIMIT_FSIZE, &unlimited, nullptr), 0) << strerror(errno);
+  r = Run({"--json", "stream", "--map", "lab", "--tum", tum, "--use-groundtruth"});
+  EXPECT_EQ(r.code, 0) << r.err;
+  const std::set<uint64_t> second = AcknowledgedKeyframes(r.out);
+  EXPECT_GE(second.size(), 50u);
+  std::set<uint64_t> all = acknowledged;
+  all.insert(second.begin(), second.end());
+  EXPECT_EQ(ListedKeyframes("lab"), all);
+  r = Run({"admin", "check"});
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+}
+
+// Issue 17: a damaged database file, or one from a newer lifemapd, is refused at start with
+// what is wrong and what to do; the file is left as it was.
+TEST_F(CliTest, ADamagedOrNewerDatabaseIsRefusedAtStartSayingWhatToDo) {
+  ASSERT_EQ(Run({"maps", "create", "lab"}).code, 0);
+  server_->Signal(SIGTERM);
+  ASSERT_EQ(server_->Wait(), 0);
+  server_.reset();
+  auto start = [&](const std::string& db, const std::string& name) {
+    Process p({kLifemapd, "--listen", "127.0.0.1:0", "--db", db}, tmp_.File(name + ".out"),
+              tmp_.File(name + ".err"));
+    RunResult r{p.Wait(), p.out(), p.err()};
+    return r;
+  };
+  // A page in the middle overwritten.
+  const std::string damaged = tmp_.File("damaged.db");
+  std::filesystem::copy_file(Db(), damaged);
+  {
+    std::fstream f(damaged, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(4096 * 3);
+    f << std::string(4096, '\xff');
+  }
+  RunResult r = start(damaged, "damaged");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("is damaged"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("restore a backup"), std::string::npos) << r.err;
+  // Not a database at all.
+  const std::string garbage = tmp_.File("garbage.db");
+  std::ofstream(garbage) << std::string(8192, 'x');
+  r = start(garbage, "garbage");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("not a usable SQLite database"), std::string::npos) << r.err;
+  // From a newer lifemapd.
+  {
+    auto store = store::Store::Open(Db());
+    ASSERT_TRUE(store.ok()) << store.status();
+  }
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(Db().c_str(), &db), SQLITE_OK);
+  ASSERT_EQ(sqlite3_exec(db, "PRAGMA user_version = 99", nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+  r = start(Db(), "newer");
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("schema version 99, newer than this lifemapd knows"), std::string::npos)
+      << r.err;
 }
 
 }  // namespace

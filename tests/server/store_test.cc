@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <filesystem>
 #include <limits>
 
 #include <fstream>
@@ -607,6 +608,50 @@ TEST(SemanticSnapshotStore, ReplacesWholeSnapshotsInChunksAndCascades) {
 // Issue 16: a crash while a snapshot is written leaves the previous snapshot readable. A child
 // process writes snapshots (three chunks each, every one its own size and filler) until it is
 // killed; the one read afterwards is one of them, whole.
+// Issue 17: a backup killed half-way leaves no file under its name (only NAME.partial), and
+// every backup under its name is whole.
+TEST(StoreBackup, AKillDuringABackupNeverLeavesATornBackupUnderItsName) {
+  testing::TempDir tmp;
+  const std::string data(24 << 20, 'm');  // a 24 MB model: each backup takes a while
+  {
+    auto store = Store::Open(tmp.File("db"));
+    ASSERT_TRUE(store.ok()) << store.status();
+    ModelRecord model;
+    model.name = "big";
+    ASSERT_TRUE((*store)->InsertModel(model, data).ok());
+  }
+  int whole = 0;
+  for (int kill_after_ms : {30, 120, 300}) {
+    const std::string prefix = tmp.File("backup-" + std::to_string(kill_after_ms) + "-");
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      auto store = Store::Open(tmp.File("db"));
+      if (!store.ok()) _exit(3);
+      for (int n = 0;; ++n) {
+        if (!(*store)->Backup(prefix + std::to_string(n)).ok()) _exit(4);
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(kill_after_ms));
+    kill(child, SIGKILL);
+    int status = 0;
+    ASSERT_EQ(waitpid(child, &status, 0), child);
+    ASSERT_TRUE(WIFSIGNALED(status)) << "the backups stopped by themselves: status " << status;
+    for (int n = 0; std::filesystem::exists(prefix + std::to_string(n)); ++n) {
+      auto backup = Store::Open(prefix + std::to_string(n));
+      ASSERT_TRUE(backup.ok()) << backup.status();
+      auto problems = (*backup)->CheckIntegrity();
+      ASSERT_TRUE(problems.ok());
+      EXPECT_TRUE(problems->empty()) << prefix << n << ": " << problems->front();
+      auto got = (*backup)->GetModelData("big");
+      ASSERT_TRUE(got.ok()) << got.status();
+      EXPECT_TRUE(*got == data) << prefix << n << " is not whole";
+      ++whole;
+    }
+  }
+  EXPECT_GT(whole, 0) << "no backup finished: the kill times are too short for this machine";
+}
+
 TEST(SemanticSnapshotStore, AKillWhileASnapshotIsWrittenLeavesThePreviousOneWhole) {
   testing::TempDir tmp;
   int64_t visit_id = 0;
