@@ -3,7 +3,9 @@
 // (unary ProcessFrame without storage, one call at a time).
 //
 //   build/bin/load_generator --streams 4 --frames 300 --rate 30
-//   build/bin/load_generator --server 127.0.0.1:50051 ...   (an external lifemapd)
+//   build/bin/load_generator --server 127.0.0.1:50051 ...   (an external lifemapd; an API key
+//                                                            in $LIFEMAP_API_KEY when it needs one)
+//   build/bin/load_generator --soak-s 600 --streams 4 ...   (the soak: see --help)
 //
 // Without --server it starts lifemapd in-process on a temporary database. Frames are the real
 // TUM recording (default ../shared/data/tum_fr1_xyz_subset), loaded into memory first and
@@ -14,6 +16,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cstdlib>
 #include <ctime>
 #include <filesystem>
 #include <iostream>
@@ -93,6 +96,14 @@ struct RunReport {
   }
 };
 
+// Client options for `target`, with the API key in $LIFEMAP_API_KEY when set (a server that
+// requires keys: the key needs the operator role for the runs, admin for nothing).
+lifemap::client::ClientOptions OptionsFor(const std::string& target) {
+  auto options = lifemap::client::ClientOptions::At(target);
+  if (const char* key = std::getenv("LIFEMAP_API_KEY"); key != nullptr) options.api_key = key;
+  return options;
+}
+
 lifemap::v1::Frame WithTime(lifemap::v1::Frame f, double t, uint64_t seq) {
   f.set_timestamp_s(t);
   f.set_sequence(seq);
@@ -101,7 +112,7 @@ lifemap::v1::Frame WithTime(lifemap::v1::Frame f, double t, uint64_t seq) {
 
 // The server process's CPU seconds so far (AdminService.GetStats), or -1 when not answered.
 double ServerCpuSeconds(const std::string& target) {
-  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  auto client = lifemap::client::Client::Connect(OptionsFor(target));
   if (!client.ok()) return -1;
   auto stats = (*client)->GetStats();
   return stats.ok() ? stats->process_cpu_s() : -1;
@@ -121,7 +132,7 @@ RunReport RunBaseline(const std::string& target, const std::vector<lifemap::v1::
                       int count, const lifemap::v1::FrameOptions& options) {
   RunReport report;
   report.name = "baseline: ProcessFrame, no store";
-  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  auto client = lifemap::client::Client::Connect(OptionsFor(target));
   if (!client.ok()) {
     std::cerr << client.status() << "\n";
     std::exit(1);
@@ -160,7 +171,7 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
   const auto start = Clock::now();
   for (int s = 0; s < streams; ++s) {
     threads.emplace_back([&, s] {
-      auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+      auto client = lifemap::client::Client::Connect(OptionsFor(target));
       if (!client.ok()) return;
       lifemap::v1::StreamStart st;
       st.set_map("load");
@@ -225,7 +236,7 @@ absl::Status UploadAsDefault(const std::string& target, const std::string& file,
                              const std::string& prefix) {
   auto bytes = lifemap::ReadFileBytes(file);
   if (!bytes.ok()) return bytes.status();
-  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  auto client = lifemap::client::Client::Connect(OptionsFor(target));
   if (!client.ok()) return client.status();
   const std::string name = prefix + "-" + std::to_string(std::time(nullptr));
   if (auto s = (*client)->UploadModel(name, *bytes).status(); !s.ok()) return s;
@@ -312,7 +323,7 @@ SoakReport RunSoak(const std::string& target, const std::vector<lifemap::v1::Fra
   std::vector<std::thread> threads;
   for (int s = 0; s < robots; ++s) {
     threads.emplace_back([&, s] {
-      auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+      auto client = lifemap::client::Client::Connect(OptionsFor(target));
       if (!client.ok()) {
         std::lock_guard<std::mutex> lock(mu);
         ++report.errors;
@@ -379,7 +390,7 @@ SoakReport RunSoak(const std::string& target, const std::vector<lifemap::v1::Fra
   }
   // The operator: lists, exports and samples the server's memory while the robots stream.
   std::thread operator_thread([&] {
-    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+    auto client = lifemap::client::Client::Connect(OptionsFor(target));
     if (!client.ok()) {
       ++soak.operator_errors;
       return;
@@ -412,7 +423,7 @@ SoakReport RunSoak(const std::string& target, const std::vector<lifemap::v1::Fra
   report.server_total_p50_ms = server.Percentile(50);
   // Every acknowledged keyframe is in the store.
   soak.acknowledged = acknowledged.size();
-  auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+  auto client = lifemap::client::Client::Connect(OptionsFor(target));
   auto listed = client.ok() ? (*client)->ListKeyframes("load", 0)
                             : absl::StatusOr<lifemap::v1::ListKeyframesResponse>(client.status());
   if (!listed.ok()) {
@@ -548,7 +559,7 @@ int main(int argc, char** argv) {
     target = "127.0.0.1:" + std::to_string(server->port());
   }
   {
-    auto client = lifemap::client::Client::Connect(lifemap::client::ClientOptions::At(target));
+    auto client = lifemap::client::Client::Connect(OptionsFor(target));
     if (!client.ok()) {
       std::cerr << "load_generator: " << client.status().message() << "\n";
       return 1;
