@@ -11,6 +11,7 @@
 #include <limits>
 
 #include <fstream>
+#include <functional>
 #include <thread>
 
 #include <gtest/gtest.h>
@@ -652,6 +653,96 @@ TEST(StoreBackup, AKillDuringABackupNeverLeavesATornBackupUnderItsName) {
   EXPECT_GT(whole, 0) << "no backup finished: the kill times are too short for this machine";
 }
 
+// Runs write(store, n) for n = 0, 1, 2, ... in a child process and SIGKILLs it after each of
+// `kill_after_ms`; after each kill, `check` reads the file in this process and returns the n
+// it found whole (-1: none written yet), failing the test for anything torn. The n found never
+// goes back (what was committed stays).
+void KillWhileWriting(const std::string& db, std::initializer_list<int> kill_after_ms,
+                      const std::function<absl::Status(Store&, int64_t)>& write,
+                      const std::function<int64_t(Store&)>& check) {
+  int64_t last = -1;
+  for (int ms : kill_after_ms) {
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      auto store = Store::Open(db);
+      if (!store.ok()) _exit(3);
+      for (int64_t n = last + 1;; ++n) {
+        if (!write(**store, n).ok()) _exit(4);
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(ms));
+    kill(child, SIGKILL);
+    int status = 0;
+    ASSERT_EQ(waitpid(child, &status, 0), child);
+    ASSERT_TRUE(WIFSIGNALED(status)) << "the writer stopped by itself: status " << status;
+    auto store = Store::Open(db);
+    ASSERT_TRUE(store.ok()) << store.status();
+    const int64_t found = check(**store);
+    EXPECT_GE(found, last) << "a committed write was lost";
+    last = found;
+  }
+  EXPECT_GT(last, 0) << "nothing was ever written: the kill times are too short here";
+}
+
+// Issue 17: a kill while a visit's floor plan, or an appearance vocabulary, is written leaves
+// the previous one whole.
+TEST(StoreKills, AKillWhileAFloorPlanIsWrittenLeavesThePreviousOneWhole) {
+  testing::TempDir tmp;
+  int64_t visit_id = 0;
+  {
+    auto store = Store::Open(tmp.File("db"));
+    ASSERT_TRUE(store.ok());
+    ASSERT_TRUE((*store)->CreateMap("m", "", 1.0).ok());
+    visit_id = (*store)->StartVisit("m", "", "", 1.0)->id;
+  }
+  auto plan = [visit_id](int64_t n) {
+    VisitPlaceRecord r;
+    r.visit_id = visit_id;
+    r.keyframes = static_cast<int>(n);
+    r.floor_plan_json = std::string(2 << 20, static_cast<char>('a' + n % 26));
+    r.descriptor_json = std::to_string(n);
+    r.updated_time_s = 1.0 + n;
+    return r;
+  };
+  KillWhileWriting(
+      tmp.File("db"), {40, 150, 350}, [&](Store& s, int64_t n) { return s.PutVisitPlace(plan(n)); },
+      [&](Store& s) -> int64_t {
+        auto got = s.GetVisitPlace(visit_id);
+        if (absl::IsNotFound(got.status())) return -1;
+        EXPECT_TRUE(got.ok()) << got.status();
+        if (!got.ok()) return -1;
+        const VisitPlaceRecord expected = plan(got->keyframes);
+        EXPECT_TRUE(got->floor_plan_json == expected.floor_plan_json &&
+                    got->descriptor_json == expected.descriptor_json)
+            << "floor plan " << got->keyframes << " is torn";
+        return got->keyframes;
+      });
+}
+
+TEST(StoreKills, AKillWhileAVocabularyIsWrittenLeavesTheOneInUseWhole) {
+  testing::TempDir tmp;
+  auto vocabulary = [](int64_t n) {
+    VocabularyRecord r;
+    r.source = "test";
+    r.training_keyframes = n;
+    r.words = n;
+    r.data = std::string(4 << 20, static_cast<char>('a' + n % 26));
+    return r;
+  };
+  KillWhileWriting(
+      tmp.File("db"), {40, 150, 350},
+      [&](Store& s, int64_t n) { return s.PutVocabulary(vocabulary(n)).status(); },
+      [&](Store& s) -> int64_t {
+        auto got = s.LatestVocabulary();
+        EXPECT_TRUE(got.ok()) << got.status();
+        if (!got.ok() || !*got) return -1;
+        EXPECT_TRUE((*got)->data == vocabulary((*got)->training_keyframes).data)
+            << "vocabulary " << (*got)->training_keyframes << " is torn";
+        return (*got)->training_keyframes;
+      });
+}
+
 TEST(SemanticSnapshotStore, AKillWhileASnapshotIsWrittenLeavesThePreviousOneWhole) {
   testing::TempDir tmp;
   int64_t visit_id = 0;
@@ -674,35 +765,18 @@ TEST(SemanticSnapshotStore, AKillWhileASnapshotIsWrittenLeavesThePreviousOneWhol
                           static_cast<char>('a' + n % 26));
     return r;
   };
-  int64_t last_read = -1;
-  for (int kill_after_ms : {40, 150, 350}) {
-    const pid_t child = fork();
-    ASSERT_GE(child, 0);
-    if (child == 0) {
-      auto store = Store::Open(tmp.File("db"));
-      if (!store.ok()) _exit(3);
-      for (int64_t n = last_read + 1;; ++n) {
-        if (!(*store)->PutSemanticSnapshot(snapshot(n)).ok()) _exit(4);
-      }
-    }
-    std::this_thread::sleep_for(std::chrono::milliseconds(kill_after_ms));
-    kill(child, SIGKILL);
-    int status = 0;
-    ASSERT_EQ(waitpid(child, &status, 0), child);
-    ASSERT_TRUE(WIFSIGNALED(status)) << "the writer stopped by itself: status " << status;
-
-    auto store = Store::Open(tmp.File("db"));
-    ASSERT_TRUE(store.ok()) << store.status();
-    auto got = (*store)->GetSemanticSnapshot(visit_id);
-    if (absl::IsNotFound(got.status()) && last_read < 0) continue;  // killed before the first
-    ASSERT_TRUE(got.ok()) << got.status();
-    EXPECT_GE(got->keyframes, last_read) << "an acknowledged snapshot was lost";
-    const SemanticSnapshotRecord expected = snapshot(got->keyframes);
-    EXPECT_TRUE(got->bytes == expected.bytes)
-        << "snapshot " << got->keyframes << " is not whole: " << got->bytes.size() << " bytes";
-    last_read = got->keyframes;
-  }
-  EXPECT_GT(last_read, 0) << "no snapshot was ever written";
+  KillWhileWriting(
+      tmp.File("db"), {40, 150, 350},
+      [&](Store& s, int64_t n) { return s.PutSemanticSnapshot(snapshot(n)); },
+      [&](Store& s) -> int64_t {
+        auto got = s.GetSemanticSnapshot(visit_id);
+        if (absl::IsNotFound(got.status())) return -1;
+        EXPECT_TRUE(got.ok()) << got.status();
+        if (!got.ok()) return -1;
+        EXPECT_TRUE(got->bytes == snapshot(got->keyframes).bytes)
+            << "snapshot " << got->keyframes << " is not whole: " << got->bytes.size() << " bytes";
+        return got->keyframes;
+      });
 }
 
 }  // namespace
