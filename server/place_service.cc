@@ -125,7 +125,8 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
       if (!s.ok()) return s;
     }
     if (appearance) {
-      auto s = AppearanceOfFrames(frames, max_results, &by_appearance, resp->mutable_frames());
+      auto s =
+          AppearanceOfFrames(*context, frames, max_results, &by_appearance, resp->mutable_frames());
       if (!s.ok()) return s;
     }
   } else {
@@ -246,13 +247,21 @@ void PlaceServiceImpl::ArchitectureOfVisit(const store::VisitRecord& visit, size
 }
 
 grpc::Status PlaceServiceImpl::AppearanceOfFrames(
-    const std::vector<EncodedRgbdFrame>& frames, size_t max_results, MethodOutcome* out,
+    const grpc::ServerContext& context, const std::vector<EncodedRgbdFrame>& frames,
+    size_t max_results, MethodOutcome* out,
     google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame) {
   MapNames names(ctx_->store);
   std::vector<PlaceMatch> all;
   int answered = 0;
   absl::Status last_failure;
   for (size_t i = 0; i < frames.size(); ++i) {
+    // Each frame costs its entropy mask, features and verification: a call whose deadline
+    // passed (or whose client left) stops here instead of finishing for nobody.
+    if (context.IsCancelled()) {
+      return grpc::Status(grpc::StatusCode::CANCELLED,
+                          absl::StrCat("stopped after ", i, " of ", frames.size(),
+                                       " frames: the call's deadline passed or its client left"));
+    }
     auto* entry = per_frame->Add();
     entry->set_index(static_cast<uint32_t>(i));
     if (frames[i].color.data.empty()) {

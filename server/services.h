@@ -123,8 +123,10 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
   // says why in its outcome.
   grpc::Status ArchitectureOfFrames(const std::vector<EncodedRgbdFrame>& frames, size_t max_results,
                                     MethodOutcome* out);
+  // Stops (CANCELLED) between frames once the call's deadline has passed or its client left.
   grpc::Status AppearanceOfFrames(
-      const std::vector<EncodedRgbdFrame>& frames, size_t max_results, MethodOutcome* out,
+      const grpc::ServerContext& context, const std::vector<EncodedRgbdFrame>& frames,
+      size_t max_results, MethodOutcome* out,
       google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame);
   void ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
   void AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);

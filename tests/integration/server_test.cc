@@ -865,5 +865,25 @@ TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
   EXPECT_GT(info->max_message_bytes(), 0u);
 }
 
+// Issue 17, deadlines: a place query over many frames whose deadline passes stops on the server
+// too (it does not go on spending CPU for nobody).
+TEST_F(ServerTest, AQueryWhoseDeadlinePassesStopsOnTheServer) {
+  v1::QueryPlaceRequest req;
+  req.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  for (int i = 0; i < 200; ++i) *req.add_frames() = testing::MakeFrame(320, 240);
+  auto options = client::ClientOptions::At(target_);
+  options.call_timeout_s = 0.3;
+  auto hurried = client::Client::Connect(options);
+  ASSERT_TRUE(hurried.ok());
+  const auto s = (*hurried)->QueryPlace(req).status();
+  EXPECT_TRUE(absl::IsDeadlineExceeded(s)) << s;
+  // 200 frames take seconds of CPU; once stopped, the server is idle.
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  const double before = client_->GetStats()->process_cpu_s();
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  const double used = client_->GetStats()->process_cpu_s() - before;
+  EXPECT_LT(used, 0.5) << "the server went on with the query for " << used << " s of CPU";
+}
+
 }  // namespace
 }  // namespace lifemap
