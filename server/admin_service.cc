@@ -1,7 +1,6 @@
 #include <sys/resource.h>
 #include <unistd.h>
 
-#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -13,10 +12,6 @@
 #include "server/services.h"
 
 namespace lifemap::server {
-
-double NowSeconds() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-}
 
 grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
                                              const v1::GetServerInfoRequest*,
@@ -227,7 +222,6 @@ grpc::Status AdminServiceImpl::RevokeApiKey(grpc::ServerContext* context,
   if (auto s = store::ValidateName(req->name(), "API key"); !s.ok()) return ToGrpcStatus(s);
   auto revoked = ctx_->store->RevokeApiKey(req->name(), NowSeconds());
   if (!revoked.ok()) return ToGrpcStatus(revoked.status());
-  ctx_->keys->MarkRevoked(req->name());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("API key '{}' revoked by '{}'", req->name(), caller->key_name);
   ApiKeyToProto(*revoked, resp);

@@ -1,11 +1,11 @@
 #include "server/architecture.h"
 
 #include <algorithm>
-#include <chrono>
 
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
 #include "core/place/serialize.h"
+#include "server/clock.h"
 
 namespace lifemap::server {
 
@@ -95,8 +95,7 @@ void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_
   }
   const place::PlaceDescriptor descriptor = place::Describe(*plan);
   if (store) {
-    const double now =
-        std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+    const double now = NowSeconds();
     if (auto s = index->Put(visit_id, map_id, map, *plan, descriptor, now); !s.ok()) {
       arch->SetStatus(s);
       return;

@@ -8,6 +8,7 @@
 #include <google/protobuf/reflection.h>
 #include <spdlog/spdlog.h>
 
+#include "absl/status/status.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "server/auth.h"
@@ -20,47 +21,6 @@ using google::protobuf::FieldDescriptor;
 using grpc::experimental::InterceptionHookPoints;
 
 constexpr size_t kMaxRequestText = 512;
-
-absl::string_view CodeName(grpc::StatusCode code) {
-  switch (code) {
-    case grpc::StatusCode::OK:
-      return "OK";
-    case grpc::StatusCode::CANCELLED:
-      return "CANCELLED";
-    case grpc::StatusCode::UNKNOWN:
-      return "UNKNOWN";
-    case grpc::StatusCode::INVALID_ARGUMENT:
-      return "INVALID_ARGUMENT";
-    case grpc::StatusCode::DEADLINE_EXCEEDED:
-      return "DEADLINE_EXCEEDED";
-    case grpc::StatusCode::NOT_FOUND:
-      return "NOT_FOUND";
-    case grpc::StatusCode::ALREADY_EXISTS:
-      return "ALREADY_EXISTS";
-    case grpc::StatusCode::PERMISSION_DENIED:
-      return "PERMISSION_DENIED";
-    case grpc::StatusCode::UNAUTHENTICATED:
-      return "UNAUTHENTICATED";
-    case grpc::StatusCode::RESOURCE_EXHAUSTED:
-      return "RESOURCE_EXHAUSTED";
-    case grpc::StatusCode::FAILED_PRECONDITION:
-      return "FAILED_PRECONDITION";
-    case grpc::StatusCode::ABORTED:
-      return "ABORTED";
-    case grpc::StatusCode::OUT_OF_RANGE:
-      return "OUT_OF_RANGE";
-    case grpc::StatusCode::UNIMPLEMENTED:
-      return "UNIMPLEMENTED";
-    case grpc::StatusCode::INTERNAL:
-      return "INTERNAL";
-    case grpc::StatusCode::UNAVAILABLE:
-      return "UNAVAILABLE";
-    case grpc::StatusCode::DATA_LOSS:
-      return "DATA_LOSS";
-    default:
-      return "UNKNOWN";
-  }
-}
 
 // "name=lab visit_id=3": the request's set scalar fields at the top level (strings, numbers,
 // booleans, enums, repeated strings); bytes and nested messages (frames, model data) left out.
@@ -154,7 +114,8 @@ class AuditInterceptor : public grpc::experimental::Interceptor {
     e.key_name = ctx_->keys->KeyNameOf(*context);
     e.method = method_;
     e.request = request_;
-    e.code = std::string(CodeName(code));
+    // gRPC's codes are absl's, number for number.
+    e.code = absl::StatusCodeToString(static_cast<absl::StatusCode>(code));
     if (code != grpc::StatusCode::OK) e.message = status.error_message();
     e.peer = context->peer();
     if (auto s = ctx_->store->AppendAuditEvent(e); !s.ok()) {

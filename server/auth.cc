@@ -5,7 +5,6 @@
 #include <openssl/sha.h>
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 
@@ -17,13 +16,10 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "server/clock.h"
 
 namespace lifemap::server {
 namespace {
-
-double Now() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-}
 
 constexpr absl::string_view kBearer = "Bearer ";
 constexpr absl::string_view kSecretPrefix = "lmk_";
@@ -217,7 +213,7 @@ void KeyUsage::CloseStream() {
 
 absl::Status KeyUsage::TakeFrame(const std::string& key_name, double per_second) {
   if (per_second <= 0) return absl::OkStatus();
-  const double now = Now();
+  const double now = NowSeconds();
   absl::MutexLock lock(&mu_);
   // A bucket of a second's frames, refilled at the limit's rate.
   const double capacity = std::max(1.0, per_second);
@@ -319,15 +315,8 @@ absl::Status KeyRing::ReloadLocked() {
     next.emplace(entry->record.secret_sha256, std::move(entry));
   }
   by_hash_ = std::move(next);
-  loaded_s_ = Now();
+  loaded_s_ = NowSeconds();
   return absl::OkStatus();
-}
-
-void KeyRing::MarkRevoked(const std::string& name) {
-  absl::MutexLock lock(&mu_);
-  for (auto& [hash, entry] : by_hash_) {
-    if (entry->record.name == name) entry->revoked->store(true);
-  }
 }
 
 absl::StatusOr<std::shared_ptr<KeyRing::Entry>> KeyRing::Find(
@@ -345,7 +334,7 @@ absl::StatusOr<std::shared_ptr<KeyRing::Entry>> KeyRing::Find(
   }
   const std::string hash = ApiKeyHash(value.substr(kBearer.size()));
   absl::MutexLock lock(&mu_);
-  if (Now() - loaded_s_ > kReloadIntervalS) {
+  if (NowSeconds() - loaded_s_ > kReloadIntervalS) {
     if (auto s = ReloadLocked(); !s.ok()) {
       return absl::UnavailableError(absl::StrCat("API keys unreadable: ", s.message()));
     }
@@ -386,7 +375,7 @@ absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& cont
                                                     " role; API key '", key.name, "' is ",
                                                     RoleName(*role)));
   }
-  const double now = Now();
+  const double now = NowSeconds();
   bool touch = false;
   {
     absl::MutexLock lock(&mu_);

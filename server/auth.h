@@ -126,10 +126,9 @@ class KeyRing {
                                       absl::string_view method);
   // The name of the live key the call carries, "" if none (for the audit log).
   std::string KeyNameOf(const grpc::ServerContextBase& context);
-  // Reads the keys from the store now (after a key is created or revoked).
+  // Reads the keys from the store now (after a key is created or revoked): a revoked key's
+  // open calls see their principals' `revoked` set.
   absl::Status Reload();
-  // Marks open calls of a revoked key (their principals' `revoked`).
-  void MarkRevoked(const std::string& name);
 
   static constexpr double kReloadIntervalS = 2.0;
   static constexpr double kTouchIntervalS = 60.0;  // last_used written at most this often

@@ -8,7 +8,6 @@
 #include <malloc.h>
 
 #include <algorithm>
-#include <chrono>
 #include <csignal>
 #include <cstdlib>
 #include <iostream>
@@ -20,15 +19,12 @@
 
 #include "absl/strings/str_join.h"
 #include "server/auth.h"
+#include "server/clock.h"
 #include "server/config.h"
 #include "server/server.h"
 #include "server/store/store.h"
 
 namespace {
-
-double Now() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-}
 
 // `lifemapd keys ...`: API keys administered on the server's machine, straight in the database
 // (a running server counts a new key, or a revoked one, within KeyRing::kReloadIntervalS). The
@@ -47,7 +43,8 @@ int RunKeysCommand(const std::string& action, const std::string& db, const std::
       std::cerr << "lifemapd keys create: --role must be robot, operator or admin\n";
       return 2;
     }
-    auto created = lifemap::server::CreateApiKey(store->get(), name, *role, maps, {}, Now());
+    auto created = lifemap::server::CreateApiKey(store->get(), name, *role, maps, {},
+                                                 lifemap::server::NowSeconds());
     if (!created.ok()) {
       std::cerr << "lifemapd keys create: " << created.status().message() << "\n";
       return 1;
@@ -61,7 +58,7 @@ int RunKeysCommand(const std::string& action, const std::string& db, const std::
     return 0;
   }
   if (action == "revoke") {
-    auto revoked = (*store)->RevokeApiKey(name, Now());
+    auto revoked = (*store)->RevokeApiKey(name, lifemap::server::NowSeconds());
     if (!revoked.ok()) {
       std::cerr << "lifemapd keys revoke: " << revoked.status().message() << "\n";
       return 1;

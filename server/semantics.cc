@@ -1,8 +1,7 @@
 #include "server/semantics.h"
 
-#include <chrono>
-
 #include "absl/strings/str_cat.h"
+#include "server/clock.h"
 #include "spdlog/spdlog.h"
 
 namespace lifemap::server {
@@ -78,8 +77,7 @@ store::SemanticSnapshotRecord SemanticSnapshotOf(int64_t visit_id, const std::st
   r.resolution_m = map.resolution_m();
   r.keyframes = map.keyframes();
   r.bytes = map.Serialize();
-  r.updated_time_s =
-      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  r.updated_time_s = NowSeconds();
   return r;
 }
 

@@ -15,6 +15,7 @@
 #include "server/appearance.h"
 #include "server/architecture.h"
 #include "server/auth.h"
+#include "server/clock.h"
 #include "server/config.h"
 #include "server/keyframe_committer.h"
 #include "server/model_registry.h"
@@ -48,9 +49,6 @@ struct ServiceContext {
   std::atomic<uint64_t> frames_processed{0};
   std::atomic<uint64_t> frames_rejected{0};
 };
-
-// Seconds since the Unix epoch, wall clock.
-double NowSeconds();
 
 class MapServiceImpl final : public v1::MapService::Service {
  public:
