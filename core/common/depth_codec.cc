@@ -126,7 +126,8 @@ std::string EncodeRvl(const cv::Mat& depth) {
     w.Put(static_cast<uint32_t>(p - run));
     for (; run != p; ++run) {
       const int32_t delta = static_cast<int32_t>(*run) - previous;
-      w.Put(static_cast<uint32_t>((delta << 1) ^ (delta >> 31)));  // zig-zag
+      // Zig-zag; the shift on the unsigned value (shifting a negative int is undefined).
+      w.Put((static_cast<uint32_t>(delta) << 1) ^ static_cast<uint32_t>(delta >> 31));
       previous = *run;
     }
   }

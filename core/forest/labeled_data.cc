@@ -118,6 +118,19 @@ absl::Status ReadMosdFolder(const fs::path& dir, LabeledDataset* out) {
 }
 
 // A TUM-format folder whose label PNGs live in `label_dir`, named like the colour images.
+// A PNG file's image as it is stored (any depth and channels); empty when the file is missing,
+// unreadable or not a PNG. cv::imread would decode whatever format the bytes are (JPEG 2000,
+// TIFF, ...): labels are PNG only, so only the PNG decoder sees them.
+cv::Mat ReadPng(const fs::path& path) {
+  static constexpr char kSignature[] = "\x89PNG\r\n\x1a\n";
+  std::ifstream in(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (bytes.compare(0, sizeof(kSignature) - 1, kSignature) != 0) return cv::Mat();
+  return cv::imdecode(
+      cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, const_cast<char*>(bytes.data())),
+      cv::IMREAD_UNCHANGED);
+}
+
 absl::Status ReadTumLabelled(const fs::path& dir, const fs::path& label_dir,
                              const ClassScheme& scheme, int frame_stride, LabeledDataset* out) {
   auto seq = io::ReadTumSequence(dir.string());
@@ -129,12 +142,16 @@ absl::Status ReadTumLabelled(const fs::path& dir, const fs::path& label_dir,
     LabeledImage im;
     const cv::Mat depth = cv::imread(e.depth_path, cv::IMREAD_ANYDEPTH);
     im.color_bgr = cv::imread(e.rgb_path, cv::IMREAD_COLOR);
-    const cv::Mat raw = cv::imread(label_path.string(), cv::IMREAD_UNCHANGED);
+    const cv::Mat raw = ReadPng(label_path);
     if (depth.empty() || depth.type() != CV_16UC1) {
       return absl::InvalidArgumentError(
           absl::StrCat(e.depth_path, ": not a 16-bit depth PNG (TUM: 5000 units per metre)"));
     }
     if (im.color_bgr.empty()) return absl::NotFoundError(absl::StrCat(e.rgb_path, ": unreadable"));
+    if (raw.empty() && fs::exists(label_path)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(label_path.string(), ": not a readable PNG (labels are 8-bit PNGs)"));
+    }
     if (raw.empty()) {
       return absl::NotFoundError(
           absl::StrCat(label_path.string(), ": no label image for ", e.rgb_path,

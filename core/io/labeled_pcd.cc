@@ -1,10 +1,18 @@
 #include "core/io/labeled_pcd.h"
 
+#include <algorithm>
+#include <cstdint>
+#include <exception>
 #include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
 
+#include <pcl/common/io.h>
 #include <pcl/io/pcd_io.h>
 #include <pcl/point_types.h>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 
 namespace lifemap::io {
@@ -14,18 +22,123 @@ CameraIntrinsics KinectDefaultIntrinsics(int width, int height) {
   return {525.0 * sx, 525.0 * sy, 319.5 * sx, 239.5 * sy, width, height};
 }
 
+namespace {
+
+// Larger than any depth camera's image; keeps a header's claim from allocating gigabytes.
+constexpr uint32_t kMaxSide = 8192;
+
+// PCL's readHeader allocates the body's buffer from the header's COUNT, WIDTH, HEIGHT and POINTS
+// as they are (a COUNT of 10^56 asked for 200 GB; found by tests/fuzz/labeled_pcd_fuzz): so the
+// header's numbers are read here first and must be whole numbers a camera's cloud can have.
+absl::Status CheckHeaderNumbers(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::string line;
+  for (int lines = 0; lines < 64 && std::getline(in, line); ++lines) {
+    std::istringstream words(line);
+    std::string key;
+    words >> key;
+    if (key == "DATA") return absl::OkStatus();
+    uint64_t most = 0;
+    if (key == "SIZE") most = 8;
+    if (key == "COUNT") most = 1024;
+    if (key == "WIDTH" || key == "HEIGHT") most = kMaxSide;
+    if (key == "POINTS") most = uint64_t{kMaxSide} * kMaxSide;
+    if (most == 0) continue;
+    for (std::string word; words >> word;) {
+      uint64_t value = 0;
+      if (!absl::SimpleAtoi(word, &value) || value > most) {
+        return absl::InvalidArgumentError(
+            absl::StrCat(key, " ", word, " is not a whole number up to ", most));
+      }
+    }
+  }
+  return absl::InvalidArgumentError("no DATA line in the first 64 lines: not a PCD header");
+}
+
+// PCL reads the body by the header's field sizes and offsets without checking them against each
+// other (a SIZE that does not fit its TYPE made PCL 1.13 read far outside its buffer; found by
+// tests/fuzz/labeled_pcd_fuzz): so every field must have a known type, one value or a few, and
+// lie right after the one before, and the point must be as long as its fields.
+absl::Status CheckFieldLayout(const pcl::PCLPointCloud2& header) {
+  uint32_t offset = 0;
+  for (const auto& f : header.fields) {
+    const int size = pcl::getFieldSize(f.datatype);
+    if (f.datatype < pcl::PCLPointField::INT8 || f.datatype > pcl::PCLPointField::FLOAT64 ||
+        size == 0 || f.count < 1 || f.count > 1024 || f.offset != offset) {
+      return absl::InvalidArgumentError(absl::StrCat("field '", f.name,
+                                                     "' has a SIZE, TYPE or COUNT PCD does not "
+                                                     "define, or they disagree"));
+    }
+    const bool xyz = f.name == "x" || f.name == "y" || f.name == "z";
+    if ((xyz && f.datatype != pcl::PCLPointField::FLOAT32) ||
+        ((xyz || f.name == "rgba" || f.name == "rgb" || f.name == "label") &&
+         (size != 4 || f.count != 1))) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "field '", f.name, "' must be one 4-byte value (x y z float, rgba and label 4 bytes)"));
+    }
+    offset += static_cast<uint32_t>(size) * f.count;
+  }
+  if (offset != header.point_step) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the fields take ", offset, " bytes but a point has ", header.point_step));
+  }
+  return absl::OkStatus();
+}
+
+// PCL allocates what a binary_compressed body says it unpacks to (a 3.4 GB claim in an 800-byte
+// file; found by tests/fuzz/labeled_pcd_fuzz) and trusts a binary body to be whole: so the
+// body must hold, or unpack to, exactly the points the header names. `data_type` and
+// `data_start` as PCDReader::readHeader gives them (0 ascii, 1 binary, 2 binary_compressed).
+absl::Status CheckBodySize(const std::string& path, const pcl::PCLPointCloud2& header,
+                           int data_type, unsigned int data_start) {
+  if (data_type == 0) return absl::OkStatus();  // ascii: PCL reads line by line
+  std::ifstream in(path, std::ios::binary | std::ios::ate);
+  const auto file_bytes = static_cast<uint64_t>(in.tellg());
+  const uint64_t points_bytes =
+      uint64_t{header.width} * header.height * uint64_t{header.point_step};
+  if (data_type == 1) {
+    if (file_bytes < data_start + points_bytes) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "the binary body holds ", file_bytes - std::min(file_bytes, uint64_t{data_start}),
+          " bytes, not the ", points_bytes, " its header names (truncated?)"));
+    }
+    return absl::OkStatus();
+  }
+  uint32_t sizes[2] = {0, 0};  // compressed, uncompressed
+  in.seekg(data_start);
+  if (!in.read(reinterpret_cast<char*>(sizes), sizeof(sizes)) || sizes[1] != points_bytes ||
+      sizes[0] > file_bytes - data_start - sizeof(sizes)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "the compressed body's sizes (", sizes[0], " packed, ", sizes[1],
+        " unpacked) do not fit the file or the ", points_bytes, " bytes its header names"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
   if (!std::filesystem::exists(path))
     return absl::NotFoundError(absl::StrCat(path, ": no such file"));
+  if (absl::Status s = CheckHeaderNumbers(path); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
+  }
   pcl::PCLPointCloud2 header_only;
   pcl::PCDReader reader;
   Eigen::Vector4f origin;
   Eigen::Quaternionf orientation;
   int version = 0, data_type = 0;
   unsigned int data_idx = 0;
-  if (reader.readHeader(path, header_only, origin, orientation, version, data_type, data_idx) !=
-      0) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a readable PCD file"));
+  // PCL throws (std::out_of_range, pcl::PCLException, ...) on some malformed files and returns
+  // an error on others: both are "not a PCD file" here (found by tests/fuzz/labeled_pcd_fuzz).
+  try {
+    if (reader.readHeader(path, header_only, origin, orientation, version, data_type, data_idx) !=
+        0) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": not a readable PCD file"));
+    }
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": not a readable PCD file (", e.what(), ")"));
   }
   bool has_label = false, has_rgba = false;
   for (const auto& f : header_only.fields) {
@@ -36,13 +149,38 @@ absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": needs the fields x y z rgba label (a labelled RGB-D cloud)"));
   }
+  if (absl::Status s = CheckFieldLayout(header_only); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
+  }
+  if (header_only.width < 1) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": the header names no points"));
+  }
   if (header_only.height <= 1) {
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": the cloud is not organized (height 1): no pixel grid"));
   }
+  if (header_only.width > kMaxSide || header_only.height > kMaxSide) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": a ", header_only.width, "x",
+                                                   header_only.height, " cloud; at most ", kMaxSide,
+                                                   " points a side are read"));
+  }
+  if (absl::Status s = CheckBodySize(path, header_only, data_type, data_idx); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
+  }
   pcl::PointCloud<pcl::PointXYZRGBL> cloud;
-  if (pcl::io::loadPCDFile(path, cloud) != 0) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": could not be read as PCD"));
+  try {
+    if (pcl::io::loadPCDFile(path, cloud) != 0) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": could not be read as PCD"));
+    }
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": could not be read as PCD (", e.what(), ")"));
+  }
+  if (cloud.height <= 1 || cloud.width > kMaxSide || cloud.height > kMaxSide ||
+      cloud.points.size() != static_cast<size_t>(cloud.width) * cloud.height) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": holds ", cloud.points.size(),
+                                                   " points, not the ", cloud.width, "x",
+                                                   cloud.height, " grid its header names"));
   }
   const int w = static_cast<int>(cloud.width), h = static_cast<int>(cloud.height);
   LabeledFrame out;

@@ -24,7 +24,9 @@ struct Cell {
 
 // A cell's key in a wall's grid: column s along the line, row h up (both in cells).
 inline int64_t Key(int s, int h) {
-  return (static_cast<int64_t>(s) << 32) ^ static_cast<int64_t>(static_cast<uint32_t>(h));
+  // Shifted unsigned: shifting a negative int64 left is undefined.
+  return static_cast<int64_t>((static_cast<uint64_t>(static_cast<uint32_t>(s)) << 32) |
+                              static_cast<uint32_t>(h));
 }
 inline int KeyS(int64_t k) { return static_cast<int>(k >> 32); }
 inline int KeyH(int64_t k) { return static_cast<int>(static_cast<int32_t>(k & 0xffffffff)); }

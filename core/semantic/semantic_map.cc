@@ -162,7 +162,8 @@ class SemanticOcTree : public octomap::OccupancyOcTreeBase<SemanticNode> {
     if (end - p < static_cast<std::ptrdiff_t>(count * sizeof(float))) return false;
     node->setLogOdds(value);
     node->belief.resize(count);
-    std::memcpy(node->belief.data(), p, count * sizeof(float));
+    // No memcpy for none: an empty vector's data() may be null, which memcpy must not get.
+    if (count > 0) std::memcpy(node->belief.data(), p, count * sizeof(float));
     p += count * sizeof(float);
     for (float b : node->belief) {
       if (!std::isfinite(b) || b > 0.0f) return false;

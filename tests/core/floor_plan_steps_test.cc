@@ -2,6 +2,8 @@
 // and FloorPlanOptions::Validate.
 #include <gtest/gtest.h>
 
+#include <cstdint>
+
 #include "core/place/floor_plan_steps.h"
 
 namespace lifemap::place::steps {
@@ -14,6 +16,18 @@ Patch Horizontal(double height, Eigen::Vector2d centroid, double area) {
   p.lo = p.hi = centroid;
   p.area = area;
   return p;
+}
+
+// Cells left of or below a wall's origin have negative keys (their packing shifted a negative
+// int left, undefined behaviour found by tests/fuzz/rpc_fuzz under UBSan).
+TEST(CellKey, EveryColumnAndRowComesBack) {
+  for (int s : {0, 1, -1, -3, 1 << 20, -(1 << 20), INT32_MAX, INT32_MIN}) {
+    for (int h : {0, 2, -1, -7, INT32_MAX, INT32_MIN}) {
+      EXPECT_EQ(KeyS(Key(s, h)), s) << s << ", " << h;
+      EXPECT_EQ(KeyH(Key(s, h)), h) << s << ", " << h;
+    }
+  }
+  EXPECT_NE(Key(-1, 0), Key(0, -1));
 }
 
 TEST(FloorPlanOptions, DefaultsAreValidAndBadSettingsAreNamed) {

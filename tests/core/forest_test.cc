@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <fstream>
 
 #include <gtest/gtest.h>
 
@@ -235,6 +236,48 @@ TEST(Forest, RejectsBadTrainingData) {
   EXPECT_TRUE(absl::IsInvalidArgument(
       forest->Predict(Halves(true).depth_m, Halves(true).color_bgr, Decision::kBalanced, 0)
           .status()));
+}
+
+// A 2x2 organized cloud with fields x y z rgba label: the header with the given WIDTH, SIZE,
+// COUNT and DATA lines, and for ASCII its four points.
+std::string PcdText(const std::string& width = "2", const std::string& size = "4 4 4 4 4",
+                    const std::string& count = "1 1 1 1 1", const std::string& data = "ascii") {
+  std::string out = "VERSION 0.7\nFIELDS x y z rgba label\nSIZE " + size +
+                    "\nTYPE F F F U U\nCOUNT " + count + "\nWIDTH " + width +
+                    "\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA " + data + "\n";
+  if (data == "ascii") out += "0 0 1 255 1\n0.1 0 1 255 1\n0 0.1 1 255 21\n0.1 0.1 1.2 255 21\n";
+  return out;
+}
+
+// Each was a crash, an out-of-bounds read or a many-gigabyte allocation inside PCL 1.13 before
+// the reader checked the header (found by tests/fuzz/labeled_pcd_fuzz); each is now an
+// InvalidArgument naming the file.
+TEST(ReadLabeledPcd, RefusesMalformedFilesBeforePclReadsThem) {
+  testing::TempDir tmp;
+  const std::string path = tmp.File("cloud.pcd");
+  auto read = [&](const std::string& bytes) {
+    std::ofstream(path, std::ios::binary | std::ios::trunc) << bytes;
+    return io::ReadLabeledPcd(path);
+  };
+  auto good = read(PcdText());
+  ASSERT_TRUE(good.ok()) << good.status();
+  EXPECT_EQ(good->frame.depth_m.size(), cv::Size(2, 2));
+  EXPECT_FLOAT_EQ(good->frame.depth_m.at<float>(1, 1), 1.2f);
+  EXPECT_EQ(good->labels.at<int>(1, 0), 21);
+  const std::string compressed_claim =  // 8 packed bytes said to unpack to 3.4 GB
+      std::string("\x08\0\0\0\0\0\0\xcd", 8) + std::string(8, '\x01');
+  for (const std::string& bad : {
+           std::string("DATADDA"),         // PCL threw out_of_range
+           PcdText("2", "4 4 65535 4 4"),  // SIZE not its TYPE's
+           PcdText("0"),                   // no points
+           PcdText("2", "4 4 4 4 4", "1 1 " + std::string(56, '4') + " 1 1"),  // 10^56 values
+           PcdText("2", "4 4 4 4 4", "1 1 1 1 1", "binary") + "short",         // truncated body
+           PcdText("2", "4 4 4 4 4", "1 1 1 1 1", "binary_compressed") + compressed_claim,
+       }) {
+    auto r = read(bad);
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << bad.substr(0, 80) << ": " << r.status();
+    EXPECT_NE(r.status().message().find(path), std::string::npos) << r.status();
+  }
 }
 
 // Real data: mOSD table-top scenes, table (labels 1-9) against objects (20 and above).

@@ -87,6 +87,29 @@ TEST(LabeledData, BadLabelsAndMixedClassesAreClearErrors) {
   EXPECT_TRUE(absl::IsNotFound(ReadLabeledData({tmp.File("nowhere")}).status()));
 }
 
+// Labels are PNG only: a label file in another format (here a JPEG named .png) is refused by
+// name, never handed to another decoder (found by tests/fuzz/label_png_fuzz: cv::imread decoded
+// any format, JPEG 2000 and TIFF included).
+TEST(LabeledData, ALabelFileThatIsNotAPngIsRefusedByName) {
+  testing::TempDir tmp;
+  WriteLabelPngFolder(tmp.File("a"), {"floor", "thing"});
+  std::string renamed;
+  for (const auto& e : fs::directory_iterator(tmp.File("a/labels"))) {
+    if (e.path().extension() != ".png") continue;
+    std::vector<uchar> jpeg;
+    cv::imencode(".jpg", cv::Mat(48, 64, CV_8UC1, cv::Scalar(1)), jpeg);
+    std::ofstream(e.path(), std::ios::binary | std::ios::trunc)
+        .write(reinterpret_cast<const char*>(jpeg.data()),
+               static_cast<std::streamsize>(jpeg.size()));
+    renamed = e.path().string();
+    break;
+  }
+  auto read = ReadLabeledData({tmp.File("a")});
+  EXPECT_TRUE(absl::IsInvalidArgument(read.status())) << read.status();
+  EXPECT_NE(read.status().message().find(renamed + ": not a readable PNG"), std::string::npos)
+      << read.status();
+}
+
 TEST(LabeledData, ReadsMosdFolders) {
   LIFEMAP_REQUIRE_DATASET(dir, "pcl_mosd_labeled_subset");
   auto data = ReadLabeledData({dir + "/test"});

@@ -17,28 +17,14 @@
 
 #include "core/forest/forest.h"
 #include "core/pipeline/frame_pipeline.h"
+#include "tests/fuzz/tiny_forest.h"
 
 namespace {
 
-// A two-class forest whose features reach far beyond the image (offsets and sizes in pixel
-// metres, scaled by 1/depth), trained once.
+// A two-class forest whose features reach far beyond the image, trained once.
 const lifemap::forest::Forest& Labeller() {
-  static const lifemap::forest::Forest* forest = [] {
-    lifemap::forest::LabeledImage im;
-    im.depth_m = cv::Mat(16, 16, CV_32FC1, cv::Scalar(1.0f));
-    im.color_bgr = cv::Mat(16, 16, CV_8UC3, cv::Scalar(10, 200, 30));
-    im.color_bgr(cv::Rect(8, 0, 8, 16)).setTo(cv::Scalar(200, 10, 30));
-    im.labels = cv::Mat(16, 16, CV_8UC1, cv::Scalar(0));
-    im.labels(cv::Rect(8, 0, 8, 16)).setTo(1);
-    lifemap::forest::TrainOptions o;
-    o.trees = 1;
-    o.max_depth = 5;
-    o.candidates = 40;
-    o.max_offset = 5000;
-    o.max_size = 5000;
-    o.threads = 1;
-    return new lifemap::forest::Forest(*lifemap::forest::Forest::Train({im}, 2, o));
-  }();
+  static const lifemap::forest::Forest* forest =
+      new lifemap::forest::Forest(lifemap::fuzz::TrainTinyForest(5000));
   return *forest;
 }
 
