@@ -1,5 +1,6 @@
 #include "server/server.h"
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstring>
@@ -9,6 +10,7 @@
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/impl/server_builder_option.h>
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server.h>
 #include <grpcpp/server_builder.h>
@@ -109,6 +111,29 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> ServerCredentialsFor(
   return grpc::SslServerCredentials(options);
 }
 
+// Offers gRPC's reflection service on one server, or not. Linking grpc++_reflection registers
+// its plugin for every server the process builds (a static initializer, and
+// InitProtoReflectionServerBuilderPlugin does the same): without this option a server that
+// requires keys offered it too. The plugin is removed from, or added to, this builder's list.
+class ReflectionOption : public grpc::ServerBuilderOption {
+ public:
+  explicit ReflectionOption(bool offer) : offer_(offer) {}
+  void UpdateArguments(grpc::ChannelArguments* /*args*/) override {}
+  void UpdatePlugins(std::vector<std::unique_ptr<grpc::ServerBuilderPlugin>>* plugins) override {
+    const std::string reflection = grpc::reflection::ProtoServerReflectionPlugin().name();
+    const auto is_reflection = [&reflection](const std::unique_ptr<grpc::ServerBuilderPlugin>& p) {
+      return p->name() == reflection;
+    };
+    plugins->erase(std::remove_if(plugins->begin(), plugins->end(), is_reflection), plugins->end());
+    if (offer_) {
+      plugins->push_back(std::make_unique<grpc::reflection::ProtoServerReflectionPlugin>());
+    }
+  }
+
+ private:
+  bool offer_;
+};
+
 }  // namespace
 
 LifemapServer::LifemapServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -173,11 +198,9 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
 
   // Health checking answers anyone (load balancers, systemd probes carry no key).
   grpc::EnableDefaultHealthCheckService(true);
-  // Reflection describes the API to anyone who asks, so it is served only without auth. The
-  // plugin is registered for the whole process: in one process (the tests) a server with auth
-  // started after one without still offers it; lifemapd runs one server a process.
-  if (!config.AuthRequired()) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
+  // Reflection describes the API to anyone who asks, so it is served only without auth.
+  builder.SetOption(std::make_unique<ReflectionOption>(!config.AuthRequired()));
   // No SO_REUSEPORT: a second server on a busy port must fail, not share the clients.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.AddListeningPort(config.listen, *credentials, &impl->port);

@@ -270,8 +270,9 @@ TEST(ReadLabeledPcd, RefusesMalformedFilesBeforePclReadsThem) {
            std::string("DATADDA"),         // PCL threw out_of_range
            PcdText("2", "4 4 65535 4 4"),  // SIZE not its TYPE's
            PcdText("0"),                   // no points
-           PcdText("2", "4 4 4 4 4", "1 1 " + std::string(56, '4') + " 1 1"),  // 10^56 values
-           PcdText("2", "4 4 4 4 4", "1 1 1 1 1", "binary") + "short",         // truncated body
+           PcdText("2", "4 4 4 4 4", "0 1 1 1 1", "binary") + std::string(80, 'x'),  // COUNT 0
+           PcdText("2", "4 4 4 4 4", "1 1 " + std::string(56, '4') + " 1 1"),        // 10^56 values
+           PcdText("2", "4 4 4 4 4", "1 1 1 1 1", "binary") + "short",  // truncated body
            PcdText("2", "4 4 4 4 4", "1 1 1 1 1", "binary_compressed") + compressed_claim,
        }) {
     auto r = read(bad);

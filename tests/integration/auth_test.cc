@@ -3,6 +3,7 @@
 #include <google/protobuf/descriptor.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/impl/codegen/client_unary_call.h>
+#include <grpcpp/support/sync_stream.h>
 
 #include <fstream>
 #include <iterator>
@@ -141,6 +142,46 @@ TEST_F(AuthTest, HealthCheckingNeedsNoKey) {
                                 grpc::internal::RpcMethod::NORMAL_RPC),
       &ctx, request, &response);
   EXPECT_TRUE(s.ok()) << s.error_message();
+}
+
+// The reflection service's list_services on `target`: its status (UNIMPLEMENTED where the
+// server offers no reflection).
+grpc::Status ListServicesByReflection(const std::string& target) {
+  auto channel = grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  std::unique_ptr<grpc::ClientReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>> call(
+      grpc::internal::ClientReaderWriterFactory<grpc::ByteBuffer, grpc::ByteBuffer>::Create(
+          channel.get(),
+          grpc::internal::RpcMethod(
+              "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+              grpc::internal::RpcMethod::BIDI_STREAMING),
+          &ctx));
+  grpc::Slice list_services(std::string("\x3a\x00", 2));  // field 7, empty
+  call->Write(grpc::ByteBuffer(&list_services, 1));
+  call->WritesDone();
+  grpc::ByteBuffer answer;
+  while (call->Read(&answer)) {
+  }
+  return call->Finish();
+}
+
+// Reflection describes the API, so a server that requires keys does not offer it, even when a
+// server without keys was built in the same process before it (gRPC's reflection plugin used
+// to be registered for the whole process).
+TEST_F(AuthTest, AServerThatRequiresKeysOffersNoReflection) {
+  testing::TempDir other;
+  server::ServerConfig open;
+  open.listen = "127.0.0.1:0";
+  open.db_path = other.File("open.db");
+  auto without_keys = server::LifemapServer::Start(open);
+  ASSERT_TRUE(without_keys.ok()) << without_keys.status();
+  server::ServerConfig config;
+  config.require_auth = true;
+  StartServer(config);  // built after the one without keys
+  const std::string open_target = "127.0.0.1:" + std::to_string((*without_keys)->port());
+  EXPECT_TRUE(ListServicesByReflection(open_target).ok());
+  EXPECT_EQ(ListServicesByReflection(target_).error_code(), grpc::StatusCode::UNIMPLEMENTED);
 }
 
 TEST_F(AuthTest, AKeyLimitedToMapsSeesAndWritesOnlyThose) {
