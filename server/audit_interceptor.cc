@@ -1,7 +1,6 @@
 #include "server/audit_interceptor.h"
 
 #include <string>
-#include "absl/strings/string_view.h"
 
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/message.h>
@@ -11,7 +10,9 @@
 #include "absl/status/status.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/string_view.h"
 #include "server/auth.h"
+#include "server/clock.h"
 #include "server/services.h"
 
 namespace lifemap::server {
@@ -82,8 +83,8 @@ std::string RequestText(const google::protobuf::Message& m) {
 class AuditInterceptor : public grpc::experimental::Interceptor {
  public:
   AuditInterceptor(ServiceContext* ctx, grpc::experimental::ServerRpcInfo* info, std::string method,
-                   Role role)
-      : ctx_(ctx), info_(info), method_(std::move(method)), role_(role) {}
+                   Role role, std::atomic<int64_t>* recorded)
+      : ctx_(ctx), info_(info), method_(std::move(method)), role_(role), recorded_(recorded) {}
 
   void Intercept(grpc::experimental::InterceptorBatchMethods* methods) override {
     if (methods->QueryInterceptionHookPoint(InterceptionHookPoints::POST_RECV_MESSAGE) &&
@@ -121,13 +122,19 @@ class AuditInterceptor : public grpc::experimental::Interceptor {
     if (auto s = ctx_->store->AppendAuditEvent(e); !s.ok()) {
       spdlog::error("audit log: could not record {} by '{}': {}", method_, e.key_name,
                     std::string(s.message()));
+      return;
     }
+    // Refused calls are recorded too, so a key could grow the log without end: old events go.
+    if (recorded_->fetch_add(1) % kEventsPerPrune == kEventsPerPrune - 1) PruneAuditLog(ctx_);
   }
+
+  static constexpr int64_t kEventsPerPrune = 1000;
 
   ServiceContext* ctx_;
   grpc::experimental::ServerRpcInfo* info_;
   const std::string method_;
   const Role role_;
+  std::atomic<int64_t>* recorded_;
   bool have_request_ = false;
   std::string request_;
 };
@@ -144,7 +151,19 @@ grpc::experimental::Interceptor* AuditInterceptorFactory::CreateServerIntercepto
   const std::string method(full.substr(kPrefix.size()));
   const std::optional<Role> role = RequiredRole(method);
   if (!role) return nullptr;
-  return new AuditInterceptor(ctx_, info, method, *role);
+  return new AuditInterceptor(ctx_, info, method, *role, &recorded_);
+}
+
+void PruneAuditLog(ServiceContext* ctx) {
+  const double days = ctx->config.audit_retention_days;
+  if (days <= 0.0) return;
+  auto pruned = ctx->store->PruneAuditEvents(NowSeconds() - days * 86400.0);
+  if (!pruned.ok()) {
+    spdlog::error("audit log: could not delete events older than {} days: {}", days,
+                  std::string(pruned.status().message()));
+  } else if (*pruned > 0) {
+    spdlog::info("audit log: deleted {} events older than {} days", *pruned, days);
+  }
 }
 
 }  // namespace lifemap::server

@@ -7,6 +7,9 @@
 
 #include <grpcpp/support/server_interceptor.h>
 
+#include <atomic>
+#include <cstdint>
+
 namespace lifemap::server {
 
 struct ServiceContext;
@@ -19,6 +22,10 @@ class AuditInterceptorFactory : public grpc::experimental::ServerInterceptorFact
 
  private:
   ServiceContext* ctx_;
+  std::atomic<int64_t> recorded_{0};  // events recorded since start: every 1,000th prunes
 };
+
+// Deletes the audit events older than config.audit_retention_days (none when 0); logs how many.
+void PruneAuditLog(ServiceContext* ctx);
 
 }  // namespace lifemap::server

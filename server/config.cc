@@ -23,6 +23,12 @@ absl::Status ServerConfig::Validate() const {
         "security.require_auth and security.insecure_no_auth (--require-auth, "
         "--insecure-no-auth) contradict each other: choose one");
   }
+  if (!(audit_retention_days >= 0.0) || !std::isfinite(audit_retention_days)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "security.audit_retention_days must be a number of days >= 0 (0 keeps every event); "
+        "got ",
+        audit_retention_days));
+  }
   if (tls_cert.empty() != tls_key.empty()) {
     return absl::InvalidArgumentError(
         "TLS needs both a certificate and its private key (security.tls_cert and "
@@ -310,6 +316,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             c.require_auth = v.get<bool>();
           } else if (k == "insecure_no_auth") {
             c.insecure_no_auth = v.get<bool>();
+          } else if (k == "audit_retention_days") {
+            c.audit_retention_days = v.get<double>();
           } else if (k == "tls_cert") {
             c.tls_cert = v.get<std::string>();
           } else if (k == "tls_key") {

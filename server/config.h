@@ -95,6 +95,9 @@ struct ServerConfig {
   // whenever `listen` is beyond loopback unless `insecure_no_auth` says the network is trusted.
   bool require_auth = false;
   bool insecure_no_auth = false;
+  // Audit events older than this are deleted, at start and every 1,000 events recorded;
+  // 0 keeps them for ever.
+  double audit_retention_days = 365.0;
   // TLS: the server's certificate chain and private key (PEM files; both or neither), and a
   // CA whose client certificates the server then requires (mTLS; optional).
   std::string tls_cert;

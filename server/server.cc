@@ -215,6 +215,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
   interceptors.push_back(std::make_unique<StatusInterceptorFactory>());
   interceptors.push_back(std::make_unique<AuditInterceptorFactory>(&ctx));
+  PruneAuditLog(&ctx);
   builder.experimental().SetInterceptorCreators(std::move(interceptors));
   impl->grpc_server = builder.BuildAndStart();
   if (!impl->grpc_server || impl->port == 0) {

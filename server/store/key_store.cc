@@ -180,6 +180,17 @@ absl::Status Store::AppendAuditEvent(const AuditEventRecord& e) {
   return s->Run();
 }
 
+absl::StatusOr<int64_t> Store::PruneAuditEvents(double before_time_s) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  auto stmt = db->Prepare("DELETE FROM audit_log WHERE time_s < ?1");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, before_time_s);
+  if (absl::Status run = s->Run(); !run.ok()) return run;
+  return static_cast<int64_t>(db->Changes());
+}
+
 absl::StatusOr<std::vector<AuditEventRecord>> Store::ListAuditEvents(double since_time_s,
                                                                      int limit) {
   absl::MutexLock lock(&impl_->read_mu);

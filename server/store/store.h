@@ -450,6 +450,8 @@ class Store {
   // The audit log: Append one event; List the newest `limit` at or after `since_time_s`,
   // newest first.
   absl::Status AppendAuditEvent(const AuditEventRecord& event);
+  // Deletes the events older than `before_time_s`; returns how many.
+  absl::StatusOr<int64_t> PruneAuditEvents(double before_time_s);
   absl::StatusOr<std::vector<AuditEventRecord>> ListAuditEvents(double since_time_s, int limit);
 
   // Administration.

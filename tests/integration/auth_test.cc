@@ -5,11 +5,15 @@
 #include <grpcpp/impl/codegen/client_unary_call.h>
 #include <grpcpp/support/sync_stream.h>
 
+#include <algorithm>
+#include <chrono>
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <thread>
 
 #include "server/auth.h"
+#include "server/clock.h"
 #include "server/store/store.h"
 #include "tests/integration/server_fixture.h"
 
@@ -304,6 +308,56 @@ TEST_F(AuthTest, ARevokedKeyIsRefusedAndItsOpenStreamEnds) {
   auto again = admin_->RevokeApiKey("robot");
   ASSERT_TRUE(again.ok());
   EXPECT_EQ(again->revoked_time_s(), revoked->revoked_time_s());
+}
+
+// Refused calls are audited too, so the log is kept for security.audit_retention_days: older
+// events go at start and every 1,000 events recorded.
+TEST_F(AuthTest, AuditEventsOlderThanTheRetentionAreDeleted) {
+  server_.reset();
+  {
+    auto store = store::Store::Open(tmp_.File("lifemap.db"), {});
+    ASSERT_TRUE(store.ok()) << store.status();
+    store::AuditEventRecord old;
+    old.time_s = server::NowSeconds() - 40 * 86400.0;
+    old.key_name = "root";
+    old.method = "MapService/DeleteMap";
+    old.request = "name=forty-days-ago";
+    old.code = "OK";
+    ASSERT_TRUE((*store)->AppendAuditEvent(old).ok());
+  }
+  server::ServerConfig config;
+  config.require_auth = true;
+  config.audit_retention_days = 30;
+  StartServer(config);
+  admin_ = ClientWith(secrets_["root"]);
+  auto texts = [this] {
+    v1::ListAuditEventsRequest all;
+    all.set_limit(5000);
+    auto events = admin_->ListAuditEvents(all);
+    EXPECT_TRUE(events.ok()) << events.status();
+    std::vector<std::string> out;
+    if (events.ok()) {
+      for (const auto& e : events->events()) out.push_back(e.request());
+    }
+    return out;
+  };
+  auto at_start = texts();
+  EXPECT_EQ(std::count(at_start.begin(), at_start.end(), "name=forty-days-ago"), 0);
+  EXPECT_GT(std::count(at_start.begin(), at_start.end(), "name=lab"), 0) << "SetUp's CreateMap";
+
+  // Every 1,000th event prunes: a retention of 0.5 s, an event, a second, then 1,000 refusals.
+  config.audit_retention_days = 0.5 / 86400.0;
+  StartServer(config);
+  admin_ = ClientWith(secrets_["root"]);
+  auto robot = ClientWith(secrets_["robot"]);
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->DeleteMap("hall").status()));
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  for (int i = 0; i < 1000; ++i) {
+    ASSERT_TRUE(absl::IsPermissionDenied(robot->DeleteMap("lab").status()));
+  }
+  const auto after = texts();
+  EXPECT_EQ(std::count(after.begin(), after.end(), "name=hall"), 0) << "older than 0.5 s";
+  EXPECT_GT(std::count(after.begin(), after.end(), "name=lab"), 0) << "the newest stay";
 }
 
 TEST_F(AuthTest, TheAuditLogRecordsAdministrativeCallsAndRefusals) {

@@ -122,6 +122,15 @@ TEST(Auth, TheAuditLogListsNewestFirstFromATime) {
   EXPECT_EQ(events->at(0).request, "name=m4");
   EXPECT_EQ(events->at(1).request, "name=m3");
   EXPECT_EQ((*store)->ListAuditEvents(102.0, 100)->size(), 3u);
+  // Retention: events before a time go, the rest stay.
+  auto pruned = (*store)->PruneAuditEvents(103.0);
+  ASSERT_TRUE(pruned.ok()) << pruned.status();
+  EXPECT_EQ(*pruned, 3);
+  auto left = (*store)->ListAuditEvents(0.0, 100);
+  ASSERT_TRUE(left.ok());
+  ASSERT_EQ(left->size(), 2u);
+  EXPECT_EQ(left->at(1).request, "name=m3");
+  EXPECT_EQ(*(*store)->PruneAuditEvents(103.0), 0);
 }
 
 }  // namespace

@@ -229,7 +229,14 @@ TEST(ConfigFile, ReadsAndChecksTheSecuritySection) {
                {"nokey.json", R"({"security": {"tls_cert": "c.pem"}})", "private key"},
                {"noca.json", R"({"security": {"tls_client_ca": "ca.pem"}})", "--tls-cert"},
                {"typo.json", R"({"security": {"require_uath": true}})", "security.require_uath"},
+               {"retention.json", R"({"security": {"audit_retention_days": -1}})",
+                "audit_retention_days must be a number of days >= 0"},
            });
+  std::ofstream(tmp.File("keep.json")) << R"({"security": {"audit_retention_days": 0}})";
+  auto keep = LoadConfigFile(tmp.File("keep.json"), ServerConfig());
+  ASSERT_TRUE(keep.ok()) << keep.status();
+  EXPECT_EQ(keep->audit_retention_days, 0.0);
+  EXPECT_EQ(ServerConfig().audit_retention_days, 365.0);
 }
 
 TEST(ServerConfig, KeysAreRequiredBeyondLoopbackUnlessToldOtherwise) {
