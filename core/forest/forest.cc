@@ -473,6 +473,9 @@ void Put(std::string* out, const T& v) {
   out->append(reinterpret_cast<const char*>(&v), sizeof(T));
 }
 
+// Deepest tree a model file may hold: training makes at most 40 levels (TrainOptions).
+constexpr uint8_t kMaxLoadedDepth = 64;
+
 class Reader {
  public:
   Reader(const std::string& bytes, size_t end) : bytes_(bytes), end_(end) {}
@@ -491,6 +494,7 @@ class Reader {
     return true;
   }
   bool done() const { return pos_ == end_; }
+  size_t remaining() const { return end_ - pos_; }
 
  private:
   const std::string& bytes_;
@@ -621,7 +625,13 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
   f.trees_.resize(trees);
   for (auto& t : f.trees_) {
     uint32_t nodes = 0, leaves = 0;
-    if (!r.Get(&nodes) || nodes < 1 || nodes > (1u << 26)) return corrupt("node count");
+    // Counts are checked against the bytes left before anything is allocated: a 142-byte file
+    // claiming 2^26 nodes made the reader allocate 3.5 GB (found by tests/fuzz/forest_model_fuzz).
+    constexpr size_t kNodeBytes =
+        8 * sizeof(float) + 2 * sizeof(uint8_t) + sizeof(float) + 3 * sizeof(int32_t);
+    if (!r.Get(&nodes) || nodes < 1 || nodes > (1u << 26) || nodes > r.remaining() / kNodeBytes) {
+      return corrupt("node count");
+    }
     t.nodes.resize(nodes);
     for (auto& n : t.nodes) {
       Feature& ft = n.feature;
@@ -633,12 +643,18 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
         return corrupt("node");
       }
     }
-    if (!r.Get(&leaves) || leaves % classes != 0 || leaves > (1u << 28)) return corrupt("leaves");
+    if (!r.Get(&leaves) || leaves % classes != 0 || leaves > (1u << 28) ||
+        leaves > r.remaining() / sizeof(float)) {
+      return corrupt("leaves");
+    }
     t.leaves.resize(leaves);
     for (float& v : t.leaves) {
       if (!r.Get(&v)) return corrupt("leaf");
     }
     const int32_t leaf_count = static_cast<int32_t>(leaves / classes);
+    // Depth per node (children follow their parents, so one pass): a tree deeper than training
+    // makes (40) would be a chain that every pixel walks to its end.
+    std::vector<uint8_t> depth(nodes, 0);
     for (int32_t i = 0; i < static_cast<int32_t>(nodes); ++i) {
       const Node& n = t.nodes[static_cast<size_t>(i)];
       const bool inner = n.left >= 0;
@@ -648,6 +664,12 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
                    n.feature.channel2 > 3)
                 : (n.leaf < 0 || n.leaf >= leaf_count)) {
         return corrupt("a node points outside its tree");
+      }
+      if (inner) {
+        const uint8_t below = static_cast<uint8_t>(depth[static_cast<size_t>(i)] + 1);
+        if (below > kMaxLoadedDepth) return corrupt("a tree deeper than 64 levels");
+        depth[static_cast<size_t>(n.left)] = std::max(depth[static_cast<size_t>(n.left)], below);
+        depth[static_cast<size_t>(n.right)] = std::max(depth[static_cast<size_t>(n.right)], below);
       }
     }
   }

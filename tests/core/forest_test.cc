@@ -219,6 +219,29 @@ TEST(Forest, CorruptAndTruncatedModelsGiveClearErrors) {
   EXPECT_NE(status.message().find("version 99"), std::string::npos) << status;
 }
 
+// A file's node count is checked against its size before anything is allocated (a 142-byte
+// model claiming 2^26 nodes made the reader allocate 3.5 GB; found by
+// tests/fuzz/forest_model_fuzz).
+TEST(Forest, AModelClaimingMoreNodesThanItHoldsIsRefusedBeforeAllocating) {
+  TrainOptions one_tree = Small();
+  one_tree.trees = 1;
+  auto forest = Forest::Train({Halves(true)}, 2, one_tree);
+  ASSERT_TRUE(forest.ok());
+  std::string body = forest->Serialize(Described({"a", "b"}));
+  body.resize(body.size() - 8);  // without the checksum
+  // The tree count (1) followed by the first tree's node count.
+  const uint32_t header[2] = {1, static_cast<uint32_t>(forest->node_count())};
+  const size_t at = body.find(std::string(reinterpret_cast<const char*>(header), 8));
+  ASSERT_NE(at, std::string::npos);
+  const uint32_t claimed = (1u << 26) - 1;
+  std::memcpy(body.data() + at + 4, &claimed, 4);
+  const uint64_t sum = Fnv1a(body);
+  body.append(reinterpret_cast<const char*>(&sum), 8);
+  const auto status = Forest::Deserialize(body, nullptr).status();
+  EXPECT_TRUE(absl::IsDataLoss(status)) << status;
+  EXPECT_NE(status.message().find("node count"), std::string::npos) << status;
+}
+
 TEST(Forest, RejectsBadTrainingData) {
   LabeledImage im = Halves(true);
   EXPECT_TRUE(absl::IsInvalidArgument(Forest::Train({}, 2, Small()).status()));
