@@ -2,15 +2,16 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 #include <exception>
 #include <filesystem>
 #include <fstream>
+#include <initializer_list>
 #include <sstream>
 #include <string>
 
 #include <pcl/common/io.h>
 #include <pcl/io/pcd_io.h>
-#include <pcl/point_types.h>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -169,22 +170,47 @@ absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
   if (absl::Status s = CheckBodySize(path, header_only, data_type, data_idx); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
   }
-  pcl::PointCloud<pcl::PointXYZRGBL> cloud;
+  // The file is read as PCL's untyped blob and the points are taken from it here, by the
+  // blob's own field offsets: PCL's conversion to a typed cloud copied past the blob for a
+  // header whose fields it read differently the second time (found by
+  // tests/fuzz/labeled_pcd_fuzz).
+  pcl::PCLPointCloud2 blob;
   try {
-    if (pcl::io::loadPCDFile(path, cloud) != 0) {
+    if (reader.read(path, blob) != 0) {
       return absl::InvalidArgumentError(absl::StrCat(path, ": could not be read as PCD"));
     }
   } catch (const std::exception& e) {
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": could not be read as PCD (", e.what(), ")"));
   }
-  if (cloud.height <= 1 || cloud.width > kMaxSide || cloud.height > kMaxSide ||
-      cloud.points.size() != static_cast<size_t>(cloud.width) * cloud.height) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": holds ", cloud.points.size(),
-                                                   " points, not the ", cloud.width, "x",
-                                                   cloud.height, " grid its header names"));
+  if (absl::Status s = CheckFieldLayout(blob); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
   }
-  const int w = static_cast<int>(cloud.width), h = static_cast<int>(cloud.height);
+  const auto field_named =
+      [&blob](std::initializer_list<const char*> names) -> const pcl::PCLPointField* {
+    for (const auto& f : blob.fields) {
+      for (const char* name : names) {
+        if (f.name == name) return &f;
+      }
+    }
+    return nullptr;
+  };
+  const pcl::PCLPointField* z = field_named({"z"});
+  const pcl::PCLPointField* rgba = field_named({"rgba", "rgb"});
+  const pcl::PCLPointField* label = field_named({"label"});
+  if (z == nullptr || rgba == nullptr || label == nullptr ||
+      (label->datatype != pcl::PCLPointField::UINT32 &&
+       label->datatype != pcl::PCLPointField::INT32)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": needs the fields z (float), rgba and label (4-byte integer)"));
+  }
+  if (blob.height <= 1 || blob.width < 1 || blob.width > kMaxSide || blob.height > kMaxSide ||
+      blob.data.size() != size_t{blob.width} * blob.height * blob.point_step) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": holds ", blob.data.size(),
+                                                   " bytes, not the ", blob.width, "x", blob.height,
+                                                   " grid its header names"));
+  }
+  const int w = static_cast<int>(blob.width), h = static_cast<int>(blob.height);
   LabeledFrame out;
   out.frame.intrinsics = KinectDefaultIntrinsics(w, h);
   out.frame.timestamp_s = 1.0;
@@ -194,12 +220,20 @@ absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
   for (int r = 0; r < h; ++r) {
     float* depth = out.frame.depth_m.ptr<float>(r);
     cv::Vec3b* bgr = out.frame.color_bgr.ptr<cv::Vec3b>(r);
-    int* label = out.labels.ptr<int>(r);
+    int* labels = out.labels.ptr<int>(r);
     for (int c = 0; c < w; ++c) {
-      const auto& p = cloud.at(c, r);
-      depth[c] = std::isfinite(p.z) && p.z > 0 ? p.z : 0.0f;
-      bgr[c] = cv::Vec3b(p.b, p.g, p.r);
-      label[c] = static_cast<int>(p.label);
+      const uint8_t* point = blob.data.data() + (size_t{static_cast<uint32_t>(r)} * blob.width +
+                                                 static_cast<uint32_t>(c)) *
+                                                    blob.point_step;
+      float z_m = 0;
+      uint32_t packed = 0;  // 0xAARRGGBB
+      int32_t id = 0;
+      std::memcpy(&z_m, point + z->offset, sizeof(z_m));
+      std::memcpy(&packed, point + rgba->offset, sizeof(packed));
+      std::memcpy(&id, point + label->offset, sizeof(id));
+      depth[c] = std::isfinite(z_m) && z_m > 0 ? z_m : 0.0f;
+      bgr[c] = cv::Vec3b(packed & 0xff, (packed >> 8) & 0xff, (packed >> 16) & 0xff);
+      labels[c] = id;
     }
   }
   return out;

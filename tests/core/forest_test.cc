@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 
 #include <gtest/gtest.h>
@@ -302,6 +303,20 @@ TEST(ReadLabeledPcd, RefusesMalformedFilesBeforePclReadsThem) {
     EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << bad.substr(0, 80) << ": " << r.status();
     EXPECT_NE(r.status().message().find(path), std::string::npos) << r.status();
   }
+}
+
+// Every input labeled_pcd_fuzz found (tests/fuzz/regressions/labeled_pcd_fuzz; each crashed,
+// read outside a buffer or allocated gigabytes inside PCL) is refused with a status.
+TEST(ReadLabeledPcd, EveryFuzzFindingIsRefused) {
+  const std::filesystem::path dir =
+      std::filesystem::path(LIFEMAP_SOURCE_DIR) / "tests/fuzz/regressions/labeled_pcd_fuzz";
+  int files = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir)) {
+    auto read = io::ReadLabeledPcd(e.path().string());
+    EXPECT_TRUE(absl::IsInvalidArgument(read.status())) << e.path() << ": " << read.status();
+    ++files;
+  }
+  EXPECT_GE(files, 7);
 }
 
 // Real data: mOSD table-top scenes, table (labels 1-9) against objects (20 and above).
