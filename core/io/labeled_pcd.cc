@@ -7,6 +7,9 @@
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
+#include <map>
+#include <optional>
+#include <set>
 #include <sstream>
 #include <string>
 
@@ -15,6 +18,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 
 namespace lifemap::io {
 
@@ -28,34 +32,88 @@ namespace {
 // Larger than any depth camera's image; keeps a header's claim from allocating gigabytes.
 constexpr uint32_t kMaxSide = 8192;
 
-// PCL's readHeader allocates the body's buffer from the header's COUNT, WIDTH, HEIGHT and POINTS
-// as they are (a COUNT of 10^56 asked for 200 GB; found by tests/fuzz/labeled_pcd_fuzz): so the
-// header's numbers are read here first and must be whole numbers a camera's cloud can have.
-absl::Status CheckHeaderNumbers(const std::string& path) {
+// The header is read here first, strictly, and PCL sees only files whose header is a plain PCD
+// v0.7 header: PCL 1.13's own header reader threw, allocated from any number (a COUNT of 10^56
+// asked for 200 GB), dropped fields of COUNT 0 in one reading and not another, and corrupted
+// its heap on some headers of repeated and binary-laden lines (all found by
+// tests/fuzz/labeled_pcd_fuzz). Here: printable lines; each key once (VERSION, COUNT and
+// VIEWPOINT optional), no other; unique field names; SIZE 1, 2, 4 or 8 with TYPE I, U or F
+// (F only 4 or 8); COUNT 1-1024; one value per field in each; WIDTH and HEIGHT 1-kMaxSide;
+// POINTS their product; DATA ascii, binary or binary_compressed.
+absl::Status CheckHeader(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
+  std::map<std::string, std::vector<std::string>> lines;
   std::string line;
-  for (int lines = 0; lines < 64 && std::getline(in, line); ++lines) {
-    std::istringstream words(line);
-    std::string key;
-    words >> key;
-    if (key == "DATA") return absl::OkStatus();
-    uint64_t most = 0;
-    if (key == "SIZE") most = 8;
-    if (key == "COUNT") most = 1024;
-    if (key == "WIDTH" || key == "HEIGHT") most = kMaxSide;
-    if (key == "POINTS") most = uint64_t{kMaxSide} * kMaxSide;
-    if (most == 0) continue;
-    for (std::string word; words >> word;) {
-      uint64_t value = 0;
-      // At least 1: PCL drops a field of COUNT 0 from one reading of the header and not from
-      // the other, then copies past its buffer (found by tests/fuzz/labeled_pcd_fuzz).
-      if (!absl::SimpleAtoi(word, &value) || value < 1 || value > most) {
-        return absl::InvalidArgumentError(
-            absl::StrCat(key, " ", word, " is not a whole number from 1 to ", most));
+  for (int n = 0; n < 64 && std::getline(in, line); ++n) {
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    for (const char c : line) {
+      if ((c < 0x20 || c > 0x7e) && c != '\t') {
+        return absl::InvalidArgumentError("the header has a line that is not text");
       }
     }
+    if (line.empty() || line[0] == '#') continue;
+    std::vector<std::string> words =
+        absl::StrSplit(line, absl::ByAnyChar(" \t"), absl::SkipEmpty());
+    if (words.empty()) continue;  // blanks only
+    const std::string key = words.front();
+    words.erase(words.begin());
+    static const std::set<std::string> kKeys = {"VERSION", "FIELDS", "SIZE",      "TYPE",   "COUNT",
+                                                "WIDTH",   "HEIGHT", "VIEWPOINT", "POINTS", "DATA"};
+    if (kKeys.count(key) == 0)
+      return absl::InvalidArgumentError(absl::StrCat("unknown header line '", key, "'"));
+    if (!lines.emplace(key, words).second) {
+      return absl::InvalidArgumentError(absl::StrCat("the header has two ", key, " lines"));
+    }
+    if (key == "DATA") break;
   }
-  return absl::InvalidArgumentError("no DATA line in the first 64 lines: not a PCD header");
+  for (const char* needed : {"FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA"}) {
+    if (lines.count(needed) == 0) {
+      return absl::InvalidArgumentError(absl::StrCat("the header has no ", needed, " line"));
+    }
+  }
+  const auto& fields = lines["FIELDS"];
+  const std::set<std::string> unique(fields.begin(), fields.end());
+  if (fields.empty() || fields.size() > 64 || unique.size() != fields.size()) {
+    return absl::InvalidArgumentError("FIELDS must name 1 to 64 different fields");
+  }
+  if (lines.count("COUNT") == 0) lines["COUNT"] = std::vector<std::string>(fields.size(), "1");
+  for (const char* key : {"SIZE", "TYPE", "COUNT"}) {
+    if (lines[key].size() != fields.size()) {
+      return absl::InvalidArgumentError(absl::StrCat(key, " must give one value per field"));
+    }
+  }
+  const auto whole = [](const std::string& word, uint64_t most) -> std::optional<uint64_t> {
+    uint64_t v = 0;
+    if (!absl::SimpleAtoi(word, &v) || v < 1 || v > most) return std::nullopt;
+    return v;
+  };
+  for (size_t i = 0; i < fields.size(); ++i) {
+    const auto size = whole(lines["SIZE"][i], 8);
+    const std::string& type = lines["TYPE"][i];
+    if (!size || (*size != 1 && *size != 2 && *size != 4 && *size != 8) ||
+        (type != "I" && type != "U" && type != "F") || (type == "F" && *size < 4) ||
+        !whole(lines["COUNT"][i], 1024)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("field '", fields[i], "' has a SIZE, TYPE or COUNT PCD does not define"));
+    }
+  }
+  const auto one = [&lines, &whole](const char* key, uint64_t most) -> std::optional<uint64_t> {
+    const auto& words = lines[key];
+    return words.size() == 1 ? whole(words[0], most) : std::nullopt;
+  };
+  const auto width = one("WIDTH", kMaxSide), height = one("HEIGHT", kMaxSide);
+  const auto points = one("POINTS", uint64_t{kMaxSide} * kMaxSide);
+  if (!width || !height || !points || *points != *width * *height) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("WIDTH and HEIGHT must be whole numbers from 1 to ", kMaxSide,
+                     " and POINTS their product"));
+  }
+  const auto& data = lines["DATA"];
+  if (data.size() != 1 ||
+      (data[0] != "ascii" && data[0] != "binary" && data[0] != "binary_compressed")) {
+    return absl::InvalidArgumentError("DATA must be ascii, binary or binary_compressed");
+  }
+  return absl::OkStatus();
 }
 
 // PCL reads the body by the header's field sizes and offsets without checking them against each
@@ -123,7 +181,7 @@ absl::Status CheckBodySize(const std::string& path, const pcl::PCLPointCloud2& h
 absl::StatusOr<LabeledFrame> ReadLabeledPcd(const std::string& path) {
   if (!std::filesystem::exists(path))
     return absl::NotFoundError(absl::StrCat(path, ": no such file"));
-  if (absl::Status s = CheckHeaderNumbers(path); !s.ok()) {
+  if (absl::Status s = CheckHeader(path); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": ", s.message()));
   }
   pcl::PCLPointCloud2 header_only;
