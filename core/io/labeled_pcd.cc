@@ -16,9 +16,12 @@
 #include <pcl/common/io.h>
 #include <pcl/io/pcd_io.h>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "absl/strings/string_view.h"
+#include "absl/strings/strip.h"
 
 namespace lifemap::io {
 
@@ -64,7 +67,21 @@ absl::Status CheckHeader(const std::string& path) {
     if (!lines.emplace(key, words).second) {
       return absl::InvalidArgumentError(absl::StrCat("the header has two ", key, " lines"));
     }
-    if (key == "DATA") break;
+    if (key == "DATA") {
+      // PCL goes on reading header lines after DATA until one is not: a body whose first bytes
+      // spell a key ("VERSION...", "POINTS...") is read as header and sizes the buffer (206 GB
+      // for one; found by tests/fuzz/labeled_pcd_fuzz).
+      std::string next;
+      std::getline(in, next);
+      const absl::string_view body = absl::StripLeadingAsciiWhitespace(next);
+      for (const std::string& k : kKeys) {
+        if (absl::StartsWith(body, k)) {
+          return absl::InvalidArgumentError(
+              absl::StrCat("the data after DATA begins with '", k, "', which PCL reads as header"));
+        }
+      }
+      break;
+    }
   }
   for (const char* needed : {"FIELDS", "SIZE", "TYPE", "WIDTH", "HEIGHT", "POINTS", "DATA"}) {
     if (lines.count(needed) == 0) {
