@@ -3,6 +3,7 @@
 #pragma once
 
 #include <cstdint>
+#include <string>
 #include <string_view>
 
 namespace lifemap {
@@ -14,6 +15,13 @@ inline uint64_t Fnv1a64(std::string_view bytes) {
     h *= 1099511628211ULL;
   }
   return h;
+}
+
+// Appends the checksum of `bytes` so far (8 bytes, the machine's order: little-endian on every
+// platform lifemap builds for), as the files above end.
+inline void AppendFnv1a64(std::string* bytes) {
+  const uint64_t h = Fnv1a64(*bytes);
+  bytes->append(reinterpret_cast<const char*>(&h), sizeof(h));
 }
 
 }  // namespace lifemap

@@ -568,7 +568,7 @@ std::string Forest::Serialize(const ModelDescription& description) const {
     Put(&out, static_cast<uint32_t>(t.leaves.size()));
     for (float v : t.leaves) Put(&out, v);
   }
-  Put(&out, Fnv1a64(out));
+  AppendFnv1a64(&out);
   return out;
 }
 

@@ -698,7 +698,7 @@ std::string SemanticMap::Serialize() const {
   const uint8_t has_root = m.tree.Root() != nullptr ? 1 : 0;
   append(has_root);
   if (has_root) m.tree.WriteNodes(m.tree.Root(), &out);
-  append(Fnv1a64(out));
+  AppendFnv1a64(&out);
   return out;
 }
 

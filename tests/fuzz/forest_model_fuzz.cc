@@ -38,8 +38,7 @@ extern "C" int LLVMFuzzerInitialize(int* /*argc*/, char*** /*argv*/) {
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   std::string bytes(reinterpret_cast<const char*>(data), size);
-  const uint64_t checksum = lifemap::Fnv1a64(bytes);
-  bytes.append(reinterpret_cast<const char*>(&checksum), sizeof(checksum));
+  lifemap::AppendFnv1a64(&bytes);
   lifemap::forest::ModelDescription description;
   auto forest = lifemap::forest::Forest::Deserialize(bytes, &description);
   if (forest.ok()) {

@@ -63,8 +63,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace lifemap;
   std::string bytes(kMagic, kMagicBytes);
   bytes.append(reinterpret_cast<const char*>(data), size);
-  const uint64_t checksum = Fnv1a64(bytes);
-  bytes.append(reinterpret_cast<const char*>(&checksum), sizeof(checksum));
+  AppendFnv1a64(&bytes);
   auto map = semantic::SemanticMap::Deserialize(bytes, Options());
   if (!map.ok()) return 0;
   // What lifemapd reads of a loaded snapshot: its summary, its voxels (export), its two
