@@ -8,6 +8,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/utf8.h"
 #include "server/convert.h"
 #include "server/services.h"
 
@@ -52,7 +53,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   resp->set_max_inflight_frames(static_cast<uint32_t>(ctx_->config.max_inflight_frames));
   // Where the database lives is for those who administer it.
   if (caller->role >= Role::kOperator) {
-    resp->set_db_path(std::filesystem::absolute(ctx_->config.db_path).string());
+    resp->set_db_path(ToValidUtf8(std::filesystem::absolute(ctx_->config.db_path).string()));
   }
   resp->set_schema_version(static_cast<uint32_t>(ctx_->store->schema_version()));
   resp->set_started_time_s(ctx_->started_time_s);
@@ -142,7 +143,7 @@ grpc::Status AdminServiceImpl::Backup(grpc::ServerContext* context, const v1::Ba
   if (!path.ok()) return ToGrpcStatus(path.status());
   if (auto s = ctx_->store->Backup(*path); !s.ok()) return ToGrpcStatus(s);
   std::error_code ec;
-  resp->set_path(*path);
+  resp->set_path(ToValidUtf8(*path));
   resp->set_bytes(static_cast<uint64_t>(std::filesystem::file_size(*path, ec)));
   spdlog::info("backup written to {}", *path);
   return grpc::Status::OK;
@@ -156,7 +157,7 @@ grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext* context,
   auto problems = ctx_->store->CheckIntegrity();
   if (!problems.ok()) return ToGrpcStatus(problems.status());
   resp->set_ok(problems->empty());
-  for (auto& p : *problems) resp->add_problems(p);
+  for (auto& p : *problems) resp->add_problems(ToValidUtf8(p));
   return grpc::Status::OK;
 }
 

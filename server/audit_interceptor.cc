@@ -11,6 +11,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
+#include "core/common/utf8.h"
 #include "server/auth.h"
 #include "server/clock.h"
 #include "server/services.h"
@@ -76,7 +77,9 @@ std::string RequestText(const google::protobuf::Message& m) {
     }
     absl::StrAppend(&out, out.empty() ? "" : " ", f->name(), "=", value);
   }
-  if (out.size() > kMaxRequestText) out = absl::StrCat(out.substr(0, kMaxRequestText), "...");
+  // Cut on a character boundary: half an "é" would make every later listing of the event
+  // invalid UTF-8, which gRPC clients refuse to read.
+  if (out.size() > kMaxRequestText) out = absl::StrCat(Utf8Prefix(out, kMaxRequestText), "...");
   return out;
 }
 

@@ -13,6 +13,7 @@
 #include "absl/strings/str_format.h"
 #include "core/common/image_codec.h"
 #include "core/common/task_pool.h"
+#include "core/common/utf8.h"
 #include "core/pipeline/keyframe.h"
 #include "server/bounded_queue.h"
 #include "server/convert.h"
@@ -268,7 +269,7 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   auto reject = [&](const absl::Status& s) {
     ctx->frames_rejected.fetch_add(1);
     r.mutable_error()->set_code(static_cast<int>(s.code()));
-    r.mutable_error()->set_message(std::string(s.message()));
+    r.mutable_error()->set_message(ToValidUtf8(s.message()));
     spdlog::debug("frame {} rejected: {}", a.frame.sequence(), std::string(s.message()));
     return std::move(a);
   };
@@ -595,7 +596,8 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
     // (with entropy masks disabled, all are kept: appearance still works, unpruned).
     if (record.ok() && features.ok()) record->features = *features;
     if (!record.ok()) {
-      r.mutable_keyframe()->set_reason(absl::StrCat("not stored: ", record.status().message()));
+      r.mutable_keyframe()->set_reason(
+          ToValidUtf8(absl::StrCat("not stored: ", record.status().message())));
     }
   }
   // A tracked keyframe's verified matches to earlier keyframes of its visit are loop candidates;
@@ -682,7 +684,7 @@ void FinishResult(PendingResult* p) {
       kf->set_keyframe_id(static_cast<uint64_t>(*id));
     } else {
       kf->set_committed(false);
-      kf->set_reason(absl::StrCat("not stored: ", id.status().message()));
+      kf->set_reason(ToValidUtf8(absl::StrCat("not stored: ", id.status().message())));
     }
   }
   timing->set_total_ms(MsBetween(p->received, Clock::now()));
@@ -891,7 +893,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
         refused.set_sequence(p.result.sequence());
         refused.set_timestamp_s(p.result.timestamp_s());
         refused.mutable_error()->set_code(static_cast<int>(p.visit_closed.code()));
-        refused.mutable_error()->set_message(std::string(p.visit_closed.message()));
+        refused.mutable_error()->set_message(ToValidUtf8(p.visit_closed.message()));
         p.result = std::move(refused);
       }
       answering.Push(std::move(p));

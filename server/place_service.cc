@@ -5,6 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/rgbd_frame.h"
+#include "core/common/utf8.h"
 #include "core/pipeline/keyframe.h"
 #include "core/place/floor_plan.h"
 #include "core/place/serialize.h"
@@ -170,7 +171,7 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
     auto* s = resp->add_method_status();
     s->set_method(method);
     s->set_computed(o.status.ok());
-    if (!o.status.ok()) s->set_reason(std::string(o.status.message()));
+    if (!o.status.ok()) s->set_reason(ToValidUtf8(o.status.message()));
   };
   if (architecture) status(v1::MATCH_METHOD_ARCHITECTURE, by_architecture);
   if (appearance) status(v1::MATCH_METHOD_APPEARANCE, by_appearance);
@@ -281,7 +282,7 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
             ? ctx_->appearance->Recognize(features->keypoints, analysis->frame.intrinsics, {})
             : absl::StatusOr<appearance::Recognition>(features.status());
     if (!recognition.ok()) {
-      entry->set_reason(std::string(recognition.status().message()));
+      entry->set_reason(ToValidUtf8(recognition.status().message()));
       last_failure = recognition.status();
       continue;
     }

@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/checksum.h"
 #include "core/common/task_pool.h"
+#include "core/common/utf8.h"
 
 namespace lifemap::forest {
 namespace {
@@ -604,6 +605,8 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
   std::vector<std::string> read_names(names);
   for (auto& n : read_names) {
     if (!r.GetString(&n, 1024)) return corrupt("class name");
+    // Class names are listed back to every client (ListModels, labels): text, never bytes.
+    if (!IsValidUtf8(n)) return corrupt("class name (not UTF-8 text)");
   }
   ModelDescription read;
   read.class_names = std::move(read_names);
@@ -613,7 +616,9 @@ absl::StatusOr<Forest> Forest::Deserialize(const std::string& bytes,
     for (uint32_t& c : read.class_colors) {
       if (!r.Get(&c) || c > 0xFFFFFFu) return corrupt("class colours");
     }
-    if (!r.GetString(&read.training_json, kMaxTrainingJson)) return corrupt("training summary");
+    if (!r.GetString(&read.training_json, kMaxTrainingJson) || !IsValidUtf8(read.training_json)) {
+      return corrupt("training summary");
+    }
   } else {
     for (uint32_t c = 0; c < classes; ++c) {
       if (c >= read.class_names.size()) read.class_names.push_back(absl::StrCat("class", c));

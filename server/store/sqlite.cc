@@ -3,6 +3,7 @@
 #include <sqlite3.h>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/utf8.h"
 
 namespace lifemap::store {
 
@@ -98,9 +99,11 @@ double Statement::ColumnDouble(int column) const { return sqlite3_column_double(
 
 std::string Statement::ColumnText(int column) const {
   const auto* p = sqlite3_column_text(stmt_, column);
-  return p ? std::string(reinterpret_cast<const char*>(p),
-                         static_cast<size_t>(sqlite3_column_bytes(stmt_, column)))
-           : std::string();
+  if (p == nullptr) return std::string();
+  // Text read back is valid UTF-8 whatever was stored (a row written by an older lifemapd, or by
+  // hand): the server lists it in responses, and one bad byte makes a whole listing unreadable.
+  return ToValidUtf8(absl::string_view(reinterpret_cast<const char*>(p),
+                                       static_cast<size_t>(sqlite3_column_bytes(stmt_, column))));
 }
 
 std::string Statement::ColumnBlob(int column) const {

@@ -199,6 +199,17 @@ TEST(Forest, ReadsVersionOneModelFiles) {
   EXPECT_EQ(loaded->node_count(), forest->node_count());
 }
 
+// Class names are listed back to clients as proto3 strings: a model whose names are not UTF-8
+// text (a hand-made file with a valid checksum) is refused at upload, not listed unreadable.
+TEST(Forest, AModelWhoseClassNamesAreNotUtf8IsRefused) {
+  auto forest = Forest::Train({Halves(true)}, 2, Small());
+  ASSERT_TRUE(forest.ok());
+  const auto status =
+      Forest::Deserialize(forest->Serialize(Described({"a", "b\xC3"})), nullptr).status();
+  EXPECT_TRUE(absl::IsDataLoss(status)) << status;
+  EXPECT_NE(status.message().find("class name"), std::string::npos) << status;
+}
+
 TEST(Forest, CorruptAndTruncatedModelsGiveClearErrors) {
   auto forest = Forest::Train({Halves(true)}, 2, Small());
   ASSERT_TRUE(forest.ok());

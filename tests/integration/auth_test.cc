@@ -12,6 +12,8 @@
 #include <map>
 #include <thread>
 
+#include "absl/strings/match.h"
+#include "core/common/utf8.h"
 #include "server/auth.h"
 #include "server/clock.h"
 #include "server/store/store.h"
@@ -396,6 +398,103 @@ TEST_F(AuthTest, TheAuditLogRecordsAdministrativeCallsAndRefusals) {
   auto one = admin_->ListAuditEvents(limited);
   ASSERT_TRUE(one.ok());
   EXPECT_EQ(one->events_size(), 1);
+}
+
+// Issue 33, item 1: a refused call's request text was cut at 512 bytes inside a character, so
+// every later listing of the audit log was invalid UTF-8 and no client could read it.
+TEST_F(AuthTest, ARefusedCallWithLongTextLeavesTheAuditLogReadable) {
+  auto robot = ClientWith(secrets_["robot"]);
+  std::string description;
+  for (int i = 0; i < 300; ++i) description += "\xC3\xA9";  // 300 x "é" = 600 bytes
+  v1::UpdateMapRequest update;
+  update.set_name("lab");
+  update.set_description(description);
+  EXPECT_TRUE(absl::IsPermissionDenied(robot->UpdateMap(update).status()));
+  auto events = admin_->ListAuditEvents({});
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_GE(events->events_size(), 1);
+  const v1::AuditEvent& e = events->events(0);
+  EXPECT_EQ(e.method(), "MapService/UpdateMap");
+  EXPECT_TRUE(IsValidUtf8(e.request()));
+  EXPECT_TRUE(absl::EndsWith(e.request(), "\xC3\xA9...")) << e.request();
+}
+
+// Text stored by an older lifemapd (or by hand) that is not UTF-8 is listed back readable:
+// every text column is made valid as it is read.
+TEST_F(AuthTest, AnAuditEventStoredWithInvalidUtf8IsListedReadable) {
+  server_.reset();
+  {
+    auto store = store::Store::Open(tmp_.File("lifemap.db"), {});
+    ASSERT_TRUE(store.ok()) << store.status();
+    store::AuditEventRecord e;
+    e.time_s = server::NowSeconds();
+    e.key_name = "robot";
+    e.method = "MapService/UpdateMap";
+    e.request = "name=lab description=\xC3\xA9\xC3";  // cut inside the second "é"
+    e.code = "PERMISSION_DENIED";
+    e.message = "bad \xFF byte";
+    e.peer = "ipv4:127.0.0.1:1";
+    ASSERT_TRUE((*store)->AppendAuditEvent(e).ok());
+  }
+  StartServer(config_);
+  admin_ = ClientWith(secrets_["root"]);
+  auto events = admin_->ListAuditEvents({});
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_GE(events->events_size(), 1);
+  EXPECT_EQ(events->events(0).request(), "name=lab description=\xC3\xA9\xEF\xBF\xBD");
+  EXPECT_EQ(events->events(0).message(), "bad \xEF\xBF\xBD byte");
+}
+
+// Hostile but valid text through every stored free-text field (map descriptions, visit robots
+// and labels, the audit log's request text) comes back byte for byte, or cut on a character
+// boundary where the log bounds it, and every listing stays readable.
+TEST_F(AuthTest, HostileTextRoundTripsThroughEveryStoredTextField) {
+  std::string long_e, euros;
+  for (int i = 0; i < 2000; ++i) long_e += "\xC3\xA9";
+  for (int i = 0; i < 85; ++i) euros += "\xE2\x82\xAC";  // 255 bytes
+  const std::vector<std::string> hostile = {
+      long_e,
+      std::string("nul\0inside", 10),
+      "\xF0\x9F\xA4\x96\xF0\x9F\x8F\xA0 robot at home",
+      "\xE2\x80\xAE"
+      "desrever\xE2\x80\xAC and \xEF\xBB\xBF BOM",
+      "'; DROP TABLE maps; -- \" \\ %s %n",
+      euros,
+  };
+  auto op = ClientWith(secrets_["operator"]);
+  for (size_t i = 0; i < hostile.size(); ++i) {
+    SCOPED_TRACE(i);
+    const std::string& text = hostile[i];
+    const std::string map = "hostile-" + std::to_string(i);
+    ASSERT_TRUE(op->CreateMap(map, text).ok());
+    v1::UpdateMapRequest update;
+    update.set_name(map);
+    update.set_description(text + "!");
+    ASSERT_TRUE(op->UpdateMap(update).ok());
+    auto got = op->GetMap(map);
+    ASSERT_TRUE(got.ok()) << got.status();
+    EXPECT_EQ(got->description(), text + "!");
+    const std::string short_text(Utf8Prefix(text, 256));
+    v1::StartVisitRequest start;
+    start.set_map(map);
+    start.set_robot(short_text);
+    start.set_label(short_text);
+    auto visit = op->StartVisit(start);
+    ASSERT_TRUE(visit.ok()) << visit.status();
+    auto visits = op->ListVisits(map);
+    ASSERT_TRUE(visits.ok()) << visits.status();
+    ASSERT_EQ(visits->visits_size(), 1);
+    EXPECT_EQ(visits->visits(0).robot(), short_text);
+    EXPECT_EQ(visits->visits(0).label(), short_text);
+  }
+  auto maps = op->ListMaps();
+  ASSERT_TRUE(maps.ok()) << maps.status();
+  auto events = admin_->ListAuditEvents({});
+  ASSERT_TRUE(events.ok()) << events.status();
+  for (const auto& e : events->events()) {
+    EXPECT_TRUE(IsValidUtf8(e.request())) << e.method();
+    EXPECT_LE(e.request().size(), 515u);
+  }
 }
 
 TEST_F(AuthTest, EachKeysOwnLimitsHoldAndAreNamedWhenReached) {
