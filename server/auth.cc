@@ -314,6 +314,11 @@ absl::Status KeyRing::ReloadLocked() {
     entry->record = std::move(k);
     next.emplace(entry->record.secret_sha256, std::move(entry));
   }
+  // A key gone from the store (its database restored from an older backup) is revoked for the
+  // calls that hold it.
+  for (const auto& [hash, entry] : by_hash_) {
+    if (!next.contains(hash)) entry->revoked->store(true);
+  }
   by_hash_ = std::move(next);
   loaded_s_ = NowSeconds();
   return absl::OkStatus();

@@ -21,10 +21,14 @@
 #include "server/audit_interceptor.h"
 #include "server/auth.h"
 #include "server/instance_lock.h"
+#include "server/periodic_task.h"
 #include "server/services.h"
 #include "server/status_interceptor.h"
 
 namespace lifemap::server {
+namespace {
+class Housekeeper;
+}  // namespace
 
 struct LifemapServer::Impl {
   std::unique_ptr<InstanceLock> lock;  // declared first: released after the store is closed
@@ -50,6 +54,9 @@ struct LifemapServer::Impl {
   std::unique_ptr<AdminServiceImpl> admin_service;
   std::unique_ptr<grpc::Server> grpc_server;
   int port = 0;
+  // Runs the housekeeper every second; stopped first at shutdown.
+  std::unique_ptr<Housekeeper> housekeeper;
+  std::unique_ptr<PeriodicTask> housekeeping;
   absl::Mutex shutdown_mu;
   bool shut_down ABSL_GUARDED_BY(shutdown_mu) = false;
 };
@@ -134,6 +141,47 @@ class ReflectionOption : public grpc::ServerBuilderOption {
   bool offer_;
 };
 
+// Every second: is the database file still the one opened (a deleted or replaced file loses
+// every later write at the next restart: the store refuses them, and this says so loudly and
+// tells health checks), and the keys as the store has them now (a key revoked by `lifemapd keys
+// revoke --db` beside the server ends its open streams at their next message).
+class Housekeeper {
+ public:
+  Housekeeper(store::Store* store, KeyRing* keys, grpc::Server* server, std::string db_path)
+      : store_(store), keys_(keys), server_(server), db_path_(std::move(db_path)) {}
+
+  void Tick() {
+    const absl::Status files = store_->CheckFilesInPlace();
+    const double now = NowSeconds();
+    auto* health = server_->GetHealthCheckService();
+    if (!files.ok()) {
+      if (lost_logged_s_ < 0 || now - lost_logged_s_ >= 60) {
+        spdlog::critical(
+            "{}. Every write is refused with FAILED_PRECONDITION and health checks answer "
+            "NOT_SERVING until the file is back where it was; stop lifemapd, restore the file "
+            "(or a backup) and restart",
+            std::string(files.message()));
+        if (lost_logged_s_ < 0 && health != nullptr) health->SetServingStatus(false);
+        lost_logged_s_ = now;
+      }
+    } else if (lost_logged_s_ >= 0) {
+      spdlog::warn("the database file {} is back in place: writes are accepted again", db_path_);
+      if (health != nullptr) health->SetServingStatus(true);
+      lost_logged_s_ = -1;
+    }
+    if (auto s = keys_->Reload(); !s.ok()) {
+      spdlog::warn("API keys could not be read again: {}", std::string(s.message()));
+    }
+  }
+
+ private:
+  store::Store* store_;
+  KeyRing* keys_;
+  grpc::Server* server_;
+  const std::string db_path_;
+  double lost_logged_s_ = -1;  // when the lost file was last logged; < 0 while in place
+};
+
 }  // namespace
 
 LifemapServer::LifemapServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -144,7 +192,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   if (auto s = config.Validate(); !s.ok()) return s;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
   auto impl = std::make_unique<Impl>();
-  auto lock = InstanceLock::Acquire(config.db_path, config.listen);
+  auto lock = InstanceLock::Acquire(config.db_path);
   if (!lock.ok()) return lock.status();
   impl->lock = *std::move(lock);
   store::StoreOptions store_options;
@@ -224,6 +272,10 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         " (the port is in use, perhaps by another lifemapd, or the address is not one of this "
         "host's)"));
   }
+  impl->housekeeper = std::make_unique<Housekeeper>(impl->store.get(), impl->keys.get(),
+                                                    impl->grpc_server.get(), config.db_path);
+  impl->housekeeping = std::make_unique<PeriodicTask>(absl::Seconds(1),
+                                                      [h = impl->housekeeper.get()] { h->Tick(); });
   spdlog::info("lifemapd {} listening on port {} ({}, {}) with database {}", LIFEMAP_VERSION,
                impl->port, config.tls_cert.empty() ? "plaintext" : "TLS",
                config.AuthRequired() ? "API keys required" : "no authentication", config.db_path);
@@ -251,6 +303,7 @@ void LifemapServer::Shutdown() {
   const auto deadline =
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
+  impl_->housekeeping.reset();
   impl_->grpc_server->Shutdown(deadline);
   // Every handler has returned; fold the key frames still queued for architecture, commit
   // what is still queued, then close the store.

@@ -90,7 +90,7 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
         .Bind(9, record.limits.max_keyframes_per_map)
         .Bind(10, record.limits.max_model_bytes);
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(
             absl::StrCat("an API key named '", record.name,
                          "' exists (revoked keys keep their names): choose another name"));
@@ -106,7 +106,7 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
       StatementScope s(*stmt);
       s->Bind(1, key_id).Bind(2, map_id);
       if (auto st = s->Run(); !st.ok()) {
-        if (absl::IsFailedPrecondition(st)) {
+        if (IsConstraintViolation(st)) {
           return absl::NotFoundError(absl::StrCat("no map with id ", map_id));
         }
         return st;

@@ -125,7 +125,7 @@ absl::StatusOr<ModelRecord> Store::InsertModel(const ModelRecord& record, const 
         .Bind(8, record.nodes)
         .BindBlob(9, data);
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(
             absl::StrCat("model '", record.name,
                          "' already exists: upload under a new name (models are "

@@ -21,7 +21,7 @@ absl::Status Store::PutVisitPlace(const VisitPlaceRecord& r) {
       .Bind(5, r.updated_time_s);
   if (auto st = s->Run(); !st.ok()) {
     // The only constraint that can fail is the visit's foreign key.
-    if (absl::IsFailedPrecondition(st)) {
+    if (IsConstraintViolation(st)) {
       return absl::NotFoundError(absl::StrCat("visit ", r.visit_id, " does not exist"));
     }
     return st;

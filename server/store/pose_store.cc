@@ -26,7 +26,7 @@ absl::StatusOr<int64_t> InsertEdgeLocked(Database* db, const PoseEdgeRecord& e) 
   s->Bind(14, int64_t{e.accepted}).Bind(15, e.reason).Bind(16, e.created_time_s);
   if (auto st = s->Run(); !st.ok()) {
     // The only constraints that can fail are the foreign keys: a keyframe or the map is gone.
-    if (absl::IsFailedPrecondition(st)) {
+    if (IsConstraintViolation(st)) {
       return absl::NotFoundError(absl::StrCat("keyframe ", e.from_keyframe, " or ", e.to_keyframe,
                                               " (or map ", e.map_id,
                                               ") no longer exists; edge not stored"));
@@ -170,7 +170,7 @@ absl::StatusOr<int64_t> Store::ApplyPoseOptimisation(PoseOptimisationRecord r,
     s->Bind(8, int64_t{r.iterations}).Bind(9, r.initial_cost).Bind(10, r.final_cost);
     s->Bind(11, r.solve_ms).Bind(12, r.max_correction_m);
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::NotFoundError(absl::StrCat("map ", r.map_id, " no longer exists"));
       }
       return st;

@@ -59,7 +59,7 @@ absl::Status PutOctree(Database* db, const OctreeTables& t, int64_t key,
     s->Bind(6, static_cast<int64_t>(r.bytes.size())).Bind(7, r.updated_time_s);
     if (bind_extra) bind_extra(**stmt);
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::NotFoundError(absl::StrCat(t.owner, " ", key, " does not exist"));
       }
       return st;

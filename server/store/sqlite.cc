@@ -1,11 +1,29 @@
 #include "server/store/sqlite.h"
 
 #include <sqlite3.h>
+#include <sys/stat.h>
 
+#include "absl/strings/cord.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
 
 namespace lifemap::store {
+
+namespace {
+
+constexpr absl::string_view kFileLostPayload = "lifemap.store/file-lost";
+
+absl::Status FileLost(absl::string_view message) {
+  absl::Status s = absl::FailedPreconditionError(message);
+  s.SetPayload(kFileLostPayload, absl::Cord("1"));
+  return s;
+}
+
+}  // namespace
+
+bool IsConstraintViolation(const absl::Status& status) {
+  return absl::IsFailedPrecondition(status) && !status.GetPayload(kFileLostPayload).has_value();
+}
 
 absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what) {
   const std::string message =
@@ -20,6 +38,13 @@ absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what) {
         ": the disk is full (or a file-size limit or quota was reached, or the disk failed) and "
         "this write was not made; free space or check the disk (writes succeed again without a "
         "restart)"));
+  }
+  if (rc == SQLITE_CONSTRAINT_COMMITHOOK) {
+    return FileLost(absl::StrCat(
+        what,
+        ": not written: the database file (or its -wal) was deleted, moved or replaced while "
+        "lifemapd ran, so a restart would not find this write; put the file back where it was "
+        "and restart lifemapd (the server log says what was found)"));
   }
   switch (rc & 0xff) {
     case SQLITE_CONSTRAINT:
@@ -137,7 +162,53 @@ absl::StatusOr<std::unique_ptr<Database>> Database::Open(const std::string& path
   }
   sqlite3_busy_timeout(db, busy_timeout_ms);
   sqlite3_extended_result_codes(db, 1);
-  return std::unique_ptr<Database>(new Database(db));
+  auto database = std::unique_ptr<Database>(new Database(db, path));
+  database->file_ = IdOf(path);
+  return database;
+}
+
+Database::FileId Database::IdOf(const std::string& path) {
+  struct stat st {};
+  if (stat(path.c_str(), &st) != 0) return {};
+  return {true, static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino)};
+}
+
+void Database::GuardCommits(const std::string& path) {
+  wal_ = IdOf(path + "-wal");
+  guarded_ = true;
+  sqlite3_commit_hook(db_, &Database::OnCommit, this);
+}
+
+absl::Status Database::CheckFilesInPlace() const {
+  const auto differs = [](const FileId& a, const FileId& b) {
+    return a.exists != b.exists || a.dev != b.dev || a.ino != b.ino;
+  };
+  const FileId file = IdOf(path_);
+  if (!file.exists) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "database file ", path_,
+        " was deleted or moved while lifemapd ran: writes are refused, since a restart would not "
+        "find them"));
+  }
+  if (differs(file, file_)) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "database file ", path_,
+        " was replaced by another file while lifemapd ran: writes are refused, since they would go "
+        "to the file this server opened, not the one a restart will open"));
+  }
+  // The WAL holds every commit not yet checkpointed: deleted, a restart loses them.
+  if (guarded_ && wal_.exists && differs(IdOf(path_ + "-wal"), wal_)) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "the database's write-ahead log ", path_,
+        "-wal was deleted or replaced while lifemapd ran: writes are refused, since a restart "
+        "would lose them"));
+  }
+  return absl::OkStatus();
+}
+
+int Database::OnCommit(void* self) {
+  // Non-zero turns the commit into a rollback.
+  return static_cast<Database*>(self)->CheckFilesInPlace().ok() ? 0 : 1;
 }
 
 Database::~Database() {

@@ -89,14 +89,37 @@ class Database {
   int Changes() const;
   sqlite3* raw() { return db_; }
 
+  // From now on every commit on this connection first checks that the database file at
+  // `path` and its WAL are still the files this connection writes (same device and inode):
+  // a file deleted, moved or replaced under a running server would take every later commit
+  // with it at the next restart. Such a commit is rolled back instead, and the statement fails
+  // FAILED_PRECONDITION (SQLITE_CONSTRAINT_COMMITHOOK). Call once the WAL exists.
+  void GuardCommits(const std::string& path);
+  // OK while the files are in place; FAILED_PRECONDITION saying what happened otherwise (also
+  // without GuardCommits: then only the main file is checked, against itself at Open).
+  absl::Status CheckFilesInPlace() const;
+
  private:
-  explicit Database(sqlite3* db) : db_(db) {}
+  struct FileId {
+    bool exists = false;
+    uint64_t dev = 0, ino = 0;
+  };
+  explicit Database(sqlite3* db, std::string path) : db_(db), path_(std::move(path)) {}
+  static FileId IdOf(const std::string& path);
+  static int OnCommit(void* self);
   sqlite3* db_;
+  const std::string path_;
+  FileId file_, wal_;  // as opened; wal_ recorded by GuardCommits
+  bool guarded_ = false;
   std::unordered_map<std::string, std::unique_ptr<Statement>> statements_;
 };
 
 // Maps an SQLite result code (and the connection's message) to a Status.
 absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what);
+// True for a statement refused by a UNIQUE, CHECK or foreign-key constraint (callers turn it
+// into ALREADY_EXISTS or NOT_FOUND); false for a commit refused because the database file is
+// no longer in place (FAILED_PRECONDITION too, but nothing the caller can name).
+bool IsConstraintViolation(const absl::Status& status);
 
 // BEGIN IMMEDIATE ... COMMIT; rolls back unless committed (early returns on error).
 class Transaction {

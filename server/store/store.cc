@@ -719,6 +719,9 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
 
   auto read_db = Database::Open(path, false, true, options.busy_timeout_ms);
   if (!read_db.ok()) return read_db.status();
+  // From here on, a commit to a database file that was deleted or replaced is refused (the
+  // WAL exists now: the connection has read in WAL mode).
+  db->GuardCommits(path);
   {
     absl::MutexLock w(&impl->write_mu);
     impl->write_db = *std::move(write_db);
@@ -770,7 +773,7 @@ absl::StatusOr<MapRecord> Store::CreateMap(const std::string& name, const std::s
       s->BindNull(6);
     }
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(absl::StrCat("map '", name, "' already exists"));
       }
       return st;
@@ -875,7 +878,7 @@ absl::StatusOr<MapRecord> Store::RenameMap(const std::string& name, const std::s
     StatementScope s(*stmt);
     s->Bind(1, name).Bind(2, new_name);
     if (auto st = s->Run(); !st.ok()) {
-      if (absl::IsFailedPrecondition(st)) {
+      if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(absl::StrCat("map '", new_name, "' already exists"));
       }
       return st;
@@ -1331,10 +1334,16 @@ absl::Status Store::Backup(const std::string& path) {
   return absl::OkStatus();
 }
 
+absl::Status Store::CheckFilesInPlace() {
+  // The guarded connection's file ids are fixed once Open returned: no lock needed.
+  return impl_->write_db->CheckFilesInPlace();
+}
+
 absl::StatusOr<std::vector<std::string>> Store::CheckIntegrity() {
+  std::vector<std::string> problems;
+  if (auto s = CheckFilesInPlace(); !s.ok()) problems.emplace_back(s.message());
   absl::MutexLock lock(&impl_->read_mu);
   Database* db = impl_->read_db.get();
-  std::vector<std::string> problems;
   {
     auto stmt = db->Prepare("PRAGMA integrity_check");
     if (!stmt.ok()) return stmt.status();

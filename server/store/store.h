@@ -460,7 +460,12 @@ class Store {
   // `path` once whole: a crash leaves no file at `path` or a whole one. ALREADY_EXISTS if `path`
   // exists (also when it appears meanwhile: never overwritten).
   absl::Status Backup(const std::string& path);
-  // PRAGMA integrity_check + foreign_key_check; returns the problems (empty = ok).
+  // OK while the database file and its WAL are the files this store opened; FAILED_PRECONDITION
+  // saying what happened once one was deleted, moved or replaced (then every write is refused:
+  // a restart would not find it). Two stat() calls; safe from any thread.
+  absl::Status CheckFilesInPlace();
+  // CheckFilesInPlace + PRAGMA integrity_check + foreign_key_check; returns the problems
+  // (empty = ok).
   absl::StatusOr<std::vector<std::string>> CheckIntegrity();
   absl::Status Vacuum();
   // Moves the WAL into the main file (PRAGMA wal_checkpoint(TRUNCATE)).

@@ -312,6 +312,43 @@ TEST_F(AuthTest, ARevokedKeyIsRefusedAndItsOpenStreamEnds) {
   EXPECT_EQ(again->revoked_time_s(), revoked->revoked_time_s());
 }
 
+// Issue 33, item 4: a key revoked with `lifemapd keys revoke --db` beside the running server
+// (another connection to the database, as that command is) ends the key's open stream within
+// KeyRing::kReloadIntervalS, with no other call to make the server read the keys again.
+TEST_F(AuthTest, AKeyRevokedBesideTheServerEndsItsOpenStreamWithinTwoSeconds) {
+  auto robot = ClientWith(secrets_["robot"]);
+  v1::StreamStart start;
+  start.set_map("lab");
+  auto stream = robot->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  v1::Frame frame = testing::MakeFrame(320, 240);
+  ASSERT_TRUE((*stream)->Send(frame));
+  v1::FrameResult result;
+  ASSERT_TRUE((*stream)->Receive(&result));
+  {
+    auto store = store::Store::Open(tmp_.File("lifemap.db"), {});
+    ASSERT_TRUE(store.ok()) << store.status();
+    ASSERT_TRUE((*store)->RevokeApiKey("robot", server::NowSeconds()).ok());
+  }
+  const auto revoked_at = std::chrono::steady_clock::now();
+  double answered_after_s = 0;
+  for (int i = 1; i < 100; ++i) {
+    frame.set_sequence(i);
+    frame.set_timestamp_s(frame.timestamp_s() + 0.1);
+    if (!(*stream)->Send(frame) || !(*stream)->Receive(&result)) break;
+    answered_after_s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - revoked_at).count();
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  (*stream)->CloseSend();
+  while ((*stream)->Receive(&result)) {
+  }
+  const absl::Status ended = (*stream)->Finish();
+  EXPECT_TRUE(absl::IsUnauthenticated(ended)) << ended;
+  EXPECT_LE(answered_after_s, server::KeyRing::kReloadIntervalS + 0.5)
+      << "frames of a revoked key were answered this long after it was revoked";
+}
+
 // Refused calls are audited too, so the log is kept for security.audit_retention_days: older
 // events go at start and every 1,000 events recorded.
 TEST_F(AuthTest, AuditEventsOlderThanTheRetentionAreDeleted) {
