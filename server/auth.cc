@@ -194,13 +194,13 @@ absl::Status ValidateKeyLimits(const store::KeyLimits& l) {
   return absl::OkStatus();
 }
 
-absl::Status KeyUsage::OpenStream(const std::string& key_name, int64_t max) {
+absl::Status KeyUsage::OpenStream(const std::string& key_name, int64_t max,
+                                  absl::string_view limit_name) {
   absl::MutexLock lock(&mu_);
   if (max > 0 && streams_ >= max) {
     return absl::ResourceExhaustedError(absl::StrCat(
-        "API key '", key_name, "' may have ", max,
-        " streams open at once (its max_streams limit) and has: end one, or ask an admin for a "
-        "key with a higher limit"));
+        "API key '", key_name, "' may have ", max, " streams open at once (", limit_name,
+        ") and has: end one, or ask an admin for a key with a higher limit"));
   }
   ++streams_;
   return absl::OkStatus();
@@ -233,8 +233,12 @@ absl::Status KeyUsage::TakeFrame(const std::string& key_name, double per_second)
   return absl::OkStatus();
 }
 
-absl::Status Principal::OpenStream() const {
-  return usage != nullptr ? usage->OpenStream(key_name, limits.max_streams) : absl::OkStatus();
+absl::Status Principal::OpenStream(int64_t server_max_per_key) const {
+  if (usage == nullptr) return absl::OkStatus();
+  if (limits.max_streams > 0 && limits.max_streams <= server_max_per_key) {
+    return usage->OpenStream(key_name, limits.max_streams, "its max_streams limit");
+  }
+  return usage->OpenStream(key_name, server_max_per_key, "the server's max_streams_per_key");
 }
 
 void Principal::CloseStream() const {

@@ -40,8 +40,9 @@ std::optional<Role> RequiredRole(absl::string_view method);
 // token bucket of frames (a second's worth of burst).
 class KeyUsage {
  public:
-  // One more open stream, or RESOURCE_EXHAUSTED naming the limit when `max` are open (0: none).
-  absl::Status OpenStream(const std::string& key_name, int64_t max);
+  // One more open stream, or RESOURCE_EXHAUSTED naming the limit (`limit_name`) when `max` are
+  // open (0: none).
+  absl::Status OpenStream(const std::string& key_name, int64_t max, absl::string_view limit_name);
   void CloseStream();
   // One more frame, or RESOURCE_EXHAUSTED naming the limit when the key has sent
   // `per_second` frames in the last second (0: no limit).
@@ -77,7 +78,9 @@ struct Principal {
   // UNAUTHENTICATED once the key has been revoked.
   absl::Status CheckNotRevoked() const;
   // KeyUsage's checks for this key (OK without a key).
-  absl::Status OpenStream() const;
+  // One more open stream of the key: at most its own max_streams, and at most
+  // `server_max_per_key` (the server's max_streams_per_key) whatever the key's own limit.
+  absl::Status OpenStream(int64_t server_max_per_key) const;
   void CloseStream() const;
   absl::Status TakeFrame() const;
   // Who creates a map, with the key's max_maps (store::Store::CreateMap).

@@ -56,6 +56,20 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("max_streams must be within [1, 1024], got ", max_streams));
   }
+  if (max_streams_per_key < 1 || max_streams_per_key > 1024) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_streams_per_key must be within [1, 1024], got ", max_streams_per_key));
+  }
+  if (!std::isfinite(stream_start_timeout_s) || stream_start_timeout_s <= 0 ||
+      stream_start_timeout_s > 3600) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "stream_start_timeout_s must be within (0, 3600], got ", stream_start_timeout_s));
+  }
+  if (!std::isfinite(stream_idle_timeout_s) || stream_idle_timeout_s <= 0 ||
+      stream_idle_timeout_s > 86400) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "stream_idle_timeout_s must be within (0, 86400], got ", stream_idle_timeout_s));
+  }
   if (max_inflight_frames < 1 || max_inflight_frames > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_inflight_frames must be within [1, 64], got ", max_inflight_frames));
@@ -145,6 +159,12 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
         c.max_message_bytes = (mb > 0 && mb <= 1024) ? mb << 20 : 0;
       } else if (key == "max_streams") {
         c.max_streams = value.get<int>();
+      } else if (key == "max_streams_per_key") {
+        c.max_streams_per_key = value.get<int>();
+      } else if (key == "stream_start_timeout_s") {
+        c.stream_start_timeout_s = value.get<double>();
+      } else if (key == "stream_idle_timeout_s") {
+        c.stream_idle_timeout_s = value.get<double>();
       } else if (key == "max_inflight_frames") {
         c.max_inflight_frames = value.get<int>();
       } else if (key == "keyframe_batch_max") {

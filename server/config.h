@@ -67,13 +67,20 @@ struct ServerConfig {
   std::string db_path = "lifemap.db";
   int max_message_bytes = 16 << 20;  // largest request or response; bigger gets RESOURCE_EXHAUSTED
   int max_streams = 16;              // concurrent StreamFrames calls
-  int max_inflight_frames = 4;       // per stream: frames read but not yet answered
-  int keyframe_batch_max = 32;       // keyframes committed in one transaction at most
-  double shutdown_grace_s = 10.0;    // on SIGTERM, time streams get to finish
-  bool synchronous_full = true;      // SQLite synchronous=FULL (power-loss safe) or NORMAL
-  std::string log_level = "info";    // trace, debug, info, warn, error, off
-  int max_model_mb = 256;            // largest model file UploadModel accepts
-  bool labels_enabled = true;        // label frames when a model is active
+  // Of those, one API key's at most (a key's own max_streams may be lower); one key cannot
+  // take every slot. Without auth there are no keys and only max_streams holds.
+  int max_streams_per_key = 8;
+  // A stream that sends no StreamStart within this is ended (it holds no slot meanwhile, but a
+  // thread); one that then sends no message for stream_idle_timeout_s likewise.
+  double stream_start_timeout_s = 10.0;
+  double stream_idle_timeout_s = 120.0;
+  int max_inflight_frames = 4;     // per stream: frames read but not yet answered
+  int keyframe_batch_max = 32;     // keyframes committed in one transaction at most
+  double shutdown_grace_s = 10.0;  // on SIGTERM, time streams get to finish
+  bool synchronous_full = true;    // SQLite synchronous=FULL (power-loss safe) or NORMAL
+  std::string log_level = "info";  // trace, debug, info, warn, error, off
+  int max_model_mb = 256;          // largest model file UploadModel accepts
+  bool labels_enabled = true;      // label frames when a model is active
   tracking::KeyframeOptions keyframe;
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
   AppearanceOptions appearance;
@@ -118,7 +125,8 @@ std::string BackupDirectory(const ServerConfig& config);
 absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name);
 
 // Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
-// Keys: listen, db, max_message_mb, max_streams, max_inflight_frames, keyframe_batch_max,
+// Keys: listen, db, max_message_mb, max_streams, max_streams_per_key, stream_start_timeout_s,
+// stream_idle_timeout_s, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
 // keyframe {min_translation_m, min_rotation_deg, max_interval_s},
 // frames {min_depth_m, max_depth_m, max_pixels} (depth outside the range is no reading;

@@ -18,6 +18,7 @@
 #include "server/bounded_queue.h"
 #include "server/convert.h"
 #include "server/services.h"
+#include "server/stream_watchdog.h"
 
 namespace lifemap::server {
 namespace {
@@ -783,21 +784,26 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
 grpc::Status FrameServiceImpl::StreamFrames(
     grpc::ServerContext* context,
     grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>* stream) {
-  // Before a stream slot is taken: a caller without a key holds none.
   auto caller = ctx_->keys->Authorize(*context, "FrameService/StreamFrames");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  if (auto s = caller->OpenStream(); !s.ok()) return ToGrpcStatus(s);
-  absl::Cleanup close_stream = [&caller] { caller->CloseStream(); };
-  if (ctx_->active_streams.fetch_add(1) >= ctx_->config.max_streams) {
-    ctx_->active_streams.fetch_sub(1);
-    return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                        absl::StrCat("this server already serves ", ctx_->config.max_streams,
-                                     " streams (max_streams); retry later"));
-  }
-  absl::Cleanup release = [this] { ctx_->active_streams.fetch_sub(1); };
+  // A stream that goes quiet is ended by the watchdog (stream_start_timeout_s for its first
+  // message, stream_idle_timeout_s for each one after).
+  const auto watch = ctx_->stream_watchdog->Start(context);
+  const auto read = [&](v1::StreamFramesRequest* message, double timeout_s) {
+    watch->Waiting(timeout_s);
+    const bool got = stream->Read(message);
+    watch->Received();
+    return got;
+  };
 
   v1::StreamFramesRequest request;
-  if (!stream->Read(&request)) {
+  if (!read(&request, ctx_->config.stream_start_timeout_s)) {
+    if (watch->timed_out()) {
+      return grpc::Status(
+          grpc::StatusCode::DEADLINE_EXCEEDED,
+          absl::StrCat("no StreamStart within ", ctx_->config.stream_start_timeout_s,
+                       " s of opening the stream (stream_start_timeout_s)"));
+    }
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "stream closed before its StreamStart message");
   }
@@ -809,6 +815,19 @@ grpc::Status FrameServiceImpl::StreamFrames(
   if (auto m = FindCallersMap(ctx_->store, *caller, start.map()); !m.ok()) {
     return ToGrpcStatus(m.status());
   }
+  // The slots are taken once the stream said what it is for: a client that opens streams and
+  // sends nothing holds none (and the watchdog ends those).
+  if (auto s = caller->OpenStream(ctx_->config.max_streams_per_key); !s.ok()) {
+    return ToGrpcStatus(s);
+  }
+  absl::Cleanup close_stream = [&caller] { caller->CloseStream(); };
+  if (ctx_->active_streams.fetch_add(1) >= ctx_->config.max_streams) {
+    ctx_->active_streams.fetch_sub(1);
+    return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                        absl::StrCat("this server already serves ", ctx_->config.max_streams,
+                                     " streams (max_streams); retry later"));
+  }
+  absl::Cleanup release = [this] { ctx_->active_streams.fetch_sub(1); };
   auto settings = FrameSettingsFromProto(start.options(), ctx_->config);
   if (!settings.ok()) return ToGrpcStatus(settings.status());
   settings->key_name = caller->key_name;
@@ -905,8 +924,13 @@ grpc::Status FrameServiceImpl::StreamFrames(
   uint64_t frames = 0;
   for (;;) {
     slots.Acquire();
-    if (visit_closed.load() || !stream->Read(&request)) {
+    if (visit_closed.load() || !read(&request, ctx_->config.stream_idle_timeout_s)) {
       slots.Release();
+      if (watch->timed_out()) {
+        status = grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
+                              absl::StrCat("no frame for ", ctx_->config.stream_idle_timeout_s,
+                                           " s (stream_idle_timeout_s)"));
+      }
       break;
     }
     if (!request.has_frame()) {

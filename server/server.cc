@@ -24,6 +24,7 @@
 #include "server/periodic_task.h"
 #include "server/services.h"
 #include "server/status_interceptor.h"
+#include "server/stream_watchdog.h"
 
 namespace lifemap::server {
 namespace {
@@ -52,6 +53,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<PlaceServiceImpl> place_service;
   std::unique_ptr<ModelServiceImpl> model_service;
   std::unique_ptr<AdminServiceImpl> admin_service;
+  std::unique_ptr<StreamWatchdog> stream_watchdog;  // outlives the handlers (grpc_server)
   std::unique_ptr<grpc::Server> grpc_server;
   int port = 0;
   // Runs the housekeeper every second; stopped first at shutdown.
@@ -147,8 +149,13 @@ class ReflectionOption : public grpc::ServerBuilderOption {
 // revoke --db` beside the server ends its open streams at their next message).
 class Housekeeper {
  public:
-  Housekeeper(store::Store* store, KeyRing* keys, grpc::Server* server, std::string db_path)
-      : store_(store), keys_(keys), server_(server), db_path_(std::move(db_path)) {}
+  Housekeeper(store::Store* store, KeyRing* keys, StreamWatchdog* streams, grpc::Server* server,
+              std::string db_path)
+      : store_(store),
+        keys_(keys),
+        streams_(streams),
+        server_(server),
+        db_path_(std::move(db_path)) {}
 
   void Tick() {
     const absl::Status files = store_->CheckFilesInPlace();
@@ -172,11 +179,13 @@ class Housekeeper {
     if (auto s = keys_->Reload(); !s.ok()) {
       spdlog::warn("API keys could not be read again: {}", std::string(s.message()));
     }
+    streams_->CancelExpired();
   }
 
  private:
   store::Store* store_;
   KeyRing* keys_;
+  StreamWatchdog* streams_;
   grpc::Server* server_;
   const std::string db_path_;
   double lost_logged_s_ = -1;  // when the lost file was last logged; < 0 while in place
@@ -231,6 +240,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   ctx.architecture = impl->architecture.get();
   ctx.pose_graph = impl->pose_graph.get();
   ctx.semantic_worker = impl->semantic_worker.get();
+  impl->stream_watchdog = std::make_unique<StreamWatchdog>();
+  ctx.stream_watchdog = impl->stream_watchdog.get();
   ctx.models = impl->models.get();
   ctx.keys = impl->keys.get();
   impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
@@ -273,6 +284,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         "host's)"));
   }
   impl->housekeeper = std::make_unique<Housekeeper>(impl->store.get(), impl->keys.get(),
+                                                    impl->stream_watchdog.get(),
                                                     impl->grpc_server.get(), config.db_path);
   impl->housekeeping = std::make_unique<PeriodicTask>(absl::Seconds(1),
                                                       [h = impl->housekeeper.get()] { h->Tick(); });

@@ -23,6 +23,7 @@
 #include "server/semantics.h"
 #include "server/serial_worker.h"
 #include "server/store/store.h"
+#include "server/stream_watchdog.h"
 #include "server/visit_registry.h"
 
 namespace lifemap::server {
@@ -42,7 +43,8 @@ struct ServiceContext {
   ArchitectureWorker* architecture = nullptr;
   AppearanceIndex* appearance = nullptr;
   PoseGraphWorker* pose_graph = nullptr;
-  SerialWorker* semantic_worker = nullptr;  // fuses keyframes into their visits' octrees
+  SerialWorker* semantic_worker = nullptr;    // fuses keyframes into their visits' octrees
+  StreamWatchdog* stream_watchdog = nullptr;  // ends streams that went quiet
   const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};

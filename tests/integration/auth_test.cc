@@ -14,6 +14,7 @@
 
 #include "absl/strings/match.h"
 #include "core/common/utf8.h"
+#include "lifemap/v1/frame_service.grpc.pb.h"
 #include "server/auth.h"
 #include "server/clock.h"
 #include "server/store/store.h"
@@ -347,6 +348,97 @@ TEST_F(AuthTest, AKeyRevokedBesideTheServerEndsItsOpenStreamWithinTwoSeconds) {
   EXPECT_TRUE(absl::IsUnauthenticated(ended)) << ended;
   EXPECT_LE(answered_after_s, server::KeyRing::kReloadIntervalS + 0.5)
       << "frames of a revoked key were answered this long after it was revoked";
+}
+
+// Issue 33, item 5: streams that never send StreamStart held every slot (an admin was refused
+// 32 s later). Now a slot is taken only after a valid StreamStart, such streams are ended after
+// stream_start_timeout_s, and one key holds at most max_streams_per_key of the slots.
+class StreamSlotsTest : public AuthTest {
+ protected:
+  void Restart(int max_streams, int max_streams_per_key) {
+    server::ServerConfig config = config_;
+    config.max_streams = max_streams;
+    config.max_streams_per_key = max_streams_per_key;
+    config.stream_start_timeout_s = 1;
+    config.stream_idle_timeout_s = 1;
+    StartServer(config);
+    admin_ = ClientWith(secrets_["root"]);
+  }
+  // A stream of `key` that sends nothing.
+  struct SilentStream {
+    grpc::ClientContext ctx;
+    std::unique_ptr<grpc::ClientReaderWriter<v1::StreamFramesRequest, v1::StreamFramesResponse>>
+        call;
+  };
+  std::unique_ptr<SilentStream> OpenSilent(const std::string& key) {
+    auto s = std::make_unique<SilentStream>();
+    s->ctx.AddMetadata("authorization", "Bearer " + key);
+    s->ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    if (stub_ == nullptr) {
+      stub_ = v1::FrameService::NewStub(
+          grpc::CreateChannel(target_, grpc::InsecureChannelCredentials()));
+    }
+    s->call = stub_->StreamFrames(&s->ctx);
+    return s;
+  }
+  absl::StatusOr<std::unique_ptr<client::FrameStream>> Started(client::Client* c) {
+    v1::StreamStart start;
+    start.set_map("lab");
+    return c->OpenStream(start);
+  }
+  std::unique_ptr<v1::FrameService::Stub> stub_;
+};
+
+TEST_F(StreamSlotsTest, StreamsThatNeverSayWhatTheyAreForHoldNoSlotAndAreEnded) {
+  Restart(/*max_streams=*/2, /*max_streams_per_key=*/2);
+  std::vector<std::unique_ptr<SilentStream>> silent;
+  for (int i = 0; i < 6; ++i) silent.push_back(OpenSilent(secrets_["robot"]));
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  auto stream = Started(admin_.get());
+  ASSERT_TRUE(stream.ok()) << stream.status() << ": silent streams took the slots";
+  (*stream)->CloseSend();
+  EXPECT_TRUE((*stream)->Finish().ok());
+  // Each silent stream is ended within stream_start_timeout_s (+ the 1 s watchdog tick).
+  const auto opened = std::chrono::steady_clock::now();
+  for (auto& s : silent) {
+    v1::StreamFramesResponse response;
+    EXPECT_FALSE(s->call->Read(&response));
+    const grpc::Status ended = s->call->Finish();
+    EXPECT_FALSE(ended.ok());
+  }
+  EXPECT_LT(std::chrono::steady_clock::now() - opened, std::chrono::seconds(5));
+}
+
+TEST_F(StreamSlotsTest, OneKeyCannotTakeEverySlot) {
+  Restart(/*max_streams=*/3, /*max_streams_per_key=*/2);
+  auto robot = ClientWith(secrets_["robot"]);
+  auto a = Started(robot.get());
+  auto b = Started(robot.get());
+  ASSERT_TRUE(a.ok() && b.ok());
+  auto c = Started(robot.get());
+  ASSERT_FALSE(c.ok());
+  EXPECT_TRUE(absl::IsResourceExhausted(c.status())) << c.status();
+  EXPECT_NE(c.status().message().find("max_streams_per_key"), std::string::npos) << c.status();
+  auto op = ClientWith(secrets_["operator"]);
+  auto other = Started(op.get());
+  EXPECT_TRUE(other.ok()) << other.status() << ": another key must find the free slot";
+}
+
+TEST_F(StreamSlotsTest, AStreamThatStopsSendingIsEndedAfterTheIdleTimeout) {
+  Restart(/*max_streams=*/2, /*max_streams_per_key=*/2);
+  auto robot = ClientWith(secrets_["robot"]);
+  auto stream = Started(robot.get());
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  ASSERT_TRUE((*stream)->Send(testing::MakeFrame(320, 240)));
+  v1::FrameResult result;
+  ASSERT_TRUE((*stream)->Receive(&result));
+  const auto sent = std::chrono::steady_clock::now();
+  EXPECT_FALSE((*stream)->Receive(&result)) << "the stream must end, not wait for ever";
+  EXPECT_LT(std::chrono::steady_clock::now() - sent, std::chrono::seconds(5));
+  EXPECT_FALSE((*stream)->Finish().ok());
+  // Its slot is free again.
+  auto next = Started(robot.get());
+  EXPECT_TRUE(next.ok()) << next.status();
 }
 
 // Refused calls are audited too, so the log is kept for security.audit_retention_days: older
