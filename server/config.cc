@@ -70,6 +70,14 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "stream_idle_timeout_s must be within (0, 86400], got ", stream_idle_timeout_s));
   }
+  if (!std::isfinite(frame_max_future_s) || frame_max_future_s <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "frames.max_future_s must be a positive number of seconds, got ", frame_max_future_s));
+  }
+  if (!std::isfinite(frame_max_gap_s) || frame_max_gap_s <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "frames.max_gap_s must be a positive number of seconds, got ", frame_max_gap_s));
+  }
   if (max_inflight_frames < 1 || max_inflight_frames > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_inflight_frames must be within [1, 64], got ", max_inflight_frames));
@@ -220,6 +228,10 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             c.pipeline.frame_limits.depth_range.max_m = v.get<float>();
           } else if (k == "max_pixels") {
             c.pipeline.frame_limits.max_pixels = v.get<int64_t>();
+          } else if (k == "max_future_s") {
+            c.frame_max_future_s = v.get<double>();
+          } else if (k == "max_gap_s") {
+            c.frame_max_gap_s = v.get<double>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key frames.", k));

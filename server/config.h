@@ -74,6 +74,12 @@ struct ServerConfig {
   // thread); one that then sends no message for stream_idle_timeout_s likewise.
   double stream_start_timeout_s = 10.0;
   double stream_idle_timeout_s = 120.0;
+  // Frame timestamps (seconds since the Unix epoch) are refused, before anything is stored,
+  // when more than max_future_s ahead of the server's clock or more than max_gap_s after the
+  // previous frame of their visit: one frame stamped in ms or ns would otherwise stay the
+  // visit's latest and every later frame would look as if time went back.
+  double frame_max_future_s = 86400.0;
+  double frame_max_gap_s = 7 * 86400.0;
   int max_inflight_frames = 4;     // per stream: frames read but not yet answered
   int keyframe_batch_max = 32;     // keyframes committed in one transaction at most
   double shutdown_grace_s = 10.0;  // on SIGTERM, time streams get to finish

@@ -275,6 +275,13 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
     return std::move(a);
   };
   if (!refused.ok()) return reject(refused);
+  if (const double ahead = a.frame.timestamp_s() - NowSeconds();
+      ahead > ctx->config.frame_max_future_s) {
+    return reject(absl::InvalidArgumentError(absl::StrFormat(
+        "frame.timestamp_s %.6g is %.3g s ahead of the server's clock (frames.max_future_s: "
+        "%.0f): timestamps are seconds since the Unix epoch, not milli- or nanoseconds",
+        a.frame.timestamp_s(), ahead, ctx->config.frame_max_future_s)));
+  }
   auto encoded = FrameFromProto(a.frame);
   if (!encoded.ok()) return reject(encoded.status());
   pipeline::FrameRequest effective = settings.request;
@@ -487,6 +494,30 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
   }
   absl::MutexLock placing(&visit->place_mu);
   RgbdFrame& f = a.analysis->frame;
+  // Before anything of the frame is tracked or stored: a timestamp far after the visit's last
+  // frame (ms or ns for s) would become the visit's latest and refuse every frame after it.
+  {
+    absl::MutexLock lock(&visit->mu);
+    if (visit->last_frame_s && f.timestamp_s - *visit->last_frame_s > ctx->config.frame_max_gap_s) {
+      const absl::Status s = absl::InvalidArgumentError(absl::StrFormat(
+          "frame.timestamp_s %.6f is %.3g s after the previous frame of visit %d (%.6f; "
+          "frames.max_gap_s: %.0f): timestamps are seconds since the Unix epoch, not milli- or "
+          "nanoseconds; for frames this far apart start a new visit",
+          f.timestamp_s, f.timestamp_s - *visit->last_frame_s, visit->visit_id,
+          *visit->last_frame_s, ctx->config.frame_max_gap_s));
+      ctx->frames_rejected.fetch_add(1);
+      const uint64_t sequence = r.sequence();
+      r.Clear();  // the frame's analysis is not answered: it belongs to no visit
+      r.set_sequence(sequence);
+      r.set_timestamp_s(f.timestamp_s);
+      r.mutable_error()->set_code(static_cast<int>(s.code()));
+      r.mutable_error()->set_message(std::string(s.message()));
+      return p;
+    }
+    if (!visit->last_frame_s || f.timestamp_s > *visit->last_frame_s) {
+      visit->last_frame_s = f.timestamp_s;
+    }
+  }
   std::optional<Pose> odometry_pose;  // a tracked frame's pose in the tracker's own frame
   if (!f.T_world_camera || settings.refine_pose) {
     // No client pose (or one to refine): the server tracks the camera (issue 15); the estimate

@@ -104,7 +104,10 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
     absl::MutexLock lock(&state->mu);
     state->map_name = visit->map_name;
     state->frame_count = visit->frame_count;
-    if (*last) state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
+    if (*last) {
+      state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
+      state->last_frame_s = (*last)->timestamp_s;
+    }
   }
   // A resumed visit's architecture from its stored key frames (stored already).
   RebuildArchitecture(store_, places_, state->map_id, visit_id, visit->map_name,

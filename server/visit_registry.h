@@ -61,6 +61,9 @@ struct VisitState {
   std::string writer_peer ABSL_GUARDED_BY(mu);
   tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
   int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
+  // Timestamp of the visit's latest frame placed (or, resumed, of its last stored keyframe),
+  // seconds; frames far after it are refused (ServerConfig::frame_max_gap_s).
+  std::optional<double> last_frame_s ABSL_GUARDED_BY(mu);
   // Timestamp of the last frame whose appearance matches were sought (FrameOptions.
   // appearance_interval_s), seconds.
   std::optional<double> last_appearance_query_s ABSL_GUARDED_BY(mu);

@@ -780,6 +780,49 @@ TEST_F(ServerTest, ResumedVisitContinuesKeyframeSelection) {
   }
 }
 
+// Issue 33, item 6: one frame stamped in nanoseconds was stored and became the visit's latest,
+// so every later frame, also after resuming, was "time went back 1.3e18 s". Timestamps far
+// ahead of the server's clock or far after the visit's previous frame are refused before
+// anything is stored, and the visit goes on.
+TEST_F(ServerTest, AFarFutureTimestampIsRefusedAndTheVisitGoesOn) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  const uint64_t visit_id = (*stream)->started().visit_id();
+  const double t0 = 1305031102.0;  // TUM fr1's era, seconds
+  ASSERT_TRUE((*stream)->Send(MakeFrame(160, 120, 1.0, t0, 0)));
+  ASSERT_TRUE((*stream)->Send(MakeFrame(160, 120, 1.0, t0 * 1e9, 1)));  // nanoseconds
+  ASSERT_TRUE((*stream)->Send(MakeFrame(160, 120, 1.0, t0 + 1e7, 2)));  // 116 days later
+  ASSERT_TRUE((*stream)->Send(MakeFrame(160, 120, 1.0, t0 + 2.0, 3)));  // fine
+  (*stream)->CloseSend();
+  std::vector<v1::FrameResult> results(4);
+  for (auto& r : results) ASSERT_TRUE((*stream)->Receive(&r));
+  EXPECT_TRUE((*stream)->Finish().ok());
+  EXPECT_TRUE(results[0].keyframe().committed());
+  EXPECT_EQ(results[1].error().code(), static_cast<int>(absl::StatusCode::kInvalidArgument));
+  EXPECT_NE(results[1].error().message().find("ahead of the server's clock"), std::string::npos)
+      << results[1].error().message();
+  EXPECT_EQ(results[2].error().code(), static_cast<int>(absl::StatusCode::kInvalidArgument));
+  EXPECT_NE(results[2].error().message().find("after the previous frame of visit"),
+            std::string::npos)
+      << results[2].error().message();
+  EXPECT_FALSE(results[3].has_error()) << results[3].error().message();
+  EXPECT_TRUE(results[3].keyframe().committed()) << results[3].keyframe().reason();
+  // Resumed, the visit takes frames again.
+  start.set_visit_id(visit_id);
+  auto resumed = client_->OpenStream(start);
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  ASSERT_TRUE((*resumed)->Send(MakeFrame(160, 120, 1.0, t0 + 5.0, 4)));
+  (*resumed)->CloseSend();
+  v1::FrameResult r;
+  ASSERT_TRUE((*resumed)->Receive(&r));
+  EXPECT_FALSE(r.has_error()) << r.error().message();
+  EXPECT_TRUE(r.keyframe().committed()) << r.keyframe().reason();
+  EXPECT_TRUE((*resumed)->Finish().ok());
+}
+
 TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
   auto maps = v1::MapService::NewStub(channel);
