@@ -122,7 +122,7 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
       frames.push_back(*std::move(encoded));
     }
     if (architecture) {
-      auto s = ArchitectureOfFrames(frames, max_results, &by_architecture);
+      auto s = ArchitectureOfFrames(*context, frames, max_results, &by_architecture);
       if (!s.ok()) return s;
     }
     if (appearance) {
@@ -178,11 +178,25 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
-grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const std::vector<EncodedRgbdFrame>& frames,
+namespace {
+
+// A long query stopped between frames because its deadline passed or its client left.
+grpc::Status StoppedAfter(size_t done, size_t frames) {
+  return grpc::Status(grpc::StatusCode::CANCELLED,
+                      absl::StrCat("stopped after ", done, " of ", frames,
+                                   " frames: the call's deadline passed or its client left"));
+}
+
+}  // namespace
+
+grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const grpc::ServerContext& context,
+                                                    const std::vector<EncodedRgbdFrame>& frames,
                                                     size_t max_results, MethodOutcome* out) {
   // Nothing is stored: the frames fold into a plan of their own, ranked against stored visits.
   place::FloorPlanBuilder builder;
   for (size_t i = 0; i < frames.size(); ++i) {
+    // Each frame costs its depth decoding and planes (a 2,000-frame query, minutes of CPU).
+    if (context.IsCancelled()) return StoppedAfter(i, frames.size());
     if (!frames[i].T_world_camera) {
       out->status = absl::InvalidArgumentError(absl::StrCat(
           "frames[", i, "]: pose is missing; architecture needs each key frame's T_world_camera"));
@@ -198,6 +212,7 @@ grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const std::vector<EncodedRgb
                           absl::StrCat("frames[", i, "]: ", s.message()));
     }
   }
+  if (context.IsCancelled()) return StoppedAfter(frames.size(), frames.size());
   auto plan = builder.Build();
   if (!plan.ok()) {
     out->status = absl::FailedPreconditionError(
@@ -258,11 +273,7 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
   for (size_t i = 0; i < frames.size(); ++i) {
     // Each frame costs its entropy mask, features and verification: a call whose deadline
     // passed (or whose client left) stops here instead of finishing for nobody.
-    if (context.IsCancelled()) {
-      return grpc::Status(grpc::StatusCode::CANCELLED,
-                          absl::StrCat("stopped after ", i, " of ", frames.size(),
-                                       " frames: the call's deadline passed or its client left"));
-    }
+    if (context.IsCancelled()) return StoppedAfter(i, frames.size());
     auto* entry = per_frame->Add();
     entry->set_index(static_cast<uint32_t>(i));
     if (frames[i].color.data.empty()) {

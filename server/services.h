@@ -121,7 +121,8 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
   // Each method's answer for a query's frames (not stored) or a stored visit. A non-OK
   // grpc::Status fails the call (a bad frame, a store error); a method that cannot answer
   // says why in its outcome.
-  grpc::Status ArchitectureOfFrames(const std::vector<EncodedRgbdFrame>& frames, size_t max_results,
+  grpc::Status ArchitectureOfFrames(const grpc::ServerContext& context,
+                                    const std::vector<EncodedRgbdFrame>& frames, size_t max_results,
                                     MethodOutcome* out);
   // Stops (CANCELLED) between frames once the call's deadline has passed or its client left.
   grpc::Status AppearanceOfFrames(

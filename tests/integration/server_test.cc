@@ -19,6 +19,7 @@
 #include "core/io/tum_dataset.h"
 #include "lifemap/v1/map_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
+#include "server/convert.h"
 #include "server/server.h"
 #include "server/store/store.h"
 #include "tests/integration/server_fixture.h"
@@ -910,6 +911,30 @@ TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
 
 // Issue 17, deadlines: a place query over many frames whose deadline passes stops on the server
 // too (it does not go on spending CPU for nobody).
+// The same for a query by architecture (issue 33, item 7: 6 s of CPU after a 1 s deadline).
+TEST_F(ServerTest, AnArchitectureQueryWhoseDeadlinePassesStopsOnTheServer) {
+  v1::QueryPlaceRequest req;
+  req.add_methods(v1::MATCH_METHOD_ARCHITECTURE);
+  for (int i = 0; i < 2000; ++i) {
+    v1::Frame* f = req.add_frames();
+    *f = testing::MakeFrame(320, 240);
+    Pose pose;
+    pose.translation = Eigen::Vector3d(0.01 * i, 0, 0);
+    server::PoseToProto(pose, f->mutable_pose());
+  }
+  auto options = client::ClientOptions::At(target_);
+  options.call_timeout_s = 0.5;
+  auto hurried = client::Client::Connect(options);
+  ASSERT_TRUE(hurried.ok());
+  const auto s = (*hurried)->QueryPlace(req).status();
+  EXPECT_TRUE(absl::IsDeadlineExceeded(s)) << s;
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  const double before = client_->GetStats()->process_cpu_s();
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  const double used = client_->GetStats()->process_cpu_s() - before;
+  EXPECT_LT(used, 0.5) << "the server went on with the query for " << used << " s of CPU";
+}
+
 TEST_F(ServerTest, AQueryWhoseDeadlinePassesStopsOnTheServer) {
   v1::QueryPlaceRequest req;
   req.add_methods(v1::MATCH_METHOD_APPEARANCE);
