@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <limits>
@@ -1297,13 +1298,28 @@ absl::Status Store::Backup(const std::string& path) {
         absl::StrCat("directory ", fs::path(path).parent_path().string(), " does not exist"));
   }
   // Written under another name and linked into place when whole and closed (its WAL folded
-  // in): a kill meanwhile leaves only the .partial file, never a torn backup under `path`.
-  const std::string partial = path + ".partial";
+  // in): a kill meanwhile leaves only the partial file, never a torn backup under `path`. The
+  // partial name is hidden and unique (".NAME.partial-XXXXXX", made by mkstemp): no backup name
+  // may start with '.', so no backup's partial file is ever another backup, and two backups at
+  // once never share one. Nothing existing is removed first.
+  const fs::path target(path);
+  std::string partial =
+      (target.parent_path() / ("." + target.filename().string() + ".partial-XXXXXX")).string();
+  const int partial_fd = mkstemp(partial.data());
+  if (partial_fd < 0) {
+    const int err = errno;
+    return absl::FailedPreconditionError(absl::StrCat("backup: cannot create a file in ",
+                                                      target.parent_path().string(), ": ",
+                                                      std::strerror(err)));
+  }
+  close(partial_fd);  // an empty file: SQLite takes it for a new database
   std::error_code ec;
-  for (const char* suffix : {"", "-wal", "-shm", "-journal"}) fs::remove(partial + suffix, ec);
   {
     auto dest = Database::Open(partial, true, false, 5000);
-    if (!dest.ok()) return dest.status();
+    if (!dest.ok()) {
+      fs::remove(partial, ec);
+      return dest.status();
+    }
     absl::MutexLock lock(&impl_->read_mu);
     sqlite3_backup* backup =
         sqlite3_backup_init((*dest)->raw(), "main", impl_->read_db->raw(), "main");
@@ -1318,7 +1334,11 @@ absl::Status Store::Backup(const std::string& path) {
       return SqliteError(nullptr, rc, "backup");
     }
     // Everything in the main file (journal_mode=DELETE), synced, before it gets its name.
-    if (auto s = (*dest)->Exec("PRAGMA journal_mode=DELETE"); !s.ok()) return s;
+    if (auto s = (*dest)->Exec("PRAGMA journal_mode=DELETE"); !s.ok()) {
+      dest->reset();
+      fs::remove(partial, ec);
+      return s;
+    }
   }
   // link() fails rather than replace a file that appeared under `path` meanwhile.
   if (link(partial.c_str(), path.c_str()) != 0) {

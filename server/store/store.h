@@ -456,7 +456,8 @@ class Store {
 
   // Administration.
   absl::StatusOr<StoreStats> Stats();
-  // Online backup to a new file (sqlite3 backup API), written as `path`.partial and linked to
+  // Online backup to a new file (sqlite3 backup API), written as a hidden ".NAME.partial-XXXXXX"
+  // beside it (unique; nothing existing is removed) and linked to
   // `path` once whole: a crash leaves no file at `path` or a whole one. ALREADY_EXISTS if `path`
   // exists (also when it appears meanwhile: never overwritten).
   absl::Status Backup(const std::string& path);

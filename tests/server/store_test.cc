@@ -203,7 +203,23 @@ TEST_F(StoreTest, DataSurvivesReopen) {
 TEST_F(StoreTest, BackupIsAReadableCopy) {
   ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
   EXPECT_TRUE(absl::IsInvalidArgument(store_->Backup("relative.db")));
+  // Issue 33, item 8: a backup named NAME deleted the backup named NAME.partial (and its
+  // -wal/-shm), which it took for its own leftover.
+  for (const char* other : {"backup.db.partial", "backup.db.partial-wal"}) {
+    std::ofstream(tmp_.File(other)) << "another backup's bytes";
+  }
   ASSERT_TRUE(store_->Backup(tmp_.File("backup.db")).ok());
+  for (const char* other : {"backup.db.partial", "backup.db.partial-wal"}) {
+    std::ifstream in(tmp_.File(other));
+    std::string kept;
+    std::getline(in, kept);
+    EXPECT_EQ(kept, "another backup's bytes") << other << " was touched";
+  }
+  // Nothing of the backup's own partial file is left.
+  for (const auto& e : std::filesystem::directory_iterator(tmp_.path())) {
+    EXPECT_EQ(e.path().filename().string().rfind(".backup.db.partial", 0), std::string::npos)
+        << e.path();
+  }
   EXPECT_TRUE(absl::IsAlreadyExists(store_->Backup(tmp_.File("backup.db"))));
   auto copy = Store::Open(tmp_.File("backup.db"));
   ASSERT_TRUE(copy.ok()) << copy.status();
@@ -609,7 +625,7 @@ TEST(SemanticSnapshotStore, ReplacesWholeSnapshotsInChunksAndCascades) {
 // Issue 16: a crash while a snapshot is written leaves the previous snapshot readable. A child
 // process writes snapshots (three chunks each, every one its own size and filler) until it is
 // killed; the one read afterwards is one of them, whole.
-// Issue 17: a backup killed half-way leaves no file under its name (only NAME.partial), and
+// Issue 17: a backup killed half-way leaves no file under its name (only a hidden partial), and
 // every backup under its name is whole.
 TEST(StoreBackup, AKillDuringABackupNeverLeavesATornBackupUnderItsName) {
   testing::TempDir tmp;
