@@ -18,6 +18,7 @@
 #include "server/bounded_queue.h"
 #include "server/convert.h"
 #include "server/services.h"
+#include "server/stream_read.h"
 #include "server/stream_watchdog.h"
 
 namespace lifemap::server {
@@ -822,13 +823,20 @@ grpc::Status FrameServiceImpl::StreamFrames(
   const auto watch = ctx_->stream_watchdog->Start(context);
   const auto read = [&](v1::StreamFramesRequest* message, double timeout_s) {
     watch->Waiting(timeout_s);
-    const bool got = stream->Read(message);
+    const ReadOutcome got = ReadMessage(stream, message);
     watch->Received();
     return got;
   };
 
   v1::StreamFramesRequest request;
-  if (!read(&request, ctx_->config.stream_start_timeout_s)) {
+  const ReadOutcome first = read(&request, ctx_->config.stream_start_timeout_s);
+  if (first == ReadOutcome::kUnparsable) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "the stream's first message (StreamStart) could not be parsed: most often "
+                        "a string (map, robot, visit_label) holds bytes that are not valid UTF-8; "
+                        "send UTF-8 text");
+  }
+  if (first == ReadOutcome::kEnd) {
     if (watch->timed_out()) {
       return grpc::Status(
           grpc::StatusCode::DEADLINE_EXCEEDED,
@@ -955,7 +963,20 @@ grpc::Status FrameServiceImpl::StreamFrames(
   uint64_t frames = 0;
   for (;;) {
     slots.Acquire();
-    if (visit_closed.load() || !read(&request, ctx_->config.stream_idle_timeout_s)) {
+    const ReadOutcome got = visit_closed.load()
+                                ? ReadOutcome::kEnd
+                                : read(&request, ctx_->config.stream_idle_timeout_s);
+    if (got == ReadOutcome::kUnparsable) {
+      slots.Release();
+      status = grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("message ", frames + 2,
+                       " of the stream could not be parsed (not a StreamFramesRequest, or a "
+                       "string in it that is not valid UTF-8); the frames before it are answered "
+                       "and the stream ends"));
+      break;
+    }
+    if (got == ReadOutcome::kEnd) {
       slots.Release();
       if (watch->timed_out()) {
         status = grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,

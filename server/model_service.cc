@@ -6,6 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "server/convert.h"
 #include "server/services.h"
+#include "server/stream_read.h"
 
 namespace lifemap::server {
 namespace {
@@ -65,7 +66,16 @@ grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext* context,
   v1::UploadModelChunk chunk;
   std::string name, data;
   bool first = true;
-  while (reader->Read(&chunk)) {
+  for (;;) {
+    const ReadOutcome got = ReadMessage(reader, &chunk);
+    if (got == ReadOutcome::kEnd) break;
+    if (got == ReadOutcome::kUnparsable) {
+      return grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("chunk ", first ? 1 : 2, first ? "" : " or later",
+                       " of the upload could not be parsed: most often the model's name holds "
+                       "bytes that are not valid UTF-8; send UTF-8 text"));
+    }
     if (first) {
       name = chunk.name();
       if (auto s = store::ValidateName(name, "model"); !s.ok()) return ToGrpcStatus(s);

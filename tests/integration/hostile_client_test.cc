@@ -9,6 +9,7 @@
 #include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/impl/codegen/client_unary_call.h>
+#include <grpcpp/support/sync_stream.h>
 #include <gtest/gtest.h>
 
 #include "tests/integration/model_fixture.h"
@@ -245,6 +246,82 @@ TEST_F(HostileClientTest, InvalidUtf8IsInvalidArgumentWithAMessage) {
   EXPECT_NE(s.error_message().find("UTF-8"), std::string::npos) << s.error_message();
   EXPECT_NE(s.error_message().find("CreateMap"), std::string::npos) << s.error_message();
   EXPECT_TRUE(client_->ListMaps()->maps().empty());
+}
+
+// A client stream of raw messages (bytes as the client sends them, parsed or not).
+using RawStream = grpc::ClientReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>;
+std::unique_ptr<RawStream> OpenRawStream(grpc::Channel* channel, const char* method,
+                                         grpc::ClientContext* ctx) {
+  return std::unique_ptr<RawStream>(
+      grpc::internal::ClientReaderWriterFactory<grpc::ByteBuffer, grpc::ByteBuffer>::Create(
+          channel, grpc::internal::RpcMethod(method, grpc::internal::RpcMethod::BIDI_STREAMING),
+          ctx));
+}
+grpc::ByteBuffer Bytes(const std::string& bytes) {
+  grpc::Slice slice(bytes);
+  return grpc::ByteBuffer(&slice, 1);
+}
+
+// Issue 33, item 11: a message that does not parse ended the stream with OK (the next frame
+// never answered), and a StreamStart or an upload whose name held invalid UTF-8 was told
+// "stream closed before its StreamStart" / "no chunks". Each is INVALID_ARGUMENT saying so.
+TEST_F(HostileClientTest, AStreamMessageThatDoesNotParseEndsTheStreamSayingSo) {
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
+  {
+    grpc::ClientContext ctx;
+    auto stream = OpenRawStream(channel.get(), "/lifemap.v1.FrameService/StreamFrames", &ctx);
+    v1::StreamFramesRequest start;
+    start.mutable_start()->set_map("lab\xff\xfe");  // serialised as is: invalid UTF-8
+    ASSERT_TRUE(stream->Write(Bytes(start.SerializeAsString())));
+    stream->WritesDone();
+    grpc::ByteBuffer answer;
+    while (stream->Read(&answer)) {
+    }
+    const grpc::Status s = stream->Finish();
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+    EXPECT_NE(s.error_message().find("StreamStart"), std::string::npos) << s.error_message();
+    EXPECT_NE(s.error_message().find("UTF-8"), std::string::npos) << s.error_message();
+  }
+  {
+    grpc::ClientContext ctx;
+    auto stream = OpenRawStream(channel.get(), "/lifemap.v1.FrameService/StreamFrames", &ctx);
+    v1::StreamFramesRequest start, frame;
+    start.mutable_start()->set_map("lab");
+    *frame.mutable_frame() = MakeFrame(160, 120, 1.5, 1000.0, 0);
+    ASSERT_TRUE(stream->Write(Bytes(start.SerializeAsString())));
+    ASSERT_TRUE(stream->Write(Bytes(frame.SerializeAsString())));
+    stream->Write(Bytes(std::string("\xff\xff\xff\xff\x0f", 5)));  // no protobuf at all
+    *frame.mutable_frame() = MakeFrame(160, 120, 1.5, 1001.0, 1);
+    stream->Write(Bytes(frame.SerializeAsString()));
+    stream->WritesDone();
+    int results = 0;
+    grpc::ByteBuffer answer;
+    while (stream->Read(&answer)) ++results;
+    const grpc::Status s = stream->Finish();
+    EXPECT_EQ(results, 2) << "StreamStarted and the first frame's result";
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+    EXPECT_NE(s.error_message().find("message 3 of the stream could not be parsed"),
+              std::string::npos)
+        << s.error_message();
+  }
+  {
+    grpc::ClientContext ctx;
+    auto stream = OpenRawStream(channel.get(), "/lifemap.v1.ModelService/UploadModel", &ctx);
+    v1::UploadModelChunk chunk;
+    chunk.set_name("model\xff");
+    chunk.set_data(testing::TwoColorModel());
+    stream->Write(Bytes(chunk.SerializeAsString()));
+    stream->WritesDone();
+    grpc::ByteBuffer answer;
+    while (stream->Read(&answer)) {
+    }
+    const grpc::Status s = stream->Finish();
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+    EXPECT_NE(s.error_message().find("name"), std::string::npos) << s.error_message();
+    EXPECT_NE(s.error_message().find("UTF-8"), std::string::npos) << s.error_message();
+  }
+  EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
 }
 
 }  // namespace
