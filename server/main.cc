@@ -142,7 +142,13 @@ int main(int argc, char** argv) {
   auto* keys_revoke = keys->add_subcommand("revoke", "revoke a key");
   keys_revoke->add_option("--db", keys_db, "the server's database file")->required();
   keys_revoke->add_option("--name", key_name, "the key's name")->required();
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    // Help and --version exit 0; every bad flag, value or missing file 2, as documented (CLI11's
+    // own codes differ by kind: 105 for a file that does not exist).
+    return app.exit(e) == 0 ? 0 : 2;
+  }
   for (auto* action : {keys_create, keys_list, keys_revoke}) {
     if (action->parsed()) {
       return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps);

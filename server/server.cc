@@ -14,6 +14,10 @@
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server.h>
 #include <grpcpp/server_builder.h>
+#include <openssl/bio.h>
+#include <openssl/evp.h>
+#include <openssl/pem.h>
+#include <openssl/x509.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -100,6 +104,39 @@ absl::StatusOr<std::string> ReadPemFile(const std::string& path, absl::string_vi
   return data.str();
 }
 
+// FAILED_PRECONDITION unless `key_pem` holds the private key of the certificate in `cert_pem`
+// (gRPC would fail to listen and say nothing of why: the server reported the port in use).
+absl::Status CheckKeyBelongsToCertificate(const std::string& cert_pem, const std::string& key_pem,
+                                          const ServerConfig& config) {
+  const auto bio = [](const std::string& pem) {
+    return std::unique_ptr<BIO, decltype(&BIO_free)>(
+        BIO_new_mem_buf(pem.data(), static_cast<int>(pem.size())), &BIO_free);
+  };
+  auto cert_bio = bio(cert_pem);
+  std::unique_ptr<X509, decltype(&X509_free)> cert(
+      PEM_read_bio_X509(cert_bio.get(), nullptr, nullptr, nullptr), &X509_free);
+  if (cert == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat("the TLS certificate file ", config.tls_cert,
+                                                   " (--tls-cert) holds no readable certificate"));
+  }
+  auto key_bio = bio(key_pem);
+  std::unique_ptr<EVP_PKEY, decltype(&EVP_PKEY_free)> key(
+      PEM_read_bio_PrivateKey(key_bio.get(), nullptr, nullptr, nullptr), &EVP_PKEY_free);
+  if (key == nullptr) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the TLS private key file ", config.tls_key,
+                     " (--tls-key) holds no readable private key (a key protected by a "
+                     "passphrase cannot be used: give lifemapd an unencrypted one, readable only "
+                     "by its user)"));
+  }
+  if (X509_check_private_key(cert.get(), key.get()) != 1) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "the TLS private key ", config.tls_key, " (--tls-key) does not belong to the certificate ",
+        config.tls_cert, " (--tls-cert): give the key the certificate was made for"));
+  }
+  return absl::OkStatus();
+}
+
 // Plaintext, or TLS from the configured PEM files (with client certificates required and
 // verified against tls_client_ca when given).
 absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> ServerCredentialsFor(
@@ -109,6 +146,7 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> ServerCredentialsFor(
   if (!cert.ok()) return cert.status();
   auto key = ReadPemFile(config.tls_key, "TLS private key (--tls-key)");
   if (!key.ok()) return key.status();
+  if (auto s = CheckKeyBelongsToCertificate(*cert, *key, config); !s.ok()) return s;
   grpc::SslServerCredentialsOptions options;
   options.pem_key_cert_pairs.push_back({*key, *cert});
   if (!config.tls_client_ca.empty()) {

@@ -79,6 +79,14 @@ TEST_F(TlsTest, AServerWithAnUnreadableCertificateDoesNotStart) {
   s = server::LifemapServer::Start(config);
   ASSERT_FALSE(s.ok());
   EXPECT_NE(s.status().message().find("no PEM block"), std::string::npos) << s.status();
+  // Issue 33, item 9: a key that is not the certificate's was reported as "the port is in use".
+  config.tls_cert = tmp_.File("server.pem");
+  config.tls_key = tmp_.File("client.key");
+  s = server::LifemapServer::Start(config);
+  ASSERT_FALSE(s.ok());
+  EXPECT_NE(s.status().message().find("does not belong to the certificate"), std::string::npos)
+      << s.status();
+  EXPECT_EQ(s.status().message().find("in use"), std::string::npos) << s.status();
 }
 
 }  // namespace
