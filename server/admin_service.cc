@@ -91,6 +91,24 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::
                                         v1::Stats* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/GetStats");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (!caller->every_map) {
+    // A key limited to some maps sees the counts of those only, and nothing of the server's
+    // (its file, its streams, its other robots' frames).
+    auto maps = ctx_->store->ListMaps();
+    if (!maps.ok()) return ToGrpcStatus(maps.status());
+    uint64_t visits = 0, keyframes = 0, count = 0;
+    for (const auto& m : *maps) {
+      if (!caller->MayUseMap(m.id)) continue;
+      ++count;
+      visits += static_cast<uint64_t>(m.visit_count);
+      keyframes += static_cast<uint64_t>(m.keyframe_count);
+    }
+    resp->set_maps(static_cast<uint32_t>(count));
+    resp->set_visits(static_cast<uint32_t>(visits));
+    resp->set_keyframes(keyframes);
+    resp->set_limited_to_maps(true);
+    return grpc::Status::OK;
+  }
   auto st = ctx_->store->Stats();
   if (!st.ok()) return ToGrpcStatus(st.status());
   resp->set_maps(static_cast<uint32_t>(st->maps));

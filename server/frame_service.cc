@@ -801,8 +801,9 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
   auto v = ctx->store->GetVisit(static_cast<int64_t>(visit_id));
   if (!v.ok()) return v.status();
   if (v->map_id != m->id) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("visit ", visit_id, " belongs to map '", v->map_name, "', not '", map, "'"));
+    // The other map is not named: a key limited to some maps must learn nothing of others.
+    return absl::NotFoundError(
+        absl::StrCat("map '", map, "' has no visit ", visit_id, " (ListVisits names its visits)"));
   }
   if (v->ended) {
     return absl::FailedPreconditionError(

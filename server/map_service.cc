@@ -138,6 +138,11 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext* context,
   if (auto m = FindCallersMap(ctx_->store, *caller, req->name()); !m.ok()) {
     return ToGrpcStatus(m.status());
   }
+  // Map names are one name space over every map: a key limited to some maps would learn from
+  // ALREADY_EXISTS which names other maps have.
+  if (auto s = caller->CheckEveryMap("renaming maps (names are shared by every map)"); !s.ok()) {
+    return ToGrpcStatus(s);
+  }
   if (auto s = store::ValidateMapName(req->new_name()); !s.ok()) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         absl::StrCat("new_name: ", s.message()));

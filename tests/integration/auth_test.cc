@@ -234,6 +234,29 @@ TEST_F(AuthTest, AKeyLimitedToMapsSeesAndWritesOnlyThose) {
   EXPECT_TRUE(absl::IsPermissionDenied(lab_operator->DeleteMap("hall").status()));
   EXPECT_TRUE(admin_->GetMap("hall").ok());
 
+  // Issue 33, item 10: nothing of other maps leaks through errors or stats.
+  // A stream naming its map and another map's visit: the other map is not named.
+  start.set_map("lab");
+  start.set_visit_id(hall_visit->id());
+  const auto wrong_visit = robot->OpenStream(start).status();
+  EXPECT_TRUE(absl::IsNotFound(wrong_visit)) << wrong_visit;
+  EXPECT_EQ(wrong_visit.message().find("hall"), std::string::npos) << wrong_visit;
+  // Renaming would learn from ALREADY_EXISTS which names are taken: not for a limited key.
+  const auto renamed = lab_operator->RenameMap("lab", "hall");
+  EXPECT_TRUE(absl::IsPermissionDenied(renamed.status())) << renamed.status();
+  EXPECT_EQ(renamed.status().message().find("exists"), std::string::npos) << renamed.status();
+  // Stats count its maps only and say nothing of the server's.
+  auto stats = lab_operator->GetStats();
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_TRUE(stats->limited_to_maps());
+  EXPECT_EQ(stats->maps(), 1u);
+  EXPECT_EQ(stats->db_bytes(), 0u);
+  EXPECT_EQ(stats->frames_processed(), 0u);
+  auto all = admin_->GetStats();
+  ASSERT_TRUE(all.ok());
+  EXPECT_EQ(all->maps(), 2u);
+  EXPECT_FALSE(all->limited_to_maps());
+
   // Deleting its only map leaves the key limited (to nothing), never unlimited.
   ASSERT_TRUE(admin_->DeleteMap("lab").ok());
   auto none = robot->ListMaps();
