@@ -172,10 +172,20 @@ absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> CreateApiKey(
   record.role = std::string(RoleName(role));
   record.every_map = maps.empty();
   record.limits = limits;
-  for (const auto& map_name : maps) {
-    if (auto s = store::ValidateMapName(map_name); !s.ok()) return s;
+  for (size_t i = 0; i < maps.size(); ++i) {
+    const std::string& map_name = maps[i];
+    if (auto s = store::ValidateMapName(map_name); !s.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat("maps: ", s.message()));
+    }
+    if (std::find(maps.begin(), maps.begin() + static_cast<std::ptrdiff_t>(i), map_name) !=
+        maps.begin() + static_cast<std::ptrdiff_t>(i)) {
+      // Stored twice, the key's second row failed the store's uniqueness as "no map with id".
+      return absl::InvalidArgumentError(
+          absl::StrCat("maps: '", map_name, "' is named twice; name each map once"));
+    }
     auto map = store->GetMap(map_name);
-    if (!map.ok()) return map.status();
+    if (!map.ok())
+      return absl::Status(map.status().code(), absl::StrCat("maps: ", map.status().message()));
     record.map_ids.push_back(map->id);
   }
   const std::string secret = NewApiKeySecret();

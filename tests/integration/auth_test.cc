@@ -275,6 +275,14 @@ TEST_F(AuthTest, CreateApiKeyValidatesWhatItIsGiven) {
   req.set_role(v1::ROLE_ROBOT);
   req.set_maps(0, "nowhere");
   EXPECT_TRUE(absl::IsNotFound(admin_->CreateApiKey(req).status()));
+  // Issue 33, item 12: a map named twice was "no map with id 1 [NOT_FOUND]".
+  req.set_maps(0, "lab");
+  req.add_maps("lab");
+  const auto twice = admin_->CreateApiKey(req).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(twice)) << twice;
+  EXPECT_NE(twice.message().find("maps: 'lab' is named twice"), std::string::npos) << twice;
+  req.mutable_maps()->RemoveLast();
+  req.set_maps(0, "nowhere");
   req.set_name("../etc");
   EXPECT_TRUE(absl::IsInvalidArgument(admin_->CreateApiKey(req).status()));
   req.set_name("robot");
