@@ -1,11 +1,21 @@
 #include "server/convert.h"
 
+#include <limits>
+
 #include <algorithm>
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
 
 namespace lifemap::server {
+
+absl::StatusOr<int64_t> IdFromProto(uint64_t id, absl::string_view field) {
+  if (id > static_cast<uint64_t>(std::numeric_limits<int64_t>::max())) {
+    return absl::NotFoundError(
+        absl::StrCat(field, " ", id, " is no id lifemap gives (ids are below 2^63)"));
+  }
+  return static_cast<int64_t>(id);
+}
 
 grpc::Status ToGrpcStatus(const absl::Status& status) {
   if (status.ok()) return grpc::Status::OK;
@@ -58,6 +68,20 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
   if (!frame.has_intrinsics()) {
     return absl::InvalidArgumentError(
         "frame.intrinsics is missing; send fx, fy, cx, cy, width, height of the colour camera");
+  }
+  // Sizes are checked as sent (uint32) before any becomes an int: 2^32-1 was reported as -1.
+  constexpr uint32_t kMaxSide = 1u << 20;
+  for (const auto& [field, value] :
+       {std::pair<const char*, uint32_t>{"intrinsics.width", frame.intrinsics().width()},
+        {"intrinsics.height", frame.intrinsics().height()},
+        {"depth.width", frame.depth().width()},
+        {"depth.height", frame.depth().height()},
+        {"color.width", frame.color().width()},
+        {"color.height", frame.color().height()}}) {
+    if (value > kMaxSide) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("frame.", field, " is ", value, "; an image side is at most ", kMaxSide));
+    }
   }
   out.intrinsics = IntrinsicsFromProto(frame.intrinsics());
   if (auto s = out.intrinsics.Validate(); !s.ok()) return prefixed(s, "intrinsics");

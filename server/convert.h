@@ -26,6 +26,11 @@ namespace lifemap::server {
 
 grpc::Status ToGrpcStatus(const absl::Status& status);
 
+// An id from a request (uint64 on the wire) as the store keeps it (int64). lifemap never gives
+// an id above 2^63-1: such a value is NOT_FOUND naming `field` and the value as sent (a cast
+// printed it negative, and 2^64-1 read as -1 was "visit_id is required"). 0 stays 0 (unset).
+absl::StatusOr<int64_t> IdFromProto(uint64_t id, absl::string_view field);
+
 v1::Role RoleToProto(Role role);
 std::optional<Role> RoleFromProto(v1::Role role);  // nullopt for ROLE_UNSPECIFIED or unknown
 void ApiKeyToProto(const store::ApiKeyRecord& k, v1::ApiKey* out);

@@ -798,7 +798,9 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
     *created = true;
     return ctx->store->StartVisit(map, robot, label, NowSeconds());
   }
-  auto v = ctx->store->GetVisit(static_cast<int64_t>(visit_id));
+  const auto id = IdFromProto(visit_id, "visit_id");
+  if (!id.ok()) return id.status();
+  auto v = ctx->store->GetVisit(*id);
   if (!v.ok()) return v.status();
   if (v->map_id != m->id) {
     // The other map is not named: a key limited to some maps must learn nothing of others.

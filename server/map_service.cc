@@ -191,8 +191,10 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  if (req->visit_id() != 0) {
-    auto visit = ctx_->store->GetVisit(static_cast<int64_t>(req->visit_id()));
+  const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+  if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+  if (*visit_id != 0) {
+    auto visit = ctx_->store->GetVisit(*visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (visit->map_id != map->id) {
       return grpc::Status(
@@ -200,7 +202,7 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext* context,
           absl::StrCat("visit ", req->visit_id(), " is not a visit of map '", req->map(), "'"));
     }
   }
-  auto keyframes = ctx_->store->ListKeyframes(map->id, static_cast<int64_t>(req->visit_id()));
+  auto keyframes = ctx_->store->ListKeyframes(map->id, *visit_id);
   if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
   for (const auto& k : *keyframes) KeyframeSummaryToProto(k, resp->add_keyframes());
   return grpc::Status::OK;
@@ -212,7 +214,9 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  auto k = ctx_->store->GetKeyframe(map->id, static_cast<int64_t>(req->keyframe_id()));
+  const auto keyframe_id = IdFromProto(req->keyframe_id(), "keyframe_id");
+  if (!keyframe_id.ok()) return ToGrpcStatus(keyframe_id.status());
+  auto k = ctx_->store->GetKeyframe(map->id, *keyframe_id);
   if (!k.ok()) return ToGrpcStatus(k.status());
   KeyframeSummaryToProto(*k, resp->mutable_summary());
   auto* depth = resp->mutable_depth();
@@ -244,7 +248,9 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  const auto visit_id = static_cast<int64_t>(req->visit_id());
+  const auto id = IdFromProto(req->visit_id(), "visit_id");
+  if (!id.ok()) return ToGrpcStatus(id.status());
+  const int64_t visit_id = *id;
   if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
@@ -320,6 +326,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
 grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
                                             const v1::ExportMapRequest& req,
                                             grpc::ServerWriter<v1::ExportChunk>* writer) {
+  // The visit id was checked by ExportMap (IdFromProto, CheckVisitOfMap).
   auto e = CollectSemanticExport(ctx_->store, ctx_->visits, ctx_->semantic_worker, map,
                                  static_cast<int64_t>(req.visit_id()), ctx_->config.semantic);
   if (!e.ok()) return ToGrpcStatus(e.status());
@@ -367,7 +374,9 @@ grpc::Status MapServiceImpl::RebuildSemanticOctrees(
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto map = FindCallersMap(ctx_->store, *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  const auto visit_id = static_cast<int64_t>(req->visit_id());
+  const auto id = IdFromProto(req->visit_id(), "visit_id");
+  if (!id.ok()) return ToGrpcStatus(id.status());
+  const int64_t visit_id = *id;
   if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
   if (!ctx_->config.semantic_enabled || ctx_->semantic_worker == nullptr) {
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,

@@ -131,7 +131,9 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
       if (!s.ok()) return s;
     }
   } else {
-    auto visit = FindCallersVisit(ctx_->store, *caller, static_cast<int64_t>(req->visit_id()));
+    const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+    if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+    auto visit = FindCallersVisit(ctx_->store, *caller, *visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (architecture) ArchitectureOfVisit(*visit, max_results, &by_architecture);
     if (appearance) AppearanceOfVisit(*visit, max_results, &by_appearance);

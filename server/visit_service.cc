@@ -41,8 +41,10 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext* context,
                                         const v1::EndVisitRequest* req, v1::Visit* resp) {
   auto caller = ctx_->keys->Authorize(*context, "VisitService/EndVisit");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  const auto id = static_cast<int64_t>(req->visit_id());
-  if (id <= 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
+  const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+  if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+  const int64_t id = *visit_id;
+  if (id == 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
   if (!caller->every_map) {
     if (auto v = FindCallersVisit(ctx_->store, *caller, id); !v.ok()) {
       return ToGrpcStatus(v.status());

@@ -3,6 +3,9 @@
 #include <sqlite3.h>
 #include <sys/stat.h>
 
+#include <cerrno>
+#include <cstring>
+
 #include "absl/strings/cord.h"
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
@@ -25,9 +28,20 @@ bool IsConstraintViolation(const absl::Status& status) {
   return absl::IsFailedPrecondition(status) && !status.GetPayload(kFileLostPayload).has_value();
 }
 
-absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what) {
+absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what, absl::string_view sql) {
   const std::string message =
       absl::StrCat(what, ": ", db ? sqlite3_errmsg(db) : sqlite3_errstr(rc), " (sqlite ", rc, ")");
+  // A write refused by the file system for permissions or a read-only mount (EACCES, EPERM,
+  // EROFS) is not a full disk, however SQLite codes it (SQLITE_READONLY*, or a failed write).
+  const int err = db != nullptr ? sqlite3_system_errno(db) : 0;
+  if ((rc & 0xff) == SQLITE_READONLY ||
+      ((rc & 0xff) == SQLITE_IOERR && (err == EROFS || err == EACCES || err == EPERM))) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        what, ": the database is read-only to lifemapd (", db ? sqlite3_errmsg(db) : "",
+        err != 0 ? absl::StrCat("; ", std::strerror(err)) : "",
+        "): nothing was written; give lifemapd's user write permission on the database file, its "
+        "-wal and -shm and their directory, or remount it read-write, then restart lifemapd"));
+  }
   // A full disk is SQLITE_FULL; a file-size limit (EFBIG) or a quota (EDQUOT) is a failed
   // write (SQLITE_IOERR_WRITE; SQLite does not keep that write's errno reliably, so a failing
   // disk reads the same). Either way the transaction was rolled back, nothing acknowledged is
@@ -57,10 +71,10 @@ absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what) {
       return absl::DataLossError(message);
     case SQLITE_CANTOPEN:
     case SQLITE_PERM:
-    case SQLITE_READONLY:
       return absl::FailedPreconditionError(message);
     default:
-      return absl::InternalError(message);
+      return absl::InternalError(
+          sql.empty() ? message : absl::StrCat(message, " in '", sql.substr(0, 200), "'"));
   }
 }
 
@@ -107,7 +121,7 @@ absl::StatusOr<bool> Statement::Step() {
   const int rc = sqlite3_step(stmt_);
   if (rc == SQLITE_ROW) return true;
   if (rc == SQLITE_DONE) return false;
-  return SqliteError(db_, rc, sqlite3_sql(stmt_));
+  return SqliteError(db_, rc, "the database", sqlite3_sql(stmt_));
 }
 
 absl::Status Statement::Run() {
@@ -220,7 +234,7 @@ absl::Status Database::Exec(const std::string& sql) {
   char* error = nullptr;
   const int rc = sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error);
   if (rc != SQLITE_OK) {
-    absl::Status s = SqliteError(db_, rc, absl::StrCat("executing '", sql.substr(0, 60), "'"));
+    absl::Status s = SqliteError(db_, rc, "the database", sql);
     sqlite3_free(error);
     return s;
   }
@@ -233,7 +247,7 @@ absl::StatusOr<Statement*> Database::Prepare(const std::string& sql) {
   sqlite3_stmt* stmt = nullptr;
   const int rc = sqlite3_prepare_v3(db_, sql.c_str(), static_cast<int>(sql.size()),
                                     SQLITE_PREPARE_PERSISTENT, &stmt, nullptr);
-  if (rc != SQLITE_OK) return SqliteError(db_, rc, absl::StrCat("preparing '", sql, "'"));
+  if (rc != SQLITE_OK) return SqliteError(db_, rc, "preparing a statement", sql);
   auto [inserted, ok] = statements_.emplace(sql, std::make_unique<Statement>(db_, stmt));
   return inserted->second.get();
 }

@@ -114,8 +114,11 @@ class Database {
   std::unordered_map<std::string, std::unique_ptr<Statement>> statements_;
 };
 
-// Maps an SQLite result code (and the connection's message) to a Status.
-absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what);
+// Maps an SQLite result code (and the connection's message and errno) to a Status whose
+// message says what to do. `sql`, the statement that failed, is named only in INTERNAL errors
+// (a bug to report): clients are never shown SQL for a full disk, a read-only file, a lock or a
+// constraint.
+absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what, absl::string_view sql = "");
 // True for a statement refused by a UNIQUE, CHECK or foreign-key constraint (callers turn it
 // into ALREADY_EXISTS or NOT_FOUND); false for a commit refused because the database file is
 // no longer in place (FAILED_PRECONDITION too, but nothing the caller can name).

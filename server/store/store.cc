@@ -644,6 +644,13 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
   auto write_db = Database::Open(path, options.create_if_missing, false, options.busy_timeout_ms);
   if (!write_db.ok()) return write_db.status();
   Database* db = write_db->get();
+  // SQLite opens a file it may not write read-only, silently: every write would fail later.
+  if (sqlite3_db_readonly(db->raw(), "main") == 1) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "database ", path,
+        " is read-only to lifemapd: give its user write permission on the file and its "
+        "directory (for the -wal and -shm files), or remount it read-write"));
+  }
   // WAL: readers never block the writer; FULL syncs the WAL on every commit.
   auto mode = db->Prepare("PRAGMA journal_mode=WAL");
   if (!mode.ok()) {

@@ -248,6 +248,32 @@ TEST_F(HostileClientTest, InvalidUtf8IsInvalidArgumentWithAMessage) {
   EXPECT_TRUE(client_->ListMaps()->maps().empty());
 }
 
+// Issue 33, item 13: ids at or above 2^63 were printed negative (a cast), EndVisit(2^64-1) said
+// "visit_id is required", and a height of 2^32-1 was shown as -1.
+TEST_F(HostileClientTest, HugeIdsAndSizesAreNamedAsSent) {
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  const uint64_t huge = std::numeric_limits<uint64_t>::max();
+  const absl::Status ended = client_->EndVisit(huge).status();
+  EXPECT_TRUE(absl::IsNotFound(ended)) << ended;
+  EXPECT_NE(ended.message().find("visit_id 18446744073709551615"), std::string::npos) << ended;
+  const absl::Status keyframe = client_->GetKeyframe("lab", uint64_t{1} << 63).status();
+  EXPECT_TRUE(absl::IsNotFound(keyframe)) << keyframe;
+  EXPECT_NE(keyframe.message().find("9223372036854775808"), std::string::npos) << keyframe;
+  EXPECT_EQ(keyframe.message().find('-'), std::string::npos) << keyframe;
+  v1::StreamStart start;
+  start.set_map("lab");
+  start.set_visit_id(huge);
+  const absl::Status stream = client_->OpenStream(start).status();
+  EXPECT_TRUE(absl::IsNotFound(stream)) << stream;
+  EXPECT_NE(stream.message().find("18446744073709551615"), std::string::npos) << stream;
+  v1::Frame f = MakeFrame(160, 120);
+  f.mutable_intrinsics()->set_height(std::numeric_limits<uint32_t>::max());
+  const absl::Status tall = Process(f);
+  EXPECT_TRUE(absl::IsInvalidArgument(tall)) << tall;
+  EXPECT_NE(tall.message().find("frame.intrinsics.height is 4294967295"), std::string::npos)
+      << tall;
+}
+
 // A client stream of raw messages (bytes as the client sends them, parsed or not).
 using RawStream = grpc::ClientReaderWriter<grpc::ByteBuffer, grpc::ByteBuffer>;
 std::unique_ptr<RawStream> OpenRawStream(grpc::Channel* channel, const char* method,

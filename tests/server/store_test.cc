@@ -16,6 +16,7 @@
 
 #include <gtest/gtest.h>
 
+#include "server/store/sqlite.h"
 #include "tests/testing/test_util.h"
 
 namespace lifemap::store {
@@ -198,6 +199,35 @@ TEST_F(StoreTest, DataSurvivesReopen) {
   auto reopened = Store::Open(tmp_.File("lifemap.db"));
   ASSERT_TRUE(reopened.ok());
   EXPECT_TRUE((*reopened)->GetMap("persist").ok());
+}
+
+// Issue 33, item 13: a read-only database was reported as "the disk is full", and clients saw
+// the SQL that failed. Operational errors say what to do and show no SQL; only an INTERNAL
+// error (a bug) names the statement.
+TEST(SqliteError, SaysWhatToDoAndShowsNoSqlToClients) {
+  const char* sql = "INSERT INTO maps (name) VALUES (?1)";
+  const absl::Status read_only = SqliteError(nullptr, SQLITE_READONLY, "the database", sql);
+  EXPECT_TRUE(absl::IsFailedPrecondition(read_only)) << read_only;
+  EXPECT_NE(read_only.message().find("read-only"), std::string::npos) << read_only;
+  EXPECT_EQ(read_only.message().find("full"), std::string::npos) << read_only;
+  const absl::Status full = SqliteError(nullptr, SQLITE_FULL, "the database", sql);
+  EXPECT_TRUE(absl::IsResourceExhausted(full)) << full;
+  const absl::Status busy = SqliteError(nullptr, SQLITE_BUSY, "the database", sql);
+  for (const auto& s : {read_only, full, busy}) {
+    EXPECT_EQ(s.message().find("INSERT"), std::string::npos) << s;
+  }
+  const absl::Status bug = SqliteError(nullptr, SQLITE_ERROR, "the database", sql);
+  EXPECT_TRUE(absl::IsInternal(bug));
+  EXPECT_NE(bug.message().find("INSERT"), std::string::npos) << bug;
+}
+
+TEST_F(StoreTest, AWriteToAReadOnlyConnectionSaysReadOnly) {
+  auto db = Database::Open(tmp_.File("lifemap.db"), false, /*read_only=*/true, 1000);
+  ASSERT_TRUE(db.ok()) << db.status();
+  const absl::Status s = (*db)->Exec("CREATE TABLE intruder (x)");
+  EXPECT_TRUE(absl::IsFailedPrecondition(s)) << s;
+  EXPECT_NE(s.message().find("read-only"), std::string::npos) << s;
+  EXPECT_EQ(s.message().find("CREATE"), std::string::npos) << s;
 }
 
 TEST_F(StoreTest, BackupIsAReadableCopy) {
