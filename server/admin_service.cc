@@ -213,6 +213,7 @@ grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext* context,
       static_cast<int64_t>(std::min<uint64_t>(req->limits().max_keyframes_per_map(), INT64_MAX));
   limits.max_model_bytes =
       static_cast<int64_t>(std::min<uint64_t>(req->limits().max_model_bytes(), INT64_MAX));
+  limits.max_visits_per_hour = req->limits().max_visits_per_hour();
   auto created = server::CreateApiKey(ctx_->store, req->name(), *role, maps, limits, NowSeconds());
   if (!created.ok()) return ToGrpcStatus(created.status());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);

@@ -243,6 +243,33 @@ absl::Status KeyUsage::TakeFrame(const std::string& key_name, double per_second)
   return absl::OkStatus();
 }
 
+absl::Status KeyUsage::TakeVisit(const std::string& key_name, int64_t per_hour,
+                                 absl::string_view limit_name) {
+  if (per_hour <= 0) return absl::OkStatus();
+  const double now = NowSeconds();
+  absl::MutexLock lock(&mu_);
+  while (!visits_started_s_.empty() && now - visits_started_s_.front() >= 3600.0) {
+    visits_started_s_.pop_front();
+  }
+  if (static_cast<int64_t>(visits_started_s_.size()) >= per_hour) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "API key '", key_name, "' may start ", per_hour, " visits in an hour (", limit_name,
+        ") and has; resume a visit (visit_id) instead of starting new ones, or wait ",
+        static_cast<int64_t>(std::ceil(3600.0 - (now - visits_started_s_.front()))), " s"));
+  }
+  visits_started_s_.push_back(now);
+  return absl::OkStatus();
+}
+
+absl::Status Principal::TakeVisit(int64_t server_per_hour) const {
+  if (usage == nullptr) return absl::OkStatus();
+  if (limits.max_visits_per_hour > 0) {
+    return usage->TakeVisit(key_name, limits.max_visits_per_hour, "its max_visits_per_hour limit");
+  }
+  return usage->TakeVisit(key_name, server_per_hour,
+                          "the server's security.max_visits_per_key_per_hour");
+}
+
 absl::Status Principal::OpenStream(int64_t server_max_per_key) const {
   if (usage == nullptr) return absl::OkStatus();
   if (limits.max_streams > 0 && limits.max_streams <= server_max_per_key) {

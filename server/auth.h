@@ -7,6 +7,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <memory>
 #include <optional>
 #include <string>
@@ -47,12 +48,17 @@ class KeyUsage {
   // One more frame, or RESOURCE_EXHAUSTED naming the limit when the key has sent
   // `per_second` frames in the last second (0: no limit).
   absl::Status TakeFrame(const std::string& key_name, double per_second);
+  // One more visit started, or RESOURCE_EXHAUSTED naming the limit (`limit_name`) when
+  // `per_hour` were started in the last hour (0: no limit).
+  absl::Status TakeVisit(const std::string& key_name, int64_t per_hour,
+                         absl::string_view limit_name);
 
  private:
   absl::Mutex mu_;
   int64_t streams_ ABSL_GUARDED_BY(mu_) = 0;
   double tokens_ ABSL_GUARDED_BY(mu_) = -1;  // < 0: not started
   double refilled_s_ ABSL_GUARDED_BY(mu_) = 0;
+  std::deque<double> visits_started_s_ ABSL_GUARDED_BY(mu_);  // within the last hour
 };
 
 // The caller of one call.
@@ -83,6 +89,9 @@ struct Principal {
   absl::Status OpenStream(int64_t server_max_per_key) const;
   void CloseStream() const;
   absl::Status TakeFrame() const;
+  // One more visit started by the key: its own max_visits_per_hour, else `server_per_hour` (the
+  // server's security.max_visits_per_key_per_hour; 0: none).
+  absl::Status TakeVisit(int64_t server_per_hour) const;
   // Who creates a map, with the key's max_maps (store::Store::CreateMap).
   store::MapCreator AsMapCreator() const;
 };

@@ -23,6 +23,11 @@ absl::Status ServerConfig::Validate() const {
         "security.require_auth and security.insecure_no_auth (--require-auth, "
         "--insecure-no-auth) contradict each other: choose one");
   }
+  if (max_visits_per_key_per_hour < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("security.max_visits_per_key_per_hour must be >= 0 (0: no bound), got ",
+                     max_visits_per_key_per_hour));
+  }
   if (!(audit_retention_days >= 0.0) || !std::isfinite(audit_retention_days)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "security.audit_retention_days must be a number of days >= 0 (0 keeps every event); "
@@ -350,6 +355,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             c.insecure_no_auth = v.get<bool>();
           } else if (k == "audit_retention_days") {
             c.audit_retention_days = v.get<double>();
+          } else if (k == "max_visits_per_key_per_hour") {
+            c.max_visits_per_key_per_hour = v.get<int>();
           } else if (k == "tls_cert") {
             c.tls_cert = v.get<std::string>();
           } else if (k == "tls_key") {

@@ -111,6 +111,9 @@ struct ServerConfig {
   // Audit events older than this are deleted, at start and every 1,000 events recorded;
   // 0 keeps them for ever.
   double audit_retention_days = 365.0;
+  // Visits one API key may start in any hour, unless the key has its own max_visits_per_hour;
+  // 0: no bound. Counted while the server runs (a restart starts the count again).
+  int max_visits_per_key_per_hour = 600;
   // TLS: the server's certificate chain and private key (PEM files; both or neither), and a
   // CA whose client certificates the server then requires (mTLS; optional).
   std::string tls_cert;

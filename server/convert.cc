@@ -291,6 +291,7 @@ void ApiKeyToProto(const store::ApiKeyRecord& k, v1::ApiKey* out) {
   limits->set_max_maps(static_cast<uint32_t>(k.limits.max_maps));
   limits->set_max_keyframes_per_map(static_cast<uint64_t>(k.limits.max_keyframes_per_map));
   limits->set_max_model_bytes(static_cast<uint64_t>(k.limits.max_model_bytes));
+  limits->set_max_visits_per_hour(static_cast<uint32_t>(k.limits.max_visits_per_hour));
 }
 
 void KeepCallersMatches(const Principal& caller,

@@ -778,10 +778,10 @@ absl::StatusOr<FrameSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
 
 // Resolves the visit a stream or call writes to. visit_id 0: a new visit (or, with
 // `reuse_open`, the map's latest open visit).
-absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::string& map,
-                                                uint64_t visit_id, const std::string& robot,
-                                                const std::string& label, bool reuse_open,
-                                                bool* created) {
+absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const Principal& caller,
+                                                const std::string& map, uint64_t visit_id,
+                                                const std::string& robot, const std::string& label,
+                                                bool reuse_open, bool* created) {
   *created = false;
   if (auto s = store::ValidateMapName(map); !s.ok()) return s;
   if (robot.size() > 256 || label.size() > 256) {
@@ -795,6 +795,7 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const std::
       if (!open.ok()) return open.status();
       if (*open) return **open;
     }
+    if (auto s = caller.TakeVisit(ctx->config.max_visits_per_key_per_hour); !s.ok()) return s;
     *created = true;
     return ctx->store->StartVisit(map, robot, label, NowSeconds());
   }
@@ -875,8 +876,8 @@ grpc::Status FrameServiceImpl::StreamFrames(
   settings->key_name = caller->key_name;
   settings->max_keyframes_per_map = caller->limits.max_keyframes_per_map;
   bool created = false;
-  auto visit = ResolveVisit(ctx_, start.map(), start.visit_id(), start.robot(), start.visit_label(),
-                            false, &created);
+  auto visit = ResolveVisit(ctx_, *caller, start.map(), start.visit_id(), start.robot(),
+                            start.visit_label(), false, &created);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   auto state = ctx_->visits->Get(visit->id);
   if (!state.ok()) return ToGrpcStatus(state.status());
@@ -1065,7 +1066,7 @@ grpc::Status FrameServiceImpl::ProcessFrame(grpc::ServerContext* context,
       }
     }
     bool created = false;
-    auto visit = ResolveVisit(ctx_, req->map(), req->visit_id(), "", "", true, &created);
+    auto visit = ResolveVisit(ctx_, *caller, req->map(), req->visit_id(), "", "", true, &created);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     auto s = ctx_->visits->Get(visit->id);
     if (!s.ok()) return ToGrpcStatus(s.status());

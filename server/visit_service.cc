@@ -28,6 +28,9 @@ grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "start_time_s must be >= 0 seconds since the Unix epoch (0 = now)");
   }
+  if (auto s = caller->TakeVisit(ctx_->config.max_visits_per_key_per_hour); !s.ok()) {
+    return ToGrpcStatus(s);
+  }
   auto visit =
       ctx_->store->StartVisit(req->map(), req->robot(), req->label(), t > 0 ? t : NowSeconds());
   if (!visit.ok()) return ToGrpcStatus(visit.status());

@@ -684,6 +684,9 @@ std::string LimitsText(const v1::KeyLimits& l) {
     parts.push_back(absl::StrCat("keyframes/map ", l.max_keyframes_per_map()));
   }
   if (l.max_model_bytes() > 0) parts.push_back("model " + HumanBytes(l.max_model_bytes()));
+  if (l.max_visits_per_hour() > 0) {
+    parts.push_back(absl::StrCat("visits/hour ", l.max_visits_per_hour()));
+  }
   return parts.empty() ? "-" : absl::StrJoin(parts, ", ");
 }
 
@@ -717,6 +720,10 @@ void AddKeyCommands(CLI::App* app, CliContext* ctx) {
   create->add_option_function<uint64_t>(
       "--max-model-mb", [limits](uint64_t mb) { limits->set_max_model_bytes(mb << 20); },
       "largest model it may upload, MiB");
+  create->add_option_function<uint32_t>(
+      "--max-visits-per-hour", [limits](uint32_t n) { limits->set_max_visits_per_hour(n); },
+      "visits it may start in any hour (default: the server's "
+      "security.max_visits_per_key_per_hour)");
   create->callback([ctx, req, role, maps] {
     ctx->run = [ctx, req, role, maps] {
       req->set_role(*role == "robot"      ? v1::ROLE_ROBOT

@@ -8,7 +8,7 @@ namespace {
 constexpr char kKeySelect[] =
     "SELECT id, name, role, every_map, secret_sha256, created_time_s, last_used_time_s, "
     "revoked_time_s, max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, "
-    "max_model_bytes FROM api_keys ";
+    "max_model_bytes, max_visits_per_hour FROM api_keys ";
 
 ApiKeyRecord ReadKey(const Statement& s) {
   ApiKeyRecord k;
@@ -25,6 +25,7 @@ ApiKeyRecord ReadKey(const Statement& s) {
   k.limits.max_maps = s.ColumnInt(10);
   k.limits.max_keyframes_per_map = s.ColumnInt(11);
   k.limits.max_model_bytes = s.ColumnInt(12);
+  k.limits.max_visits_per_hour = s.ColumnInt(13);
   return k;
 }
 
@@ -75,8 +76,8 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
   {
     auto stmt = db->Prepare(
         "INSERT INTO api_keys (name, role, every_map, secret_sha256, created_time_s, "
-        "max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, max_model_bytes) "
-        "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10)");
+        "max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, max_model_bytes, "
+        "max_visits_per_hour) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)");
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
     s->Bind(1, record.name)
@@ -88,7 +89,8 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
         .Bind(7, record.limits.max_frames_per_s)
         .Bind(8, record.limits.max_maps)
         .Bind(9, record.limits.max_keyframes_per_map)
-        .Bind(10, record.limits.max_model_bytes);
+        .Bind(10, record.limits.max_model_bytes)
+        .Bind(11, record.limits.max_visits_per_hour);
     if (auto st = s->Run(); !st.ok()) {
       if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(

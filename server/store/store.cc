@@ -361,6 +361,10 @@ CREATE TABLE audit_log (
 );
 CREATE INDEX audit_log_time ON audit_log(time_s);
 )sql",
+    // 13 -> 14: visits a key may start in an hour (issue 33: 1,000 in 4 s had no bound).
+    R"sql(
+ALTER TABLE api_keys ADD COLUMN max_visits_per_hour INTEGER NOT NULL DEFAULT 0;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");

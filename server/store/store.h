@@ -191,6 +191,7 @@ struct KeyLimits {
   int64_t max_maps = 0;
   int64_t max_keyframes_per_map = 0;
   int64_t max_model_bytes = 0;
+  int64_t max_visits_per_hour = 0;  // visits it may start in any hour (schema 14)
 };
 
 // An API key as stored: never the secret, only its SHA-256 (hex).
@@ -316,7 +317,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 13;
+  static constexpr int kSchemaVersion = 14;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 

@@ -741,6 +741,40 @@ TEST_F(AuthTest, EachKeysOwnLimitsHoldAndAreNamedWhenReached) {
   }
 }
 
+// Issue 33, item 14: a robot key started 1,000 visits in 4 s. Now a key starts at most its own
+// max_visits_per_hour, else the server's security.max_visits_per_key_per_hour.
+TEST_F(AuthTest, AKeyStartsAtMostItsVisitsPerHour) {
+  v1::KeyLimits limits;
+  limits.set_max_visits_per_hour(3);
+  NewKey("slow-robot", v1::ROLE_ROBOT, {}, limits);
+  auto robot = ClientWith(secrets_["slow-robot"]);
+  v1::StartVisitRequest visit;
+  visit.set_map("lab");
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(robot->StartVisit(visit).ok()) << i;
+  const auto refused = robot->StartVisit(visit).status();
+  EXPECT_TRUE(absl::IsResourceExhausted(refused)) << refused;
+  EXPECT_NE(refused.message().find("max_visits_per_hour"), std::string::npos) << refused;
+  v1::StreamStart start;
+  start.set_map("lab");
+  EXPECT_TRUE(absl::IsResourceExhausted(robot->OpenStream(start).status()));
+  auto keys = admin_->ListApiKeys();
+  ASSERT_TRUE(keys.ok());
+  for (const auto& k : keys->keys()) {
+    if (k.name() == "slow-robot") {
+      EXPECT_EQ(k.limits().max_visits_per_hour(), 3u);
+    }
+  }
+  // The server's bound for keys without their own.
+  server::ServerConfig config = config_;
+  config.max_visits_per_key_per_hour = 2;
+  StartServer(config);
+  auto other = ClientWith(secrets_["robot"]);
+  for (int i = 0; i < 2; ++i) ASSERT_TRUE(other->StartVisit(visit).ok()) << i;
+  const auto bounded = other->StartVisit(visit).status();
+  EXPECT_TRUE(absl::IsResourceExhausted(bounded)) << bounded;
+  EXPECT_NE(bounded.message().find("max_visits_per_key_per_hour"), std::string::npos) << bounded;
+}
+
 TEST_F(AuthTest, ServerInfoSaysWhoIsCalling) {
   auto robot = ClientWith(secrets_["robot"]);
   auto info = robot->GetServerInfo();
