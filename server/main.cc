@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <csignal>
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <thread>
 
@@ -30,9 +31,22 @@ namespace {
 // (a running server counts a new key, or a revoked one, within KeyRing::kReloadIntervalS). The
 // only way to make the first admin key of a server that requires keys.
 int RunKeysCommand(const std::string& action, const std::string& db, const std::string& name,
-                   const std::string& role_name, const std::vector<std::string>& maps) {
+                   const std::string& role_name, const std::vector<std::string>& maps,
+                   bool create_database) {
   using lifemap::server::Role;
-  auto store = lifemap::store::Store::Open(db, {});
+  // A mistyped --db must not become a new, empty database that no server reads (issue 33).
+  std::error_code ec;
+  if (!create_database && !std::filesystem::exists(db, ec)) {
+    std::cerr << "lifemapd keys " << action << ": database " << db
+              << " does not exist: give the --db the server uses"
+              << (action == "create" ? ", or add --create to make a new database for a new server"
+                                     : "")
+              << "\n";
+    return 2;
+  }
+  lifemap::store::StoreOptions options;
+  options.create_if_missing = create_database;
+  auto store = lifemap::store::Store::Open(db, options);
   if (!store.ok()) {
     std::cerr << "lifemapd keys: " << store.status().message() << "\n";
     return 1;
@@ -137,6 +151,9 @@ int main(int argc, char** argv) {
   keys_create->add_option("--role", key_role, "robot, operator or admin")->required();
   keys_create->add_option("--maps", key_maps, "only these maps (not for admin keys)")
       ->delimiter(',');
+  bool create_database = false;
+  keys_create->add_flag("--create", create_database,
+                        "make the database if it does not exist (the first key of a new server)");
   auto* keys_list = keys->add_subcommand("list", "list keys (never their secrets)");
   keys_list->add_option("--db", keys_db, "the server's database file")->required();
   auto* keys_revoke = keys->add_subcommand("revoke", "revoke a key");
@@ -151,7 +168,8 @@ int main(int argc, char** argv) {
   }
   for (auto* action : {keys_create, keys_list, keys_revoke}) {
     if (action->parsed()) {
-      return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps);
+      return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps,
+                            create_database);
     }
   }
   // Logs go to stderr (journald under systemd); stdout carries only the "listening on port"

@@ -1,5 +1,10 @@
 #include "server/server.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cerrno>
 #include <chrono>
@@ -20,6 +25,7 @@
 #include <openssl/x509.h>
 #include <spdlog/spdlog.h>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "server/audit_interceptor.h"
@@ -102,6 +108,50 @@ absl::StatusOr<std::string> ReadPemFile(const std::string& path, absl::string_vi
         absl::StrCat("the ", what, " file ", path, " holds no PEM block (-----BEGIN ...)"));
   }
   return data.str();
+}
+
+// "localhost" reaches 127.0.0.1 and [::1] alike: a server on one of them must not start while
+// another process serves the same port on the other (clients would reach either, with another
+// database). OK for other addresses, port 0, or when the other family is not available here.
+absl::Status CheckLoopbackSiblingIsFree(const std::string& listen) {
+  const size_t colon = listen.rfind(':');
+  if (colon == std::string::npos) return absl::OkStatus();
+  const std::string host = listen.substr(0, colon);
+  int port = 0;
+  if (!absl::SimpleAtoi(listen.substr(colon + 1), &port) || port <= 0 || port > 65535) {
+    return absl::OkStatus();
+  }
+  const bool v4 = host == "127.0.0.1";
+  const bool v6 = host == "[::1]";
+  if (!v4 && !v6) return absl::OkStatus();
+  const int fd = socket(v4 ? AF_INET6 : AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  if (fd < 0) return absl::OkStatus();  // no such family on this host
+  const int one = 1;
+  setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));  // TIME_WAIT is no listener
+  int rc = 0;
+  if (v4) {
+    setsockopt(fd, IPPROTO_IPV6, IPV6_V6ONLY, &one, sizeof(one));
+    sockaddr_in6 a{};
+    a.sin6_family = AF_INET6;
+    a.sin6_port = htons(static_cast<uint16_t>(port));
+    a.sin6_addr = in6addr_loopback;
+    rc = bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a));
+  } else {
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    a.sin_port = htons(static_cast<uint16_t>(port));
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    rc = bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a));
+  }
+  const int err = errno;
+  close(fd);
+  if (rc != 0 && err == EADDRINUSE) {
+    return absl::UnavailableError(absl::StrCat(
+        "cannot listen on ", listen, ": port ", port, " is in use on ", v4 ? "[::1]" : "127.0.0.1",
+        " (the other loopback address; perhaps another lifemapd), so clients of localhost:", port,
+        " would reach either server; stop that one, or choose another port"));
+  }
+  return absl::OkStatus();
 }
 
 // FAILED_PRECONDITION unless `key_pem` holds the private key of the certificate in `cert_pem`
@@ -267,6 +317,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   if (auto s = CheckAuthCanWork(config, impl->store.get()); !s.ok()) return s;
   auto credentials = ServerCredentialsFor(config);
   if (!credentials.ok()) return credentials.status();
+  if (auto s = CheckLoopbackSiblingIsFree(config.listen); !s.ok()) return s;
 
   ServiceContext& ctx = impl->ctx;
   ctx.config = config;

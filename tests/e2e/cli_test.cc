@@ -1147,6 +1147,23 @@ TEST_F(CliTest, BeyondLoopbackTheServerNeedsKeysAndTheFirstIsMadeOnItsMachine) {
   EXPECT_EQ(refused.Wait(), 1);
   EXPECT_NE(refused.err().find("lifemapd keys create --db"), std::string::npos) << refused.err();
 
+  // A mistyped --db is refused, not made into a new database no server reads (issue 33,
+  // item 14); --create makes one on purpose.
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{kLifemapd, "keys", "create", "--db", tmp_.File("TYPO.db"),
+                                 "--name", "root", "--role", "admin"},
+        std::vector<std::string>{kLifemapd, "keys", "list", "--db", tmp_.File("TYPO.db")}}) {
+    Process typo(args, tmp_.File("typo.out"), tmp_.File("typo.err"));
+    EXPECT_EQ(typo.Wait(), 2) << args[2];
+    EXPECT_NE(typo.err().find("does not exist"), std::string::npos) << typo.err();
+    EXPECT_FALSE(std::filesystem::exists(tmp_.File("TYPO.db"))) << args[2];
+  }
+  Process fresh({kLifemapd, "keys", "create", "--db", tmp_.File("new.db"), "--create", "--name",
+                 "root", "--role", "admin"},
+                tmp_.File("fresh.out"), tmp_.File("fresh.err"));
+  EXPECT_EQ(fresh.Wait(), 0) << fresh.err();
+  EXPECT_TRUE(std::filesystem::exists(tmp_.File("new.db")));
+
   const std::string admin_key = tmp_.File("admin.key");
   Process create({kLifemapd, "keys", "create", "--db", Db(), "--name", "root", "--role", "admin"},
                  admin_key, tmp_.File("create.err"));

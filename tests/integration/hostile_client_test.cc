@@ -1,6 +1,10 @@
 // Regression tests of defects found by trying lifemapd as a hostile client and a tired operator
 // would (issue 12): absurd but finite frames, a map deleted under a running stream, a second
 // server on a busy port or database, two writers to one visit.
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <cstring>
 #include <functional>
 #include <limits>
@@ -272,6 +276,29 @@ TEST_F(HostileClientTest, HugeIdsAndSizesAreNamedAsSent) {
   EXPECT_TRUE(absl::IsInvalidArgument(tall)) << tall;
   EXPECT_NE(tall.message().find("frame.intrinsics.height is 4294967295"), std::string::npos)
       << tall;
+}
+
+// Issue 33, item 14: a server on [::1]:P started while another served 127.0.0.1:P with another
+// database, so localhost clients reached either. Each is refused while the other serves.
+TEST_F(HostileClientTest, NoSecondServerOnTheOtherLoopbackAddressOfAPort) {
+  {
+    const int fd = socket(AF_INET6, SOCK_STREAM, 0);
+    sockaddr_in6 a{};
+    a.sin6_family = AF_INET6;
+    a.sin6_addr = in6addr_loopback;
+    const bool v6 = fd >= 0 && bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a)) == 0;
+    if (fd >= 0) close(fd);
+    if (!v6) GTEST_SKIP() << "this host has no IPv6 loopback ([::1]): nothing to share a port with";
+  }
+  const int port = server_->port();
+  server::ServerConfig other;
+  other.db_path = tmp_.File("other.db");
+  other.listen = "[::1]:" + std::to_string(port);
+  auto second = server::LifemapServer::Start(other);
+  ASSERT_FALSE(second.ok()) << "served [::1]:" << port << " beside 127.0.0.1:" << port;
+  EXPECT_NE(second.status().message().find("other loopback address"), std::string::npos)
+      << second.status();
+  EXPECT_TRUE(client_->ListMaps().ok()) << "the first server is unharmed";
 }
 
 // A client stream of raw messages (bytes as the client sends them, parsed or not).
