@@ -86,6 +86,20 @@ class AuthTest : public testing::ServerTest {
         &ctx, request, &response);
   }
 
+  // A stream into map "lab" that has sent `frame` and had it answered; null (with a test
+  // failure) otherwise.
+  std::unique_ptr<client::FrameStream> StreamOneFrame(client::Client* c, const v1::Frame& frame) {
+    v1::StreamStart start;
+    start.set_map("lab");
+    auto stream = c->OpenStream(start);
+    EXPECT_TRUE(stream.ok()) << stream.status();
+    if (!stream.ok()) return nullptr;
+    v1::FrameResult result;
+    const bool answered = (*stream)->Send(frame) && (*stream)->Receive(&result);
+    EXPECT_TRUE(answered);
+    return answered ? *std::move(stream) : nullptr;
+  }
+
   std::map<std::string, std::string> secrets_;
   std::unique_ptr<client::Client> admin_;
 };
@@ -139,16 +153,9 @@ TEST_F(AuthTest, EveryMethodRefusesCallersWithoutTheRoleItNeeds) {
 }
 
 TEST_F(AuthTest, HealthCheckingNeedsNoKey) {
-  auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
-  grpc::ClientContext ctx;
-  grpc::Slice empty(std::string(""));
-  grpc::ByteBuffer request(&empty, 1), response;
-  const grpc::Status s = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
-      channel.get(),
-      grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
-                                grpc::internal::RpcMethod::NORMAL_RPC),
-      &ctx, request, &response);
-  EXPECT_TRUE(s.ok()) << s.error_message();
+  const testing::HealthAnswer health = testing::CheckHealth(target_);
+  EXPECT_TRUE(health.status.ok()) << health.status.error_message();
+  EXPECT_TRUE(health.serving);
 }
 
 // The reflection service's list_services on `target`: its status (UNIMPLEMENTED where the
@@ -316,24 +323,20 @@ TEST_F(AuthTest, OnlyTheSecretsHashIsStoredAndListingsNeverShowIt) {
 
 TEST_F(AuthTest, ARevokedKeyIsRefusedAndItsOpenStreamEnds) {
   auto robot = ClientWith(secrets_["robot"]);
-  v1::StreamStart start;
-  start.set_map("lab");
-  auto stream = robot->OpenStream(start);
-  ASSERT_TRUE(stream.ok()) << stream.status();
   v1::Frame frame = testing::MakeFrame(320, 240);
-  ASSERT_TRUE((*stream)->Send(frame));
+  auto stream = StreamOneFrame(robot.get(), frame);
+  ASSERT_NE(stream, nullptr);
   v1::FrameResult result;
-  ASSERT_TRUE((*stream)->Receive(&result));
   auto revoked = admin_->RevokeApiKey("robot");
   ASSERT_TRUE(revoked.ok()) << revoked.status();
   EXPECT_GT(revoked->revoked_time_s(), 0);
   frame.set_sequence(1);
   frame.set_timestamp_s(frame.timestamp_s() + 1);
-  (*stream)->Send(frame);
-  (*stream)->CloseSend();
-  while ((*stream)->Receive(&result)) {
+  stream->Send(frame);
+  stream->CloseSend();
+  while (stream->Receive(&result)) {
   }
-  const absl::Status ended = (*stream)->Finish();
+  const absl::Status ended = stream->Finish();
   EXPECT_TRUE(absl::IsUnauthenticated(ended)) << ended;
   const auto refused = robot->ListMaps().status();
   EXPECT_TRUE(absl::IsUnauthenticated(refused)) << refused;
@@ -349,14 +352,10 @@ TEST_F(AuthTest, ARevokedKeyIsRefusedAndItsOpenStreamEnds) {
 // KeyRing::kReloadIntervalS, with no other call to make the server read the keys again.
 TEST_F(AuthTest, AKeyRevokedBesideTheServerEndsItsOpenStreamWithinTwoSeconds) {
   auto robot = ClientWith(secrets_["robot"]);
-  v1::StreamStart start;
-  start.set_map("lab");
-  auto stream = robot->OpenStream(start);
-  ASSERT_TRUE(stream.ok()) << stream.status();
   v1::Frame frame = testing::MakeFrame(320, 240);
-  ASSERT_TRUE((*stream)->Send(frame));
+  auto stream = StreamOneFrame(robot.get(), frame);
+  ASSERT_NE(stream, nullptr);
   v1::FrameResult result;
-  ASSERT_TRUE((*stream)->Receive(&result));
   {
     auto store = store::Store::Open(tmp_.File("lifemap.db"), {});
     ASSERT_TRUE(store.ok()) << store.status();
@@ -367,15 +366,15 @@ TEST_F(AuthTest, AKeyRevokedBesideTheServerEndsItsOpenStreamWithinTwoSeconds) {
   for (int i = 1; i < 100; ++i) {
     frame.set_sequence(i);
     frame.set_timestamp_s(frame.timestamp_s() + 0.1);
-    if (!(*stream)->Send(frame) || !(*stream)->Receive(&result)) break;
+    if (!stream->Send(frame) || !stream->Receive(&result)) break;
     answered_after_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - revoked_at).count();
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  (*stream)->CloseSend();
-  while ((*stream)->Receive(&result)) {
+  stream->CloseSend();
+  while (stream->Receive(&result)) {
   }
-  const absl::Status ended = (*stream)->Finish();
+  const absl::Status ended = stream->Finish();
   EXPECT_TRUE(absl::IsUnauthenticated(ended)) << ended;
   EXPECT_LE(answered_after_s, server::KeyRing::kReloadIntervalS + 0.5)
       << "frames of a revoked key were answered this long after it was revoked";

@@ -1,9 +1,6 @@
 // The database file under a running server (issue 33, items 2 and 3): the lock is the file's,
 // not the path's, and a file deleted or replaced beneath the server refuses every write
 // instead of acknowledging writes a restart would not find.
-#include <grpcpp/grpcpp.h>
-#include <grpcpp/impl/codegen/client_unary_call.h>
-
 #include <chrono>
 #include <filesystem>
 #include <thread>
@@ -26,24 +23,7 @@ class DatabaseFileTest : public testing::ServerTest {
     return client_->ProcessFrame(req);
   }
 
-  // grpc.health.v1.Health/Check's answer: true for SERVING (field 1 = 1).
-  bool Serving() {
-    auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
-    grpc::ClientContext ctx;
-    grpc::Slice empty(std::string(""));
-    grpc::ByteBuffer request(&empty, 1), response;
-    const grpc::Status s = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
-        channel.get(),
-        grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
-                                  grpc::internal::RpcMethod::NORMAL_RPC),
-        &ctx, request, &response);
-    std::vector<grpc::Slice> slices;
-    if (!s.ok() || !response.Dump(&slices).ok()) return false;
-    std::string bytes;
-    for (const auto& sl : slices)
-      bytes.append(reinterpret_cast<const char*>(sl.begin()), sl.size());
-    return bytes == std::string("\x08\x01", 2);
-  }
+  bool Serving() { return testing::CheckHealth(target_).serving; }
 
   // Polls Serving() until it is `want` or `seconds` passed.
   bool ServingBecomes(bool want, double seconds) {

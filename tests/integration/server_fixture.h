@@ -4,7 +4,10 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/codegen/client_unary_call.h>
 #include <gtest/gtest.h>
 
 #include "client/lifemap_client.h"
@@ -46,6 +49,31 @@ inline TumFrames ReadTumFrames(const std::string& dir) {
     out.truth.push_back(e.T_world_camera);
   }
   return out;
+}
+
+// grpc.health.v1.Health/Check on `target` with an empty request (no key): the call's status
+// and, when OK, whether the answer is SERVING (field 1 = 1, bytes 08 01).
+struct HealthAnswer {
+  grpc::Status status;
+  bool serving = false;
+};
+inline HealthAnswer CheckHealth(const std::string& target) {
+  auto channel = grpc::CreateChannel(target, grpc::InsecureChannelCredentials());
+  grpc::ClientContext ctx;
+  grpc::Slice empty(std::string(""));
+  grpc::ByteBuffer request(&empty, 1), response;
+  HealthAnswer answer;
+  answer.status = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
+      channel.get(),
+      grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
+                                grpc::internal::RpcMethod::NORMAL_RPC),
+      &ctx, request, &response);
+  std::vector<grpc::Slice> slices;
+  if (!answer.status.ok() || !response.Dump(&slices).ok()) return answer;
+  std::string bytes;
+  for (const auto& s : slices) bytes.append(reinterpret_cast<const char*>(s.begin()), s.size());
+  answer.serving = bytes == std::string("\x08\x01", 2);
+  return answer;
 }
 
 class ServerTest : public ::testing::Test {

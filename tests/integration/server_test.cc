@@ -835,23 +835,9 @@ TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
   EXPECT_EQ(s.error_code(), grpc::StatusCode::UNIMPLEMENTED);
   EXPECT_NE(s.error_message().find("ImportMap"), std::string::npos);
 
-  // grpc.health.v1.Health/Check with an empty request; SERVING is field 1 = 1 (bytes 08 01).
-  grpc::ClientContext health_ctx;
-  grpc::ByteBuffer request, response;
-  grpc::Slice empty("");
-  request = grpc::ByteBuffer(&empty, 1);
-  const grpc::Status h = grpc::internal::BlockingUnaryCall<grpc::ByteBuffer, grpc::ByteBuffer>(
-      channel.get(),
-      grpc::internal::RpcMethod("/grpc.health.v1.Health/Check",
-                                grpc::internal::RpcMethod::NORMAL_RPC),
-      &health_ctx, request, &response);
-  ASSERT_TRUE(h.ok()) << h.error_message();
-  std::vector<grpc::Slice> slices;
-  ASSERT_TRUE(response.Dump(&slices).ok());
-  std::string bytes;
-  for (const auto& sl : slices)
-    bytes += std::string(reinterpret_cast<const char*>(sl.begin()), sl.size());
-  EXPECT_EQ(bytes, std::string("\x08\x01", 2));
+  const testing::HealthAnswer health = testing::CheckHealth(target_);
+  ASSERT_TRUE(health.status.ok()) << health.status.error_message();
+  EXPECT_TRUE(health.serving);
 }
 
 // Server reflection answers list_services with lifemap's services (what grpcurl relies on).
@@ -911,6 +897,30 @@ TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
 
 // Issue 17, deadlines: a place query over many frames whose deadline passes stops on the server
 // too (it does not go on spending CPU for nobody).
+// Sends `req` with a deadline of `timeout_s`: the call must end DEADLINE_EXCEEDED and the
+// server must be idle right after (it stops between frames instead of finishing for nobody).
+void ExpectTheServerStopsAtTheDeadline(const std::string& target, client::Client* observer,
+                                       const v1::QueryPlaceRequest& req, double timeout_s) {
+  auto options = client::ClientOptions::At(target);
+  options.call_timeout_s = timeout_s;
+  auto hurried = client::Client::Connect(options);
+  ASSERT_TRUE(hurried.ok());
+  const auto s = (*hurried)->QueryPlace(req).status();
+  EXPECT_TRUE(absl::IsDeadlineExceeded(s)) << s;
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  const double before = observer->GetStats()->process_cpu_s();
+  std::this_thread::sleep_for(std::chrono::seconds(2));
+  const double used = observer->GetStats()->process_cpu_s() - before;
+  EXPECT_LT(used, 0.5) << "the server went on with the query for " << used << " s of CPU";
+}
+
+TEST_F(ServerTest, AQueryWhoseDeadlinePassesStopsOnTheServer) {
+  v1::QueryPlaceRequest req;
+  req.add_methods(v1::MATCH_METHOD_APPEARANCE);
+  for (int i = 0; i < 200; ++i) *req.add_frames() = testing::MakeFrame(320, 240);
+  ExpectTheServerStopsAtTheDeadline(target_, client_.get(), req, 0.3);
+}
+
 // The same for a query by architecture (issue 33, item 7: 6 s of CPU after a 1 s deadline).
 TEST_F(ServerTest, AnArchitectureQueryWhoseDeadlinePassesStopsOnTheServer) {
   v1::QueryPlaceRequest req;
@@ -922,35 +932,7 @@ TEST_F(ServerTest, AnArchitectureQueryWhoseDeadlinePassesStopsOnTheServer) {
     pose.translation = Eigen::Vector3d(0.01 * i, 0, 0);
     server::PoseToProto(pose, f->mutable_pose());
   }
-  auto options = client::ClientOptions::At(target_);
-  options.call_timeout_s = 0.5;
-  auto hurried = client::Client::Connect(options);
-  ASSERT_TRUE(hurried.ok());
-  const auto s = (*hurried)->QueryPlace(req).status();
-  EXPECT_TRUE(absl::IsDeadlineExceeded(s)) << s;
-  std::this_thread::sleep_for(std::chrono::milliseconds(300));
-  const double before = client_->GetStats()->process_cpu_s();
-  std::this_thread::sleep_for(std::chrono::seconds(2));
-  const double used = client_->GetStats()->process_cpu_s() - before;
-  EXPECT_LT(used, 0.5) << "the server went on with the query for " << used << " s of CPU";
-}
-
-TEST_F(ServerTest, AQueryWhoseDeadlinePassesStopsOnTheServer) {
-  v1::QueryPlaceRequest req;
-  req.add_methods(v1::MATCH_METHOD_APPEARANCE);
-  for (int i = 0; i < 200; ++i) *req.add_frames() = testing::MakeFrame(320, 240);
-  auto options = client::ClientOptions::At(target_);
-  options.call_timeout_s = 0.3;
-  auto hurried = client::Client::Connect(options);
-  ASSERT_TRUE(hurried.ok());
-  const auto s = (*hurried)->QueryPlace(req).status();
-  EXPECT_TRUE(absl::IsDeadlineExceeded(s)) << s;
-  // 200 frames take seconds of CPU; once stopped, the server is idle.
-  std::this_thread::sleep_for(std::chrono::milliseconds(300));
-  const double before = client_->GetStats()->process_cpu_s();
-  std::this_thread::sleep_for(std::chrono::seconds(2));
-  const double used = client_->GetStats()->process_cpu_s() - before;
-  EXPECT_LT(used, 0.5) << "the server went on with the query for " << used << " s of CPU";
+  ExpectTheServerStopsAtTheDeadline(target_, client_.get(), req, 0.5);
 }
 
 }  // namespace
