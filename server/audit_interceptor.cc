@@ -13,7 +13,7 @@
 #include "absl/strings/string_view.h"
 #include "core/common/utf8.h"
 #include "server/auth.h"
-#include "server/clock.h"
+#include "server/engine/clock.h"
 #include "server/services.h"
 
 namespace lifemap::server {

@@ -16,7 +16,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "server/clock.h"
+#include "server/engine/clock.h"
 
 namespace lifemap::server {
 namespace {

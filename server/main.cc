@@ -20,8 +20,8 @@
 
 #include "absl/strings/str_join.h"
 #include "server/auth.h"
-#include "server/clock.h"
 #include "server/config.h"
+#include "server/engine/clock.h"
 #include "server/server.h"
 #include "server/store/store.h"
 

@@ -8,8 +8,8 @@
 #include "core/io/tum_dataset.h"
 #include "core/mapping/point_cloud.h"
 #include "server/convert.h"
-#include "server/semantic_export.h"
-#include "server/semantic_rebuild.h"
+#include "server/engine/semantic_export.h"
+#include "server/engine/semantic_rebuild.h"
 #include "server/services.h"
 
 namespace lifemap::server {

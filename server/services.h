@@ -12,19 +12,19 @@
 #include "lifemap/v1/model_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
-#include "server/appearance.h"
-#include "server/architecture.h"
 #include "server/auth.h"
-#include "server/clock.h"
 #include "server/config.h"
-#include "server/keyframe_committer.h"
-#include "server/model_registry.h"
-#include "server/pose_graph_worker.h"
-#include "server/semantics.h"
-#include "server/serial_worker.h"
+#include "server/engine/appearance.h"
+#include "server/engine/architecture.h"
+#include "server/engine/clock.h"
+#include "server/engine/keyframe_committer.h"
+#include "server/engine/model_registry.h"
+#include "server/engine/pose_graph_worker.h"
+#include "server/engine/semantics.h"
+#include "server/engine/serial_worker.h"
+#include "server/engine/visit_registry.h"
 #include "server/store/store.h"
 #include "server/stream_watchdog.h"
-#include "server/visit_registry.h"
 
 namespace lifemap::server {
 
@@ -76,7 +76,7 @@ class MapServiceImpl final : public v1::MapService::Service {
                                       grpc::ServerWriter<v1::SemanticOctreeRebuild>*) override;
 
  private:
-  // ExportMap's semantic octree formats (server/semantic_export.h).
+  // ExportMap's semantic octree formats (server/engine/semantic_export.h).
   grpc::Status ExportSemantic(const store::MapRecord& map, const v1::ExportMapRequest& req,
                               grpc::ServerWriter<v1::ExportChunk>* writer);
 

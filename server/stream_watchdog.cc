@@ -3,7 +3,7 @@
 #include <grpcpp/server_context.h>
 #include <spdlog/spdlog.h>
 
-#include "server/clock.h"
+#include "server/engine/clock.h"
 
 namespace lifemap::server {
 

@@ -2,7 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "server/convert.h"
-#include "server/semantic_export.h"
+#include "server/engine/semantic_export.h"
 #include "server/services.h"
 
 namespace lifemap::server {

@@ -297,7 +297,7 @@ struct SemanticSnapshotRecord {
   double updated_time_s = 0.0;
 };
 
-// A map's semantic octree: its visits' merged in the map's frame (server/semantic_export.h).
+// A map's semantic octree: its visits' merged in the map's frame (server/engine/semantic_export.h).
 struct MapSemanticSnapshotRecord {
   int64_t map_id = 0;
   SemanticSnapshotRecord octree;  // octree.visit_id is 0

@@ -1,4 +1,4 @@
-#include "server/bounded_queue.h"
+#include "server/engine/bounded_queue.h"
 
 #include <atomic>
 #include <chrono>

@@ -1,7 +1,7 @@
 // Loop closure checks (issue 15): a candidate that disagrees with the odometry beyond the drift
 // it allows, or has too few inliers, is stored as rejected with the reason and moves nothing; a
 // consistent one is accepted, solved, and the visit's correction follows.
-#include "server/pose_graph_worker.h"
+#include "server/engine/pose_graph_worker.h"
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>

@@ -1,6 +1,6 @@
 // The semantic octree export (issue 16): which visits' octrees lie in the map's frame, and where
 // a visit anchored into it goes.
-#include "server/semantic_export.h"
+#include "server/engine/semantic_export.h"
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>

@@ -1,8 +1,8 @@
-// The camera's path through a visit (server/visit_registry.h): what the appearance query's
+// The camera's path through a visit (server/engine/visit_registry.h): what the appearance query's
 // own-visit exclusion measures keyframes by.
 #include <gtest/gtest.h>
 
-#include "server/visit_registry.h"
+#include "server/engine/visit_registry.h"
 
 namespace lifemap::server {
 namespace {

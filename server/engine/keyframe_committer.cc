@@ -1,4 +1,4 @@
-#include "server/keyframe_committer.h"
+#include "server/engine/keyframe_committer.h"
 
 #include <vector>
 

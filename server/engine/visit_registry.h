@@ -17,9 +17,9 @@
 #include "absl/synchronization/mutex.h"
 #include "core/tracking/keyframe_selector.h"
 #include "core/tracking/odometry.h"
-#include "server/architecture.h"
-#include "server/semantics.h"
-#include "server/serial_worker.h"
+#include "server/engine/architecture.h"
+#include "server/engine/semantics.h"
+#include "server/engine/serial_worker.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {

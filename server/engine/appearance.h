@@ -23,7 +23,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "core/appearance/recognizer.h"
-#include "server/config.h"
+#include "server/engine/options.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {

@@ -1,4 +1,4 @@
-#include "server/visit_registry.h"
+#include "server/engine/visit_registry.h"
 
 #include <algorithm>
 #include <chrono>

@@ -17,9 +17,9 @@
 
 #include "absl/status/statusor.h"
 #include "core/semantic/semantic_map.h"
-#include "server/serial_worker.h"
+#include "server/engine/serial_worker.h"
+#include "server/engine/visit_registry.h"
 #include "server/store/store.h"
-#include "server/visit_registry.h"
 
 namespace lifemap::server {
 

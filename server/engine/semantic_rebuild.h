@@ -17,10 +17,10 @@
 
 #include "absl/status/status.h"
 #include "core/semantic/semantic_map.h"
-#include "server/model_registry.h"
-#include "server/serial_worker.h"
+#include "server/engine/model_registry.h"
+#include "server/engine/serial_worker.h"
+#include "server/engine/visit_registry.h"
 #include "server/store/store.h"
-#include "server/visit_registry.h"
 
 namespace lifemap::pipeline {
 class FramePipeline;

@@ -1,4 +1,4 @@
-#include "server/serial_worker.h"
+#include "server/engine/serial_worker.h"
 
 #include <utility>
 

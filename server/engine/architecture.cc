@@ -1,11 +1,11 @@
-#include "server/architecture.h"
+#include "server/engine/architecture.h"
 
 #include <algorithm>
 
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
 #include "core/place/serialize.h"
-#include "server/clock.h"
+#include "server/engine/clock.h"
 
 namespace lifemap::server {
 

@@ -20,7 +20,7 @@
 #include "core/common/rgbd_frame.h"
 #include "core/place/descriptor.h"
 #include "core/place/floor_plan.h"
-#include "server/serial_worker.h"
+#include "server/engine/serial_worker.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {

@@ -1,4 +1,4 @@
-#include "server/periodic_task.h"
+#include "server/engine/periodic_task.h"
 
 #include <utility>
 

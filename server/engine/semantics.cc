@@ -1,7 +1,7 @@
-#include "server/semantics.h"
+#include "server/engine/semantics.h"
 
 #include "absl/strings/str_cat.h"
-#include "server/clock.h"
+#include "server/engine/clock.h"
 #include "spdlog/spdlog.h"
 
 namespace lifemap::server {

@@ -1,11 +1,11 @@
-#include "server/appearance.h"
+#include "server/engine/appearance.h"
 
 #include <algorithm>
 
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
-#include "server/services.h"
+#include "server/engine/clock.h"
 
 namespace lifemap::server {
 

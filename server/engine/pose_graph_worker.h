@@ -24,7 +24,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "core/common/types.h"
-#include "server/config.h"
+#include "server/engine/options.h"
 #include "server/store/store.h"
 
 namespace lifemap::place {

@@ -1,4 +1,4 @@
-#include "server/semantic_export.h"
+#include "server/engine/semantic_export.h"
 
 #include <algorithm>
 #include <optional>
@@ -9,7 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/forest/forest.h"
-#include "server/semantics.h"
+#include "server/engine/semantics.h"
 #include "spdlog/spdlog.h"
 
 namespace lifemap::server {

@@ -1,4 +1,4 @@
-#include "server/pose_graph_worker.h"
+#include "server/engine/pose_graph_worker.h"
 
 #include <algorithm>
 #include <cmath>
@@ -15,7 +15,7 @@
 #include "core/place/layout_check.h"
 #include "core/place/serialize.h"
 #include "core/posegraph/pose_graph.h"
-#include "server/services.h"
+#include "server/engine/clock.h"
 
 namespace lifemap::server {
 

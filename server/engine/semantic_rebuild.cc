@@ -1,4 +1,4 @@
-#include "server/semantic_rebuild.h"
+#include "server/engine/semantic_rebuild.h"
 
 #include <chrono>
 #include <memory>
@@ -7,8 +7,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/pipeline/frame_pipeline.h"
-#include "server/semantic_export.h"
-#include "server/semantics.h"
+#include "server/engine/semantic_export.h"
+#include "server/engine/semantics.h"
 #include "spdlog/spdlog.h"
 
 namespace lifemap::server {

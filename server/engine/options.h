@@ -1,0 +1,60 @@
+// The map engine's options: structs with commented defaults and a Validate() each, filled by
+// lifemapd's configuration (server/config.h) and used by the engine's workers.
+#pragma once
+
+#include <optional>
+
+#include "absl/status/status.h"
+#include "core/appearance/recognizer.h"
+#include "core/pipeline/keyframe.h"
+
+namespace lifemap::server {
+
+// Appearance place recognition (server/engine/appearance.h).
+struct AppearanceOptions {
+  bool enabled = true;
+  int min_training_keyframes = 30;    // stored keyframes before a vocabulary is trained, ≥ 2
+  int max_training_keyframes = 3000;  // keyframes a vocabulary is trained on at most
+  appearance::VocabularyOptions vocabulary;
+  appearance::RecognizerOptions recognizer;
+  pipeline::KeyframeFeatureOptions features;  // ORB per keyframe (and per queried frame)
+  // A keyframe of the querying visit is not a match while it is both less than
+  // `exclude_recent_s` from the query in time and less than `exclude_recent_m` of the camera's
+  // path behind it (the same view a moment ago, not a recognised place). The path lets a walk
+  // that returns to its start within seconds close its loop: the 300-frame synthetic walks pass
+  // their start 8.6-11.4 s in, after 5-7 m, and a time window alone of 10 s excluded them.
+  double exclude_recent_s = 10.0;
+  double exclude_recent_m = 3.0;
+  int max_frame_matches = 3;  // appearance matches a frame result lists, [1, 100]
+  // Non-keyframes are queried too when a frame's options ask (FrameOptions.
+  // appearance_interval_s); this is the default for frames that do not say: nullopt =
+  // keyframes only; 0 = every frame; t > 0 = at most every t seconds per stream.
+  std::optional<double> frame_interval_s;
+  static constexpr double kMaxFrameIntervalS = 3600;  // for it and the per-stream option
+
+  absl::Status Validate() const;
+};
+
+// Loop closure and the pose graph of tracked visits (issue 15; config key `pose_graph`).
+struct PoseGraphOptions {
+  bool enabled = true;  // verified appearance matches within a tracked visit close loops
+  // A loop candidate (a verified appearance match to an earlier keyframe of the same visit)
+  // needs at least this many PnP inliers and at most this RMS reprojection error (pixels at
+  // 640 columns), stricter than a place match: a wrong loop bends the map.
+  int loop_min_inliers = 25;
+  double loop_max_reprojection_px = 2.5;
+  // ... and must agree with the odometry up to the drift it can have accumulated since the
+  // matched keyframe: base + per_m * (path length in between, metres).
+  double loop_max_disagreement_m = 0.15;
+  double loop_max_disagreement_per_m = 0.05;
+  double loop_max_disagreement_deg = 5.0;
+  double loop_max_disagreement_deg_per_m = 1.0;
+  // The architecture check (paper 004's floor plans): a loop's query, or an anchored visit's
+  // keyframes, placed where the matches put them, may have at most this share of their depth
+  // readings beyond the walls of the matched visit's plan (where it has one), [0, 1].
+  double layout_max_through_share = 0.05;
+
+  absl::Status Validate() const;
+};
+
+}  // namespace lifemap::server
