@@ -7,6 +7,7 @@
 #include <optional>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "core/appearance/recognizer.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/pipeline/keyframe.h"
@@ -15,6 +16,9 @@
 #include "server/engine/options.h"
 
 namespace lifemap::server {
+
+// True for a HOST:PORT on loopback (localhost, 127.0.0.0/8, [::1]) and for unix: sockets.
+bool IsLoopbackAddress(absl::string_view listen);
 
 struct ServerConfig {
   std::string listen = "127.0.0.1:50051";  // HOST:PORT; port 0 picks a free port

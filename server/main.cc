@@ -19,9 +19,9 @@
 #include <CLI/CLI.hpp>
 
 #include "absl/strings/str_join.h"
-#include "server/auth.h"
 #include "server/config.h"
 #include "server/engine/clock.h"
+#include "server/rpc/auth.h"
 #include "server/server.h"
 #include "server/store/store.h"
 

@@ -28,13 +28,13 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
-#include "server/audit_interceptor.h"
-#include "server/auth.h"
 #include "server/engine/periodic_task.h"
 #include "server/instance_lock.h"
-#include "server/services.h"
-#include "server/status_interceptor.h"
-#include "server/stream_watchdog.h"
+#include "server/rpc/audit_interceptor.h"
+#include "server/rpc/auth.h"
+#include "server/rpc/services.h"
+#include "server/rpc/status_interceptor.h"
+#include "server/rpc/stream_watchdog.h"
 
 namespace lifemap::server {
 namespace {

@@ -184,7 +184,7 @@ struct MapCreator {
 
 // An API key's own limits (0: only the server's): concurrent streams, frames a second (streams
 // and ProcessFrame together), maps it may have created at once, keyframes a map it writes may
-// hold, model size (server/auth.h enforces them).
+// hold, model size (server/rpc/auth.h enforces them).
 struct KeyLimits {
   int64_t max_streams = 0;
   double max_frames_per_s = 0;
@@ -198,7 +198,7 @@ struct KeyLimits {
 struct ApiKeyRecord {
   int64_t id = 0;
   std::string name;
-  std::string role;  // "robot" | "operator" | "admin" (server/auth.h)
+  std::string role;  // "robot" | "operator" | "admin" (server/rpc/auth.h)
   bool every_map = true;
   std::vector<int64_t> map_ids;        // when !every_map: the maps it may use
   std::vector<std::string> map_names;  // their current names (List), same order

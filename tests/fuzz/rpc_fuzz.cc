@@ -42,7 +42,7 @@
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/model_service.pb.h"
-#include "server/auth.h"
+#include "server/rpc/auth.h"
 #include "server/server.h"
 #include "server/store/store.h"
 #include "tests/fuzz/seeds.h"

@@ -4,7 +4,7 @@
 #include <gtest/gtest.h>
 
 #include "core/io/tum_dataset.h"
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 #include "tests/integration/server_fixture.h"
 
 namespace lifemap {

@@ -15,7 +15,7 @@
 #include "absl/strings/match.h"
 #include "core/common/utf8.h"
 #include "lifemap/v1/frame_service.grpc.pb.h"
-#include "server/auth.h"
+#include "server/rpc/auth.h"
 #include "server/engine/clock.h"
 #include "server/store/store.h"
 #include "tests/integration/server_fixture.h"

@@ -13,7 +13,7 @@
 #include "core/eval/trajectory.h"
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 #include "tests/integration/server_fixture.h"
 
 namespace lifemap {

@@ -12,7 +12,7 @@
 #include "core/sim/generator.h"
 #include "core/sim/renderer.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 #include "tests/integration/server_fixture.h"
 
 namespace lifemap {

@@ -19,7 +19,7 @@
 #include "core/io/tum_dataset.h"
 #include "lifemap/v1/map_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 #include "server/server.h"
 #include "server/store/store.h"
 #include "tests/integration/server_fixture.h"

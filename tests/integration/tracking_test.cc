@@ -9,7 +9,7 @@
 #include "core/common/image_codec.h"
 #include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 #include "tests/integration/server_fixture.h"
 #include "tests/testing/test_util.h"
 

@@ -1,4 +1,5 @@
-#include "server/auth.h"
+#include "server/config.h"
+#include "server/rpc/auth.h"
 
 #include <set>
 

@@ -7,10 +7,10 @@
 #include "core/common/rgbd_frame.h"
 #include "core/io/tum_dataset.h"
 #include "core/mapping/point_cloud.h"
-#include "server/convert.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/semantic_rebuild.h"
-#include "server/services.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
 
 namespace lifemap::server {
 namespace {

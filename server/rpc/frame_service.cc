@@ -15,11 +15,11 @@
 #include "core/common/task_pool.h"
 #include "core/common/utf8.h"
 #include "core/pipeline/keyframe.h"
-#include "server/convert.h"
 #include "server/engine/bounded_queue.h"
-#include "server/services.h"
-#include "server/stream_read.h"
-#include "server/stream_watchdog.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
+#include "server/rpc/stream_read.h"
+#include "server/rpc/stream_watchdog.h"
 
 namespace lifemap::server {
 namespace {

@@ -1,9 +1,9 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
-#include "server/convert.h"
 #include "server/engine/semantic_export.h"
-#include "server/services.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
 
 namespace lifemap::server {
 namespace {

@@ -4,9 +4,9 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
-#include "server/convert.h"
-#include "server/services.h"
-#include "server/stream_read.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
+#include "server/rpc/stream_read.h"
 
 namespace lifemap::server {
 namespace {

@@ -121,9 +121,6 @@ std::string NewApiKeySecret();
 // The hex SHA-256 of a secret, as the store keeps it.
 std::string ApiKeyHash(absl::string_view secret);
 
-// True for a HOST:PORT on loopback (localhost, 127.0.0.0/8, [::1]) and for unix: sockets.
-bool IsLoopbackAddress(absl::string_view listen);
-
 class KeyRing {
  public:
   // `required`: calls need a live key; otherwise every call is an unlimited admin's.

@@ -1,4 +1,4 @@
-#include "server/audit_interceptor.h"
+#include "server/rpc/audit_interceptor.h"
 
 #include <string>
 
@@ -12,9 +12,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
 #include "core/common/utf8.h"
-#include "server/auth.h"
 #include "server/engine/clock.h"
-#include "server/services.h"
+#include "server/rpc/auth.h"
+#include "server/rpc/services.h"
 
 namespace lifemap::server {
 namespace {

@@ -1,4 +1,4 @@
-#include "server/status_interceptor.h"
+#include "server/rpc/status_interceptor.h"
 
 #include <string>
 

@@ -9,8 +9,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
-#include "server/convert.h"
-#include "server/services.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
 
 namespace lifemap::server {
 

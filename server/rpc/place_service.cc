@@ -9,8 +9,8 @@
 #include "core/pipeline/keyframe.h"
 #include "core/place/floor_plan.h"
 #include "core/place/serialize.h"
-#include "server/convert.h"
-#include "server/services.h"
+#include "server/rpc/convert.h"
+#include "server/rpc/services.h"
 
 namespace lifemap::server {
 namespace {

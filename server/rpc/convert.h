@@ -18,8 +18,8 @@
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
-#include "server/auth.h"
 #include "server/engine/architecture.h"
+#include "server/rpc/auth.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {

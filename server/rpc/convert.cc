@@ -1,4 +1,4 @@
-#include "server/convert.h"
+#include "server/rpc/convert.h"
 
 #include <limits>
 

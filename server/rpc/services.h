@@ -12,7 +12,6 @@
 #include "lifemap/v1/model_service.grpc.pb.h"
 #include "lifemap/v1/place_service.grpc.pb.h"
 #include "lifemap/v1/visit_service.grpc.pb.h"
-#include "server/auth.h"
 #include "server/config.h"
 #include "server/engine/appearance.h"
 #include "server/engine/architecture.h"
@@ -23,8 +22,9 @@
 #include "server/engine/semantics.h"
 #include "server/engine/serial_worker.h"
 #include "server/engine/visit_registry.h"
+#include "server/rpc/auth.h"
+#include "server/rpc/stream_watchdog.h"
 #include "server/store/store.h"
-#include "server/stream_watchdog.h"
 
 namespace lifemap::server {
 

@@ -1,4 +1,4 @@
-#include "server/stream_watchdog.h"
+#include "server/rpc/stream_watchdog.h"
 
 #include <grpcpp/server_context.h>
 #include <spdlog/spdlog.h>
