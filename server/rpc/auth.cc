@@ -1,6 +1,5 @@
 #include "server/rpc/auth.h"
 
-#include <arpa/inet.h>
 #include <openssl/rand.h>
 #include <openssl/sha.h>
 
@@ -11,7 +10,6 @@
 #include <grpcpp/server_context.h>
 #include <spdlog/spdlog.h>
 
-#include "absl/strings/ascii.h"
 #include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"

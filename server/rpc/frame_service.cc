@@ -46,6 +46,17 @@ struct PendingResult {
   absl::Status visit_closed;
 };
 
+// The answer to a frame refused with `s`: its sequence and timestamp (from `of`) and the error,
+// nothing of its analysis (the stream goes on unless the caller ends it).
+v1::FrameResult ErrorResult(const v1::FrameResult& of, const absl::Status& s) {
+  v1::FrameResult r;
+  r.set_sequence(of.sequence());
+  r.set_timestamp_s(of.timestamp_s());
+  r.mutable_error()->set_code(static_cast<int>(s.code()));
+  r.mutable_error()->set_message(ToValidUtf8(s.message()));
+  return r;
+}
+
 // Builds what the store keeps of a keyframe. Depth: paletted (core/common/depth_codec.h) at the
 // client's own scale, so the sensor's values are kept exactly (float metres at
 // kStoredDepthScale). Colour: JPEG as it came; PNG and raw re-encoded as JPEG at
@@ -270,8 +281,7 @@ AnalysedFrame AnalyseFrame(ServiceContext* ctx, v1::Frame frame, int64_t map_id,
   r.set_timestamp_s(a.frame.timestamp_s());
   auto reject = [&](const absl::Status& s) {
     ctx->frames_rejected.fetch_add(1);
-    r.mutable_error()->set_code(static_cast<int>(s.code()));
-    r.mutable_error()->set_message(ToValidUtf8(s.message()));
+    r = ErrorResult(r, s);
     spdlog::debug("frame {} rejected: {}", a.frame.sequence(), std::string(s.message()));
     return std::move(a);
   };
@@ -507,12 +517,7 @@ PendingResult PlaceInVisit(ServiceContext* ctx, AnalysedFrame a,
           f.timestamp_s, f.timestamp_s - *visit->last_frame_s, visit->visit_id,
           *visit->last_frame_s, ctx->config.frame_max_gap_s));
       ctx->frames_rejected.fetch_add(1);
-      const uint64_t sequence = r.sequence();
-      r.Clear();  // the frame's analysis is not answered: it belongs to no visit
-      r.set_sequence(sequence);
-      r.set_timestamp_s(f.timestamp_s);
-      r.mutable_error()->set_code(static_cast<int>(s.code()));
-      r.mutable_error()->set_message(std::string(s.message()));
+      r = ErrorResult(r, s);  // its analysis is not answered: it belongs to no visit
       return p;
     }
     if (!visit->last_frame_s || f.timestamp_s > *visit->last_frame_s) {
@@ -951,12 +956,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
           closed = p.visit_closed;
         }
         visit_closed.store(true);
-        v1::FrameResult refused;
-        refused.set_sequence(p.result.sequence());
-        refused.set_timestamp_s(p.result.timestamp_s());
-        refused.mutable_error()->set_code(static_cast<int>(p.visit_closed.code()));
-        refused.mutable_error()->set_message(ToValidUtf8(p.visit_closed.message()));
-        p.result = std::move(refused);
+        p.result = ErrorResult(p.result, p.visit_closed);
       }
       answering.Push(std::move(p));
     }

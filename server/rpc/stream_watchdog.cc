@@ -7,14 +7,7 @@
 
 namespace lifemap::server {
 
-struct StreamWatchdog::Watch::State {
-  grpc::ServerContext* context = nullptr;
-  double waiting_since_s = -1;  // < 0: not waiting
-  double timeout_s = 0;
-  bool timed_out = false;
-};
-
-StreamWatchdog::Watch::Watch(StreamWatchdog* owner, std::list<std::shared_ptr<State>>::iterator it)
+StreamWatchdog::Watch::Watch(StreamWatchdog* owner, std::list<State>::iterator it)
     : owner_(owner), it_(it) {}
 
 StreamWatchdog::Watch::~Watch() {
@@ -25,25 +18,23 @@ StreamWatchdog::Watch::~Watch() {
 void StreamWatchdog::Watch::Waiting(double timeout_s) {
   const double now = NowSeconds();
   absl::MutexLock lock(&owner_->mu_);
-  (*it_)->waiting_since_s = now;
-  (*it_)->timeout_s = timeout_s;
+  it_->waiting_since_s = now;
+  it_->timeout_s = timeout_s;
 }
 
 void StreamWatchdog::Watch::Received() {
   absl::MutexLock lock(&owner_->mu_);
-  (*it_)->waiting_since_s = -1;
+  it_->waiting_since_s = -1;
 }
 
 bool StreamWatchdog::Watch::timed_out() const {
   absl::MutexLock lock(&owner_->mu_);
-  return (*it_)->timed_out;
+  return it_->timed_out;
 }
 
 std::unique_ptr<StreamWatchdog::Watch> StreamWatchdog::Start(grpc::ServerContext* context) {
-  auto state = std::make_shared<Watch::State>();
-  state->context = context;
   absl::MutexLock lock(&mu_);
-  watched_.push_front(std::move(state));
+  watched_.push_front(Watch::State{context});
   return std::unique_ptr<Watch>(new Watch(this, watched_.begin()));
 }
 
@@ -51,14 +42,14 @@ int StreamWatchdog::CancelExpired() {
   const double now = NowSeconds();
   int cancelled = 0;
   absl::MutexLock lock(&mu_);
-  for (const auto& w : watched_) {
-    if (w->timed_out || w->waiting_since_s < 0 || now - w->waiting_since_s <= w->timeout_s) {
+  for (auto& w : watched_) {
+    if (w.timed_out || w.waiting_since_s < 0 || now - w.waiting_since_s <= w.timeout_s) {
       continue;
     }
-    spdlog::info("stream from {} sent nothing for {:.0f} s: ended", w->context->peer(),
-                 now - w->waiting_since_s);
-    w->timed_out = true;
-    w->context->TryCancel();  // its Read returns false; the handler ends
+    spdlog::info("stream from {} sent nothing for {:.0f} s: ended", w.context->peer(),
+                 now - w.waiting_since_s);
+    w.timed_out = true;
+    w.context->TryCancel();  // its Read returns false; the handler ends
     ++cancelled;
   }
   return cancelled;

@@ -33,10 +33,15 @@ class StreamWatchdog {
 
    private:
     friend class StreamWatchdog;
-    struct State;
-    Watch(StreamWatchdog* owner, std::list<std::shared_ptr<State>>::iterator it);
+    struct State {
+      grpc::ServerContext* context = nullptr;
+      double waiting_since_s = -1;  // < 0: not waiting
+      double timeout_s = 0;
+      bool timed_out = false;
+    };
+    Watch(StreamWatchdog* owner, std::list<State>::iterator it);
     StreamWatchdog* owner_;
-    std::list<std::shared_ptr<State>>::iterator it_;
+    std::list<State>::iterator it_;  // a list's elements stay put while others come and go
   };
 
   // Watches the call of `context` until the returned Watch is destroyed.
@@ -47,7 +52,7 @@ class StreamWatchdog {
 
  private:
   absl::Mutex mu_;
-  std::list<std::shared_ptr<Watch::State>> watched_ ABSL_GUARDED_BY(mu_);
+  std::list<Watch::State> watched_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace lifemap::server

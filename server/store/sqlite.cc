@@ -187,9 +187,8 @@ Database::FileId Database::IdOf(const std::string& path) {
   return {true, static_cast<uint64_t>(st.st_dev), static_cast<uint64_t>(st.st_ino)};
 }
 
-void Database::GuardCommits(const std::string& path) {
-  wal_ = IdOf(path + "-wal");
-  guarded_ = true;
+void Database::GuardCommits() {
+  wal_ = IdOf(path_ + "-wal");
   sqlite3_commit_hook(db_, &Database::OnCommit, this);
 }
 
@@ -211,7 +210,7 @@ absl::Status Database::CheckFilesInPlace() const {
         "to the file this server opened, not the one a restart will open"));
   }
   // The WAL holds every commit not yet checkpointed: deleted, a restart loses them.
-  if (guarded_ && wal_.exists && differs(IdOf(path_ + "-wal"), wal_)) {
+  if (wal_.exists && differs(IdOf(path_ + "-wal"), wal_)) {
     return absl::FailedPreconditionError(absl::StrCat(
         "the database's write-ahead log ", path_,
         "-wal was deleted or replaced while lifemapd ran: writes are refused, since a restart "

@@ -89,12 +89,12 @@ class Database {
   int Changes() const;
   sqlite3* raw() { return db_; }
 
-  // From now on every commit on this connection first checks that the database file at
-  // `path` and its WAL are still the files this connection writes (same device and inode):
+  // From now on every commit on this connection first checks that the database file at its
+  // path and its WAL are still the files this connection writes (same device and inode):
   // a file deleted, moved or replaced under a running server would take every later commit
   // with it at the next restart. Such a commit is rolled back instead, and the statement fails
   // FAILED_PRECONDITION (SQLITE_CONSTRAINT_COMMITHOOK). Call once the WAL exists.
-  void GuardCommits(const std::string& path);
+  void GuardCommits();
   // OK while the files are in place; FAILED_PRECONDITION saying what happened otherwise (also
   // without GuardCommits: then only the main file is checked, against itself at Open).
   absl::Status CheckFilesInPlace() const;
@@ -109,8 +109,8 @@ class Database {
   static int OnCommit(void* self);
   sqlite3* db_;
   const std::string path_;
-  FileId file_, wal_;  // as opened; wal_ recorded by GuardCommits
-  bool guarded_ = false;
+  FileId file_;  // as opened
+  FileId wal_;   // as GuardCommits found it (not `exists` before: the WAL is not checked)
   std::unordered_map<std::string, std::unique_ptr<Statement>> statements_;
 };
 

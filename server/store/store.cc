@@ -733,7 +733,7 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
   if (!read_db.ok()) return read_db.status();
   // From here on, a commit to a database file that was deleted or replaced is refused (the
   // WAL exists now: the connection has read in WAL mode).
-  db->GuardCommits(path);
+  db->GuardCommits();
   {
     absl::MutexLock w(&impl->write_mu);
     impl->write_db = *std::move(write_db);
