@@ -1,6 +1,8 @@
 #include "server/config.h"
 
+#include <cmath>
 #include <fstream>
+#include <functional>
 #include <vector>
 
 #include <gtest/gtest.h>
@@ -42,6 +44,26 @@ TEST(ServerConfig, RejectsOutOfRangeLimits) {
   c = ServerConfig();
   c.log_level = "loud";
   EXPECT_FALSE(c.Validate().ok());
+}
+
+// The settings issue 33 added: each bad value is refused naming the setting.
+TEST(ServerConfig, RejectsBadStreamTimestampAndVisitLimits) {
+  const auto refused = [](const std::function<void(ServerConfig*)>& set, const char* name) {
+    ServerConfig c;
+    set(&c);
+    const absl::Status s = c.Validate();
+    EXPECT_TRUE(absl::IsInvalidArgument(s)) << name << ": " << s;
+    EXPECT_NE(s.message().find(name), std::string::npos) << s;
+  };
+  refused([](ServerConfig* c) { c->max_streams_per_key = 0; }, "max_streams_per_key");
+  refused([](ServerConfig* c) { c->stream_start_timeout_s = 0; }, "stream_start_timeout_s");
+  refused([](ServerConfig* c) { c->stream_start_timeout_s = NAN; }, "stream_start_timeout_s");
+  refused([](ServerConfig* c) { c->stream_idle_timeout_s = -1; }, "stream_idle_timeout_s");
+  refused([](ServerConfig* c) { c->stream_idle_timeout_s = 1e9; }, "stream_idle_timeout_s");
+  refused([](ServerConfig* c) { c->frame_max_future_s = 0; }, "frames.max_future_s");
+  refused([](ServerConfig* c) { c->frame_max_gap_s = INFINITY; }, "frames.max_gap_s");
+  refused([](ServerConfig* c) { c->max_visits_per_key_per_hour = -1; },
+          "max_visits_per_key_per_hour");
 }
 
 TEST(ConfigFile, ReadsKnownKeys) {
