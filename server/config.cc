@@ -70,14 +70,9 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("listen address '", listen, "' must be HOST:PORT, e.g. 127.0.0.1:50051"));
   }
-  if (db_path.empty()) return absl::InvalidArgumentError("db path must not be empty");
   if (max_message_bytes < (1 << 20) || max_message_bytes > (256 << 20)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "max message size must be within [1, 256] MiB, got ", max_message_bytes >> 20, " MiB"));
-  }
-  if (keyframe_color_jpeg_quality < 1 || keyframe_color_jpeg_quality > 100) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "storage.color_jpeg_quality must be within [1, 100], got ", keyframe_color_jpeg_quality));
   }
   if (max_streams < 1 || max_streams > 1024) {
     return absl::InvalidArgumentError(
@@ -97,21 +92,9 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "stream_idle_timeout_s must be within (0, 86400], got ", stream_idle_timeout_s));
   }
-  if (!std::isfinite(frame_max_future_s) || frame_max_future_s <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "frames.max_future_s must be a positive number of seconds, got ", frame_max_future_s));
-  }
-  if (!std::isfinite(frame_max_gap_s) || frame_max_gap_s <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "frames.max_gap_s must be a positive number of seconds, got ", frame_max_gap_s));
-  }
   if (max_inflight_frames < 1 || max_inflight_frames > 64) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_inflight_frames must be within [1, 64], got ", max_inflight_frames));
-  }
-  if (keyframe_batch_max < 1 || keyframe_batch_max > 1024) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("keyframe_batch_max must be within [1, 1024], got ", keyframe_batch_max));
   }
   if (!std::isfinite(shutdown_grace_s) || shutdown_grace_s < 0 || shutdown_grace_s > 3600) {
     return absl::InvalidArgumentError(
@@ -127,15 +110,28 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("labels.max_model_mb must be within [1, 1024], got ", max_model_mb));
   }
-  if (auto s = pipeline.Validate(); !s.ok()) return s;
-  if (auto s = appearance.Validate(); !s.ok()) return s;
-  if (auto s = pose_graph.Validate(); !s.ok()) return s;
-  if (auto s = semantic.Validate(); !s.ok()) return s;
-  if (semantic_render_stride < 1 || semantic_render_stride > 16) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "semantic.render_stride must be within [1, 16], got ", semantic_render_stride));
-  }
+  // The map engine's own settings (frames, storage, entropy, labels, appearance, pose graph,
+  // semantic): server/engine/options.h.
+  if (auto s = engine_options().Validate(); !s.ok()) return s;
   return keyframe.Validate();
+}
+
+EngineOptions ServerConfig::engine_options() const {
+  EngineOptions o;
+  o.db_path = db_path;
+  o.synchronous_full = synchronous_full;
+  o.keyframe_batch_max = keyframe_batch_max;
+  o.pipeline = pipeline;
+  o.labels_enabled = labels_enabled;
+  o.appearance = appearance;
+  o.pose_graph = pose_graph;
+  o.semantic_enabled = semantic_enabled;
+  o.semantic = semantic;
+  o.semantic_render_stride = semantic_render_stride;
+  o.color_jpeg_quality = keyframe_color_jpeg_quality;
+  o.max_future_s = frame_max_future_s;
+  o.max_gap_s = frame_max_gap_s;
+  return o;
 }
 
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base) {

@@ -78,6 +78,8 @@ struct ServerConfig {
   std::string tls_key;
   std::string tls_client_ca;
 
+  // The map engine's settings (server/engine/options.h), from the fields above.
+  EngineOptions engine_options() const;
   // Whether calls need an API key, from the three settings above.
   bool AuthRequired() const;
   // InvalidArgument naming the bad setting and its allowed range.

@@ -44,19 +44,8 @@ class Housekeeper;
 struct LifemapServer::Impl {
   std::unique_ptr<InstanceLock> lock;  // declared first: released after the store is closed
   ServiceContext ctx;
-  std::unique_ptr<store::Store> store;
-  std::unique_ptr<AppearanceIndex> appearance;  // the committer calls it: after it goes
-  std::unique_ptr<KeyframeCommitter> committer;
-  std::unique_ptr<PlaceIndex> places;
-  std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
-  // Waits for commits (before the committer goes) and queues rebuilds on the architecture
-  // worker (before it goes).
-  std::unique_ptr<PoseGraphWorker> pose_graph;
-  std::unique_ptr<SerialWorker> semantic_worker;  // fuses keyframes into visits' octrees
-  std::unique_ptr<VisitRegistry> visits;
-  std::unique_ptr<ModelRegistry> models;
+  std::unique_ptr<Engine> engine;  // drained at Shutdown, after the calls have returned
   std::unique_ptr<KeyRing> keys;
-  std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<MapServiceImpl> map_service;
   std::unique_ptr<VisitServiceImpl> visit_service;
   std::unique_ptr<FrameServiceImpl> frame_service;
@@ -292,49 +281,22 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   auto lock = InstanceLock::Acquire(config.db_path);
   if (!lock.ok()) return lock.status();
   impl->lock = *std::move(lock);
-  store::StoreOptions store_options;
-  store_options.synchronous_full = config.synchronous_full;
-  store_options.quick_check = true;  // a damaged file is refused at start, saying so
-  auto store = store::Store::Open(config.db_path, store_options);
-  if (!store.ok()) return store.status();
-  impl->store = *std::move(store);
-  impl->appearance = std::make_unique<AppearanceIndex>(impl->store.get(), config.appearance);
-  if (auto s = impl->appearance->Load(); !s.ok()) return s;
-  impl->committer = std::make_unique<KeyframeCommitter>(
-      impl->store.get(), config.keyframe_batch_max,
-      [appearance = impl->appearance.get()](const store::KeyframeRecord& k) {
-        appearance->OnCommitted(k);
-      });
-  impl->places = std::make_unique<PlaceIndex>(impl->store.get());
-  impl->architecture = std::make_unique<ArchitectureWorker>(impl->store.get(), impl->places.get());
-  impl->pose_graph = std::make_unique<PoseGraphWorker>(impl->store.get(), config.pose_graph);
-  impl->semantic_worker = std::make_unique<SerialWorker>();
-  impl->visits = std::make_unique<VisitRegistry>(
-      impl->store.get(), impl->places.get(),
-      config.semantic_enabled ? std::optional(config.semantic) : std::nullopt);
-  impl->models = std::make_unique<ModelRegistry>(impl->store.get());
-  impl->keys = std::make_unique<KeyRing>(impl->store.get(), config.AuthRequired());
-  if (auto s = CheckAuthCanWork(config, impl->store.get()); !s.ok()) return s;
+  auto engine = Engine::Open(config.engine_options());
+  if (!engine.ok()) return engine.status();
+  impl->engine = *std::move(engine);
+  store::Store* store = impl->engine->store();
+  impl->keys = std::make_unique<KeyRing>(store, config.AuthRequired());
+  if (auto s = CheckAuthCanWork(config, store); !s.ok()) return s;
   auto credentials = ServerCredentialsFor(config);
   if (!credentials.ok()) return credentials.status();
   if (auto s = CheckLoopbackSiblingIsFree(config.listen); !s.ok()) return s;
 
   ServiceContext& ctx = impl->ctx;
   ctx.config = config;
-  ctx.store = impl->store.get();
-  ctx.committer = impl->committer.get();
-  ctx.appearance = impl->appearance.get();
-  ctx.visits = impl->visits.get();
-  ctx.places = impl->places.get();
-  ctx.architecture = impl->architecture.get();
-  ctx.pose_graph = impl->pose_graph.get();
-  ctx.semantic_worker = impl->semantic_worker.get();
+  ctx.engine = impl->engine.get();
   impl->stream_watchdog = std::make_unique<StreamWatchdog>();
   ctx.stream_watchdog = impl->stream_watchdog.get();
-  ctx.models = impl->models.get();
   ctx.keys = impl->keys.get();
-  impl->pipeline = std::make_unique<pipeline::FramePipeline>(config.pipeline);
-  ctx.pipeline = impl->pipeline.get();
   ctx.started_time_s = NowSeconds();
 
   impl->map_service = std::make_unique<MapServiceImpl>(&ctx);
@@ -372,9 +334,9 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         " (the port is in use, perhaps by another lifemapd, or the address is not one of this "
         "host's)"));
   }
-  impl->housekeeper = std::make_unique<Housekeeper>(impl->store.get(), impl->keys.get(),
-                                                    impl->stream_watchdog.get(),
-                                                    impl->grpc_server.get(), config.db_path);
+  impl->housekeeper =
+      std::make_unique<Housekeeper>(store, impl->keys.get(), impl->stream_watchdog.get(),
+                                    impl->grpc_server.get(), config.db_path);
   impl->housekeeping = std::make_unique<PeriodicTask>(absl::Seconds(1),
                                                       [h = impl->housekeeper.get()] { h->Tick(); });
   spdlog::info("lifemapd {} listening on port {} ({}, {}) with database {}", LIFEMAP_VERSION,
@@ -406,20 +368,11 @@ void LifemapServer::Shutdown() {
       std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
   impl_->housekeeping.reset();
   impl_->grpc_server->Shutdown(deadline);
-  // Every handler has returned; fold the key frames still queued for architecture, commit
-  // what is still queued, then close the store.
-  // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
-  impl_->pose_graph.reset();
-  // Every open visit's octree into the store once its queued keyframes are fused (the periodic
-  // snapshot may be up to 9 keyframes behind): a restart resumes with all of them.
-  for (const auto& visit : impl_->visits->AllLoaded()) {
-    QueueSemanticSnapshot(impl_->semantic_worker.get(), impl_->store.get(), visit);
-  }
-  impl_->semantic_worker.reset();
-  impl_->architecture.reset();
-  impl_->committer.reset();
-  impl_->appearance.reset();
-  impl_->store.reset();
+  // Every handler has returned: the engine drains its workers (loops closed, octrees stored,
+  // floor plans folded, keyframes committed) and closes the store.
+  impl_->housekeeper.reset();
+  impl_->keys.reset();
+  impl_->engine.reset();
   impl_->lock.reset();
   spdlog::info("shutdown complete");
 }

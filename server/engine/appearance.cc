@@ -325,4 +325,25 @@ AppearanceIndexStats AppearanceIndex::Stats() const {
   return s;
 }
 
+const std::string& MapNames::Of(int64_t map_id) {
+  auto it = names_.find(map_id);
+  if (it == names_.end()) {
+    auto m = store_->GetMapById(map_id);
+    it = names_.emplace(map_id, m.ok() ? m->name : std::string()).first;
+  }
+  return it->second;
+}
+
+PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* names) {
+  PlaceMatch out;
+  out.method = PlaceMatch::Method::kAppearance;
+  out.map_id = m.keyframe.map_id;
+  out.map = names->Of(m.keyframe.map_id);
+  out.visit_id = m.keyframe.visit_id;
+  out.keyframe_id = m.keyframe.keyframe_id;
+  out.score = m.verification.score;
+  out.T_match_query = m.verification.T_match_query;
+  return out;
+}
+
 }  // namespace lifemap::server

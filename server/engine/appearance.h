@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <deque>
 #include <future>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -23,6 +24,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "core/appearance/recognizer.h"
+#include "server/engine/architecture.h"
 #include "server/engine/options.h"
 #include "server/store/store.h"
 
@@ -107,5 +109,20 @@ class AppearanceIndex {
   std::unordered_map<int64_t, int64_t> visit_maps_;  // worker thread only
   std::thread thread_;
 };
+
+// Names of maps by id, each read from the store once (matches carry only ids); "" for a map
+// that is gone.
+class MapNames {
+ public:
+  explicit MapNames(store::Store* store) : store_(store) {}
+  const std::string& Of(int64_t map_id);
+
+ private:
+  store::Store* store_;
+  std::map<int64_t, std::string> names_;
+};
+
+// A verified appearance match (a keyframe) as a PlaceMatch, its map named by `names`.
+PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* names);
 
 }  // namespace lifemap::server

@@ -39,4 +39,33 @@ absl::Status PoseGraphOptions::Validate() const {
   return absl::OkStatus();
 }
 
+absl::Status EngineOptions::Validate() const {
+  if (db_path.empty()) return absl::InvalidArgumentError("db path must not be empty");
+  if (keyframe_batch_max < 1 || keyframe_batch_max > 1024) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("keyframe_batch_max must be within [1, 1024], got ", keyframe_batch_max));
+  }
+  if (!std::isfinite(max_future_s) || max_future_s <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "frames.max_future_s must be a positive number of seconds, got ", max_future_s));
+  }
+  if (!std::isfinite(max_gap_s) || max_gap_s <= 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("frames.max_gap_s must be a positive number of seconds, got ", max_gap_s));
+  }
+  if (color_jpeg_quality < 1 || color_jpeg_quality > 100) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "storage.color_jpeg_quality must be within [1, 100], got ", color_jpeg_quality));
+  }
+  if (auto s = pipeline.Validate(); !s.ok()) return s;
+  if (auto s = appearance.Validate(); !s.ok()) return s;
+  if (auto s = pose_graph.Validate(); !s.ok()) return s;
+  if (auto s = semantic.Validate(); !s.ok()) return s;
+  if (semantic_render_stride < 1 || semantic_render_stride > 16) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "semantic.render_stride must be within [1, 16], got ", semantic_render_stride));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace lifemap::server

@@ -3,10 +3,13 @@
 #pragma once
 
 #include <optional>
+#include <string>
 
 #include "absl/status/status.h"
 #include "core/appearance/recognizer.h"
+#include "core/pipeline/frame_pipeline.h"
 #include "core/pipeline/keyframe.h"
+#include "core/semantic/semantic_map.h"
 
 namespace lifemap::server {
 
@@ -54,6 +57,34 @@ struct PoseGraphOptions {
   // readings beyond the walls of the matched visit's plan (where it has one), [0, 1].
   double layout_max_through_share = 0.05;
 
+  absl::Status Validate() const;
+};
+
+// The engine's options (server/engine/engine.h), filled from lifemapd's configuration; the
+// names in comments are its keys.
+struct EngineOptions {
+  std::string db_path = "lifemap.db";  // db: the SQLite database, created if missing
+  bool synchronous_full = true;        // synchronous: SQLite FULL (power-loss safe) or NORMAL
+  int keyframe_batch_max = 32;         // keyframes committed in one transaction at most
+  pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy, labels, frames)
+  bool labels_enabled = true;          // labels.enabled: label frames when a model is active
+  AppearanceOptions appearance;
+  PoseGraphOptions pose_graph;
+  // Paper 002's semantic octree per visit: keyframes' class distributions fused, rendered into
+  // every posed frame of the visit (semantic.enabled and the rest of `semantic`).
+  bool semantic_enabled = true;
+  semantic::SemanticMapOptions semantic;
+  int semantic_render_stride = 8;  // semantic.render_stride: fused labels every n-th pixel
+  // storage.color_jpeg_quality: keyframe colour sent as PNG or raw is stored as JPEG at this
+  // quality, [1, 100] (unless its map keeps originals); JPEG is stored as it came.
+  int color_jpeg_quality = 85;
+  // frames.max_future_s, frames.max_gap_s: timestamps (seconds since the Unix epoch) more than
+  // this ahead of the server's clock, or this far after the previous frame of their visit, are
+  // refused before anything is stored.
+  double max_future_s = 86400.0;
+  double max_gap_s = 7 * 86400.0;
+
+  // InvalidArgument naming the configuration key and its range.
   absl::Status Validate() const;
 };
 

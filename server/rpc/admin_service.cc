@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
+#include "server/engine/keyframe_committer.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
 
@@ -26,7 +27,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   OutputFacts facts;
   if (!ctx_->config.labels_enabled) {
     facts.labeller = absl::FailedPreconditionError(kLabelsDisabled);
-  } else if (auto models = ctx_->store->ListModels(); !models.ok()) {
+  } else if (auto models = ctx_->engine->store()->ListModels(); !models.ok()) {
     facts.labeller = absl::FailedPreconditionError(
         absl::StrCat("models unreadable: ", models.status().message()));
   } else {
@@ -55,7 +56,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   if (caller->role >= Role::kOperator) {
     resp->set_db_path(ToValidUtf8(std::filesystem::absolute(ctx_->config.db_path).string()));
   }
-  resp->set_schema_version(static_cast<uint32_t>(ctx_->store->schema_version()));
+  resp->set_schema_version(static_cast<uint32_t>(ctx_->engine->store()->schema_version()));
   resp->set_started_time_s(ctx_->started_time_s);
   resp->set_default_result_images(kDefaultResultImages);
   resp->set_auth_required(ctx_->keys->required());
@@ -94,7 +95,7 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::
   if (!caller->every_map) {
     // A key limited to some maps sees the counts of those only, and nothing of the server's
     // (its file, its streams, its other robots' frames).
-    auto maps = ctx_->store->ListMaps();
+    auto maps = ctx_->engine->store()->ListMaps();
     if (!maps.ok()) return ToGrpcStatus(maps.status());
     uint64_t visits = 0, keyframes = 0, count = 0;
     for (const auto& m : *maps) {
@@ -109,7 +110,7 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::
     resp->set_limited_to_maps(true);
     return grpc::Status::OK;
   }
-  auto st = ctx_->store->Stats();
+  auto st = ctx_->engine->store()->Stats();
   if (!st.ok()) return ToGrpcStatus(st.status());
   resp->set_maps(static_cast<uint32_t>(st->maps));
   resp->set_visits(static_cast<uint32_t>(st->visits));
@@ -117,19 +118,19 @@ grpc::Status AdminServiceImpl::GetStats(grpc::ServerContext* context, const v1::
   resp->set_db_bytes(static_cast<uint64_t>(st->db_bytes));
   resp->set_wal_bytes(static_cast<uint64_t>(st->wal_bytes));
   resp->set_active_streams(static_cast<uint32_t>(ctx_->active_streams.load()));
-  resp->set_frames_processed(ctx_->frames_processed.load());
-  resp->set_frames_rejected(ctx_->frames_rejected.load());
-  resp->set_keyframes_committed(ctx_->committer->committed());
+  resp->set_frames_processed(ctx_->engine->frames()->frames_processed());
+  resp->set_frames_rejected(ctx_->engine->frames()->frames_rejected());
+  resp->set_keyframes_committed(ctx_->engine->committer()->committed());
   resp->set_uptime_s(NowSeconds() - ctx_->started_time_s);
   resp->set_process_cpu_s(ProcessCpuSeconds());
   resp->set_resident_bytes(ResidentBytes());
-  AppearanceInfoToProto(ctx_->appearance->Stats(), resp->mutable_appearance());
+  AppearanceInfoToProto(ctx_->engine->appearance()->Stats(), resp->mutable_appearance());
   return grpc::Status::OK;
 }
 
 void AdminServiceImpl::AppearanceInfoToProto(const AppearanceIndexStats& s,
                                              v1::AppearanceIndexInfo* out) const {
-  out->set_enabled(ctx_->appearance->options().enabled);
+  out->set_enabled(ctx_->engine->appearance()->options().enabled);
   out->set_has_vocabulary(s.has_vocabulary);
   out->set_vocabulary_id(static_cast<uint64_t>(s.vocabulary_id));
   out->set_words(s.words);
@@ -137,7 +138,7 @@ void AdminServiceImpl::AppearanceInfoToProto(const AppearanceIndexStats& s,
   out->set_memory_bytes(s.memory_bytes);
   out->set_stored_keyframes(static_cast<uint64_t>(s.stored_with_features));
   out->set_min_training_keyframes(
-      static_cast<uint32_t>(ctx_->appearance->options().min_training_keyframes));
+      static_cast<uint32_t>(ctx_->engine->appearance()->options().min_training_keyframes));
 }
 
 grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext* context,
@@ -145,7 +146,7 @@ grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext* conte
                                                       v1::AppearanceIndexInfo* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/RebuildAppearanceIndex");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto stats = ctx_->appearance->Rebuild(req->retrain());
+  auto stats = ctx_->engine->appearance()->Rebuild(req->retrain());
   if (!stats.ok()) return ToGrpcStatus(stats.status());
   spdlog::info("appearance index rebuilt{}: {} keyframes", req->retrain() ? " (retrained)" : "",
                stats->keyframes);
@@ -159,7 +160,7 @@ grpc::Status AdminServiceImpl::Backup(grpc::ServerContext* context, const v1::Ba
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   auto path = BackupPath(ctx_->config, req->name());
   if (!path.ok()) return ToGrpcStatus(path.status());
-  if (auto s = ctx_->store->Backup(*path); !s.ok()) return ToGrpcStatus(s);
+  if (auto s = ctx_->engine->store()->Backup(*path); !s.ok()) return ToGrpcStatus(s);
   std::error_code ec;
   resp->set_path(ToValidUtf8(*path));
   resp->set_bytes(static_cast<uint64_t>(std::filesystem::file_size(*path, ec)));
@@ -172,7 +173,7 @@ grpc::Status AdminServiceImpl::CheckIntegrity(grpc::ServerContext* context,
                                               v1::CheckIntegrityResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/CheckIntegrity");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto problems = ctx_->store->CheckIntegrity();
+  auto problems = ctx_->engine->store()->CheckIntegrity();
   if (!problems.ok()) return ToGrpcStatus(problems.status());
   resp->set_ok(problems->empty());
   for (auto& p : *problems) resp->add_problems(ToValidUtf8(p));
@@ -183,11 +184,11 @@ grpc::Status AdminServiceImpl::Vacuum(grpc::ServerContext* context, const v1::Va
                                       v1::VacuumResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/Vacuum");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto before = ctx_->store->Stats();
+  auto before = ctx_->engine->store()->Stats();
   if (!before.ok()) return ToGrpcStatus(before.status());
-  if (auto s = ctx_->store->Vacuum(); !s.ok()) return ToGrpcStatus(s);
-  if (auto s = ctx_->store->Checkpoint(); !s.ok()) return ToGrpcStatus(s);
-  auto after = ctx_->store->Stats();
+  if (auto s = ctx_->engine->store()->Vacuum(); !s.ok()) return ToGrpcStatus(s);
+  if (auto s = ctx_->engine->store()->Checkpoint(); !s.ok()) return ToGrpcStatus(s);
+  auto after = ctx_->engine->store()->Stats();
   if (!after.ok()) return ToGrpcStatus(after.status());
   resp->set_bytes_before(static_cast<uint64_t>(before->db_bytes + before->wal_bytes));
   resp->set_bytes_after(static_cast<uint64_t>(after->db_bytes + after->wal_bytes));
@@ -214,7 +215,8 @@ grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext* context,
   limits.max_model_bytes =
       static_cast<int64_t>(std::min<uint64_t>(req->limits().max_model_bytes(), INT64_MAX));
   limits.max_visits_per_hour = req->limits().max_visits_per_hour();
-  auto created = server::CreateApiKey(ctx_->store, req->name(), *role, maps, limits, NowSeconds());
+  auto created =
+      server::CreateApiKey(ctx_->engine->store(), req->name(), *role, maps, limits, NowSeconds());
   if (!created.ok()) return ToGrpcStatus(created.status());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("API key '{}' ({}) created by '{}'", req->name(), std::string(RoleName(*role)),
@@ -229,7 +231,7 @@ grpc::Status AdminServiceImpl::ListApiKeys(grpc::ServerContext* context,
                                            v1::ListApiKeysResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/ListApiKeys");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto keys = ctx_->store->ListApiKeys();
+  auto keys = ctx_->engine->store()->ListApiKeys();
   if (!keys.ok()) return ToGrpcStatus(keys.status());
   for (const auto& k : *keys) ApiKeyToProto(k, resp->add_keys());
   return grpc::Status::OK;
@@ -240,7 +242,7 @@ grpc::Status AdminServiceImpl::RevokeApiKey(grpc::ServerContext* context,
   auto caller = ctx_->keys->Authorize(*context, "AdminService/RevokeApiKey");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (auto s = store::ValidateName(req->name(), "API key"); !s.ok()) return ToGrpcStatus(s);
-  auto revoked = ctx_->store->RevokeApiKey(req->name(), NowSeconds());
+  auto revoked = ctx_->engine->store()->RevokeApiKey(req->name(), NowSeconds());
   if (!revoked.ok()) return ToGrpcStatus(revoked.status());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("API key '{}' revoked by '{}'", req->name(), caller->key_name);
@@ -262,7 +264,7 @@ grpc::Status AdminServiceImpl::ListAuditEvents(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "since_time_s must be >= 0 seconds since the Unix epoch");
   }
-  auto events = ctx_->store->ListAuditEvents(
+  auto events = ctx_->engine->store()->ListAuditEvents(
       req->since_time_s(), req->limit() == 0 ? 100 : static_cast<int>(req->limit()));
   if (!events.ok()) return ToGrpcStatus(events.status());
   for (const auto& e : *events) {

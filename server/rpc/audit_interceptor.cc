@@ -122,7 +122,7 @@ class AuditInterceptor : public grpc::experimental::Interceptor {
     e.code = absl::StatusCodeToString(static_cast<absl::StatusCode>(code));
     if (code != grpc::StatusCode::OK) e.message = status.error_message();
     e.peer = context->peer();
-    if (auto s = ctx_->store->AppendAuditEvent(e); !s.ok()) {
+    if (auto s = ctx_->engine->store()->AppendAuditEvent(e); !s.ok()) {
       spdlog::error("audit log: could not record {} by '{}': {}", method_, e.key_name,
                     std::string(s.message()));
       return;
@@ -160,7 +160,7 @@ grpc::experimental::Interceptor* AuditInterceptorFactory::CreateServerIntercepto
 void PruneAuditLog(ServiceContext* ctx) {
   const double days = ctx->config.audit_retention_days;
   if (days <= 0.0) return;
-  auto pruned = ctx->store->PruneAuditEvents(NowSeconds() - days * 86400.0);
+  auto pruned = ctx->engine->store()->PruneAuditEvents(NowSeconds() - days * 86400.0);
   if (!pruned.ok()) {
     spdlog::error("audit log: could not delete events older than {} days: {}", days,
                   std::string(pruned.status().message()));

@@ -6,8 +6,12 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/image_codec.h"
+#include "core/common/utf8.h"
 
 namespace lifemap::server {
+
+using pipeline::kNotRequested;
 
 absl::StatusOr<int64_t> IdFromProto(uint64_t id, absl::string_view field) {
   if (id > static_cast<uint64_t>(std::numeric_limits<int64_t>::max())) {
@@ -325,27 +329,6 @@ void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {
   if (m.T_match_query) PoseToProto(*m.T_match_query, out->mutable_t_match_query());
 }
 
-const std::string& MapNames::Of(int64_t map_id) {
-  auto it = names_.find(map_id);
-  if (it == names_.end()) {
-    auto m = store_->GetMapById(map_id);
-    it = names_.emplace(map_id, m.ok() ? m->name : std::string()).first;
-  }
-  return it->second;
-}
-
-PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* names) {
-  PlaceMatch out;
-  out.method = PlaceMatch::Method::kAppearance;
-  out.map_id = m.keyframe.map_id;
-  out.map = names->Of(m.keyframe.map_id);
-  out.visit_id = m.keyframe.visit_id;
-  out.keyframe_id = m.keyframe.keyframe_id;
-  out.score = m.verification.score;
-  out.T_match_query = m.verification.T_match_query;
-  return out;
-}
-
 store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source) {
   switch (source) {
     case v1::POSE_SOURCE_CLIENT:
@@ -457,6 +440,114 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
                            "asks for other frames)"));
   }
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, facts.fusion.ok(), facts.fusion.message());
+}
+
+void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string* png,
+                        std::string* raw) {
+  if (how == v1::RESULT_IMAGES_NONE) return;
+  if (how == v1::RESULT_IMAGES_RAW) {
+    const cv::Mat continuous = image.isContinuous() ? image : image.clone();
+    raw->assign(reinterpret_cast<const char*>(continuous.data), continuous.total());
+    return;
+  }
+  if (auto encoded = EncodePng(image); encoded.ok()) *png = *std::move(encoded);
+}
+
+namespace {
+
+// The entropy output: score image and mask as asked, the per-superjut table.
+void EntropyToProto(const entropy::EntropyMaskResult& e, v1::ResultImages images,
+                    v1::EntropyOutput* out) {
+  out->set_threshold(e.threshold);
+  ResultImageToProto(e.score_image, images, out->mutable_score_png(), out->mutable_score_raw());
+  ResultImageToProto(e.mask, images, out->mutable_mask_png(), out->mutable_mask_raw());
+  for (const auto& s : e.superjuts) SuperjutToProto(s, e.threshold, out->add_superjuts());
+}
+
+}  // namespace
+
+void LabelsToProto(const pipeline::FrameLabels& l, const LoadedModel& model,
+                   v1::ResultImages images, v1::LabelOutput* out) {
+  out->set_model(model.name);
+  out->set_stride(static_cast<uint32_t>(l.stride));
+  out->set_mean_confidence(static_cast<float>(l.mean_confidence));
+  ResultImageToProto(l.labels, images, out->mutable_label_png(), out->mutable_label_raw());
+  ResultImageToProto(l.confidence, images, out->mutable_confidence_png(),
+                     out->mutable_confidence_raw());
+  std::vector<size_t> order;
+  for (size_t c = 0; c < l.class_pixels.size(); ++c) {
+    if (l.class_pixels[c] > 0) order.push_back(c);
+  }
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return l.class_pixels[a] > l.class_pixels[b]; });
+  for (size_t c : order) {
+    auto* f = out->add_classes();
+    f->set_class_id(static_cast<uint32_t>(c));
+    if (c < model.description.class_names.size()) f->set_name(model.description.class_names[c]);
+    f->set_pixel_fraction(static_cast<float>(static_cast<double>(l.class_pixels[c]) /
+                                             static_cast<double>(l.labelled_pixels)));
+    f->set_mean_confidence(static_cast<float>(l.class_mean_confidence[c]));
+  }
+}
+
+v1::FrameResult ErrorResult(const v1::FrameResult& of, const absl::Status& s) {
+  v1::FrameResult r;
+  r.set_sequence(of.sequence());
+  r.set_timestamp_s(of.timestamp_s());
+  r.mutable_error()->set_code(static_cast<int>(s.code()));
+  r.mutable_error()->set_message(ToValidUtf8(s.message()));
+  return r;
+}
+
+void AnalysisToProto(const AnalysedFrame& a, v1::ResultImages images, v1::FrameResult* r) {
+  r->set_sequence(a.sequence);
+  r->set_timestamp_s(a.timestamp_s);
+  if (!a.refused.ok()) {
+    *r = ErrorResult(*r, a.refused);
+    return;
+  }
+  const pipeline::FrameAnalysis& analysis = *a.analysis;
+  const RgbdFrame& f = analysis.frame;
+  r->set_width(static_cast<uint32_t>(f.intrinsics.width));
+  r->set_height(static_cast<uint32_t>(f.intrinsics.height));
+  r->set_valid_depth_fraction(analysis.depth_stats.valid_fraction);
+  r->set_median_depth_m(analysis.depth_stats.median_m);
+  if (f.T_world_camera) {
+    r->set_pose_source(v1::POSE_SOURCE_CLIENT);
+    PoseToProto(*f.T_world_camera, r->mutable_pose());
+  } else {
+    r->set_pose_source(v1::POSE_SOURCE_NONE);
+  }
+  if (analysis.entropy) EntropyToProto(*analysis.entropy, images, r->mutable_entropy());
+  if (analysis.labels) LabelsToProto(*analysis.labels, *a.model, images, r->mutable_labels());
+  r->mutable_timing()->set_decode_ms(analysis.decode_ms);
+  r->mutable_timing()->set_process_ms(analysis.process_ms);
+}
+
+void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
+                      const pipeline::PipelineOptions& options, v1::ResultImages images,
+                      v1::FrameResult* r) {
+  r->set_pose_source(StoredPoseSourceToProto(p.pose_source));
+  if (p.pose) {
+    PoseToProto(*p.pose, r->mutable_pose());
+  } else {
+    r->clear_pose();
+  }
+  if (p.tracking) {
+    auto* t = r->mutable_tracking();
+    t->set_track_ms(p.tracking->track_ms);
+    t->set_state(TrackingStateToProto(p.tracking->state));
+    t->set_method(TrackingMethodToProto(p.tracking->method));
+    t->set_lost_frames(static_cast<uint32_t>(p.tracking->lost_frames));
+    t->set_reason(p.tracking->reason);
+  }
+  if (p.keyframe) {
+    r->mutable_keyframe()->set_selected(p.keyframe->selected);
+    r->mutable_keyframe()->set_reason(p.keyframe->reason);
+  }
+  for (const auto& m : p.place_matches) PlaceMatchToProto(m, r->add_place_matches());
+  if (p.fused_labels) LabelsToProto(*p.fused_labels, *a.model, images, r->mutable_fused_labels());
+  FillOutputStatuses(options, p.facts, r->mutable_outputs());
 }
 
 }  // namespace lifemap::server

@@ -19,6 +19,7 @@
 #include "lifemap/v1/map_service.pb.h"
 #include "lifemap/v1/visit_service.pb.h"
 #include "server/engine/architecture.h"
+#include "server/engine/frame_path.h"
 #include "server/rpc/auth.h"
 #include "server/store/store.h"
 
@@ -62,50 +63,27 @@ void MapToProto(const store::MapRecord& map, v1::Map* out);
 void VisitToProto(const store::VisitRecord& visit, v1::Visit* out);
 void KeyframeSummaryToProto(const store::KeyframeRecord& k, v1::KeyframeSummary* out);
 void SuperjutToProto(const entropy::SuperjutScore& s, double threshold, v1::Superjut* out);
-// A match by architecture (paper 004).
+// A place match, by architecture (paper 004) or appearance (paper 000).
 void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out);
 
-// Names of maps by id, each read from the store once (matches carry only ids); "" for a map
-// that is gone.
-class MapNames {
- public:
-  explicit MapNames(store::Store* store) : store_(store) {}
-  const std::string& Of(int64_t map_id);
-
- private:
-  store::Store* store_;
-  std::map<int64_t, std::string> names_;
-};
-
-// A verified appearance match (a keyframe) as a PlaceMatch, its map named by `names`.
-PlaceMatch AppearancePlaceMatch(const appearance::AppearanceMatch& m, MapNames* names);
-
-// What decides whether each per-frame output is computed, as the services know it.
-struct OutputFacts {
-  // The frame's analysis; null for the server-wide answer (GetServerInfo).
-  const pipeline::FrameAnalysis* analysis = nullptr;
-  // Frames sent with a map may become keyframes and get place matches.
-  bool has_map = true;
-  // OK when a model labels this frame (server-wide: some map's); else why not.
-  absl::Status labeller;
-  // The visit's ranking by architecture, per frame of a visit.
-  std::optional<ArchitectureRanking> architecture;
-  // Whether appearance matches were sought for this frame (nullopt: not asked) and, if they
-  // could not be, why (an empty list of verified matches is OK: nothing recognised).
-  std::optional<absl::Status> appearance;
-  // The server's tracking of a frame (unset: a client pose used as sent, or no visit).
-  std::optional<tracking::TrackingState> tracked;
-  std::string tracking_lost_reason;
-  // The client skipped these outputs (FrameOptions.skip_outputs): "not requested", whatever
-  // was computed for the server's own use.
-  bool entropy_skipped = false;
-  bool labels_skipped = false;
-  // Fused labels (the visit's semantic octree rendered into the frame): OK, or why not.
-  absl::Status fusion =
-      absl::FailedPreconditionError("frames of a visit only: send the frame into a visit");
-};
-using pipeline::kNotRequested;
-inline constexpr char kLabelsDisabled[] = "disabled in this server's config (labels.enabled)";
+// An 8-bit result image as the request asked: into `png` (PNG), `raw` (row-major bytes) or
+// nowhere (RESULT_IMAGES_NONE).
+void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string* png,
+                        std::string* raw);
+// A frame's labels (the forest's, or fused ones rendered from the octree) by `model`: images as
+// asked, the classes present by pixel share.
+void LabelsToProto(const pipeline::FrameLabels& labels, const LoadedModel& model,
+                   v1::ResultImages images, v1::LabelOutput* out);
+// The answer to a frame refused with `s`: its sequence and timestamp (from `of`) and the error,
+// nothing of its analysis (the stream goes on unless the caller ends it).
+v1::FrameResult ErrorResult(const v1::FrameResult& of, const absl::Status& s);
+// A frame's result from the frame path's stages (server/engine/frame_path.h): what its analysis
+// gave (or why it was refused), then what placing it in its visit gave. The keyframe's commit
+// is reported by the caller once it completes.
+void AnalysisToProto(const AnalysedFrame& a, v1::ResultImages images, v1::FrameResult* out);
+void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
+                      const pipeline::PipelineOptions& options, v1::ResultImages images,
+                      v1::FrameResult* out);
 
 // The one place that decides each FrameOutput's status: computed, or why not.
 void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFacts& facts,

@@ -78,8 +78,9 @@ grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext* context,
   }
   auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
   if (!threshold.ok()) return ToGrpcStatus(threshold.status());
-  auto map = ctx_->store->CreateMap(req->name(), req->description(), NowSeconds(), *threshold,
-                                    req->keep_original_color(), caller->AsMapCreator());
+  auto map =
+      ctx_->engine->store()->CreateMap(req->name(), req->description(), NowSeconds(), *threshold,
+                                       req->keep_original_color(), caller->AsMapCreator());
   if (!map.ok()) return ToGrpcStatus(map.status());
   spdlog::info("created map '{}' (id {})", map->name, map->id);
   MapToProto(*map, resp);
@@ -90,7 +91,7 @@ grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext* context, const v1::Li
                                       v1::ListMapsResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/ListMaps");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto maps = ctx_->store->ListMaps();
+  auto maps = ctx_->engine->store()->ListMaps();
   if (!maps.ok()) return ToGrpcStatus(maps.status());
   for (const auto& m : *maps) {
     if (caller->MayUseMap(m.id)) MapToProto(m, resp->add_maps());
@@ -102,7 +103,7 @@ grpc::Status MapServiceImpl::GetMap(grpc::ServerContext* context, const v1::GetM
                                     v1::Map* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/GetMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->name());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   MapToProto(*map, resp);
   return grpc::Status::OK;
@@ -113,17 +114,17 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext* context,
                                        v1::DeleteMapResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/DeleteMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->name());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  auto deleted = ctx_->store->DeleteMap(req->name());
+  auto deleted = ctx_->engine->store()->DeleteMap(req->name());
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
   // Streams still writing its visits end with NOT_FOUND and commit nothing more.
-  ctx_->visits->CloseMap(
+  ctx_->engine->visits()->CloseMap(
       map->id, absl::NotFoundError(absl::StrCat(
                    "map '", req->name(), "' was deleted; nothing more is stored for its visits")));
-  ctx_->models->InvalidateActivations();
-  ctx_->places->Invalidate();
-  ctx_->appearance->RemoveMap(map->id);
+  ctx_->engine->models()->InvalidateActivations();
+  ctx_->engine->places()->Invalidate();
+  ctx_->engine->appearance()->RemoveMap(map->id);
   spdlog::info("deleted map '{}': {} visits, {} keyframes", req->name(), deleted->first,
                deleted->second);
   resp->set_deleted_visits(static_cast<uint32_t>(deleted->first));
@@ -135,7 +136,7 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext* context,
                                        const v1::RenameMapRequest* req, v1::Map* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/RenameMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  if (auto m = FindCallersMap(ctx_->store, *caller, req->name()); !m.ok()) {
+  if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->name()); !m.ok()) {
     return ToGrpcStatus(m.status());
   }
   // Map names are one name space over every map: a key limited to some maps would learn from
@@ -147,10 +148,10 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         absl::StrCat("new_name: ", s.message()));
   }
-  auto map = ctx_->store->RenameMap(req->name(), req->new_name());
+  auto map = ctx_->engine->store()->RenameMap(req->name(), req->new_name());
   if (!map.ok()) return ToGrpcStatus(map.status());
-  ctx_->visits->RenameMap(map->id, map->name);
-  ctx_->places->Invalidate();  // rankings name maps
+  ctx_->engine->visits()->RenameMap(map->id, map->name);
+  ctx_->engine->places()->Invalidate();  // rankings name maps
   MapToProto(*map, resp);
   return grpc::Status::OK;
 }
@@ -159,7 +160,7 @@ grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext* context,
                                        const v1::UpdateMapRequest* req, v1::Map* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/UpdateMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->name());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   store::MapUpdate update;
   if (req->has_description()) {
@@ -177,9 +178,9 @@ grpc::Status MapServiceImpl::UpdateMap(grpc::ServerContext* context,
     update.entropy_threshold = *threshold;
   }
   if (req->has_keep_original_color()) update.keep_original_color = req->keep_original_color();
-  auto updated = ctx_->store->UpdateMap(req->name(), update);
+  auto updated = ctx_->engine->store()->UpdateMap(req->name(), update);
   if (!updated.ok()) return ToGrpcStatus(updated.status());
-  ctx_->visits->ForgetMapSettings(map->id);
+  ctx_->engine->visits()->ForgetMapSettings(map->id);
   MapToProto(*updated, resp);
   return grpc::Status::OK;
 }
@@ -189,12 +190,12 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext* context,
                                            v1::ListKeyframesResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/ListKeyframes");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->map());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
   if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
   if (*visit_id != 0) {
-    auto visit = ctx_->store->GetVisit(*visit_id);
+    auto visit = ctx_->engine->store()->GetVisit(*visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (visit->map_id != map->id) {
       return grpc::Status(
@@ -202,7 +203,7 @@ grpc::Status MapServiceImpl::ListKeyframes(grpc::ServerContext* context,
           absl::StrCat("visit ", req->visit_id(), " is not a visit of map '", req->map(), "'"));
     }
   }
-  auto keyframes = ctx_->store->ListKeyframes(map->id, *visit_id);
+  auto keyframes = ctx_->engine->store()->ListKeyframes(map->id, *visit_id);
   if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
   for (const auto& k : *keyframes) KeyframeSummaryToProto(k, resp->add_keyframes());
   return grpc::Status::OK;
@@ -212,11 +213,11 @@ grpc::Status MapServiceImpl::GetKeyframe(grpc::ServerContext* context,
                                          const v1::GetKeyframeRequest* req, v1::Keyframe* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/GetKeyframe");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->map());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto keyframe_id = IdFromProto(req->keyframe_id(), "keyframe_id");
   if (!keyframe_id.ok()) return ToGrpcStatus(keyframe_id.status());
-  auto k = ctx_->store->GetKeyframe(map->id, *keyframe_id);
+  auto k = ctx_->engine->store()->GetKeyframe(map->id, *keyframe_id);
   if (!k.ok()) return ToGrpcStatus(k.status());
   KeyframeSummaryToProto(*k, resp->mutable_summary());
   auto* depth = resp->mutable_depth();
@@ -246,15 +247,16 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
                                        grpc::ServerWriter<v1::ExportChunk>* writer) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/ExportMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->map());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto id = IdFromProto(req->visit_id(), "visit_id");
   if (!id.ok()) return ToGrpcStatus(id.status());
   const int64_t visit_id = *id;
-  if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
+  if (auto s = CheckVisitOfMap(ctx_->engine->store(), *map, visit_id); !s.ok())
+    return ToGrpcStatus(s);
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
-      auto keyframes = ctx_->store->ListKeyframes(map->id, visit_id);
+      auto keyframes = ctx_->engine->store()->ListKeyframes(map->id, visit_id);
       if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
       std::string body =
           "# lifemap keyframe poses (T_world_camera)\n"
@@ -281,7 +283,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
       }
       std::vector<io::ColoredPoint> cloud;
       int64_t used = 0;
-      const absl::Status st = ctx_->store->ForEachKeyframeWithImages(
+      const absl::Status st = ctx_->engine->store()->ForEachKeyframeWithImages(
           map->id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
             if (context->IsCancelled()) return absl::CancelledError("export cancelled");
             if (!k.T_world_camera) return absl::OkStatus();
@@ -327,7 +329,8 @@ grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
                                             const v1::ExportMapRequest& req,
                                             grpc::ServerWriter<v1::ExportChunk>* writer) {
   // The visit id was checked by ExportMap (IdFromProto, CheckVisitOfMap).
-  auto e = CollectSemanticExport(ctx_->store, ctx_->visits, ctx_->semantic_worker, map,
+  auto e = CollectSemanticExport(ctx_->engine->store(), ctx_->engine->visits(),
+                                 ctx_->engine->semantic_worker(), map,
                                  static_cast<int64_t>(req.visit_id()), ctx_->config.semantic);
   if (!e.ok()) return ToGrpcStatus(e.status());
   int only_class = -1;
@@ -372,18 +375,19 @@ grpc::Status MapServiceImpl::RebuildSemanticOctrees(
     grpc::ServerWriter<v1::SemanticOctreeRebuild>* writer) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/RebuildSemanticOctrees");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto map = FindCallersMap(ctx_->store, *caller, req->map());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto id = IdFromProto(req->visit_id(), "visit_id");
   if (!id.ok()) return ToGrpcStatus(id.status());
   const int64_t visit_id = *id;
-  if (auto s = CheckVisitOfMap(ctx_->store, *map, visit_id); !s.ok()) return ToGrpcStatus(s);
-  if (!ctx_->config.semantic_enabled || ctx_->semantic_worker == nullptr) {
+  if (auto s = CheckVisitOfMap(ctx_->engine->store(), *map, visit_id); !s.ok())
+    return ToGrpcStatus(s);
+  if (!ctx_->config.semantic_enabled || ctx_->engine->semantic_worker() == nullptr) {
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                         "semantic fusion is disabled in this server's config (semantic.enabled): "
                         "enable it and restart the server to rebuild octrees");
   }
-  auto model = ctx_->models->ForMap(map->id);
+  auto model = ctx_->engine->models()->ForMap(map->id);
   if (!model.ok()) return ToGrpcStatus(model.status());
   if (*model == nullptr) {
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
@@ -391,8 +395,9 @@ grpc::Status MapServiceImpl::RebuildSemanticOctrees(
                                      "': activate one (lifemap models activate NAME --map ",
                                      map->name, ") to rebuild its octrees"));
   }
-  const SemanticRebuildContext rebuild{ctx_->store, ctx_->pipeline, ctx_->visits,
-                                       ctx_->semantic_worker, ctx_->config.semantic};
+  const SemanticRebuildContext rebuild{ctx_->engine->store(), ctx_->engine->pipeline(),
+                                       ctx_->engine->visits(), ctx_->engine->semantic_worker(),
+                                       ctx_->config.semantic};
   bool client_gone = false;
   const absl::Status s = server::RebuildSemanticOctrees(
       rebuild, *map, visit_id, req->all(), **model,

@@ -111,7 +111,7 @@ grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext* context,
   record.training_json = description.training_json;
   record.trees = forest->tree_count();
   record.nodes = static_cast<int64_t>(forest->node_count());
-  auto stored = ctx_->store->InsertModel(record, data);
+  auto stored = ctx_->engine->store()->InsertModel(record, data);
   if (!stored.ok()) return ToGrpcStatus(stored.status());
   spdlog::info("model '{}' uploaded: {} bytes, {} classes, {} trees", name, data.size(),
                description.class_names.size(), record.trees);
@@ -124,7 +124,7 @@ grpc::Status ModelServiceImpl::ListModels(grpc::ServerContext* context,
                                           v1::ListModelsResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "ModelService/ListModels");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto models = ctx_->store->ListModels();
+  auto models = ctx_->engine->store()->ListModels();
   if (!models.ok()) return ToGrpcStatus(models.status());
   for (const auto& m : *models) ModelToProto(m, resp->add_models());
   return grpc::Status::OK;
@@ -136,7 +136,7 @@ grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext* context,
   auto caller = ctx_->keys->Authorize(*context, "ModelService/ActivateModel");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (!req->map().empty()) {
-    if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+    if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->map()); !m.ok()) {
       return ToGrpcStatus(m.status());
     }
   } else if (auto s = caller->CheckEveryMap("the server's default model"); !s.ok()) {
@@ -145,16 +145,16 @@ grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext* context,
   if (!req->name().empty()) {
     if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
     // Loads it once now, so a model that would fail on every frame fails here instead.
-    auto bytes = ctx_->store->GetModelData(req->name());
+    auto bytes = ctx_->engine->store()->GetModelData(req->name());
     if (!bytes.ok()) return ToGrpcStatus(bytes.status());
     if (auto f = forest::Forest::Deserialize(*bytes, nullptr); !f.ok()) {
       return ToGrpcStatus(absl::DataLossError(
           absl::StrCat("stored model '", req->name(), "' does not load: ", f.status().message())));
     }
   }
-  auto previous = ctx_->store->ActivateModel(req->map(), req->name());
+  auto previous = ctx_->engine->store()->ActivateModel(req->map(), req->name());
   if (!previous.ok()) return ToGrpcStatus(previous.status());
-  ctx_->models->InvalidateActivations();
+  ctx_->engine->models()->InvalidateActivations();
   const std::string where = req->map().empty() ? "the server default" : "map '" + req->map() + "'";
   spdlog::info("{}: model '{}' (was '{}')", where, req->name(), *previous);
   resp->set_map(req->map());
@@ -170,8 +170,8 @@ grpc::Status ModelServiceImpl::DeleteModel(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (auto s = caller->CheckEveryMap("deleting models"); !s.ok()) return ToGrpcStatus(s);
   if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
-  if (auto s = ctx_->store->DeleteModel(req->name()); !s.ok()) return ToGrpcStatus(s);
-  ctx_->models->InvalidateActivations();
+  if (auto s = ctx_->engine->store()->DeleteModel(req->name()); !s.ok()) return ToGrpcStatus(s);
+  ctx_->engine->models()->InvalidateActivations();
   spdlog::info("model '{}' deleted", req->name());
   return grpc::Status::OK;
 }
@@ -183,11 +183,11 @@ grpc::Status ModelServiceImpl::ListClasses(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   int64_t map_id = 0;
   if (!req->map().empty()) {
-    auto map = FindCallersMap(ctx_->store, *caller, req->map());
+    auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
     if (!map.ok()) return ToGrpcStatus(map.status());
     map_id = map->id;
   }
-  auto model = ctx_->models->ForMap(map_id);
+  auto model = ctx_->engine->models()->ForMap(map_id);
   if (!model.ok()) return ToGrpcStatus(model.status());
   if (!*model) {
     return grpc::Status(

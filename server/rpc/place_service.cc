@@ -133,7 +133,7 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
   } else {
     const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
     if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
-    auto visit = FindCallersVisit(ctx_->store, *caller, *visit_id);
+    auto visit = FindCallersVisit(ctx_->engine->store(), *caller, *visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
     if (architecture) ArchitectureOfVisit(*visit, max_results, &by_architecture);
     if (appearance) AppearanceOfVisit(*visit, max_results, &by_appearance);
@@ -204,8 +204,8 @@ grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const grpc::ServerContext& c
           "frames[", i, "]: pose is missing; architecture needs each key frame's T_world_camera"));
       return grpc::Status::OK;
     }
-    auto frame =
-        DecodeRgbdFrame(frames[i], /*decode_color=*/false, ctx_->pipeline->options().frame_limits);
+    auto frame = DecodeRgbdFrame(frames[i], /*decode_color=*/false,
+                                 ctx_->engine->pipeline()->options().frame_limits);
     auto s = frame.ok() ? builder.AddDepthKeyframe(frame->depth_m, frame->intrinsics,
                                                    *frames[i].T_world_camera)
                         : frame.status();
@@ -222,7 +222,7 @@ grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const grpc::ServerContext& c
     return grpc::Status::OK;
   }
   const place::PlaceDescriptor descriptor = place::Describe(*plan);
-  auto ranked = ctx_->places->Rank(descriptor, /*exclude_visit=*/0, max_results);
+  auto ranked = ctx_->engine->places()->Rank(descriptor, /*exclude_visit=*/0, max_results);
   if (!ranked.ok()) return ToGrpcStatus(ranked.status());
   out->matches = *std::move(ranked);
   out->descriptor_text = place::DescriptorText(descriptor);
@@ -231,12 +231,12 @@ grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const grpc::ServerContext& c
 
 void PlaceServiceImpl::ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results,
                                            MethodOutcome* out) {
-  auto record = ctx_->store->GetVisitPlace(visit.id);
+  auto record = ctx_->engine->store()->GetVisitPlace(visit.id);
   if (absl::IsNotFound(record.status())) {
     // Say why, from the live visit when it is open.
     std::string why = "its floor plan has not closed yet (walls all around, floor seen)";
     if (!visit.ended) {
-      auto state = ctx_->visits->Get(visit.id);
+      auto state = ctx_->engine->visits()->Get(visit.id);
       if (state.ok()) {
         const absl::Status status = (*state)->architecture.Ranking().status;
         if (!status.ok()) why = std::string(status.message());
@@ -255,7 +255,7 @@ void PlaceServiceImpl::ArchitectureOfVisit(const store::VisitRecord& visit, size
     out->status = descriptor.status();
     return;
   }
-  auto ranked = ctx_->places->Rank(*descriptor, visit.id, max_results);
+  auto ranked = ctx_->engine->places()->Rank(*descriptor, visit.id, max_results);
   if (!ranked.ok()) {
     out->status = ranked.status();
     return;
@@ -268,7 +268,7 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
     const grpc::ServerContext& context, const std::vector<EncodedRgbdFrame>& frames,
     size_t max_results, MethodOutcome* out,
     google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame) {
-  MapNames names(ctx_->store);
+  MapNames names(ctx_->engine->store());
   std::vector<PlaceMatch> all;
   int answered = 0;
   absl::Status last_failure;
@@ -284,16 +284,16 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
       continue;
     }
     // The frame's own entropy mask prunes its features, as for a streamed keyframe.
-    auto analysis = ctx_->pipeline->Process(frames[i], {});
+    auto analysis = ctx_->engine->pipeline()->Process(frames[i], {});
     if (!analysis.ok()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                           absl::StrCat("frames[", i, "]: ", analysis.status().message()));
     }
     auto features = pipeline::ExtractKeyframeFeatures(*analysis, ctx_->config.appearance.features);
     absl::StatusOr<appearance::Recognition> recognition =
-        features.ok()
-            ? ctx_->appearance->Recognize(features->keypoints, analysis->frame.intrinsics, {})
-            : absl::StatusOr<appearance::Recognition>(features.status());
+        features.ok() ? ctx_->engine->appearance()->Recognize(features->keypoints,
+                                                              analysis->frame.intrinsics, {})
+                      : absl::StatusOr<appearance::Recognition>(features.status());
     if (!recognition.ok()) {
       entry->set_reason(ToValidUtf8(recognition.status().message()));
       last_failure = recognition.status();
@@ -319,21 +319,21 @@ grpc::Status PlaceServiceImpl::AppearanceOfFrames(
 
 void PlaceServiceImpl::AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results,
                                          MethodOutcome* out) {
-  auto keyframes = ctx_->store->ListKeyframes(visit.map_id, visit.id);
+  auto keyframes = ctx_->engine->store()->ListKeyframes(visit.map_id, visit.id);
   if (!keyframes.ok()) {
     out->status = keyframes.status();
     return;
   }
-  MapNames names(ctx_->store);
+  MapNames names(ctx_->engine->store());
   std::vector<PlaceMatch> all;
   int answered = 0;
   absl::Status last_failure = absl::FailedPreconditionError(
       absl::StrCat("visit ", visit.id, " has no keyframes with features"));
   const int64_t own = visit.id;
   for (const auto& k : *keyframes) {
-    auto features = ctx_->store->GetKeyframeFeatures(k.id);
+    auto features = ctx_->engine->store()->GetKeyframeFeatures(k.id);
     if (!features.ok()) continue;  // stored without entropy masks: nothing to match
-    auto recognition = ctx_->appearance->Recognize(
+    auto recognition = ctx_->engine->appearance()->Recognize(
         features->keypoints, k.intrinsics,
         [own](const appearance::KeyframeRef& r) { return r.visit_id == own; });
     if (!recognition.ok()) {
@@ -356,11 +356,11 @@ grpc::Status PlaceServiceImpl::ListPlaces(grpc::ServerContext* context,
   auto caller = ctx_->keys->Authorize(*context, "PlaceService/ListPlaces");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (!req->map().empty()) {
-    if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+    if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->map()); !m.ok()) {
       return ToGrpcStatus(m.status());
     }
   }
-  auto stored = ctx_->store->ListVisitPlaces(req->map());
+  auto stored = ctx_->engine->store()->ListVisitPlaces(req->map());
   if (!stored.ok()) return ToGrpcStatus(stored.status());
   for (const auto& r : *stored) {
     if (!caller->MayUseMap(r.map_id)) continue;

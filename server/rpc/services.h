@@ -14,13 +14,8 @@
 #include "lifemap/v1/visit_service.grpc.pb.h"
 #include "server/config.h"
 #include "server/engine/appearance.h"
-#include "server/engine/architecture.h"
 #include "server/engine/clock.h"
-#include "server/engine/keyframe_committer.h"
-#include "server/engine/model_registry.h"
-#include "server/engine/pose_graph_worker.h"
-#include "server/engine/semantics.h"
-#include "server/engine/serial_worker.h"
+#include "server/engine/engine.h"
 #include "server/engine/visit_registry.h"
 #include "server/rpc/auth.h"
 #include "server/rpc/stream_watchdog.h"
@@ -31,25 +26,15 @@ namespace lifemap::server {
 // What FrameOptions.result_images RESULT_IMAGES_DEFAULT means (GetServerInfo says it).
 inline constexpr v1::ResultImages kDefaultResultImages = v1::RESULT_IMAGES_PNG;
 
-// Everything the services share; owned by LifemapServer.
+// What the services share: the engine, the key ring, the stream watchdog; owned by
+// LifemapServer.
 struct ServiceContext {
   ServerConfig config;
-  store::Store* store = nullptr;
-  KeyframeCommitter* committer = nullptr;
-  VisitRegistry* visits = nullptr;
-  ModelRegistry* models = nullptr;
-  KeyRing* keys = nullptr;  // who may call what (server/auth.h)
-  PlaceIndex* places = nullptr;
-  ArchitectureWorker* architecture = nullptr;
-  AppearanceIndex* appearance = nullptr;
-  PoseGraphWorker* pose_graph = nullptr;
-  SerialWorker* semantic_worker = nullptr;    // fuses keyframes into their visits' octrees
+  Engine* engine = nullptr;                   // the lifelong map (server/engine/engine.h)
+  KeyRing* keys = nullptr;                    // who may call what (server/rpc/auth.h)
   StreamWatchdog* stream_watchdog = nullptr;  // ends streams that went quiet
-  const pipeline::FramePipeline* pipeline = nullptr;
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};
-  std::atomic<uint64_t> frames_processed{0};
-  std::atomic<uint64_t> frames_rejected{0};
 };
 
 class MapServiceImpl final : public v1::MapService::Service {

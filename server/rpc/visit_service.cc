@@ -1,6 +1,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "server/engine/keyframe_committer.h"
 #include "server/engine/semantic_export.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
@@ -16,7 +17,7 @@ grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext* context,
                                           const v1::StartVisitRequest* req, v1::Visit* resp) {
   auto caller = ctx_->keys->Authorize(*context, "VisitService/StartVisit");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+  if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->map()); !m.ok()) {
     return ToGrpcStatus(m.status());
   }
   if (req->robot().size() > kLabelMaxBytes || req->label().size() > kLabelMaxBytes) {
@@ -31,8 +32,8 @@ grpc::Status VisitServiceImpl::StartVisit(grpc::ServerContext* context,
   if (auto s = caller->TakeVisit(ctx_->config.max_visits_per_key_per_hour); !s.ok()) {
     return ToGrpcStatus(s);
   }
-  auto visit =
-      ctx_->store->StartVisit(req->map(), req->robot(), req->label(), t > 0 ? t : NowSeconds());
+  auto visit = ctx_->engine->store()->StartVisit(req->map(), req->robot(), req->label(),
+                                                 t > 0 ? t : NowSeconds());
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   spdlog::info("started visit {} of map '{}' (robot '{}')", visit->id, visit->map_name,
                visit->robot);
@@ -49,37 +50,39 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext* context,
   const int64_t id = *visit_id;
   if (id == 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
   if (!caller->every_map) {
-    if (auto v = FindCallersVisit(ctx_->store, *caller, id); !v.ok()) {
+    if (auto v = FindCallersVisit(ctx_->engine->store(), *caller, id); !v.ok()) {
       return ToGrpcStatus(v.status());
     }
   }
-  auto state = ctx_->visits->Get(id);
+  auto state = ctx_->engine->visits()->Get(id);
   if (!state.ok() && !absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
     return ToGrpcStatus(state.status());
   }
   // A stream still writing the visit ends with FAILED_PRECONDITION; keyframes it had already
   // queued are committed before the visit is marked ended, nothing after.
-  const int64_t frames = ctx_->visits->CloseVisit(
+  const int64_t frames = ctx_->engine->visits()->CloseVisit(
       id, absl::FailedPreconditionError(absl::StrCat(
               "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
   // Its floor plan too: what was sent before the end is folded, stored and ranked.
-  ctx_->architecture->Wait(ctx_->architecture->last_ticket());
+  ctx_->engine->architecture()->Wait(ctx_->engine->architecture()->last_ticket());
   // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
   // The map's octree is merged again with it afterwards, off the reply path.
-  if (state.ok() && ctx_->semantic_worker != nullptr) {
-    ctx_->semantic_worker->Wait(QueueSemanticSnapshot(ctx_->semantic_worker, ctx_->store, *state));
+  if (state.ok() && ctx_->engine->semantic_worker() != nullptr) {
+    ctx_->engine->semantic_worker()->Wait(
+        QueueSemanticSnapshot(ctx_->engine->semantic_worker(), ctx_->engine->store(), *state));
     std::string map_name;
     {
       absl::MutexLock lock(&(*state)->mu);
       map_name = (*state)->map_name;
     }
-    ctx_->semantic_worker->Submit([store = ctx_->store, map_name, options = ctx_->config.semantic] {
-      RefreshMapSemanticOctree(store, map_name, options);
-    });
+    ctx_->engine->semantic_worker()->Submit(
+        [store = ctx_->engine->store(), map_name, options = ctx_->config.semantic] {
+          RefreshMapSemanticOctree(store, map_name, options);
+        });
   }
-  auto drained = ctx_->committer->Submit(std::nullopt, {id, frames}).get();
+  auto drained = ctx_->engine->committer()->Submit(std::nullopt, {id, frames}).get();
   if (!drained.ok()) return ToGrpcStatus(drained.status());
-  auto visit = ctx_->store->EndVisit(id, NowSeconds(), frames);
+  auto visit = ctx_->engine->store()->EndVisit(id, NowSeconds(), frames);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   VisitToProto(*visit, resp);
   return grpc::Status::OK;
@@ -90,10 +93,10 @@ grpc::Status VisitServiceImpl::ListVisits(grpc::ServerContext* context,
                                           v1::ListVisitsResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "VisitService/ListVisits");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  if (auto m = FindCallersMap(ctx_->store, *caller, req->map()); !m.ok()) {
+  if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->map()); !m.ok()) {
     return ToGrpcStatus(m.status());
   }
-  auto visits = ctx_->store->ListVisits(req->map());
+  auto visits = ctx_->engine->store()->ListVisits(req->map());
   if (!visits.ok()) return ToGrpcStatus(visits.status());
   for (const auto& v : *visits) VisitToProto(v, resp->add_visits());
   return grpc::Status::OK;

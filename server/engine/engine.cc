@@ -1,0 +1,108 @@
+#include "server/engine/engine.h"
+
+#include <utility>
+
+#include "server/engine/appearance.h"
+#include "server/engine/keyframe_committer.h"
+#include "server/engine/model_registry.h"
+#include "server/engine/pose_graph_worker.h"
+#include "server/engine/semantics.h"
+#include "server/engine/serial_worker.h"
+#include "server/engine/visit_registry.h"
+#include "server/store/store.h"
+
+namespace lifemap::server {
+
+// Declared in the order they are made; ~Engine drains them in an order of its own.
+struct Engine::Parts {
+  std::unique_ptr<store::Store> store;
+  std::unique_ptr<AppearanceIndex> appearance;  // the committer calls it: after it goes
+  std::unique_ptr<KeyframeCommitter> committer;
+  std::unique_ptr<PlaceIndex> places;
+  std::unique_ptr<ArchitectureWorker> architecture;  // writes to the store: before it goes
+  // Waits for commits (before the committer goes) and queues rebuilds on the architecture
+  // worker (before it goes).
+  std::unique_ptr<PoseGraphWorker> pose_graph;
+  std::unique_ptr<SerialWorker> semantic_worker;  // fuses keyframes into visits' octrees
+  std::unique_ptr<VisitRegistry> visits;
+  std::unique_ptr<ModelRegistry> models;
+  std::unique_ptr<pipeline::FramePipeline> pipeline;
+  std::unique_ptr<FramePath> frames;  // uses the parts above
+};
+
+absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  auto p = std::make_unique<Parts>();
+  store::StoreOptions store_options;
+  store_options.synchronous_full = options.synchronous_full;
+  store_options.quick_check = true;  // a damaged file is refused at start, saying so
+  auto store = store::Store::Open(options.db_path, store_options);
+  if (!store.ok()) return store.status();
+  p->store = *std::move(store);
+  p->appearance = std::make_unique<AppearanceIndex>(p->store.get(), options.appearance);
+  if (auto s = p->appearance->Load(); !s.ok()) return s;
+  p->committer = std::make_unique<KeyframeCommitter>(
+      p->store.get(), options.keyframe_batch_max,
+      [appearance = p->appearance.get()](const store::KeyframeRecord& k) {
+        appearance->OnCommitted(k);
+      });
+  p->places = std::make_unique<PlaceIndex>(p->store.get());
+  p->architecture = std::make_unique<ArchitectureWorker>(p->store.get(), p->places.get());
+  p->pose_graph = std::make_unique<PoseGraphWorker>(p->store.get(), options.pose_graph);
+  p->semantic_worker = std::make_unique<SerialWorker>();
+  p->visits = std::make_unique<VisitRegistry>(
+      p->store.get(), p->places.get(),
+      options.semantic_enabled ? std::optional(options.semantic) : std::nullopt);
+  p->models = std::make_unique<ModelRegistry>(p->store.get());
+  p->pipeline = std::make_unique<pipeline::FramePipeline>(options.pipeline);
+  FramePathParts parts;
+  parts.store = p->store.get();
+  parts.pipeline = p->pipeline.get();
+  parts.visits = p->visits.get();
+  parts.models = p->models.get();
+  parts.committer = p->committer.get();
+  parts.appearance = p->appearance.get();
+  parts.architecture = p->architecture.get();
+  parts.pose_graph = p->pose_graph.get();
+  parts.semantic_worker = p->semantic_worker.get();
+  p->frames = std::make_unique<FramePath>(parts, options);
+  return std::unique_ptr<Engine>(new Engine(options, std::move(p)));
+}
+
+Engine::Engine(const EngineOptions& options, std::unique_ptr<Parts> parts)
+    : options_(options), parts_(std::move(parts)) {}
+
+Engine::~Engine() {
+  Parts& p = *parts_;
+  // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
+  p.pose_graph.reset();
+  // Every open visit's octree into the store once its queued keyframes are fused (the periodic
+  // snapshot may be up to 9 keyframes behind): a restart resumes with all of them.
+  for (const auto& visit : p.visits->AllLoaded()) {
+    QueueSemanticSnapshot(p.semantic_worker.get(), p.store.get(), visit);
+  }
+  p.semantic_worker.reset();
+  // Fold the key frames still queued for architecture, commit what is still queued, then close
+  // the store.
+  p.architecture.reset();
+  p.committer.reset();
+  p.appearance.reset();
+  p.frames.reset();
+  p.visits.reset();
+  p.models.reset();
+  p.store.reset();
+}
+
+store::Store* Engine::store() const { return parts_->store.get(); }
+FramePath* Engine::frames() const { return parts_->frames.get(); }
+VisitRegistry* Engine::visits() const { return parts_->visits.get(); }
+KeyframeCommitter* Engine::committer() const { return parts_->committer.get(); }
+AppearanceIndex* Engine::appearance() const { return parts_->appearance.get(); }
+PlaceIndex* Engine::places() const { return parts_->places.get(); }
+ArchitectureWorker* Engine::architecture() const { return parts_->architecture.get(); }
+PoseGraphWorker* Engine::pose_graph() const { return parts_->pose_graph.get(); }
+SerialWorker* Engine::semantic_worker() const { return parts_->semantic_worker.get(); }
+ModelRegistry* Engine::models() const { return parts_->models.get(); }
+const pipeline::FramePipeline* Engine::pipeline() const { return parts_->pipeline.get(); }
+
+}  // namespace lifemap::server
