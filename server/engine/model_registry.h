@@ -29,6 +29,17 @@ class ModelRegistry {
   // default). nullptr when none applies. DataLoss when the stored file no longer parses.
   absl::StatusOr<std::shared_ptr<const LoadedModel>> ForMap(int64_t map_id);
 
+  // Stores model file `data` as `name` (a valid name; ALREADY_EXISTS when taken) once it
+  // parses and its class names and training summary can be listed back (INVALID_ARGUMENT saying
+  // what is wrong and that `lifemap train` writes usable files).
+  absl::StatusOr<store::ModelRecord> Add(const std::string& name, const std::string& data);
+  // Makes model `name` label the frames of `map` ("" : the server default); `name` "" clears
+  // it. The model is loaded once first, so one that would fail on every frame fails here
+  // (DATA_LOSS). Returns the model it replaced ("" : none).
+  absl::StatusOr<std::string> Activate(const std::string& map, const std::string& name);
+  // Deletes model `name` (NOT_FOUND; FAILED_PRECONDITION while it is active somewhere).
+  absl::Status Delete(const std::string& name);
+
   // Drops cached activations and parsed models (after ActivateModel, DeleteModel, DeleteMap);
   // models are parsed again on their next use. Frames in flight keep their own reference.
   void InvalidateActivations();

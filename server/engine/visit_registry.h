@@ -67,7 +67,7 @@ struct VisitState {
   // Timestamp of the last frame whose appearance matches were sought (FrameOptions.
   // appearance_interval_s), seconds.
   std::optional<double> last_appearance_query_s ABSL_GUARDED_BY(mu);
-  // Frames are placed in the visit one at a time (PlaceInVisit holds this throughout): a stream
+  // Frames are placed in the visit one at a time (FramePath::Place holds this throughout): a stream
   // places them in order; concurrent unary ProcessFrame calls into one visit take turns.
   absl::Mutex place_mu ABSL_ACQUIRED_BEFORE(mu);
   // The camera of frames sent without a pose (issue 15): frame-to-keyframe odometry.

@@ -1,8 +1,6 @@
 // ModelService: upload, list, activate and delete random-forest models (paper 002).
 #include <spdlog/spdlog.h>
 
-#include <nlohmann/json.hpp>
-
 #include "absl/strings/str_cat.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
@@ -23,27 +21,6 @@ void ModelToProto(const store::ModelRecord& m, v1::ModelInfo* out) {
   out->set_training_json(m.training_json);
   out->set_trees(static_cast<uint32_t>(m.trees));
   out->set_nodes(static_cast<uint64_t>(m.nodes));
-}
-
-// What the server requires of a model beyond parsing: names it can print and store.
-absl::Status ValidateDescription(const forest::ModelDescription& d) {
-  for (size_t c = 0; c < d.class_names.size(); ++c) {
-    const std::string& n = d.class_names[c];
-    if (n.empty() || n.size() > 64) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("class ", c, " has a name of ", n.size(), " bytes; names need 1 to 64"));
-    }
-    for (char ch : n) {
-      if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("class ", c, "'s name contains a control character"));
-      }
-    }
-  }
-  if (!nlohmann::json::accept(d.training_json)) {
-    return absl::InvalidArgumentError("the model's training summary is not valid JSON");
-  }
-  return absl::OkStatus();
 }
 
 }  // namespace
@@ -94,27 +71,8 @@ grpc::Status ModelServiceImpl::UploadModel(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "no chunks: send the model's name and bytes");
   }
-  store::ModelRecord record;
-  forest::ModelDescription description;
-  auto forest = forest::Forest::Deserialize(data, &description);
-  if (!forest.ok()) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        absl::StrCat("not a usable model file (", data.size(),
-                                     " bytes): ", forest.status().message(),
-                                     "; upload a file written by `lifemap train`"));
-  }
-  if (auto s = ValidateDescription(description); !s.ok()) return ToGrpcStatus(s);
-  record.name = name;
-  record.uploaded_time_s = NowSeconds();
-  record.class_names = description.class_names;
-  record.class_colors = description.class_colors;
-  record.training_json = description.training_json;
-  record.trees = forest->tree_count();
-  record.nodes = static_cast<int64_t>(forest->node_count());
-  auto stored = ctx_->engine->store()->InsertModel(record, data);
+  auto stored = ctx_->engine->models()->Add(name, data);
   if (!stored.ok()) return ToGrpcStatus(stored.status());
-  spdlog::info("model '{}' uploaded: {} bytes, {} classes, {} trees", name, data.size(),
-               description.class_names.size(), record.trees);
   ModelToProto(*stored, resp);
   return grpc::Status::OK;
 }
@@ -142,19 +100,8 @@ grpc::Status ModelServiceImpl::ActivateModel(grpc::ServerContext* context,
   } else if (auto s = caller->CheckEveryMap("the server's default model"); !s.ok()) {
     return ToGrpcStatus(s);
   }
-  if (!req->name().empty()) {
-    if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
-    // Loads it once now, so a model that would fail on every frame fails here instead.
-    auto bytes = ctx_->engine->store()->GetModelData(req->name());
-    if (!bytes.ok()) return ToGrpcStatus(bytes.status());
-    if (auto f = forest::Forest::Deserialize(*bytes, nullptr); !f.ok()) {
-      return ToGrpcStatus(absl::DataLossError(
-          absl::StrCat("stored model '", req->name(), "' does not load: ", f.status().message())));
-    }
-  }
-  auto previous = ctx_->engine->store()->ActivateModel(req->map(), req->name());
+  auto previous = ctx_->engine->models()->Activate(req->map(), req->name());
   if (!previous.ok()) return ToGrpcStatus(previous.status());
-  ctx_->engine->models()->InvalidateActivations();
   const std::string where = req->map().empty() ? "the server default" : "map '" + req->map() + "'";
   spdlog::info("{}: model '{}' (was '{}')", where, req->name(), *previous);
   resp->set_map(req->map());
@@ -169,9 +116,7 @@ grpc::Status ModelServiceImpl::DeleteModel(grpc::ServerContext* context,
   auto caller = ctx_->keys->Authorize(*context, "ModelService/DeleteModel");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (auto s = caller->CheckEveryMap("deleting models"); !s.ok()) return ToGrpcStatus(s);
-  if (auto s = store::ValidateName(req->name(), "model"); !s.ok()) return ToGrpcStatus(s);
-  if (auto s = ctx_->engine->store()->DeleteModel(req->name()); !s.ok()) return ToGrpcStatus(s);
-  ctx_->engine->models()->InvalidateActivations();
+  if (auto s = ctx_->engine->models()->Delete(req->name()); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("model '{}' deleted", req->name());
   return grpc::Status::OK;
 }
