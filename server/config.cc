@@ -125,6 +125,7 @@ EngineOptions ServerConfig::engine_options() const {
   o.labels_enabled = labels_enabled;
   o.appearance = appearance;
   o.pose_graph = pose_graph;
+  o.odometry = odometry;
   o.semantic_enabled = semantic_enabled;
   o.semantic = semantic;
   o.semantic_render_stride = semantic_render_stride;
@@ -249,6 +250,15 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key labels.", k));
+          }
+        }
+      } else if (key == "tracking") {
+        for (const auto& [k, v] : value.items()) {
+          if (k == "downscale") {
+            c.odometry.downscale = v.get<int>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key tracking.", k));
           }
         }
       } else if (key == "semantic") {

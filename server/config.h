@@ -49,6 +49,7 @@ struct ServerConfig {
   pipeline::PipelineOptions pipeline;  // per-frame outputs (entropy masks, labels, ...)
   AppearanceOptions appearance;
   PoseGraphOptions pose_graph;
+  tracking::OdometryOptions odometry;  // frames sent without a pose (config key `tracking`)
   // Paper 002's semantic octree per visit: keyframes' class distributions fused, rendered into
   // every posed frame of the visit (FrameResult.fused_labels).
   bool semantic_enabled = true;
@@ -105,8 +106,9 @@ absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::st
 // appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
 // max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
 // vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality, backup_dir},
-// semantic {enabled, resolution_m, max_range_m, pixel_stride, free_space_stride,
-// render_stride}, security {require_auth, insecure_no_auth, tls_cert, tls_key, tls_client_ca}.
+// tracking {downscale}, semantic {enabled, resolution_m, max_range_m, pixel_stride,
+// free_space_stride, render_stride}, security {require_auth, insecure_no_auth, tls_cert, tls_key,
+// tls_client_ca}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

@@ -39,6 +39,7 @@
 namespace lifemap::server {
 namespace {
 class Housekeeper;
+constexpr int kStreamLookaheadBytes = 1 << 20;
 }  // namespace
 
 struct LifemapServer::Impl {
@@ -313,6 +314,14 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   builder.SetOption(std::make_unique<ReflectionOption>(!config.AuthRequired()));
   // No SO_REUSEPORT: a second server on a busy port must fail, not share the clients.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  // What the transport may hold of a stream's frames that no handler has read yet: 1 MiB,
+  // fixed. gRPC's default grows each stream's window by probing the bandwidth-delay product,
+  // and on loopback it grew to several raw frames per stream beyond the max_inflight_frames the
+  // stream handler holds: the fast-sender test peaked at 115-116 MB with it, 103-105 MB
+  // without, on the same busy machine (docs/BENCHMARKS.md, issue 34). A frame larger than the
+  // window still arrives whole (a pending read opens the window to the message's size).
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_STREAM_LOOKAHEAD_BYTES, kStreamLookaheadBytes);
   builder.AddListeningPort(config.listen, *credentials, &impl->port);
   builder.SetMaxReceiveMessageSize(config.max_message_bytes);
   builder.SetMaxSendMessageSize(config.max_message_bytes);

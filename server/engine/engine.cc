@@ -52,7 +52,7 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& option
   p->semantic_worker = std::make_unique<SerialWorker>();
   p->visits = std::make_unique<VisitRegistry>(
       p->store.get(), p->places.get(),
-      options.semantic_enabled ? std::optional(options.semantic) : std::nullopt);
+      options.semantic_enabled ? std::optional(options.semantic) : std::nullopt, options.odometry);
   p->models = std::make_unique<ModelRegistry>(p->store.get());
   p->pipeline = std::make_unique<pipeline::FramePipeline>(options.pipeline);
   FramePathParts parts;

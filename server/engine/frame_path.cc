@@ -148,7 +148,7 @@ AnalysedFrame FramePath::Analyse(const EncodedRgbdFrame& frame, int64_t map_id,
   if (map_id != 0 && (!f.T_world_camera || settings.refine_pose)) {
     // What tracking needs of the frame alone, made here beside other frames' analyses; the
     // visit's tracker then only aligns it, in order.
-    a.tracking_input = tracking::PrepareForTracking(f, tracking::OdometryOptions{});
+    a.tracking_input = tracking::PrepareForTracking(f, options_.odometry);
   }
   a.analysis = *std::move(analysis);
   return a;

@@ -60,6 +60,11 @@ absl::Status EngineOptions::Validate() const {
   if (auto s = pipeline.Validate(); !s.ok()) return s;
   if (auto s = appearance.Validate(); !s.ok()) return s;
   if (auto s = pose_graph.Validate(); !s.ok()) return s;
+  if (odometry.downscale < 1 || odometry.downscale > 4) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("tracking.downscale must be within [1, 4], got ", odometry.downscale));
+  }
+  if (auto s = odometry.Validate(); !s.ok()) return s;
   if (auto s = semantic.Validate(); !s.ok()) return s;
   if (semantic_render_stride < 1 || semantic_render_stride > 16) {
     return absl::InvalidArgumentError(absl::StrCat(

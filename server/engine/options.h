@@ -10,6 +10,7 @@
 #include "core/pipeline/frame_pipeline.h"
 #include "core/pipeline/keyframe.h"
 #include "core/semantic/semantic_map.h"
+#include "core/tracking/odometry.h"
 
 namespace lifemap::server {
 
@@ -70,6 +71,8 @@ struct EngineOptions {
   bool labels_enabled = true;          // labels.enabled: label frames when a model is active
   AppearanceOptions appearance;
   PoseGraphOptions pose_graph;
+  // How frames sent without a pose are tracked (tracking.downscale; the rest as tuned).
+  tracking::OdometryOptions odometry;
   // Paper 002's semantic octree per visit: keyframes' class distributions fused, rendered into
   // every posed frame of the visit (semantic.enabled and the rest of `semantic`).
   bool semantic_enabled = true;

@@ -93,6 +93,7 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
   auto last = store_->LastKeyframe(visit_id);
   if (!last.ok()) return last.status();
   auto state = std::make_shared<VisitState>();
+  state->tracker = tracking::Tracker(odometry_);
   state->visit_id = visit_id;
   state->map_id = visit->map_id;
   // A new run of the tracker, distinct from any earlier one of this visit (microseconds since

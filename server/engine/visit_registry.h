@@ -127,9 +127,11 @@ class VisitRegistry {
  public:
   // `semantic`: the options a resumed visit's stored semantic octree is restored with (nullopt:
   // semantic fusion off, nothing restored).
+  // `odometry`: how each visit's tracker aligns frames sent without a pose.
   VisitRegistry(store::Store* store, PlaceIndex* places,
-                std::optional<semantic::SemanticMapOptions> semantic = std::nullopt)
-      : store_(store), places_(places), semantic_(std::move(semantic)) {}
+                std::optional<semantic::SemanticMapOptions> semantic = std::nullopt,
+                const tracking::OdometryOptions& odometry = {})
+      : store_(store), places_(places), semantic_(std::move(semantic)), odometry_(odometry) {}
 
   // The state of an open visit, loaded from the store on first use (the selector resumes from
   // the visit's last keyframe; the architecture is rebuilt from its stored key frames).
@@ -167,6 +169,7 @@ class VisitRegistry {
   store::Store* const store_;
   PlaceIndex* const places_;
   const std::optional<semantic::SemanticMapOptions> semantic_;
+  const tracking::OdometryOptions odometry_;
   absl::Mutex mu_;
   std::unordered_map<int64_t, std::shared_ptr<VisitState>> visits_ ABSL_GUARDED_BY(mu_);
   std::unordered_map<int64_t, MapSettings> map_settings_ ABSL_GUARDED_BY(mu_);

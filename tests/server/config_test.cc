@@ -66,6 +66,25 @@ TEST(ServerConfig, RejectsBadStreamTimestampAndVisitLimits) {
           "max_visits_per_key_per_hour");
 }
 
+TEST(ConfigFile, ReadsTheTrackingResolutionAndRefusesOneOutOfRange) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("c.json")) << R"({"tracking": {"downscale": 4}})";
+  auto c = LoadConfigFile(tmp.File("c.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->odometry.downscale, 4);
+  EXPECT_EQ(c->engine_options().odometry.downscale, 4);
+  std::ofstream(tmp.File("bad.json")) << R"({"tracking": {"downscale": 8}})";
+  auto bad = LoadConfigFile(tmp.File("bad.json"), ServerConfig());
+  ASSERT_FALSE(bad.ok());
+  EXPECT_NE(bad.status().message().find("tracking.downscale must be within [1, 4], got 8"),
+            std::string::npos)
+      << bad.status();
+  std::ofstream(tmp.File("typo.json")) << R"({"tracking": {"downscal": 4}})";
+  auto typo = LoadConfigFile(tmp.File("typo.json"), ServerConfig());
+  ASSERT_FALSE(typo.ok());
+  EXPECT_NE(typo.status().message().find("tracking.downscal"), std::string::npos) << typo.status();
+}
+
 TEST(ConfigFile, ReadsKnownKeys) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("c.json")) << R"({"listen": "0.0.0.0:6000", "db": "/x.db",
