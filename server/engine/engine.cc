@@ -2,10 +2,13 @@
 
 #include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "server/engine/appearance.h"
+#include "server/engine/clock.h"
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/model_registry.h"
 #include "server/engine/pose_graph_worker.h"
+#include "server/engine/semantic_export.h"
 #include "server/engine/semantics.h"
 #include "server/engine/serial_worker.h"
 #include "server/engine/visit_registry.h"
@@ -27,7 +30,8 @@ struct Engine::Parts {
   std::unique_ptr<VisitRegistry> visits;
   std::unique_ptr<ModelRegistry> models;
   std::unique_ptr<pipeline::FramePipeline> pipeline;
-  std::unique_ptr<FramePath> frames;  // uses the parts above
+  std::unique_ptr<FramePath> frames;            // uses the parts above
+  std::unique_ptr<PlaceQueries> place_queries;  // likewise
 };
 
 absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& options) {
@@ -66,6 +70,9 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& option
   parts.pose_graph = p->pose_graph.get();
   parts.semantic_worker = p->semantic_worker.get();
   p->frames = std::make_unique<FramePath>(parts, options);
+  p->place_queries =
+      std::make_unique<PlaceQueries>(p->store.get(), p->places.get(), p->visits.get(),
+                                     p->appearance.get(), p->pipeline.get(), options);
   return std::unique_ptr<Engine>(new Engine(options, std::move(p)));
 }
 
@@ -87,14 +94,47 @@ Engine::~Engine() {
   p.architecture.reset();
   p.committer.reset();
   p.appearance.reset();
+  p.place_queries.reset();
   p.frames.reset();
   p.visits.reset();
   p.models.reset();
   p.store.reset();
 }
 
+absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
+  Parts& p = *parts_;
+  auto state = p.visits->Get(id);
+  if (!state.ok() && !absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
+    return state.status();
+  }
+  // A stream still writing the visit ends with FAILED_PRECONDITION; keyframes it had already
+  // queued are committed before the visit is marked ended, nothing after.
+  const int64_t frames = p.visits->CloseVisit(
+      id, absl::FailedPreconditionError(absl::StrCat(
+              "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
+  // Its floor plan too: what was sent before the end is folded, stored and ranked.
+  p.architecture->Wait(p.architecture->last_ticket());
+  // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
+  // The map's octree is merged again with it afterwards, off the reply path.
+  if (state.ok()) {
+    p.semantic_worker->Wait(QueueSemanticSnapshot(p.semantic_worker.get(), p.store.get(), *state));
+    std::string map_name;
+    {
+      absl::MutexLock lock(&(*state)->mu);
+      map_name = (*state)->map_name;
+    }
+    p.semantic_worker->Submit([store = p.store.get(), map_name, options = options_.semantic] {
+      RefreshMapSemanticOctree(store, map_name, options);
+    });
+  }
+  auto drained = p.committer->Submit(std::nullopt, {id, frames}).get();
+  if (!drained.ok()) return drained.status();
+  return p.store->EndVisit(id, NowSeconds(), frames);
+}
+
 store::Store* Engine::store() const { return parts_->store.get(); }
 FramePath* Engine::frames() const { return parts_->frames.get(); }
+PlaceQueries* Engine::place_queries() const { return parts_->place_queries.get(); }
 VisitRegistry* Engine::visits() const { return parts_->visits.get(); }
 KeyframeCommitter* Engine::committer() const { return parts_->committer.get(); }
 AppearanceIndex* Engine::appearance() const { return parts_->appearance.get(); }

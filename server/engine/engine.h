@@ -5,6 +5,7 @@
 //
 //   store             maps, visits, keyframes, plans, octrees, models, keys (server/store)
 //   frames            the frame path: analyse, then place in the visit (frame_path.h)
+//   place_queries     which stored visits a recording or a visit shows (place_query.h)
 //   visits            visits being written: tracker, keyframe selector, octree (visit_registry.h)
 //   committer         keyframes into the store, batched, in order (keyframe_committer.h)
 //   appearance        paper 000's place recognition index (appearance.h)
@@ -22,10 +23,8 @@
 #include "core/pipeline/frame_pipeline.h"
 #include "server/engine/frame_path.h"
 #include "server/engine/options.h"
-
-namespace lifemap::store {
-class Store;
-}
+#include "server/engine/place_query.h"
+#include "server/store/store.h"
 
 namespace lifemap::server {
 
@@ -46,9 +45,16 @@ class Engine {
   Engine(const Engine&) = delete;
   Engine& operator=(const Engine&) = delete;
 
+  // Ends visit `visit_id` (idempotent): a stream still writing it ends with
+  // FAILED_PRECONDITION; the keyframes it had queued are committed, its floor plan folded and
+  // its semantic octree stored before the visit is marked ended (its map's octree is merged
+  // again off the reply path). NOT_FOUND for an unknown visit.
+  absl::StatusOr<store::VisitRecord> EndVisit(int64_t visit_id);
+
   const EngineOptions& options() const { return options_; }
   store::Store* store() const;
   FramePath* frames() const;
+  PlaceQueries* place_queries() const;
   VisitRegistry* visits() const;
   KeyframeCommitter* committer() const;
   AppearanceIndex* appearance() const;

@@ -210,6 +210,160 @@ absl::StatusOr<store::VisitRecord> ResolveVisit(ServiceContext* ctx, const Princ
   return v;
 }
 
+// What a stream's frames gave: how the call ends, and the last jobs its keyframes queued.
+struct StagesOutcome {
+  grpc::Status status;
+  uint64_t frames = 0;
+  uint64_t last_architecture_ticket = 0;
+  uint64_t last_pose_graph_ticket = 0;
+  bool client_gone = false;
+};
+
+using FrameStream = grpc::ServerReaderWriter<v1::StreamFramesResponse, v1::StreamFramesRequest>;
+using ReadFrame = std::function<ReadOutcome(v1::StreamFramesRequest*, double timeout_s)>;
+
+// The frames of a stream whose StreamStart was accepted, through the engine's two stages and
+// answered in order, until the client ends the stream, the visit closes or a message is wrong.
+StagesOutcome RunFrameStages(ServiceContext* ctx, FrameStream* stream, const ReadFrame& read,
+                             const StreamWatchdog::Watch& watch, const Principal& caller,
+                             const CallSettings& settings, const std::shared_ptr<VisitState>& state,
+                             uint64_t writer_id, int64_t visit_id) {
+  StagesOutcome out;
+  v1::StreamFramesRequest request;
+  // Three stages, so that consecutive frames are analysed side by side while a visit still
+  // sees its frames one at a time, in order:
+  //  - this thread reads frames and queues each one's analysis on the task pool (decode, masks,
+  //    labels, result images: no visit state);
+  //  - `placer` takes the analyses in the order read and places each in the visit (keyframe
+  //    decision, features, record, appearance, commit submission);
+  //  - `writer` answers in that order, waiting for keyframe commits so that no acknowledgement
+  //    precedes its commit.
+  // A frame takes one of max_inflight_frames slots when it is read and gives it back once
+  // answered: with none free this thread stops reading, and gRPC's flow control holds back the
+  // robot, so a stream holds at most that many frames in all its stages together.
+  VisitState* visit_state = state.get();
+  const int64_t map_id = visit_state->map_id;
+  const auto inflight = static_cast<size_t>(ctx->config.max_inflight_frames);
+  Slots slots(inflight);
+  BoundedQueue<std::future<AnalysedRequest>> analysing(inflight);
+  BoundedQueue<PendingResult> answering(inflight);
+  std::atomic<bool> client_gone{false};
+  // Set by `placer` when the visit could no longer be written (ended, its map deleted); this
+  // thread ends the stream with it at its next read.
+  absl::Mutex closed_mu;
+  absl::Status closed;  // guarded by closed_mu
+  std::atomic<bool> visit_closed{false};
+  uint64_t last_architecture_ticket = 0;  // written by `placer`, read after it is joined
+  uint64_t last_pose_graph_ticket = 0;    // likewise
+  std::thread writer([&] {
+    while (auto p = answering.Pop()) {
+      FinishResult(&*p);
+      if (!client_gone.load()) {  // else still wait for commits: they complete regardless
+        v1::StreamFramesResponse response;
+        *response.mutable_result() = std::move(p->result);
+        KeepCallersMatches(caller, response.mutable_result()->mutable_place_matches());
+        if (!stream->Write(response)) client_gone.store(true);
+      }
+      slots.Release();
+    }
+  });
+  std::thread placer([&] {
+    while (auto analysed = analysing.Pop()) {
+      AnalysedRequest a = analysed->get();
+      if (visit_closed.load()) {  // the stream is ending: nothing more is placed
+        slots.Release();
+        continue;
+      }
+      PendingResult p =
+          PlaceRequest(ctx->engine->frames(), std::move(a), state, writer_id, settings);
+      last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
+      last_pose_graph_ticket = std::max(last_pose_graph_ticket, p.pose_graph_ticket);
+      if (!p.visit_closed.ok()) {
+        // The frame was read before the visit closed: it is answered with the error (a robot
+        // that waits for each result is not left waiting), and the stream ends with it.
+        spdlog::info("stream for visit {} ends: {}", visit_id,
+                     std::string(p.visit_closed.message()));
+        {
+          absl::MutexLock lock(&closed_mu);
+          closed = p.visit_closed;
+        }
+        visit_closed.store(true);
+        p.result = ErrorResult(p.result, p.visit_closed);
+      }
+      answering.Push(std::move(p));
+    }
+    answering.Close();
+  });
+
+  grpc::Status status = grpc::Status::OK;
+  uint64_t frames = 0;
+  for (;;) {
+    slots.Acquire();
+    const ReadOutcome got =
+        visit_closed.load() ? ReadOutcome::kEnd : read(&request, ctx->config.stream_idle_timeout_s);
+    if (got == ReadOutcome::kUnparsable) {
+      slots.Release();
+      status = grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("message ", frames + 2,
+                       " of the stream could not be parsed (not a StreamFramesRequest, or a "
+                       "string in it that is not valid UTF-8); the frames before it are answered "
+                       "and the stream ends"));
+      break;
+    }
+    if (got == ReadOutcome::kEnd) {
+      slots.Release();
+      if (watch.timed_out()) {
+        status = grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
+                              absl::StrCat("no frame for ", ctx->config.stream_idle_timeout_s,
+                                           " s (stream_idle_timeout_s)"));
+      }
+      break;
+    }
+    if (!request.has_frame()) {
+      slots.Release();
+      status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                            "only the first message of a stream may be StreamStart; send frames");
+      break;
+    }
+    if (auto s = caller.CheckNotRevoked(); !s.ok()) {  // revoked while streaming
+      slots.Release();
+      status = ToGrpcStatus(s);
+      break;
+    }
+    // Refused before any work when the visit can no longer be written (`placer` checks again
+    // where the frame is added).
+    std::string map_name;
+    if (auto s = CheckWritable(visit_state, writer_id, &map_name); !s.ok()) {
+      slots.Release();
+      status = ToGrpcStatus(s);
+      spdlog::info("stream for visit {} ends: {}", visit_id, std::string(s.message()));
+      break;
+    }
+    // Over the key's frame rate the frame is answered with the error, the stream goes on.
+    analysing.Push(TaskPool::Shared().Submit([ctx, frame = std::move(*request.mutable_frame()),
+                                              map_id, map_name = std::move(map_name), &settings,
+                                              over_rate = caller.TakeFrame()]() mutable {
+      return AnalyseRequest(ctx->engine->frames(), std::move(frame), map_id, map_name, settings,
+                            over_rate);
+    }));
+    ++frames;
+  }
+  analysing.Close();
+  placer.join();
+  writer.join();
+  if (visit_closed.load() && status.ok()) {
+    absl::MutexLock lock(&closed_mu);
+    status = ToGrpcStatus(closed);
+  }
+  out.status = status;
+  out.frames = frames;
+  out.last_architecture_ticket = last_architecture_ticket;
+  out.last_pose_graph_ticket = last_pose_graph_ticket;
+  out.client_gone = client_gone.load();
+  return out;
+}
+
 }  // namespace
 
 grpc::Status FrameServiceImpl::StreamFrames(
@@ -289,133 +443,13 @@ grpc::Status FrameServiceImpl::StreamFrames(
     return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
   }
 
-  // Three stages, so that consecutive frames are analysed side by side while a visit still
-  // sees its frames one at a time, in order:
-  //  - this thread reads frames and queues each one's analysis on the task pool (decode, masks,
-  //    labels, result images: no visit state);
-  //  - `placer` takes the analyses in the order read and places each in the visit (keyframe
-  //    decision, features, record, appearance, commit submission);
-  //  - `writer` answers in that order, waiting for keyframe commits so that no acknowledgement
-  //    precedes its commit.
-  // A frame takes one of max_inflight_frames slots when it is read and gives it back once
-  // answered: with none free this thread stops reading, and gRPC's flow control holds back the
-  // robot, so a stream holds at most that many frames in all its stages together.
-  VisitState* visit_state = state->get();
-  const int64_t map_id = visit_state->map_id;
-  const auto inflight = static_cast<size_t>(ctx_->config.max_inflight_frames);
-  Slots slots(inflight);
-  BoundedQueue<std::future<AnalysedRequest>> analysing(inflight);
-  BoundedQueue<PendingResult> answering(inflight);
-  std::atomic<bool> client_gone{false};
-  // Set by `placer` when the visit could no longer be written (ended, its map deleted); this
-  // thread ends the stream with it at its next read.
-  absl::Mutex closed_mu;
-  absl::Status closed;  // guarded by closed_mu
-  std::atomic<bool> visit_closed{false};
-  uint64_t last_architecture_ticket = 0;  // written by `placer`, read after it is joined
-  uint64_t last_pose_graph_ticket = 0;    // likewise
-  std::thread writer([&] {
-    while (auto p = answering.Pop()) {
-      FinishResult(&*p);
-      if (!client_gone.load()) {  // else still wait for commits: they complete regardless
-        v1::StreamFramesResponse response;
-        *response.mutable_result() = std::move(p->result);
-        KeepCallersMatches(*caller, response.mutable_result()->mutable_place_matches());
-        if (!stream->Write(response)) client_gone.store(true);
-      }
-      slots.Release();
-    }
-  });
-  std::thread placer([&] {
-    while (auto analysed = analysing.Pop()) {
-      AnalysedRequest a = analysed->get();
-      if (visit_closed.load()) {  // the stream is ending: nothing more is placed
-        slots.Release();
-        continue;
-      }
-      PendingResult p =
-          PlaceRequest(ctx_->engine->frames(), std::move(a), *state, claim->id(), *settings);
-      last_architecture_ticket = std::max(last_architecture_ticket, p.architecture_ticket);
-      last_pose_graph_ticket = std::max(last_pose_graph_ticket, p.pose_graph_ticket);
-      if (!p.visit_closed.ok()) {
-        // The frame was read before the visit closed: it is answered with the error (a robot
-        // that waits for each result is not left waiting), and the stream ends with it.
-        spdlog::info("stream for visit {} ends: {}", visit->id,
-                     std::string(p.visit_closed.message()));
-        {
-          absl::MutexLock lock(&closed_mu);
-          closed = p.visit_closed;
-        }
-        visit_closed.store(true);
-        p.result = ErrorResult(p.result, p.visit_closed);
-      }
-      answering.Push(std::move(p));
-    }
-    answering.Close();
-  });
-
-  grpc::Status status = grpc::Status::OK;
-  uint64_t frames = 0;
-  for (;;) {
-    slots.Acquire();
-    const ReadOutcome got = visit_closed.load()
-                                ? ReadOutcome::kEnd
-                                : read(&request, ctx_->config.stream_idle_timeout_s);
-    if (got == ReadOutcome::kUnparsable) {
-      slots.Release();
-      status = grpc::Status(
-          grpc::StatusCode::INVALID_ARGUMENT,
-          absl::StrCat("message ", frames + 2,
-                       " of the stream could not be parsed (not a StreamFramesRequest, or a "
-                       "string in it that is not valid UTF-8); the frames before it are answered "
-                       "and the stream ends"));
-      break;
-    }
-    if (got == ReadOutcome::kEnd) {
-      slots.Release();
-      if (watch->timed_out()) {
-        status = grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED,
-                              absl::StrCat("no frame for ", ctx_->config.stream_idle_timeout_s,
-                                           " s (stream_idle_timeout_s)"));
-      }
-      break;
-    }
-    if (!request.has_frame()) {
-      slots.Release();
-      status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                            "only the first message of a stream may be StreamStart; send frames");
-      break;
-    }
-    if (auto s = caller->CheckNotRevoked(); !s.ok()) {  // revoked while streaming
-      slots.Release();
-      status = ToGrpcStatus(s);
-      break;
-    }
-    // Refused before any work when the visit can no longer be written (`placer` checks again
-    // where the frame is added).
-    std::string map_name;
-    if (auto s = CheckWritable(visit_state, claim->id(), &map_name); !s.ok()) {
-      slots.Release();
-      status = ToGrpcStatus(s);
-      spdlog::info("stream for visit {} ends: {}", visit->id, std::string(s.message()));
-      break;
-    }
-    // Over the key's frame rate the frame is answered with the error, the stream goes on.
-    analysing.Push(TaskPool::Shared().Submit([this, frame = std::move(*request.mutable_frame()),
-                                              map_id, map_name = std::move(map_name), &settings,
-                                              over_rate = caller->TakeFrame()]() mutable {
-      return AnalyseRequest(ctx_->engine->frames(), std::move(frame), map_id, map_name, *settings,
-                            over_rate);
-    }));
-    ++frames;
-  }
-  analysing.Close();
-  placer.join();
-  writer.join();
-  if (visit_closed.load() && status.ok()) {
-    absl::MutexLock lock(&closed_mu);
-    status = ToGrpcStatus(closed);
-  }
+  const StagesOutcome run = RunFrameStages(ctx_, stream, read, *watch, *caller, *settings, *state,
+                                           claim->id(), visit->id);
+  grpc::Status status = run.status;
+  const uint64_t frames = run.frames;
+  const uint64_t last_architecture_ticket = run.last_architecture_ticket;
+  const uint64_t last_pose_graph_ticket = run.last_pose_graph_ticket;
+  const bool client_gone = run.client_gone;
   // A stream that ends has its visit's floor plan folded, stored and ranked: a robot (or an
   // operator) that asks right after sees every key frame it sent.
   if (last_architecture_ticket > 0) ctx_->engine->architecture()->Wait(last_architecture_ticket);
@@ -434,7 +468,7 @@ grpc::Status FrameServiceImpl::StreamFrames(
   }
   spdlog::info("stream for visit {} ended after {} frames{}", visit->id, frames,
                context->IsCancelled() ? " (cancelled)" : "");
-  if (client_gone.load() && status.ok()) {
+  if (client_gone && status.ok()) {
     return grpc::Status(grpc::StatusCode::CANCELLED, "client went away");
   }
   return status;

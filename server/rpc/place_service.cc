@@ -1,8 +1,5 @@
 // PlaceService: place recognition over stored visits, by architecture (paper 004) and by
 // appearance (paper 000).
-#include <algorithm>
-#include <map>
-
 #include "absl/strings/str_cat.h"
 #include "core/common/rgbd_frame.h"
 #include "core/common/utf8.h"
@@ -13,58 +10,6 @@
 #include "server/rpc/services.h"
 
 namespace lifemap::server {
-namespace {
-
-bool Better(const PlaceMatch& a, const PlaceMatch& b) {
-  return a.score != b.score ? a.score > b.score : a.visit_id < b.visit_id;
-}
-
-// Stored visits ranked by their best keyframe match, at most `max`.
-std::vector<PlaceMatch> BestPerVisit(const std::vector<PlaceMatch>& keyframe_matches, size_t max) {
-  std::map<int64_t, PlaceMatch> best;
-  for (const auto& m : keyframe_matches) {
-    auto [it, inserted] = best.emplace(m.visit_id, m);
-    if (!inserted && m.score > it->second.score) it->second = m;
-  }
-  std::vector<PlaceMatch> out;
-  for (auto& [visit, m] : best) out.push_back(std::move(m));
-  std::sort(out.begin(), out.end(), Better);
-  if (out.size() > max) out.resize(max);
-  return out;
-}
-
-// One ranking of visits from both methods: the mean of the two scores, a method that did not
-// rank the visit counting 0.
-std::vector<PlaceMatch> Fuse(const std::vector<PlaceMatch>& architecture,
-                             const std::vector<PlaceMatch>& appearance, size_t max) {
-  std::map<int64_t, PlaceMatch> fused;
-  for (const auto* list : {&architecture, &appearance}) {
-    for (const auto& m : *list) {
-      auto [it, inserted] = fused.emplace(m.visit_id, m);
-      if (inserted) {
-        it->second.score = 0;
-        it->second.keyframe_id = 0;
-        it->second.T_match_query.reset();
-      }
-      it->second.score += 0.5 * m.score;
-      it->second.method = PlaceMatch::Method::kFused;
-    }
-  }
-  std::vector<PlaceMatch> out;
-  for (auto& [visit, m] : fused) out.push_back(std::move(m));
-  std::sort(out.begin(), out.end(), Better);
-  if (out.size() > max) out.resize(max);
-  return out;
-}
-
-}  // namespace
-
-// What one method made of a query: its ranking, or why it has none.
-struct PlaceServiceImpl::MethodOutcome {
-  absl::Status status;
-  std::vector<PlaceMatch> matches;  // best first
-  std::string descriptor_text;      // architecture only
-};
 
 grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
                                           const v1::QueryPlaceRequest* req,
@@ -96,7 +41,13 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "give visit_id (a stored visit) or frames (key frames of a recording)");
   }
-  MethodOutcome by_architecture, by_appearance;
+  PlaceQuery query;
+  query.architecture = architecture;
+  query.appearance = appearance;
+  query.max_results = max_results;
+  query.may_use_map = [&caller](int64_t map_id) { return caller->MayUseMap(map_id); };
+  query.stopped = [context] { return context->IsCancelled(); };
+  absl::StatusOr<PlaceQueryResult> result;
   if (!req->frames().empty()) {
     if (req->frames_size() > kMaxQueryFrames) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -121,32 +72,17 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
       }
       frames.push_back(*std::move(encoded));
     }
-    if (architecture) {
-      auto s = ArchitectureOfFrames(*context, frames, max_results, &by_architecture);
-      if (!s.ok()) return s;
-    }
-    if (appearance) {
-      auto s =
-          AppearanceOfFrames(*context, frames, max_results, &by_appearance, resp->mutable_frames());
-      if (!s.ok()) return s;
-    }
+    result = ctx_->engine->place_queries()->OfFrames(frames, query);
   } else {
     const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
     if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
     auto visit = FindCallersVisit(ctx_->engine->store(), *caller, *visit_id);
     if (!visit.ok()) return ToGrpcStatus(visit.status());
-    if (architecture) ArchitectureOfVisit(*visit, max_results, &by_architecture);
-    if (appearance) AppearanceOfVisit(*visit, max_results, &by_appearance);
+    result = ctx_->engine->place_queries()->OfVisit(*visit, query);
   }
-  // A key limited to some maps sees matches in those only.
-  for (auto* outcome : {&by_architecture, &by_appearance}) {
-    auto& m = outcome->matches;
-    m.erase(
-        std::remove_if(m.begin(), m.end(),
-                       [&](const PlaceMatch& match) { return !caller->MayUseMap(match.map_id); }),
-        m.end());
-  }
-  for (auto& frame : *resp->mutable_frames()) KeepCallersMatches(*caller, frame.mutable_matches());
+  if (!result.ok()) return ToGrpcStatus(result.status());
+  const MethodOutcome& by_architecture = result->architecture;
+  const MethodOutcome& by_appearance = result->appearance;
   // A single method's failure is the call's; with both, the call fails only when neither
   // answered.
   const bool any =
@@ -160,13 +96,15 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
     }
     return ToGrpcStatus(architecture ? by_architecture.status : by_appearance.status);
   }
-  if (by_architecture.status.ok() && by_appearance.status.ok() && architecture && appearance) {
-    for (const auto& m : Fuse(by_architecture.matches, by_appearance.matches, max_results)) {
-      PlaceMatchToProto(m, resp->add_matches());
-    }
-  }
+  for (const auto& m : result->fused) PlaceMatchToProto(m, resp->add_matches());
   for (const auto* outcome : {&by_architecture, &by_appearance}) {
     for (const auto& m : outcome->matches) PlaceMatchToProto(m, resp->add_matches());
+  }
+  for (const auto& f : result->frames) {
+    auto* entry = resp->add_frames();
+    entry->set_index(static_cast<uint32_t>(f.index));
+    entry->set_reason(f.reason);
+    for (const auto& m : f.matches) PlaceMatchToProto(m, entry->add_matches());
   }
   resp->set_descriptor_text(by_architecture.descriptor_text);
   auto status = [resp](v1::MatchMethod method, const MethodOutcome& o) {
@@ -178,176 +116,6 @@ grpc::Status PlaceServiceImpl::QueryPlace(grpc::ServerContext* context,
   if (architecture) status(v1::MATCH_METHOD_ARCHITECTURE, by_architecture);
   if (appearance) status(v1::MATCH_METHOD_APPEARANCE, by_appearance);
   return grpc::Status::OK;
-}
-
-namespace {
-
-// A long query stopped between frames because its deadline passed or its client left.
-grpc::Status StoppedAfter(size_t done, size_t frames) {
-  return grpc::Status(grpc::StatusCode::CANCELLED,
-                      absl::StrCat("stopped after ", done, " of ", frames,
-                                   " frames: the call's deadline passed or its client left"));
-}
-
-}  // namespace
-
-grpc::Status PlaceServiceImpl::ArchitectureOfFrames(const grpc::ServerContext& context,
-                                                    const std::vector<EncodedRgbdFrame>& frames,
-                                                    size_t max_results, MethodOutcome* out) {
-  // Nothing is stored: the frames fold into a plan of their own, ranked against stored visits.
-  place::FloorPlanBuilder builder;
-  for (size_t i = 0; i < frames.size(); ++i) {
-    // Each frame costs its depth decoding and planes (a 2,000-frame query, minutes of CPU).
-    if (context.IsCancelled()) return StoppedAfter(i, frames.size());
-    if (!frames[i].T_world_camera) {
-      out->status = absl::InvalidArgumentError(absl::StrCat(
-          "frames[", i, "]: pose is missing; architecture needs each key frame's T_world_camera"));
-      return grpc::Status::OK;
-    }
-    auto frame = DecodeRgbdFrame(frames[i], /*decode_color=*/false,
-                                 ctx_->engine->pipeline()->options().frame_limits);
-    auto s = frame.ok() ? builder.AddDepthKeyframe(frame->depth_m, frame->intrinsics,
-                                                   *frames[i].T_world_camera)
-                        : frame.status();
-    if (!s.ok()) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                          absl::StrCat("frames[", i, "]: ", s.message()));
-    }
-  }
-  if (context.IsCancelled()) return StoppedAfter(frames.size(), frames.size());
-  auto plan = builder.Build();
-  if (!plan.ok()) {
-    out->status = absl::FailedPreconditionError(
-        absl::StrCat("the frames give no floor plan: ", plan.status().message()));
-    return grpc::Status::OK;
-  }
-  const place::PlaceDescriptor descriptor = place::Describe(*plan);
-  auto ranked = ctx_->engine->places()->Rank(descriptor, /*exclude_visit=*/0, max_results);
-  if (!ranked.ok()) return ToGrpcStatus(ranked.status());
-  out->matches = *std::move(ranked);
-  out->descriptor_text = place::DescriptorText(descriptor);
-  return grpc::Status::OK;
-}
-
-void PlaceServiceImpl::ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results,
-                                           MethodOutcome* out) {
-  auto record = ctx_->engine->store()->GetVisitPlace(visit.id);
-  if (absl::IsNotFound(record.status())) {
-    // Say why, from the live visit when it is open.
-    std::string why = "its floor plan has not closed yet (walls all around, floor seen)";
-    if (!visit.ended) {
-      auto state = ctx_->engine->visits()->Get(visit.id);
-      if (state.ok()) {
-        const absl::Status status = (*state)->architecture.Ranking().status;
-        if (!status.ok()) why = std::string(status.message());
-      }
-    }
-    out->status = absl::FailedPreconditionError(
-        absl::StrCat("visit ", visit.id, " has no floor plan: ", why));
-    return;
-  }
-  if (!record.ok()) {
-    out->status = record.status();
-    return;
-  }
-  auto descriptor = place::DescriptorFromJson(record->descriptor_json);
-  if (!descriptor.ok()) {
-    out->status = descriptor.status();
-    return;
-  }
-  auto ranked = ctx_->engine->places()->Rank(*descriptor, visit.id, max_results);
-  if (!ranked.ok()) {
-    out->status = ranked.status();
-    return;
-  }
-  out->matches = *std::move(ranked);
-  out->descriptor_text = place::DescriptorText(*descriptor);
-}
-
-grpc::Status PlaceServiceImpl::AppearanceOfFrames(
-    const grpc::ServerContext& context, const std::vector<EncodedRgbdFrame>& frames,
-    size_t max_results, MethodOutcome* out,
-    google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame) {
-  MapNames names(ctx_->engine->store());
-  std::vector<PlaceMatch> all;
-  int answered = 0;
-  absl::Status last_failure;
-  for (size_t i = 0; i < frames.size(); ++i) {
-    // Each frame costs its entropy mask, features and verification: a call whose deadline
-    // passed (or whose client left) stops here instead of finishing for nobody.
-    if (context.IsCancelled()) return StoppedAfter(i, frames.size());
-    auto* entry = per_frame->Add();
-    entry->set_index(static_cast<uint32_t>(i));
-    if (frames[i].color.data.empty()) {
-      entry->set_reason("no colour image: appearance needs colour and depth");
-      last_failure = absl::InvalidArgumentError(entry->reason());
-      continue;
-    }
-    // The frame's own entropy mask prunes its features, as for a streamed keyframe.
-    auto analysis = ctx_->engine->pipeline()->Process(frames[i], {});
-    if (!analysis.ok()) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                          absl::StrCat("frames[", i, "]: ", analysis.status().message()));
-    }
-    auto features = pipeline::ExtractKeyframeFeatures(*analysis, ctx_->config.appearance.features);
-    absl::StatusOr<appearance::Recognition> recognition =
-        features.ok() ? ctx_->engine->appearance()->Recognize(features->keypoints,
-                                                              analysis->frame.intrinsics, {})
-                      : absl::StatusOr<appearance::Recognition>(features.status());
-    if (!recognition.ok()) {
-      entry->set_reason(ToValidUtf8(recognition.status().message()));
-      last_failure = recognition.status();
-      continue;
-    }
-    ++answered;
-    for (const auto& m : recognition->matches) {
-      const PlaceMatch match = AppearancePlaceMatch(m, &names);
-      if (entry->matches_size() < static_cast<int>(max_results)) {
-        PlaceMatchToProto(match, entry->add_matches());
-      }
-      all.push_back(match);
-    }
-  }
-  if (answered == 0) {
-    out->status = absl::FailedPreconditionError(
-        absl::StrCat("no frame could be matched: ", last_failure.message()));
-    return grpc::Status::OK;
-  }
-  out->matches = BestPerVisit(all, max_results);
-  return grpc::Status::OK;
-}
-
-void PlaceServiceImpl::AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results,
-                                         MethodOutcome* out) {
-  auto keyframes = ctx_->engine->store()->ListKeyframes(visit.map_id, visit.id);
-  if (!keyframes.ok()) {
-    out->status = keyframes.status();
-    return;
-  }
-  MapNames names(ctx_->engine->store());
-  std::vector<PlaceMatch> all;
-  int answered = 0;
-  absl::Status last_failure = absl::FailedPreconditionError(
-      absl::StrCat("visit ", visit.id, " has no keyframes with features"));
-  const int64_t own = visit.id;
-  for (const auto& k : *keyframes) {
-    auto features = ctx_->engine->store()->GetKeyframeFeatures(k.id);
-    if (!features.ok()) continue;  // stored without entropy masks: nothing to match
-    auto recognition = ctx_->engine->appearance()->Recognize(
-        features->keypoints, k.intrinsics,
-        [own](const appearance::KeyframeRef& r) { return r.visit_id == own; });
-    if (!recognition.ok()) {
-      last_failure = recognition.status();
-      continue;
-    }
-    ++answered;
-    for (const auto& m : recognition->matches) all.push_back(AppearancePlaceMatch(m, &names));
-  }
-  if (answered == 0) {
-    out->status = last_failure;
-    return;
-  }
-  out->matches = BestPerVisit(all, max_results);
 }
 
 grpc::Status PlaceServiceImpl::ListPlaces(grpc::ServerContext* context,

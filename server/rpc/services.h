@@ -102,20 +102,6 @@ class PlaceServiceImpl final : public v1::PlaceService::Service {
                           v1::ListPlacesResponse*) override;
 
  private:
-  struct MethodOutcome;
-  // Each method's answer for a query's frames (not stored) or a stored visit. A non-OK
-  // grpc::Status fails the call (a bad frame, a store error); a method that cannot answer
-  // says why in its outcome.
-  grpc::Status ArchitectureOfFrames(const grpc::ServerContext& context,
-                                    const std::vector<EncodedRgbdFrame>& frames, size_t max_results,
-                                    MethodOutcome* out);
-  // Stops (CANCELLED) between frames once the call's deadline has passed or its client left.
-  grpc::Status AppearanceOfFrames(
-      const grpc::ServerContext& context, const std::vector<EncodedRgbdFrame>& frames,
-      size_t max_results, MethodOutcome* out,
-      google::protobuf::RepeatedPtrField<v1::FrameAppearance>* per_frame);
-  void ArchitectureOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
-  void AppearanceOfVisit(const store::VisitRecord& visit, size_t max_results, MethodOutcome* out);
   static constexpr int kMaxQueryFrames = 2000;
   static constexpr int kMaxAppearanceQueryFrames = 200;
   ServiceContext* ctx_;

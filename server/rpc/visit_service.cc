@@ -54,35 +54,7 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext* context,
       return ToGrpcStatus(v.status());
     }
   }
-  auto state = ctx_->engine->visits()->Get(id);
-  if (!state.ok() && !absl::IsFailedPrecondition(state.status())) {  // ended already: idempotent
-    return ToGrpcStatus(state.status());
-  }
-  // A stream still writing the visit ends with FAILED_PRECONDITION; keyframes it had already
-  // queued are committed before the visit is marked ended, nothing after.
-  const int64_t frames = ctx_->engine->visits()->CloseVisit(
-      id, absl::FailedPreconditionError(absl::StrCat(
-              "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
-  // Its floor plan too: what was sent before the end is folded, stored and ranked.
-  ctx_->engine->architecture()->Wait(ctx_->engine->architecture()->last_ticket());
-  // And its semantic octree: the keyframes queued are fused, then the snapshot is stored.
-  // The map's octree is merged again with it afterwards, off the reply path.
-  if (state.ok() && ctx_->engine->semantic_worker() != nullptr) {
-    ctx_->engine->semantic_worker()->Wait(
-        QueueSemanticSnapshot(ctx_->engine->semantic_worker(), ctx_->engine->store(), *state));
-    std::string map_name;
-    {
-      absl::MutexLock lock(&(*state)->mu);
-      map_name = (*state)->map_name;
-    }
-    ctx_->engine->semantic_worker()->Submit(
-        [store = ctx_->engine->store(), map_name, options = ctx_->config.semantic] {
-          RefreshMapSemanticOctree(store, map_name, options);
-        });
-  }
-  auto drained = ctx_->engine->committer()->Submit(std::nullopt, {id, frames}).get();
-  if (!drained.ok()) return ToGrpcStatus(drained.status());
-  auto visit = ctx_->engine->store()->EndVisit(id, NowSeconds(), frames);
+  auto visit = ctx_->engine->EndVisit(id);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   VisitToProto(*visit, resp);
   return grpc::Status::OK;
