@@ -550,6 +550,7 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
     std::string rgb, depth, intrinsics, map, out;
     double depth_scale = 5000.0;
     double timestamp_s = 0.0;
+    uint64_t visit = 0;
   };
   auto a = std::make_shared<Args>();
   process->add_option("--rgb", a->rgb, "colour image (PNG or JPEG)")
@@ -562,7 +563,11 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
   process->add_option("--intrinsics", a->intrinsics,
                       "FX,FY,CX,CY in pixels (default: TUM ROS default 525,525,319.5,239.5)");
   process->add_option("--timestamp", a->timestamp_s, "capture time, s (default: now)");
-  process->add_option("--map", a->map, "store into this map's latest open visit");
+  process->add_option("--map", a->map,
+                      "store into this map, as a visit of its own (started and ended for the "
+                      "frame) unless --visit names one");
+  process->add_option("--visit", a->visit, "add the frame to this open visit of --map")
+      ->check(CLI::PositiveNumber);
   process->add_option("--out", a->out, "output folder (created)")->required();
   process->callback([ctx, a] {
     ctx->run = [ctx, a]() -> int {
@@ -591,12 +596,31 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
       auto frame = client::FrameFromFiles(a->rgb, a->depth, a->depth_scale, k,
                                           a->timestamp_s > 0 ? a->timestamp_s : now, 0);
       if (!frame.ok()) return Fail(frame.status());
+      if (a->visit != 0 && a->map.empty()) return UsageError("--visit needs --map");
       auto c = ctx->Connect();
       if (!c.ok()) return Fail(c.status());
       v1::ProcessFrameRequest req;
       req.set_map(a->map);
+      // A frame into a map never joins another visit unnamed (one without a pose would make a
+      // posed visit "unanchored"): it gets a visit of its own, ended once it is answered.
+      uint64_t own_visit = 0;
+      if (!a->map.empty() && a->visit == 0) {
+        v1::StartVisitRequest start;
+        start.set_map(a->map);
+        start.set_robot("lifemap process");
+        start.set_label("one frame");
+        auto visit = (*c)->StartVisit(start);
+        if (!visit.ok()) return Fail(visit.status());
+        own_visit = visit->id();
+      }
+      req.set_visit_id(a->visit != 0 ? a->visit : own_visit);
       *req.mutable_frame() = *std::move(frame);
       auto result = (*c)->ProcessFrame(req);
+      if (own_visit != 0) {
+        if (auto ended = (*c)->EndVisit(own_visit); !ended.ok() && result.ok()) {
+          return Fail(ended.status());
+        }
+      }
       if (!result.ok()) return Fail(result.status());
 
       std::error_code ec;
@@ -652,7 +676,8 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
             result->timing().total_ms());
         if (result->keyframe().selected()) {
           std::cout << "keyframe " << result->keyframe().keyframe_id() << " stored in map '"
-                    << a->map << "'\n";
+                    << a->map << "', visit " << req.visit_id()
+                    << (own_visit != 0 ? " (its own, ended)" : "") << "\n";
         }
         for (const auto& o : result->outputs()) {
           if (!o.computed()) {

@@ -345,6 +345,57 @@ TEST_F(CliTest, ProcessWritesResultJson) {
   EXPECT_NE(r.err.find("16-bit"), std::string::npos) << r.err;
 }
 
+// Issue 35: a frame processed into a map gets a visit of its own unless one is named; it never
+// joins (and, without a pose, never turns "unanchored") a visit a robot has open.
+TEST_F(CliTest, ProcessIntoAMapMakesAVisitOfItsOwnUnlessOneIsNamed) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 1);
+  std::string rgb, depth;
+  for (const auto& e : std::filesystem::directory_iterator(tum + "/rgb")) rgb = e.path();
+  for (const auto& e : std::filesystem::directory_iterator(tum + "/depth")) depth = e.path();
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  auto c = client::Client::Connect(client::ClientOptions::At(address_));
+  ASSERT_TRUE(c.ok()) << c.status();
+  v1::StartVisitRequest start;
+  start.set_map("m");
+  start.set_robot("robot");
+  auto open = (*c)->StartVisit(start);
+  ASSERT_TRUE(open.ok()) << open.status();
+  const std::string open_id = std::to_string(open->id());
+
+  auto r = Run({"process", "--map", "m", "--rgb", rgb, "--depth", depth, "--out", tmp_.File("a")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("(its own, ended)"), std::string::npos) << r.out;
+  r = Run({"--json", "visits", "list", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  json visits = json::parse(r.out)["visits"];
+  ASSERT_EQ(visits.size(), 2u) << r.out;
+  for (const auto& v : visits) {
+    if (v["id"].get<std::string>() == open_id) {
+      EXPECT_FALSE(v.value("ended", false)) << "the robot's visit stays open";
+      EXPECT_EQ(v.value("frame_count", std::string("0")), "0") << "and untouched: " << v;
+    } else {
+      EXPECT_TRUE(v.value("ended", false)) << "the frame's own visit is ended: " << v;
+      EXPECT_EQ(v.value("keyframe_count", std::string("0")), "1") << v;
+    }
+  }
+  // Named, the open visit takes it.
+  r = Run({"process", "--map", "m", "--visit", open_id, "--rgb", rgb, "--depth", depth, "--out",
+           tmp_.File("b")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "visits", "list", "m"});
+  visits = json::parse(r.out)["visits"];
+  ASSERT_EQ(visits.size(), 2u) << r.out;
+  for (const auto& v : visits) {
+    if (v["id"].get<std::string>() == open_id) {
+      EXPECT_EQ(v.value("keyframe_count", std::string("0")), "1") << v;
+    }
+  }
+  r = Run({"process", "--visit", open_id, "--rgb", rgb, "--depth", depth, "--out", "x"});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--visit needs --map"), std::string::npos) << r.err;
+}
+
 TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 40, 0.021);
