@@ -36,7 +36,8 @@ struct StreamArgs {
   int max_frames = 0;
   bool create_map = false;
   std::string associations;
-  bool compact = false;  // --send compact: JPEG colour, paletted depth (client::CompactFrame)
+  bool end_visit = false;  // --end-visit: end the visit once the recording is sent
+  bool compact = false;    // --send compact: JPEG colour, paletted depth (client::CompactFrame)
 };
 
 int RunStream(const CliContext& ctx, const StreamArgs& a) {
@@ -166,6 +167,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   std::vector<uint64_t> keyframe_ids;
   std::map<std::string, size_t> keyframes_refused;  // by the server's reason
   size_t results = 0, rejected = 0;
+  size_t tracked = 0, lost_by_tracker = 0;  // frames the server tracked (sent without a pose)
   v1::FrameResult result;
   while ((*stream)->Receive(&result)) {
     const auto now = Clock::now();
@@ -186,6 +188,10 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         std::cerr << (progress ? "\n" : "") << "frame " << result.sequence()
                   << " rejected: " << result.error().message() << "\n";
       }
+    }
+    if (result.has_tracking()) {
+      ++tracked;
+      if (result.tracking().state() == v1::TRACKING_LOST) ++lost_by_tracker;
     }
     if (result.keyframe().committed()) {
       keyframe_ids.push_back(result.keyframe().keyframe_id());
@@ -216,6 +222,39 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
     resume =
         absl::StrFormat("lifemap stream --map %s --tum %s --visit %d", a.map, a.tum_dir, visit_id);
   }
+  // The visit ended when asked (--end-visit), and where it stands: in the map's frame, anchored
+  // to another visit, or in a frame of its own (issue 35: a visit says where it is).
+  absl::Status end_status;
+  if (a.end_visit && (ended.ok() || absl::IsCancelled(ended))) {
+    end_status = (*client)->EndVisit(visit_id).status();
+  }
+  std::string visit_frame = "unknown";
+  std::string visit_frame_text;
+  if (auto listed = (*client)->ListVisits(a.map); listed.ok()) {
+    for (const auto& v : listed->visits()) {
+      if (v.id() != visit_id) continue;
+      switch (v.frame()) {
+        case v1::VISIT_FRAME_MAP:
+          visit_frame = "map";
+          visit_frame_text = "in the map's frame";
+          break;
+        case v1::VISIT_FRAME_ANCHORED:
+          visit_frame = "anchored";
+          visit_frame_text = absl::StrFormat("anchored to visit %d (residual %.3f m, %.2f deg)",
+                                             v.anchor().to_visit(), v.anchor().residual_m(),
+                                             v.anchor().residual_deg());
+          break;
+        case v1::VISIT_FRAME_UNANCHORED:
+          visit_frame = "unanchored";
+          visit_frame_text =
+              "not anchored: its poses are in its own frame (no other visit of the map "
+              "matched it yet)";
+          break;
+        default:
+          break;
+      }
+    }
+  }
   size_t refused = 0;
   for (const auto& [reason, count] : keyframes_refused) refused += count;
   const double fps = results / std::max(elapsed_s, 1e-9);
@@ -236,7 +275,12 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         {"elapsed_s", elapsed_s},
         {"frames_per_s", fps},
         {"latency_ms", {{"p50", p50}, {"p99", p99}}},
+        {"frames_tracked", tracked},
+        {"frames_lost_by_tracker", lost_by_tracker},
+        {"visit_frame", visit_frame},
+        {"visit_ended", a.end_visit && end_status.ok() && (ended.ok() || absl::IsCancelled(ended))},
     };
+    if (!end_status.ok()) summary["end_visit_error"] = std::string(end_status.message());
     if (!ended.ok()) {
       summary["error"] = {{"code", absl::StatusCodeToString(ended.code())},
                           {"message", std::string(ended.message())}};
@@ -252,6 +296,17 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
     for (const auto& [reason, count] : keyframes_refused) {
       std::cout << absl::StrFormat("  %d keyframes refused: %s\n", count, reason);
     }
+    if (tracked > 0) {
+      std::cout << absl::StrFormat("tracked by the server: %d frames lost of %d\n", lost_by_tracker,
+                                   tracked);
+    }
+    if (!visit_frame_text.empty()) {
+      std::cout << absl::StrFormat("visit %d %s%s\n", visit_id, visit_frame_text,
+                                   a.end_visit && end_status.ok() ? "; ended" : "");
+    }
+    if (!end_status.ok()) {
+      std::cout << "visit not ended: " << end_status.message() << "\n";
+    }
   }
   if (!ended.ok()) {
     std::string what = absl::StrFormat(
@@ -263,7 +318,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
     std::cerr << "lifemap: " << what << " [" << absl::StatusCodeToString(ended.code()) << "]\n";
     return 1;
   }
-  return rejected == 0 && refused == 0 ? 0 : 1;
+  return rejected == 0 && refused == 0 && end_status.ok() ? 0 : 1;
 }
 
 }  // namespace
@@ -291,6 +346,8 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
   stream->add_option("--associations", a->associations,
                      "file of 't_rgb rgb t_depth depth' pairs (default: pair rgb.txt/depth.txt)");
   stream->add_flag("--create-map", a->create_map, "create the map if it does not exist");
+  stream->add_flag("--end-visit", a->end_visit,
+                   "end the visit once the recording is sent (else it stays open to resume)");
   stream
       ->add_option_function<std::string>(
           "--send", [a](const std::string& how) { a->compact = how == "compact"; },

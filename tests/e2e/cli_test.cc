@@ -396,6 +396,32 @@ TEST_F(CliTest, ProcessIntoAMapMakesAVisitOfItsOwnUnlessOneIsNamed) {
   EXPECT_NE(r.err.find("--visit needs --map"), std::string::npos) << r.err;
 }
 
+// Issue 35: a stream says how many frames the tracker lost and where its visit stands, and
+// --end-visit ends it.
+TEST_F(CliTest, StreamSaysWhereItsVisitStandsAndEndsItWhenAsked) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 12, 0.02);
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  auto r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json summary = json::parse(Lines(r.out).back())["summary"];
+  EXPECT_EQ(summary["frames_tracked"], 12) << "sent without poses, every frame is tracked";
+  EXPECT_TRUE(summary["frames_lost_by_tracker"].is_number()) << summary;
+  EXPECT_EQ(summary["visit_frame"], "map") << "the map's first visit is its frame";
+  EXPECT_EQ(summary["visit_ended"], true);
+  r = Run({"--json", "visits", "list", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json visits = json::parse(r.out)["visits"];
+  ASSERT_EQ(visits.size(), 1u);
+  EXPECT_TRUE(visits[0].value("ended", false)) << visits[0];
+  // Without --end-visit the visit stays open, and the text says where it stands.
+  r = Run({"stream", "--map", "m", "--tum", tum, "--rate", "0"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("tracked by the server:"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("visit "), std::string::npos) << r.out;
+  EXPECT_EQ(r.out.find("; ended"), std::string::npos) << r.out;
+}
+
 TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 40, 0.021);
