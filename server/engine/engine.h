@@ -6,6 +6,7 @@
 //   store             maps, visits, keyframes, plans, octrees, models, keys (server/store)
 //   frames            the frame path: analyse, then place in the visit (frame_path.h)
 //   place_queries     which stored visits a recording or a visit shows (place_query.h)
+//   (and functions over the store: cloud_export.h, semantic_export.h, semantic_rebuild.h)
 //   visits            visits being written: tracker, keyframe selector, octree (visit_registry.h)
 //   committer         keyframes into the store, batched, in order (keyframe_committer.h)
 //   appearance        paper 000's place recognition index (appearance.h)

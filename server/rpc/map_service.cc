@@ -6,7 +6,7 @@
 #include "absl/strings/str_join.h"
 #include "core/common/rgbd_frame.h"
 #include "core/io/tum_dataset.h"
-#include "core/mapping/point_cloud.h"
+#include "server/engine/cloud_export.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/semantic_rebuild.h"
 #include "server/rpc/convert.h"
@@ -281,33 +281,12 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
         return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                             absl::StrCat("pixel_stride must be within [1, 16], got ", stride));
       }
-      std::vector<io::ColoredPoint> cloud;
-      int64_t used = 0;
-      const absl::Status st = ctx_->engine->store()->ForEachKeyframeWithImages(
-          map->id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
-            if (context->IsCancelled()) return absl::CancelledError("export cancelled");
-            if (!k.T_world_camera) return absl::OkStatus();
-            auto frame = DecodeRgbdFrame(store::StoredFrame(k));
-            if (!frame.ok()) {
-              return absl::DataLossError(absl::StrCat(
-                  "stored keyframe ", k.id, " cannot be decoded: ", frame.status().message()));
-            }
-            mapping::AppendBackProjected(*frame, *k.T_world_camera, static_cast<int>(stride),
-                                         &cloud);
-            ++used;
-            // Bound memory on large maps: fold into voxels as the cloud grows.
-            if (cloud.size() > 4'000'000) cloud = mapping::VoxelDownsample(cloud, voxel);
-            return absl::OkStatus();
-          });
-      if (!st.ok()) return ToGrpcStatus(st);
-      if (used == 0) {
-        return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                            absl::StrCat("no keyframe of map '", req->map(),
-                                         "' has a pose; stream with poses (lifemap stream "
-                                         "--use-groundtruth) to export a cloud"));
-      }
-      cloud = mapping::VoxelDownsample(cloud, voxel);
-      return SendChunks(io::EncodePlyBinary(cloud), "application/ply", cloud.size(), writer);
+      auto cloud =
+          ExportCloud(ctx_->engine->store(), map->id, req->map(), visit_id, voxel,
+                      static_cast<int>(stride), [context] { return context->IsCancelled(); });
+      if (!cloud.ok()) return ToGrpcStatus(cloud.status());
+      return SendChunks(io::EncodePlyBinary(cloud->points), "application/ply", cloud->points.size(),
+                        writer);
     }
     case v1::EXPORT_OCTREE_BT:
     case v1::EXPORT_OCTREE_OT:
