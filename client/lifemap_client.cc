@@ -224,8 +224,8 @@ class GrpcClient final : public Client {
     req.set_keyframe_id(keyframe_id);
     return Unary(&v1::MapService::Stub::GetKeyframe, maps_.get(), req);
   }
-  absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
-                                     std::ostream* out) override {
+  absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request, std::ostream* out,
+                                     std::vector<std::string>* left_out) override {
     grpc::ClientContext context;
     AddKey(&context);
     auto reader = maps_->ExportMap(&context, request);
@@ -237,6 +237,7 @@ class GrpcClient final : public Client {
       if (chunk.last()) {
         items = chunk.item_count();
         last = true;
+        if (left_out != nullptr) left_out->assign(chunk.left_out().begin(), chunk.left_out().end());
       }
     }
     if (auto s = FromGrpc(reader->Finish()); !s.ok()) return s;

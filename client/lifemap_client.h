@@ -106,8 +106,10 @@ class Client {
   virtual absl::StatusOr<v1::Keyframe> GetKeyframe(const std::string& map,
                                                    uint64_t keyframe_id) = 0;
   // Streams the export into `out`; returns the number of items (poses or points) written.
-  virtual absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request,
-                                             std::ostream* out) = 0;
+  // `left_out`, when given, receives the visits a map-level export left out (not in the map's
+  // frame), each "visit N: why".
+  virtual absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request, std::ostream* out,
+                                             std::vector<std::string>* left_out = nullptr) = 0;
   // Rebuilds semantic octrees from stored keyframes; `on_visit` gets each visit's outcome as
   // the server decides it (no deadline: a large map takes minutes).
   virtual absl::Status RebuildSemanticOctrees(

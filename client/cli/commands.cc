@@ -521,8 +521,9 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
       auto c = ctx->Connect();
       if (!c.ok()) return Fail(c.status());
       uint64_t items = 0;
+      std::vector<std::string> left_out;
       auto s = WriteFileAtomically(a->out, [&](std::ostream* out) -> absl::Status {
-        auto n = (*c)->ExportMap(req, out);
+        auto n = (*c)->ExportMap(req, out, &left_out);
         if (!n.ok()) return n.status();
         items = *n;
         return absl::OkStatus();
@@ -533,10 +534,19 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
                          : a->what == "semantic-summary" ? "visits"
                                                          : "voxels";
       if (ctx->json) {
-        std::cout << nlohmann::json{{"out", a->out}, {"what", a->what}, {"items", items}}.dump()
+        std::cout << nlohmann::json{{"out", a->out},
+                                    {"what", a->what},
+                                    {"items", items},
+                                    {"left_out", left_out}}
+                         .dump()
                   << "\n";
       } else {
-        std::cout << "wrote " << items << " " << unit << " to " << a->out << "\n";
+        std::cout << "wrote " << items << " " << unit << " to " << a->out
+                  << (a->visit == 0 && (a->what == "poses" || a->what == "cloud")
+                          ? " (the map's frame)"
+                          : "")
+                  << "\n";
+        for (const auto& l : left_out) std::cout << "left out: " << l << "\n";
       }
       return 0;
     };

@@ -10,18 +10,11 @@
 #include "absl/strings/str_format.h"
 #include "core/forest/forest.h"
 #include "server/engine/semantics.h"
+#include "server/engine/visit_frame.h"
 #include "spdlog/spdlog.h"
 
 namespace lifemap::server {
 namespace {
-
-// Where a visit's own frame lies in the map's; nullopt when it is not known (a tracked visit
-// that no match has anchored yet).
-std::optional<Pose> MapFromVisit(const store::VisitRecord& v) {
-  if (v.anchor) return v.anchor->T_map_visit;
-  if (v.first_of_map || v.tracked_keyframes == 0) return Pose{};
-  return std::nullopt;
-}
 
 bool IsIdentity(const Pose& T) {
   return T.translation.isZero(0) && T.rotation.coeffs() == Eigen::Quaterniond::Identity().coeffs();

@@ -5,10 +5,12 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "core/common/rgbd_frame.h"
+#include "core/common/utf8.h"
 #include "core/io/tum_dataset.h"
 #include "server/engine/cloud_export.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/semantic_rebuild.h"
+#include "server/engine/visit_frame.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
 
@@ -44,7 +46,8 @@ v1::SemanticOctreeRebuild::Outcome OutcomeToProto(SemanticRebuild::Outcome o) {
 
 // Sends `body` in chunks of at most kExportChunkBytes; the last chunk carries the item count.
 grpc::Status SendChunks(const std::string& body, const std::string& content_type, uint64_t items,
-                        grpc::ServerWriter<v1::ExportChunk>* writer) {
+                        grpc::ServerWriter<v1::ExportChunk>* writer,
+                        const std::vector<std::string>& left_out = {}) {
   size_t offset = 0;
   do {
     v1::ExportChunk chunk;
@@ -55,6 +58,7 @@ grpc::Status SendChunks(const std::string& body, const std::string& content_type
     if (offset == body.size()) {
       chunk.set_last(true);
       chunk.set_item_count(items);
+      for (const auto& l : left_out) chunk.add_left_out(ToValidUtf8(l));
     }
     if (!writer->Write(chunk)) {
       return grpc::Status(grpc::StatusCode::CANCELLED, "client went away during export");
@@ -258,17 +262,41 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
     case v1::EXPORT_POSES_TUM: {
       auto keyframes = ctx_->engine->store()->ListKeyframes(map->id, visit_id);
       if (!keyframes.ok()) return ToGrpcStatus(keyframes.status());
-      std::string body =
-          "# lifemap keyframe poses (T_world_camera)\n"
-          "# timestamp tx ty tz qx qy qz qw\n";
+      // Map-level: the visits in the map's frame only, each under a "# visit N" line; one
+      // visit alone is in its own frame.
+      std::optional<MapFrameVisits> frame;
+      if (visit_id == 0) {
+        auto visits = VisitsInMapFrame(ctx_->engine->store(), map->name);
+        if (!visits.ok()) return ToGrpcStatus(visits.status());
+        frame = *std::move(visits);
+      }
+      std::stable_sort(keyframes->begin(), keyframes->end(),
+                       [](const store::KeyframeRecord& a, const store::KeyframeRecord& b) {
+                         return a.visit_id < b.visit_id;
+                       });
+      std::string body = absl::StrCat(
+          "# lifemap keyframe poses (T_world_camera) of map '", map->name, "', ",
+          visit_id == 0 ? std::string("in the map's frame")
+                        : absl::StrCat("visit ", visit_id, " in its own frame"),
+          "\n# timestamp tx ty tz qx qy qz qw (TUM); '# visit N' starts each visit's poses\n");
+      if (frame) {
+        for (const auto& l : frame->left_out) absl::StrAppend(&body, "# left out: ", l, "\n");
+      }
       uint64_t n = 0;
+      int64_t current_visit = 0;
       for (const auto& k : *keyframes) {
         if (!k.T_world_camera) continue;
+        if (frame && frame->in_map_frame.count(k.visit_id) == 0) continue;
+        if (k.visit_id != current_visit) {
+          current_visit = k.visit_id;
+          absl::StrAppend(&body, "# visit ", current_visit, "\n");
+        }
         body += io::FormatTumPoseLine(k.timestamp_s, *k.T_world_camera);
         body += '\n';
         ++n;
       }
-      return SendChunks(body, "text/plain", n, writer);
+      return SendChunks(body, "text/plain", n, writer,
+                        frame ? frame->left_out : std::vector<std::string>{});
     }
     case v1::EXPORT_CLOUD_PLY: {
       const double voxel = req->voxel_size_m() == 0.0 ? 0.02 : req->voxel_size_m();
@@ -286,7 +314,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
                       static_cast<int>(stride), [context] { return context->IsCancelled(); });
       if (!cloud.ok()) return ToGrpcStatus(cloud.status());
       return SendChunks(io::EncodePlyBinary(cloud->points), "application/ply", cloud->points.size(),
-                        writer);
+                        writer, cloud->left_out);
     }
     case v1::EXPORT_OCTREE_BT:
     case v1::EXPORT_OCTREE_OT:

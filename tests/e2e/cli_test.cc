@@ -422,6 +422,50 @@ TEST_F(CliTest, StreamSaysWhereItsVisitStandsAndEndsItWhenAsked) {
   EXPECT_EQ(r.out.find("; ended"), std::string::npos) << r.out;
 }
 
+// Issue 35: map-level poses and clouds hold only the visits in the map's frame and name the
+// others; one visit alone exports in its own frame.
+TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
+  const std::string tum = tmp_.File("tum");
+  testing::WriteSyntheticTum(tum, 20, 0.021);
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  // Visit 1 posed by its client (the map's frame); visit 2 tracked and, with no vocabulary yet,
+  // not anchored.
+  auto r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--use-groundtruth",
+                "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto posed = json::parse(Lines(r.out).back())["summary"];
+  r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto tracked = json::parse(Lines(r.out).back())["summary"];
+  ASSERT_EQ(tracked["visit_frame"], "unanchored") << tracked;
+  const std::string tracked_id = std::to_string(tracked["visit_id"].get<uint64_t>());
+
+  r = Run({"export", "--map", "m", "--what", "poses", "--out", tmp_.File("p.txt")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("left out: visit " + tracked_id + ": tracked and not anchored"),
+            std::string::npos)
+      << r.out;
+  const std::string poses = Slurp(tmp_.File("p.txt"));
+  int pose_lines = 0;
+  for (const auto& l : Lines(poses)) pose_lines += l[0] != '#';
+  EXPECT_EQ(pose_lines, posed["keyframes_stored"].get<int>()) << "the posed visit's only";
+  EXPECT_NE(poses.find("# left out: visit " + tracked_id), std::string::npos) << poses;
+  EXPECT_EQ(poses.find("# visit " + tracked_id + "\n"), std::string::npos) << poses;
+
+  r = Run({"--json", "export", "--map", "m", "--what", "cloud", "--out", tmp_.File("c.ply")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto cloud = json::parse(Lines(r.out).back());
+  ASSERT_EQ(cloud["left_out"].size(), 1u) << cloud;
+  // The tracked visit alone, in its own frame.
+  r = Run({"export", "--map", "m", "--visit", tracked_id, "--what", "poses", "--out",
+           tmp_.File("v.txt")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  pose_lines = 0;
+  for (const auto& l : Lines(Slurp(tmp_.File("v.txt")))) pose_lines += l[0] != '#';
+  EXPECT_EQ(pose_lines, tracked["keyframes_stored"].get<int>());
+  EXPECT_NE(Slurp(tmp_.File("v.txt")).find("in its own frame"), std::string::npos);
+}
+
 TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 40, 0.021);
