@@ -114,8 +114,7 @@ void BM_FramePath(benchmark::State& state) {
   }
   auto visit_state = (*engine)->visits()->Get(visit->id);
   auto writer = (*engine)->visits()->ClaimWriter(*visit_state, "bench");
-  FrameSettings settings;
-  settings.keyframe = tracking::KeyframeOptions{};
+  const FrameSettings settings;
   FramePath* path = (*engine)->frames();
 
   const double start_s = NowSeconds();

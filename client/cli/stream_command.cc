@@ -225,9 +225,8 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   // The visit ended when asked (--end-visit), and where it stands: in the map's frame, anchored
   // to another visit, or in a frame of its own (issue 35: a visit says where it is).
   absl::Status end_status;
-  if (a.end_visit && (ended.ok() || absl::IsCancelled(ended))) {
-    end_status = (*client)->EndVisit(visit_id).status();
-  }
+  const bool end_asked = a.end_visit && (ended.ok() || absl::IsCancelled(ended));
+  if (end_asked) end_status = (*client)->EndVisit(visit_id).status();
   std::string visit_frame = "unknown";
   std::string visit_frame_text;
   if (auto listed = (*client)->ListVisits(a.map); listed.ok()) {
@@ -278,7 +277,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         {"frames_tracked", tracked},
         {"frames_lost_by_tracker", lost_by_tracker},
         {"visit_frame", visit_frame},
-        {"visit_ended", a.end_visit && end_status.ok() && (ended.ok() || absl::IsCancelled(ended))},
+        {"visit_ended", end_asked && end_status.ok()},
     };
     if (!end_status.ok()) summary["end_visit_error"] = std::string(end_status.message());
     if (!ended.ok()) {

@@ -158,7 +158,7 @@ AnalysedFrame FramePath::Analyse(const EncodedRgbdFrame& frame, int64_t map_id,
 // client's own scale, so the sensor's values are kept exactly (float metres at
 // kStoredDepthScale). Colour: JPEG as it came; PNG and raw re-encoded as JPEG at the configured
 // quality, unless the map keeps originals (PNG as it came, raw as PNG).
-absl::StatusOr<store::KeyframeRecord> FramePath::MakeKeyframeRecord(const AnalysedFrame& a,
+absl::StatusOr<store::KeyframeRecord> FramePath::MakeKeyframeRecord(AnalysedFrame& a,
                                                                     int64_t visit_id) const {
   const RgbdFrame& decoded = a.analysis->frame;
   store::KeyframeRecord k;
@@ -173,10 +173,10 @@ absl::StatusOr<store::KeyframeRecord> FramePath::MakeKeyframeRecord(const Analys
   if (!depth.ok()) return depth.status();
   k.depth = *std::move(depth);
   if (a.color_encoding == ColorEncoding::kJpeg) {
-    k.color = a.color_as_sent;
+    k.color = std::move(a.color_as_sent);
     k.color_encoding = store::StoredColorEncoding::kJpeg;
   } else if (a.keep_original_color && a.color_encoding == ColorEncoding::kPng) {
-    k.color = a.color_as_sent;
+    k.color = std::move(a.color_as_sent);
     k.color_encoding = store::StoredColorEncoding::kPng;
   } else if (a.keep_original_color) {
     auto png = EncodePng(decoded.color_bgr);

@@ -201,7 +201,8 @@ class FramePath {
   absl::Status RenderFusedLabels(const AnalysedFrame& a, const FrameSettings& settings,
                                  VisitState* visit, FramePlacement* out) const;
   void SubmitForFusion(AnalysedFrame& a, const std::shared_ptr<VisitState>& visit) const;
-  absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(const AnalysedFrame& a,
+  // Takes the frame's sent colour bytes (color_as_sent is empty afterwards).
+  absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(AnalysedFrame& a,
                                                            int64_t visit_id) const;
 
   FramePathParts parts_;

@@ -8,6 +8,7 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/image_codec.h"
 #include "core/common/utf8.h"
+#include "server/engine/visit_frame.h"
 
 namespace lifemap::server {
 
@@ -210,7 +211,7 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
     a->set_residual_m(v.anchor->residual_m);
     a->set_residual_deg(v.anchor->residual_deg);
     a->set_anchored_time_s(v.anchor->anchored_time_s);
-  } else if (v.first_of_map || v.tracked_keyframes == 0) {
+  } else if (MapFromVisit(v)) {
     out->set_frame(v1::VISIT_FRAME_MAP);
   } else {
     out->set_frame(v1::VISIT_FRAME_UNANCHORED);
@@ -327,19 +328,6 @@ void PlaceMatchToProto(const PlaceMatch& m, v1::PlaceMatch* out) {
       break;
   }
   if (m.T_match_query) PoseToProto(*m.T_match_query, out->mutable_t_match_query());
-}
-
-store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source) {
-  switch (source) {
-    case v1::POSE_SOURCE_CLIENT:
-      return store::StoredPoseSource::kClient;
-    case v1::POSE_SOURCE_ESTIMATED:
-      return store::StoredPoseSource::kEstimated;
-    case v1::POSE_SOURCE_REFINED:
-      return store::StoredPoseSource::kRefined;
-    default:
-      return store::StoredPoseSource::kNone;
-  }
 }
 
 v1::PoseSource StoredPoseSourceToProto(store::StoredPoseSource source) {
@@ -512,12 +500,6 @@ void AnalysisToProto(const AnalysedFrame& a, v1::ResultImages images, v1::FrameR
   r->set_height(static_cast<uint32_t>(f.intrinsics.height));
   r->set_valid_depth_fraction(analysis.depth_stats.valid_fraction);
   r->set_median_depth_m(analysis.depth_stats.median_m);
-  if (f.T_world_camera) {
-    r->set_pose_source(v1::POSE_SOURCE_CLIENT);
-    PoseToProto(*f.T_world_camera, r->mutable_pose());
-  } else {
-    r->set_pose_source(v1::POSE_SOURCE_NONE);
-  }
   if (analysis.entropy) EntropyToProto(*analysis.entropy, images, r->mutable_entropy());
   if (analysis.labels) LabelsToProto(*analysis.labels, *a.model, images, r->mutable_labels());
   r->mutable_timing()->set_decode_ms(analysis.decode_ms);
@@ -528,11 +510,7 @@ void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
                       const pipeline::PipelineOptions& options, v1::ResultImages images,
                       v1::FrameResult* r) {
   r->set_pose_source(StoredPoseSourceToProto(p.pose_source));
-  if (p.pose) {
-    PoseToProto(*p.pose, r->mutable_pose());
-  } else {
-    r->clear_pose();
-  }
+  if (p.pose) PoseToProto(*p.pose, r->mutable_pose());
   if (p.tracking) {
     auto* t = r->mutable_tracking();
     t->set_track_ms(p.tracking->track_ms);

@@ -49,8 +49,7 @@ absl::StatusOr<Pose> PoseFromProto(const v1::Pose& pose);
 void PoseToProto(const Pose& pose, v1::Pose* out);
 v1::TrackingState TrackingStateToProto(tracking::TrackingState state);
 v1::TrackingMethod TrackingMethodToProto(tracking::TrackingMethod method);
-// A frame result's pose source as the store keeps it, and back (KeyframeSummary).
-store::StoredPoseSource StoredPoseSourceFromProto(v1::PoseSource source);
+// A stored keyframe's pose source as the API says it (KeyframeSummary, frame results).
 v1::PoseSource StoredPoseSourceToProto(store::StoredPoseSource source);
 CameraIntrinsics IntrinsicsFromProto(const v1::CameraIntrinsics& k);
 void IntrinsicsToProto(const CameraIntrinsics& k, v1::CameraIntrinsics* out);
@@ -78,8 +77,8 @@ void LabelsToProto(const pipeline::FrameLabels& labels, const LoadedModel& model
 // nothing of its analysis (the stream goes on unless the caller ends it).
 v1::FrameResult ErrorResult(const v1::FrameResult& of, const absl::Status& s);
 // A frame's result from the frame path's stages (server/engine/frame_path.h): what its analysis
-// gave (or why it was refused), then what placing it in its visit gave. The keyframe's commit
-// is reported by the caller once it completes.
+// gave (or why it was refused), then what placing it in its visit gave (its pose among them). The
+// keyframe's commit is reported by the caller once it completes.
 void AnalysisToProto(const AnalysedFrame& a, v1::ResultImages images, v1::FrameResult* out);
 void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
                       const pipeline::PipelineOptions& options, v1::ResultImages images,

@@ -69,8 +69,7 @@ class FramePathTest : public ::testing::Test {
 };
 
 TEST_F(FramePathTest, ARecordingSentWithoutPosesIsTrackedAndItsKeyframesStored) {
-  const std::string dir = testing::SharedDataset("tum_fr1_xyz_subset");
-  if (dir.empty()) GTEST_SKIP() << "needs ../shared/data/tum_fr1_xyz_subset";
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
   auto seq = io::ReadTumSequence(dir);
   ASSERT_TRUE(seq.ok()) << seq.status();
   auto visit = StartVisit();
@@ -111,8 +110,7 @@ TEST_F(FramePathTest, ARecordingSentWithoutPosesIsTrackedAndItsKeyframesStored) 
 }
 
 TEST_F(FramePathTest, RefusalsAreTypedResults) {
-  const std::string dir = testing::SharedDataset("tum_fr1_xyz_subset");
-  if (dir.empty()) GTEST_SKIP() << "needs ../shared/data/tum_fr1_xyz_subset";
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
   auto seq = io::ReadTumSequence(dir);
   ASSERT_TRUE(seq.ok()) << seq.status();
   auto visit = StartVisit();
