@@ -32,7 +32,8 @@ using nlohmann::json;
 struct AlignmentArgs {
   std::string suite, out;
   bool compact = false;
-  bool send_gravity = true;  // --gravity accelerometer|none
+  bool send_gravity = true;    // --gravity accelerometer|none
+  bool send_odometry = false;  // --odometry wheel|none
   double rate_hz = 0.0;
   bool keep_maps = false;
   // An anchor further than this from the truth has put the visit somewhere else in the room:
@@ -48,9 +49,10 @@ struct AlignmentTrial {
   bool cross_place = false;  // a visit of another place: must stay unanchored
   uint64_t visit_id = 0;
   int frames = 0, lost = 0, keyframes = 0;
-  double ate_mm = -1;  // the visit's stored keyframes against its own ground truth (-1: none)
-  std::string frame;   // the server's VisitFrame: map | anchored | unanchored
-  std::string error;   // why the visit could not be scored
+  int by_odometry = 0;  // frames the server placed by the robot's odometry alone
+  double ate_mm = -1;   // the visit's stored keyframes against its own ground truth (-1: none)
+  std::string frame;    // the server's VisitFrame: map | anchored | unanchored
+  std::string error;    // why the visit could not be scored
   uint64_t anchor_to = 0;
   // Seconds of streaming (server clock) before the anchor was set; -1 when not anchored.
   double anchored_after_s = -1, residual_cm = 0, residual_deg = 0;
@@ -124,12 +126,14 @@ absl::Status StreamVisit(client::Client& client, const std::string& map, const s
   options.visit_label = t->path;
   options.compact = a.compact;
   options.send_gravity = a.send_gravity;
+  options.send_odometry = a.send_odometry;
   options.rate_hz = a.rate_hz;
   auto streamed = StreamWithoutPoses(client, map, *seq, options);
   if (!streamed.ok()) return streamed.status();
   t->visit_id = streamed->visit_id;
   t->frames = static_cast<int>(streamed->frames.size());
   t->lost = streamed->lost;
+  t->by_odometry = streamed->placed_by_odometry;
   auto visits = client.ListVisits(map);
   if (!visits.ok()) return visits.status();
   for (const auto& v : visits->visits()) {
@@ -255,7 +259,8 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
   std::map<int, Tally> by_subset;
   std::map<int, std::string> subset_names;
   std::string csv =
-      "path,place,subset,conditions,cross_place,visit,frames,lost,keyframes,ate_mm,frame,"
+      "path,place,subset,conditions,cross_place,visit,frames,lost,by_odometry,keyframes,ate_mm,"
+      "frame,"
       "anchor_to,anchored_after_s,residual_cm,residual_deg,error_cm,error_deg,verdict\n";
   for (const auto& t : trials) {
     (t.cross_place ? cross_place : same_place).Add(t);
@@ -264,10 +269,10 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
       subset_names[t.subset] = t.conditions;
     }
     csv += absl::StrFormat(
-        "%s,%s,%d,\"%s\",%d,%d,%d,%d,%d,%.2f,%s,%d,%.2f,%.2f,%.3f,%.2f,%.3f,%s\n", t.path,
+        "%s,%s,%d,\"%s\",%d,%d,%d,%d,%d,%d,%.2f,%s,%d,%.2f,%.2f,%.3f,%.2f,%.3f,%s\n", t.path,
         t.place_id, t.subset, t.conditions, t.cross_place ? 1 : 0, t.visit_id, t.frames, t.lost,
-        t.keyframes, t.ate_mm, t.frame, t.anchor_to, t.anchored_after_s, t.residual_cm,
-        t.residual_deg, t.error_cm, t.error_deg, t.verdict);
+        t.by_odometry, t.keyframes, t.ate_mm, t.frame, t.anchor_to, t.anchored_after_s,
+        t.residual_cm, t.residual_deg, t.error_cm, t.error_deg, t.verdict);
   }
   json summary = same_place.Json();
   // A cross-place visit anchored is a wrong anchor too (to a wrong place).
@@ -278,6 +283,7 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
   summary["places"] = places.size();
   summary["sent"] = a.compact ? "compact" : "as-recorded";
   summary["gravity"] = a.send_gravity ? "accelerometer" : "none";
+  summary["odometry"] = a.send_odometry ? "wheel" : "none";
   summary["wrong_beyond"] = {{"cm", a.wrong_cm}, {"deg", a.wrong_deg}};
   summary["subsets"] = json::object();
   std::string report = absl::StrFormat(
@@ -314,6 +320,7 @@ void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx) {
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
   AddGravityOption(cmd, &a->send_gravity);
+  AddOdometryOption(cmd, &a->send_odometry);
   cmd->add_option("--rate", a->rate_hz, "frames per second (default 0: as fast as served)")
       ->check(CLI::Range(0.0, 1000.0));
   cmd->add_flag("--keep-maps", a->keep_maps, "keep the per-place maps (default: deleted after)");

@@ -29,7 +29,8 @@ struct TrajectoryArgs {
   std::string map;  // empty: a scratch map, deleted afterwards
   bool keep_map = false;
   bool compact = false;
-  bool send_gravity = true;  // --gravity accelerometer|none
+  bool send_gravity = true;    // --gravity accelerometer|none
+  bool send_odometry = false;  // --odometry wheel|none
   double rate_hz = 0.0;
   int max_frames = 0;
 };
@@ -118,6 +119,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   options.robot = "lifemap eval trajectory";
   options.compact = a.compact;
   options.send_gravity = a.send_gravity;
+  options.send_odometry = a.send_odometry;
   options.rate_hz = a.rate_hz;
   options.max_frames = a.max_frames;
   auto streamed = StreamWithoutPoses(**client, map, *seq, options);
@@ -160,6 +162,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       {"intrinsics", streamed->intrinsics_source},
       {"sent", a.compact ? "compact" : "as-recorded"},
       {"frames_with_gravity", streamed->frames_with_gravity},
+      {"frames_with_odometry", streamed->frames_with_odometry},
       {"track_ms_p50", track_p50},
       {"frames_by_method", by_method},
       {"keyframe_trajectory", ErrorsJson(kf_errors)},
@@ -259,6 +262,7 @@ void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx) {
          "as-recorded (default) or compact (JPEG colour, paletted depth)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
   AddGravityOption(cmd, &a->send_gravity);
+  AddOdometryOption(cmd, &a->send_odometry);
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunTrajectoryEval(*ctx, *a); }; });
 }
 

@@ -41,6 +41,8 @@ std::string MethodName(v1::TrackingMethod m) {
       return "features";
     case v1::TRACKING_METHOD_RELOCALISED:
       return "relocalised";
+    case v1::TRACKING_METHOD_ODOMETRY:
+      return "odometry";
     default:
       return "";
   }
@@ -55,6 +57,14 @@ void AddGravityOption(CLI::App* cmd, bool* send_gravity) {
          "accelerometer (default: each frame's Frame.gravity from the recording's "
          "accelerometer.txt, where it has one) or none")
       ->check(CLI::IsMember({"accelerometer", "none"}));
+}
+
+void AddOdometryOption(CLI::App* cmd, bool* send_odometry) {
+  cmd->add_option_function<std::string>(
+         "--odometry", [send_odometry](const std::string& how) { *send_odometry = how == "wheel"; },
+         "wheel (each frame's Frame.odometry from the recording's odometry.txt, where it has "
+         "one: a robot's wheel odometry) or none (default)")
+      ->check(CLI::IsMember({"wheel", "none"}));
 }
 
 absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
@@ -103,6 +113,10 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
         g->set_z(e.gravity_camera->z());
         ++visit.frames_with_gravity;
       }
+      if (options.send_odometry && e.T_odom_camera) {
+        *f->mutable_odometry()->mutable_pose() = PoseProto(*e.T_odom_camera);
+        ++visit.frames_with_odometry;
+      }
       if (!(*stream)->Send(*f)) break;  // no pose: the server tracks the camera
     }
     (*stream)->CloseSend();
@@ -120,6 +134,7 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
     } else {
       o.state = TrackingName(r.tracking().state());
       o.method = MethodName(r.tracking().method());
+      visit.placed_by_odometry += r.tracking().method() == v1::TRACKING_METHOD_ODOMETRY;
       visit.lost += r.tracking().state() == v1::TRACKING_LOST;
       visit.track_ms.push_back(r.tracking().track_ms());
       if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {

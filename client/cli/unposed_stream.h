@@ -23,8 +23,9 @@ struct TrackedFrame {
   bool tracked = false;  // the server estimated a pose (`pose`)
   bool keyframe = false;
   Pose pose;
-  std::string state;          // started | ok | lost | regained | none | error
-  std::string method;         // dense | refit | features, or "" (lost, started, error)
+  std::string state;  // started | ok | lost | regained | none | error
+  // dense | refit | features | relocalised | odometry, or "" (lost, started, error)
+  std::string method;
   std::optional<Pose> truth;  // the recording's ground truth for the frame, if it has one
 };
 
@@ -37,11 +38,15 @@ struct UnposedStreamOptions {
   // Frame.gravity from the recording's accelerometer.txt where it has one (the server levels
   // the visit's frame by the first frame's).
   bool send_gravity = true;
+  // Frame.odometry from the recording's odometry.txt where it has one (a robot's wheels).
+  bool send_odometry = false;
 };
 
 // Adds `--gravity accelerometer|none` to an evaluation command, setting `*send_gravity`
 // (UnposedStreamOptions::send_gravity).
 void AddGravityOption(CLI::App* cmd, bool* send_gravity);
+// Adds `--odometry wheel|none` (UnposedStreamOptions::send_odometry; default none).
+void AddOdometryOption(CLI::App* cmd, bool* send_odometry);
 
 struct StreamedVisit {
   uint64_t visit_id = 0;
@@ -51,6 +56,8 @@ struct StreamedVisit {
   std::vector<double> track_ms;      // the server's tracking time per answered frame
   std::string intrinsics_source;     // where the camera intrinsics sent came from
   int frames_with_gravity = 0;       // frames sent with Frame.gravity
+  int frames_with_odometry = 0;      // frames sent with Frame.odometry
+  int placed_by_odometry = 0;        // frames answered TRACKING_METHOD_ODOMETRY
 };
 
 // Streams `sequence` into `map` (which must exist) without poses and collects every answer.

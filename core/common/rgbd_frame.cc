@@ -4,6 +4,8 @@
 #include <cmath>
 #include <vector>
 
+#include <Eigen/Eigenvalues>
+
 #include "absl/strings/str_cat.h"
 
 namespace lifemap {
@@ -17,6 +19,36 @@ absl::Status FrameLimits::Validate() const {
         absl::StrCat("max_pixels must be within [", kMin, ", ", kMax, "], got ", max_pixels));
   }
   return absl::OkStatus();
+}
+
+absl::StatusOr<OdometryReading> OdometryReading::Make(
+    const Pose& T_odom_camera, const std::vector<double>& covariance_row_major) {
+  OdometryReading out;
+  out.T_odom_camera = T_odom_camera;
+  if (covariance_row_major.empty()) return out;
+  if (covariance_row_major.size() != 36) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "covariance must hold 36 values (6x6, row-major over x, y, z, rotation about x, y, z) or "
+        "none, got ",
+        covariance_row_major.size()));
+  }
+  Eigen::Matrix<double, 6, 6> c;
+  for (int r = 0; r < 6; ++r) {
+    for (int k = 0; k < 6; ++k) c(r, k) = covariance_row_major[r * 6 + k];
+  }
+  if (!c.allFinite()) return absl::InvalidArgumentError("covariance holds NaN or infinite values");
+  if (!(c - c.transpose()).isZero(1e-9 * std::max(1.0, c.cwiseAbs().maxCoeff()))) {
+    return absl::InvalidArgumentError("covariance is not symmetric");
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(c);
+  if (eigen.info() != Eigen::Success || !(eigen.eigenvalues().minCoeff() > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "covariance is not positive definite (smallest eigenvalue ",
+        eigen.info() == Eigen::Success ? eigen.eigenvalues().minCoeff() : 0.0,
+        "); send variances > 0 on the diagonal, or no covariance for the server's default"));
+  }
+  out.covariance = c;
+  return out;
 }
 
 absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decode_color,
@@ -74,6 +106,7 @@ absl::StatusOr<RgbdFrame> DecodeRgbdFrame(const EncodedRgbdFrame& in, bool decod
   out.intrinsics = in.intrinsics;
   out.T_world_camera = in.T_world_camera;
   out.gravity_camera = in.gravity_camera;
+  out.odometry = in.odometry;
   auto d = DecodeDepthMetres(depth, limits.depth_range);
   if (!d.ok()) return d.status();
   out.depth_m = *std::move(d);

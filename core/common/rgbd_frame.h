@@ -3,6 +3,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <vector>
 
 #include <opencv2/core.hpp>
 
@@ -11,6 +12,23 @@
 #include "core/common/types.h"
 
 namespace lifemap {
+
+// The robot's own motion estimate at a frame's time (wheel odometry, or any dead reckoning):
+// the camera's pose in the odometry's frame, which drifts but never jumps. Only increments
+// between a visit's frames are used, so its origin does not matter.
+struct OdometryReading {
+  Pose T_odom_camera;
+  // 6x6, row-major over (x, y, z, rotation about x, y, z), metres² and radians², cumulative as in
+  // ROS nav_msgs/Odometry: the uncertainty of an increment is the difference of its ends'. Unset:
+  // the server's default (tracking::OdometryOptions, 2 % of the distance travelled).
+  std::optional<Eigen::Matrix<double, 6, 6>> covariance;
+
+  // A reading from a validated pose and `covariance_row_major` (0 values: none, else 36).
+  // InvalidArgument (naming "covariance") for another count, values not finite, a matrix that is
+  // not symmetric (within 1e-9 relative) or not positive definite.
+  static absl::StatusOr<OdometryReading> Make(const Pose& T_odom_camera,
+                                              const std::vector<double>& covariance_row_major);
+};
 
 // A frame as it arrives: encoded images that view the caller's buffers (not owned).
 struct EncodedRgbdFrame {
@@ -23,6 +41,7 @@ struct EncodedRgbdFrame {
   // Gravity in the camera frame, unit length (an IMU's reading, normalised), when the client
   // sent one.
   std::optional<Eigen::Vector3d> gravity_camera;
+  std::optional<OdometryReading> odometry;  // already validated
 };
 
 // A decoded frame. depth_m is CV_32FC1 metres (0 = no reading); color_bgr CV_8UC3; both of the
@@ -35,6 +54,7 @@ struct RgbdFrame {
   cv::Mat color_bgr;
   std::optional<Pose> T_world_camera;
   std::optional<Eigen::Vector3d> gravity_camera;  // unit length, when the client sent it
+  std::optional<OdometryReading> odometry;        // when the client sent it
 };
 
 // What a frame may hold (config section `frames`).

@@ -193,7 +193,8 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
       if (!td.ok()) return td.status();
       TumFrameEntry e{*tr,          (fs::path(dir) / row[1]).string(),
                       *td,          (fs::path(dir) / row[3]).string(),
-                      std::nullopt, std::nullopt};
+                      std::nullopt, std::nullopt,
+                      std::nullopt};
       if (!fs::exists(e.rgb_path) || !fs::exists(e.depth_path)) {
         ++seq.listed_but_missing;
         continue;
@@ -217,7 +218,7 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
     seq.listed_but_missing = missing_rgb + missing_depth;
     for (const auto& [r, d] : Associate(*rgb, *depth, options.max_association_dt_s)) {
       seq.frames.push_back({(*rgb)[r].timestamp_s, (*rgb)[r].path, (*depth)[d].timestamp_s,
-                            (*depth)[d].path, std::nullopt, std::nullopt});
+                            (*depth)[d].path, std::nullopt, std::nullopt, std::nullopt});
     }
   }
   std::sort(
@@ -238,6 +239,18 @@ absl::StatusOr<TumSequence> ReadTumSequence(const std::string& dir, const TumRea
       f.T_world_camera =
           InterpolateTrajectory(*trajectory, f.timestamp_s, options.max_groundtruth_gap_s);
       if (f.T_world_camera) ++seq.frames_with_pose;
+    }
+  }
+
+  const std::string odometry_path = (fs::path(dir) / "odometry.txt").string();
+  if (fs::exists(odometry_path)) {
+    auto trajectory = ReadTumTrajectory(odometry_path);
+    if (!trajectory.ok()) return trajectory.status();
+    seq.has_odometry = true;
+    for (auto& f : seq.frames) {
+      f.T_odom_camera =
+          InterpolateTrajectory(*trajectory, f.timestamp_s, options.max_groundtruth_gap_s);
+      if (f.T_odom_camera) ++seq.frames_with_odometry;
     }
   }
 

@@ -26,6 +26,9 @@ struct TumFrameEntry {
   // Gravity's direction in the camera frame (unit; x right, y down, z forward) from the
   // recording's accelerometer.txt, if it has one (TumGravityFromAccelerometer).
   std::optional<Eigen::Vector3d> gravity_camera;
+  // The robot's odometry at the frame's time (T_odom_camera) from the recording's odometry.txt
+  // (TUM trajectory lines), if it has one: interpolated like the ground truth.
+  std::optional<Pose> T_odom_camera;
 };
 
 struct TumReadOptions {
@@ -50,6 +53,8 @@ struct TumSequence {
   int frames_with_pose = 0;
   bool has_accelerometer = false;  // accelerometer.txt was read
   int frames_with_gravity = 0;
+  bool has_odometry = false;  // odometry.txt was read
+  int frames_with_odometry = 0;
   std::optional<CameraIntrinsics> intrinsics;  // from DIR/intrinsics.txt when present
 };
 

@@ -168,6 +168,55 @@ absl::Status Write(const fs::path& path, const cv::Mat& image) {
 
 }  // namespace
 
+std::vector<TimedCameraPose> SimulateWheelOdometry(const std::vector<TimedCameraPose>& trajectory,
+                                                   const WheelOdometryNoise& noise, uint64_t seed) {
+  std::vector<TimedCameraPose> out;
+  if (trajectory.empty()) return out;
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> unit(0.0, 1.0);
+  const double scale = 1.0 + noise.scale_sigma * unit(rng);
+  const double turn_scale = 1.0 + noise.scale_sigma * unit(rng);
+  const double yaw_bias = noise.yaw_bias_deg_per_m_sigma * unit(rng) * M_PI / 180.0;
+  // The base under the camera: its position on the floor and the heading of the camera's
+  // forward; the camera's pose relative to its base (height, pitch, roll) is read exactly.
+  struct Base {
+    Eigen::Vector2d xy;
+    double yaw;
+  };
+  auto base_of = [](const Pose& T_world_camera) {
+    const Eigen::Vector3d forward = T_world_camera.rotation * Eigen::Vector3d::UnitZ();
+    return Base{T_world_camera.translation.head<2>(), std::atan2(forward.y(), forward.x())};
+  };
+  auto isometry_of = [](const Base& b) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Eigen::AngleAxisd(b.yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    T.translation() << b.xy, 0.0;
+    return T;
+  };
+  Base odom = base_of(trajectory.front().T_world_camera);
+  Base previous_truth = odom;
+  for (const TimedCameraPose& tp : trajectory) {
+    const Base truth = base_of(tp.T_world_camera);
+    // The true step in the previous base's frame, as the wheels measure it, with its errors.
+    const Eigen::Rotation2Dd to_previous(-previous_truth.yaw);
+    const Eigen::Vector2d step = to_previous * (truth.xy - previous_truth.xy);
+    const double turn = std::remainder(truth.yaw - previous_truth.yaw, 2 * M_PI);
+    const double length = step.norm();
+    const Eigen::Vector2d measured =
+        step * scale + noise.step_noise * length * Eigen::Vector2d(unit(rng), unit(rng));
+    const double measured_turn =
+        turn * turn_scale + yaw_bias * length +
+        noise.turn_noise_deg * M_PI / 180.0 * unit(rng) * (length > 0 || turn != 0 ? 1.0 : 0.0);
+    odom.xy += Eigen::Rotation2Dd(odom.yaw) * measured;
+    odom.yaw += measured_turn;
+    previous_truth = truth;
+    const Eigen::Isometry3d T_base_camera =
+        isometry_of(truth).inverse() * tp.T_world_camera.ToIsometry();
+    out.push_back({tp.timestamp_s, Pose::FromIsometry(isometry_of(odom) * T_base_camera)});
+  }
+  return out;
+}
+
 absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& place,
                                         const Visit& visit, const Visit* previous,
                                         const WriteOptions& options) {
@@ -186,7 +235,7 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
 
   std::ofstream rgb_list(root / "rgb.txt"), depth_list(root / "depth.txt"),
       associations(root / "associations.txt"), groundtruth(root / "groundtruth.txt"),
-      accelerometer(root / "accelerometer.txt");
+      accelerometer(root / "accelerometer.txt"), odometry(root / "odometry.txt");
   rgb_list << "# color images\n# timestamp filename\n";
   depth_list << "# depth maps\n# timestamp filename\n";
   groundtruth << "# ground truth trajectory (exact)\n# timestamp tx ty tz qx qy qz qw\n";
@@ -195,6 +244,10 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
   accelerometer
       << "# accelerometer data (simulated, TUM Kinect convention)\n# timestamp ax ay az\n";
   std::mt19937_64 imu_noise(options.seed * 7919ULL + visit.index);
+  odometry << "# wheel odometry (simulated: ~1-2 % drift of the distance, a yaw bias), "
+              "T_odom_camera\n# timestamp tx ty tz qx qy qz qw\n";
+  const std::vector<TimedCameraPose> wheel = SimulateWheelOdometry(
+      visit.trajectory, options.odometry, options.seed * 104729ULL + visit.index);
   std::normal_distribution<double> imu_sigma(0.0, 0.05);
   const auto& k = options.intrinsics;
   std::ofstream(root / "intrinsics.txt")
@@ -281,6 +334,7 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
                                                     -Eigen::Vector3d::UnitZ());
     for (int i = 0; i < 3; ++i) a[i] += imu_sigma(imu_noise);
     accelerometer << absl::StrFormat("%s %.6f %.6f %.6f\n", stamp, a.x(), a.y(), a.z());
+    odometry << io::FormatTumPoseLine(tp.timestamp_s, wheel[f].T_world_camera) << "\n";
     summary.mean_valid_depth += outcomes[f].valid_depth;
     summary.mean_moved += outcomes[f].moved;
     ++summary.frames;
@@ -290,7 +344,7 @@ absl::StatusOr<WriteSummary> WriteVisit(const std::string& dir, const Place& pla
     summary.mean_moved /= summary.frames;
   }
   std::ofstream(root / "scene.json") << SceneJson(seen, visit, options).dump(2) << "\n";
-  if (!rgb_list || !groundtruth) {
+  if (!rgb_list || !groundtruth || !accelerometer || !odometry) {
     return absl::DataLossError(absl::StrCat("writing the lists in ", dir, " failed"));
   }
   return summary;

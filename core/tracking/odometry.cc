@@ -36,6 +36,21 @@ double AngleOf(const Eigen::Isometry3d& T) { return Eigen::AngleAxisd(T.rotation
 }  // namespace
 
 absl::Status OdometryOptions::Validate() const {
+  if (!(odometry_drift >= 0 && odometry_drift <= 1 && odometry_drift_deg_per_m >= 0 &&
+        odometry_drift_deg_per_m <= 90 && odometry_floor_m > 0 && odometry_floor_m <= 1 &&
+        odometry_floor_deg > 0 && odometry_floor_deg <= 45 && odometry_gate_sigmas >= 1 &&
+        odometry_gate_sigmas <= 10)) {
+    return absl::InvalidArgumentError(
+        "odometry_drift must be within [0, 1], odometry_drift_deg_per_m within [0, 90], "
+        "odometry_floor_m within (0, 1], odometry_floor_deg within (0, 45] and "
+        "odometry_gate_sigmas within [1, 10]");
+  }
+  if (!(odometry_max_speed_mps > 0 && odometry_max_speed_mps <= 100 && odometry_max_turn_dps > 0 &&
+        odometry_max_turn_dps <= 3600)) {
+    return absl::InvalidArgumentError(
+        "odometry_max_speed_mps must be within (0, 100] and odometry_max_turn_dps within "
+        "(0, 3600]");
+  }
   if (downscale < 1 || downscale > 4) {
     return absl::InvalidArgumentError(
         absl::StrCat("odometry downscale must be within [1, 4], got ", downscale));
@@ -221,6 +236,33 @@ void BuildPyramids(const cv::Mat& depth, const OdometryOptions& options,
   }
 }
 
+// The robot's motion between two odometry readings, with its uncertainty (one sigma).
+struct OdometryStep {
+  Eigen::Isometry3d T_last_current;  // the current camera in the last one's frame
+  double sigma_m = 0;
+  double sigma_rad = 0;
+};
+
+OdometryStep StepOf(const OdometryReading& last, const OdometryReading& current,
+                    const OdometryOptions& o) {
+  OdometryStep step;
+  step.T_last_current =
+      last.T_odom_camera.ToIsometry().inverse() * current.T_odom_camera.ToIsometry();
+  const double distance = step.T_last_current.translation().norm();
+  step.sigma_m = o.odometry_drift * distance + o.odometry_floor_m;
+  step.sigma_rad = (o.odometry_drift_deg_per_m * distance + o.odometry_floor_deg) * M_PI / 180.0;
+  if (last.covariance && current.covariance) {
+    // Cumulative covariances: the increment's is their difference (independent increments);
+    // its translation and rotation sigmas are the roots of its blocks' traces. The floor stays:
+    // a covariance that did not grow does not make the step exact.
+    const Eigen::Matrix<double, 6, 6> d = *current.covariance - *last.covariance;
+    step.sigma_m = std::sqrt(std::max(0.0, d.topLeftCorner<3, 3>().trace())) + o.odometry_floor_m;
+    step.sigma_rad = std::sqrt(std::max(0.0, d.bottomRightCorner<3, 3>().trace())) +
+                     o.odometry_floor_deg * M_PI / 180.0;
+  }
+  return step;
+}
+
 }  // namespace
 
 struct TrackingInput {
@@ -312,13 +354,21 @@ struct Tracker::Impl {
   double last_timestamp_s = 0.0;          // of the last frame tracked or lost
   double last_tracked_timestamp_s = 0.0;  // of the last frame tracked
   // The last frame Track reported lost after preparing it, until the next Track: what
-  // Relocalise places (its time is `last_timestamp_s`).
+  // Relocalise places (its time is `last_timestamp_s`), and its odometry reading.
   std::shared_ptr<TrackingInput> lost;
+  std::optional<OdometryReading> lost_odometry;
+  // The robot's odometry at the last tracked frame (when it came with one): increments are
+  // taken from it.
+  std::optional<OdometryReading> last_odometry;
+  // The visit's last odometry reading and its frame's time, for CheckOdometry's jump test.
+  std::optional<OdometryReading> latest_odometry;
+  double latest_odometry_s = 0.0;
 
   // Makes `input` (prepared, trackable) the reference and the last tracked frame, at
   // `T_world_camera`: the visit's first frame, or a relocalised one.
   void RestartAt(std::shared_ptr<TrackingInput> input, const Eigen::Isometry3d& T_world_camera,
-                 double timestamp_s) {
+                 double timestamp_s, std::optional<OdometryReading> robot_odometry) {
+    last_odometry = std::move(robot_odometry);
     odometry->prepareFrameCache(input->frame, cv::rgbd::OdometryFrame::CACHE_ALL);
     reference = input;
     last = std::move(input);
@@ -359,6 +409,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
                            const std::optional<Pose>& prior) {
   Impl& m = *impl_;
   m.lost = nullptr;
+  m.lost_odometry.reset();
   TrackedPose out;
   auto lose = [&](std::string why) {
     m.last_tracked = false;
@@ -377,6 +428,10 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     return out;
   }
   m.last_timestamp_s = frame.timestamp_s;
+  if (frame.odometry) {
+    m.latest_odometry = frame.odometry;
+    m.latest_odometry_s = frame.timestamp_s;
+  }
   const CameraIntrinsics& k = frame.intrinsics;
   if (m.odometry == nullptr || !SameCamera(k, m.intrinsics)) {
     if (m.reference != nullptr) return lose("the camera's intrinsics changed within the visit");
@@ -387,13 +442,30 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
       !SameCamera(prepared->intrinsics, k)) {
     prepared = PrepareForTracking(frame, m.options);
   }
-  if (prepared->frame == nullptr) return lose(prepared->why_not);
+  // With the robot's odometry at this frame and at the last tracked one, their increment moves
+  // the last pose: the prediction, and the bound of every estimate (see OdometryOptions).
+  std::optional<OdometryStep> odometry_step;
+  if (m.reference != nullptr && frame.odometry && m.last_odometry && !prior) {
+    odometry_step = StepOf(*m.last_odometry, *frame.odometry, m.options);
+  }
+  if (prepared->frame == nullptr) {
+    if (!odometry_step) return lose(prepared->why_not);
+    // No image to align (a dark room, no depth): the odometry places the frame, which cannot
+    // become the reference; the next increment is taken from the last frame with images.
+    m.last_tracked = false;
+    out.state = TrackingState::kTracking;
+    out.method = TrackingMethod::kOdometry;
+    out.reason = prepared->why_not;
+    out.T_world_camera = Pose::FromIsometry(m.T_world_reference * m.T_reference_last *
+                                            odometry_step->T_last_current);
+    return out;
+  }
   cv::Ptr<cv::rgbd::OdometryFrame> current = prepared->frame;
   if (m.reference == nullptr) {
     // The visit's first trackable frame defines its frame.
     m.RestartAt(prepared,
                 prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry(),
-                frame.timestamp_s);
+                frame.timestamp_s, frame.odometry);
     out.state = TrackingState::kStarted;
     out.T_world_camera = Pose::FromIsometry(m.T_world_reference);
     return out;
@@ -403,8 +475,10 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   // and the estimate ran away (sim seed 3, 300 frames: ATE 5.6 m against 6 mm from the last
   // pose; TUM fr1_xyz unchanged; docs/RESULTS.md).
   // With a prior (a client's pose to refine) it starts from that instead.
-  const Eigen::Isometry3d predicted =
-      prior ? m.T_world_reference.inverse() * prior->ToIsometry() : m.T_reference_last;
+  const Eigen::Isometry3d predicted = prior ? m.T_world_reference.inverse() * prior->ToIsometry()
+                                      : odometry_step
+                                          ? m.T_reference_last * odometry_step->T_last_current
+                                          : m.T_reference_last;
   // The dense alignment from `guess`: T_reference_current, or why not. src = the current
   // frame, dst = the reference: Rt maps current-camera points into the reference camera.
   std::string dense_failure;
@@ -427,6 +501,17 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   const double allowance = 1.0 + m.lost_frames;
   auto jump_failure = [&](const Eigen::Isometry3d& T_reference_current) -> std::string {
     const Eigen::Isometry3d jump = predicted.inverse() * T_reference_current;
+    if (odometry_step) {
+      const double gate_m = m.options.odometry_gate_sigmas * odometry_step->sigma_m;
+      const double gate_rad = m.options.odometry_gate_sigmas * odometry_step->sigma_rad;
+      if (jump.translation().norm() > gate_m || AngleOf(jump) > gate_rad) {
+        return absl::StrFormat(
+            "the alignment disagreed with the robot's odometry by %.3f m / %.2f deg (allowed "
+            "%.3f m / %.2f deg)",
+            jump.translation().norm(), AngleOf(jump) * 180 / M_PI, gate_m, gate_rad * 180 / M_PI);
+      }
+      return "";
+    }
     if (jump.translation().norm() > m.options.max_jump_m * allowance ||
         AngleOf(jump) > m.options.max_jump_rad * allowance) {
       return absl::StrCat("the alignment jumped ", jump.translation().norm(), " m / ",
@@ -480,19 +565,50 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
         T_reference_current = T;
       }
     }
+  } else if (odometry_step) {
+    // Nothing the images gave agrees with the robot's odometry: it places the frame.
+    method = TrackingMethod::kOdometry;
+    T_reference_current = predicted;
+    out.reason = dense_jump.empty() ? dense_failure : dense_jump;
   } else {
     m.lost = prepared;  // for Relocalise, until the next Track
+    m.lost_odometry = frame.odometry;
     return lose(dense_jump.empty() ? dense_failure : dense_jump);
   }
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   out.method = method;
   m.T_reference_last = T_reference_current;
   m.last = prepared;
+  m.last_odometry = frame.odometry;
   m.last_tracked_timestamp_s = frame.timestamp_s;
   m.last_tracked = true;
   m.lost_frames = 0;
   out.T_world_camera = Pose::FromIsometry(m.T_world_reference * T_reference_current);
   return out;
+}
+
+absl::Status Tracker::CheckOdometry(const RgbdFrame& frame) const {
+  const Impl& m = *impl_;
+  if (!frame.odometry || !m.latest_odometry || !(frame.timestamp_s > m.latest_odometry_s)) {
+    return absl::OkStatus();
+  }
+  const Eigen::Isometry3d step = m.latest_odometry->T_odom_camera.ToIsometry().inverse() *
+                                 frame.odometry->T_odom_camera.ToIsometry();
+  const double dt = frame.timestamp_s - m.latest_odometry_s;
+  // Half a second's worth of the limits on top, for frames close together in time.
+  const double max_m = m.options.odometry_max_speed_mps * (dt + 0.5);
+  const double max_deg = m.options.odometry_max_turn_dps * (dt + 0.5);
+  const double moved_m = step.translation().norm(), turned_deg = AngleOf(step) * 180 / M_PI;
+  if (moved_m > max_m || turned_deg > max_deg) {
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "frame.odometry.pose jumped %.2f m / %.1f deg in %.3f s since the visit's previous "
+        "reading (at most %.2f m / %.1f deg: %.1f m/s, %.0f deg/s): odometry drifts, it does not "
+        "jump; send the same odometry frame throughout a visit, or start a new visit after a "
+        "reset",
+        moved_m, turned_deg, dt, max_m, max_deg, m.options.odometry_max_speed_mps,
+        m.options.odometry_max_turn_dps));
+  }
+  return absl::OkStatus();
 }
 
 TrackedPose Tracker::Relocalise(const Pose& T_world_camera) {
@@ -504,7 +620,8 @@ TrackedPose Tracker::Relocalise(const Pose& T_world_camera) {
     out.reason = "only a frame just lost (with usable depth) can be relocalised";
     return out;
   }
-  m.RestartAt(std::move(m.lost), T_world_camera.ToIsometry(), m.last_timestamp_s);
+  m.RestartAt(std::move(m.lost), T_world_camera.ToIsometry(), m.last_timestamp_s,
+              std::move(m.lost_odometry));
   out.state = TrackingState::kRegained;
   out.method = TrackingMethod::kRelocalised;
   out.T_world_camera = T_world_camera;

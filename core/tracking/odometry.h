@@ -59,6 +59,22 @@ struct OdometryOptions {
   int feature_min_inliers = 30;
   double feature_agree_m = 0.03;
   double feature_agree_deg = 2.0;
+  // The robot's odometry (RgbdFrame::odometry, issue 35): its increment since the last tracked
+  // frame is the alignment's starting guess, and an alignment further from it than
+  // `odometry_gate_sigmas` of its uncertainty is refused; a frame nothing else places is placed
+  // by it (TrackingMethod::kOdometry). An increment's uncertainty (one sigma) is its readings'
+  // covariance when both carry one, else `odometry_drift` of the distance travelled plus
+  // `odometry_floor_m`, and `odometry_drift_deg_per_m` of it plus `odometry_floor_deg` (wheel
+  // odometry drifts 1-2 % of the distance; the floor covers the sensor's timing).
+  double odometry_drift = 0.02;
+  double odometry_drift_deg_per_m = 1.0;
+  double odometry_floor_m = 0.005;
+  double odometry_floor_deg = 0.5;
+  double odometry_gate_sigmas = 3.0;
+  // Readings that move faster than this since the visit's last reading are refused as jumps
+  // (CheckOdometry): odometry drifts, it does not jump.
+  double odometry_max_speed_mps = 3.0;
+  double odometry_max_turn_dps = 360.0;
 
   // InvalidArgument naming the first field out of range.
   absl::Status Validate() const;
@@ -78,6 +94,7 @@ enum class TrackingMethod {
   kRefit,        // the dense alignment run again from the feature (PnP) estimate
   kFeatures,     // the feature (PnP) estimate: the dense alignment disagreed or failed
   kRelocalised,  // after lost frames, placed by a verified match to a keyframe (Relocalise)
+  kOdometry,     // the images gave no estimate the robot's odometry agrees with: placed by it
 };
 
 struct TrackedPose {
@@ -121,8 +138,16 @@ class Tracker {
   // it is kept as the visit's frame. The frame's own T_world_camera is not read. A frame without
   // any usable depth is lost, with the reason; a frame whose time is not after the last one's is
   // not tracked and changes nothing (reported lost, with the reason).
+  //
+  // With the frame's odometry (RgbdFrame::odometry) and the last tracked frame's, their increment
+  // is the starting guess and bounds the alignment (OdometryOptions); call CheckOdometry first.
   TrackedPose Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared = nullptr,
                     const std::optional<Pose>& prior = std::nullopt);
+
+  // Whether `frame`'s odometry reading is one Track can use: InvalidArgument naming
+  // frame.odometry when it moved faster than the options allow since the visit's last reading
+  // (a jump). OK for a frame without odometry, and for the visit's first reading.
+  absl::Status CheckOdometry(const RgbdFrame& frame) const;
 
   // Relocalisation: places the frame just reported lost (by the last Track call, once it was
   // prepared) at `T_world_camera`, found by other means (a verified appearance match to a

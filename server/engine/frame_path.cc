@@ -368,6 +368,15 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     return p;
   }
   absl::MutexLock placing(&visit->place_mu);
+  const bool server_tracks = !f.T_world_camera || settings.refine_pose;
+  // Odometry that jumped is refused before anything of the frame is tracked or stored.
+  if (server_tracks && f.odometry) {
+    if (auto s = visit->tracker.CheckOdometry(f); !s.ok()) {
+      p.refused = std::move(s);
+      frames_rejected_.fetch_add(1);
+      return p;
+    }
+  }
   // Before anything of the frame is tracked or stored: a timestamp far after the visit's last
   // frame (ms or ns for s) would become the visit's latest and refuse every frame after it.
   {
@@ -387,7 +396,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     }
   }
   std::optional<Pose> odometry_pose;  // a tracked frame's pose in the tracker's own frame
-  if (!f.T_world_camera || settings.refine_pose) {
+  if (server_tracks) {
     // No client pose (or one to refine): the server tracks the camera (issue 15); the estimate
     // then stands for the pose in keyframe selection, storage and the floor plan. A client pose
     // that cannot be refined is kept as it came.

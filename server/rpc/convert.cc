@@ -163,6 +163,19 @@ absl::StatusOr<EncodedRgbdFrame> FrameFromProto(const v1::Frame& frame, bool col
     }
     out.gravity_camera = g.normalized();
   }
+  if (frame.has_odometry()) {
+    if (!frame.odometry().has_pose()) {
+      return absl::InvalidArgumentError(
+          "frame.odometry.pose is missing: send the camera's pose in the odometry frame, or no "
+          "odometry");
+    }
+    auto pose = PoseFromProto(frame.odometry().pose());
+    if (!pose.ok()) return prefixed(pose.status(), "odometry.pose");
+    const auto& c = frame.odometry().covariance();
+    auto reading = OdometryReading::Make(*pose, std::vector<double>(c.begin(), c.end()));
+    if (!reading.ok()) return prefixed(reading.status(), "odometry");
+    out.odometry = *std::move(reading);
+  }
   return out;
 }
 
@@ -368,6 +381,8 @@ v1::TrackingMethod TrackingMethodToProto(tracking::TrackingMethod method) {
       return v1::TRACKING_METHOD_FEATURES;
     case tracking::TrackingMethod::kRelocalised:
       return v1::TRACKING_METHOD_RELOCALISED;
+    case tracking::TrackingMethod::kOdometry:
+      return v1::TRACKING_METHOD_ODOMETRY;
     case tracking::TrackingMethod::kNone:
       break;
   }

@@ -435,6 +435,51 @@ TEST(Generator, TheCameraKeepsAWalkingPaceWhateverTheFrameCount) {
   }
 }
 
+// The simulated wheel odometry (odometry.txt, issue 35): exact without noise, and with the
+// default noise it drifts like a robot's wheels, ~1-2 % of the distance, never jumping, with the
+// camera's height and tilt exact; deterministic in its seed.
+TEST(WheelOdometry, DriftsAFewPercentOfTheDistanceAndNeverJumps) {
+  auto place = GeneratePlace(7, "U");
+  ASSERT_TRUE(place.ok());
+  auto visits = GenerateVisits(*place, 7, 1, 0, {}, 900);
+  ASSERT_TRUE(visits.ok());
+  const auto& truth = (*visits)[0].trajectory;
+  const auto exact = SimulateWheelOdometry(truth, {0, 0, 0, 0}, 1);
+  ASSERT_EQ(exact.size(), truth.size());
+  for (size_t i = 0; i < truth.size(); ++i) {
+    EXPECT_LT(TranslationDistanceM(exact[i].T_world_camera, truth[i].T_world_camera), 1e-9) << i;
+    EXPECT_LT(RotationAngleRad(exact[i].T_world_camera, truth[i].T_world_camera), 1e-9) << i;
+  }
+  double path_m = 0;
+  for (size_t i = 1; i < truth.size(); ++i) {
+    path_m += TranslationDistanceM(truth[i - 1].T_world_camera, truth[i].T_world_camera);
+  }
+  std::vector<double> end_error;
+  for (uint64_t seed = 1; seed <= 8; ++seed) {
+    const auto wheel = SimulateWheelOdometry(truth, {}, seed);
+    ASSERT_EQ(wheel.size(), truth.size());
+    for (size_t i = 1; i < wheel.size(); ++i) {
+      const double step =
+          TranslationDistanceM(wheel[i - 1].T_world_camera, wheel[i].T_world_camera);
+      const double true_step =
+          TranslationDistanceM(truth[i - 1].T_world_camera, truth[i].T_world_camera);
+      ASSERT_LT(std::abs(step - true_step), 0.1 * true_step + 1e-3) << "seed " << seed << " " << i;
+      ASSERT_NEAR(wheel[i].T_world_camera.translation.z(), truth[i].T_world_camera.translation.z(),
+                  1e-9);
+    }
+    end_error.push_back(
+        TranslationDistanceM(wheel.back().T_world_camera, truth.back().T_world_camera) / path_m);
+    const auto again = SimulateWheelOdometry(truth, {}, seed);
+    EXPECT_EQ(again.back().T_world_camera.translation, wheel.back().T_world_camera.translation);
+  }
+  std::sort(end_error.begin(), end_error.end());
+  std::cerr << "wheel odometry over " << path_m << " m: end error " << end_error.front() * 100
+            << "-" << end_error.back() * 100 << " % of the distance (median "
+            << end_error[end_error.size() / 2] * 100 << " %)\n";
+  EXPECT_GT(end_error[end_error.size() / 2], 0.002) << "it drifts";
+  EXPECT_LT(end_error[end_error.size() / 2], 0.05) << "a few percent, not more";
+}
+
 TEST(Generator, RejectsBadArguments) {
   EXPECT_TRUE(absl::IsInvalidArgument(GeneratePlace(1, "octagon").status()));
   auto place = GeneratePlace(1, "rect");

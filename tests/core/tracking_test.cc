@@ -132,10 +132,13 @@ struct Tracked {
   std::vector<eval::TimedPose> estimate, truth;
   int lost = 0;
   int by_features = 0;  // frames whose pose came from the feature check (refit or PnP)
+  int by_odometry = 0;  // frames placed by the robot's odometry alone
 };
-// `edit`, when given, changes each decoded frame before it is tracked.
+// `edit`, when given, changes each decoded frame before it is tracked. With `wheel_odometry`
+// each frame carries the recording's odometry.txt reading (RgbdFrame::odometry).
 Tracked TrackRecording(const std::string& dir, const tracking::OdometryOptions& options = {},
-                       const std::function<void(RgbdFrame&)>& edit = nullptr) {
+                       const std::function<void(RgbdFrame&)>& edit = nullptr,
+                       bool wheel_odometry = false) {
   Tracked out;
   auto seq = io::ReadTumSequence(dir);
   EXPECT_TRUE(seq.ok()) << seq.status();
@@ -146,7 +149,9 @@ Tracked TrackRecording(const std::string& dir, const tracking::OdometryOptions& 
     auto frame = io::DecodeTumFrame(*seq, e);
     EXPECT_TRUE(frame.ok()) << frame.status();
     if (!frame.ok()) continue;
+    if (wheel_odometry && e.T_odom_camera) frame->odometry = OdometryReading{*e.T_odom_camera, {}};
     if (edit) edit(*frame);
+    EXPECT_TRUE(tracker.CheckOdometry(*frame).ok());
     const auto tracked = tracker.Track(*frame);
     if (e.T_world_camera) out.truth.push_back({e.timestamp_s, *e.T_world_camera});
     if (!tracked.T_world_camera) {
@@ -156,6 +161,7 @@ Tracked TrackRecording(const std::string& dir, const tracking::OdometryOptions& 
     out.estimate.push_back({e.timestamp_s, *tracked.T_world_camera});
     out.by_features += tracked.method == tracking::TrackingMethod::kRefit ||
                        tracked.method == tracking::TrackingMethod::kFeatures;
+    out.by_odometry += tracked.method == tracking::TrackingMethod::kOdometry;
     if (selector.Decide(e.timestamp_s, tracked.T_world_camera).selected) {
       selector.Accept(e.timestamp_s, tracked.T_world_camera);
       tracker.PromoteLastToReference();
@@ -281,6 +287,98 @@ TEST(Tracker, TheFeatureCheckTracksFramesTheDenseAlignmentCannot) {
   EXPECT_LE(t.lost, 2);
   EXPECT_GT(t.by_features, 10);
   EXPECT_LT(Ate(t), 0.02);
+}
+
+// The robot's wheel odometry (issue 35) places what the images cannot: here the dense alignment
+// is crippled as above and the feature check is off, on a synthetic walk whose odometry.txt
+// drifts ~1-2 % of the distance; and a stretch of frames without any depth (a dark room).
+TEST(Tracker, TheRobotsOdometryPlacesFramesTheImagesCannot) {
+  testing::TempDir tmp;
+  RenderWalk(7, "rooms", 0, 90, tmp.File("visit"));
+  tracking::OdometryOptions crippled;
+  crippled.max_translation_m = 0.002f;
+  crippled.feature_keypoints = 0;
+  auto no_depth_in_the_middle = [](RgbdFrame& f) {
+    static int n = 0;
+    if (++n % 90 >= 40 && n % 90 < 50) f.depth_m.setTo(0);
+  };
+  const Tracked without = TrackRecording(tmp.File("visit"), crippled, no_depth_in_the_middle);
+  const Tracked with = TrackRecording(tmp.File("visit"), crippled, no_depth_in_the_middle, true);
+  // The odometry itself, for scale: its drift over the walk.
+  auto seq = io::ReadTumSequence(tmp.File("visit"));
+  ASSERT_TRUE(seq.ok()) << seq.status();
+  ASSERT_TRUE(seq->has_odometry);
+  EXPECT_EQ(seq->frames_with_odometry, 90);
+  Tracked odometry_alone;
+  double path_m = 0;
+  for (size_t i = 0; i < seq->frames.size(); ++i) {
+    const auto& e = seq->frames[i];
+    odometry_alone.estimate.push_back({e.timestamp_s, *e.T_odom_camera});
+    odometry_alone.truth.push_back({e.timestamp_s, *e.T_world_camera});
+    if (i > 0) {
+      path_m +=
+          (e.T_world_camera->translation - seq->frames[i - 1].T_world_camera->translation).norm();
+    }
+  }
+  std::cerr << "sim seed 7, 90 frames (" << path_m
+            << " m), alignment crippled, 10 without depth: " << without.lost
+            << " lost without odometry; with it " << with.lost << " lost, " << with.by_odometry
+            << " placed by odometry, ATE " << Ate(with) * 1000 << " mm (odometry alone "
+            << Ate(odometry_alone) * 1000 << " mm)\n";
+  EXPECT_GT(without.lost, 30) << "the alignment no longer fails here";
+  EXPECT_EQ(with.lost, 0);
+  EXPECT_GE(with.by_odometry, 10);
+  EXPECT_LT(Ate(with), 0.02 * path_m + 0.01);
+}
+
+// Odometry that jumps (a reset, a wrong frame) is refused by CheckOdometry, naming the field;
+// small steps, and the visit's first reading, pass.
+TEST(Tracker, OdometryThatJumpsIsRefused) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  auto seq = io::ReadTumSequence(dir);
+  ASSERT_TRUE(seq.ok());
+  tracking::Tracker tracker;
+  auto first = io::DecodeTumFrame(*seq, seq->frames[0]);
+  auto second = io::DecodeTumFrame(*seq, seq->frames[1]);
+  ASSERT_TRUE(first.ok() && second.ok());
+  first->odometry = OdometryReading{At(0, 0, 0), {}};
+  EXPECT_TRUE(tracker.CheckOdometry(*first).ok());
+  tracker.Track(*first);
+  second->odometry = OdometryReading{At(5.0, 0, 0), {}};
+  const absl::Status jumped = tracker.CheckOdometry(*second);
+  EXPECT_TRUE(absl::IsInvalidArgument(jumped)) << jumped;
+  EXPECT_NE(jumped.message().find("frame.odometry.pose jumped 5.00 m"), std::string::npos)
+      << jumped;
+  second->odometry = OdometryReading{At(0.01, 0, 0, 0.01), {}};
+  EXPECT_TRUE(tracker.CheckOdometry(*second).ok());
+}
+
+TEST(OdometryReading, RefusesCovariancesThatAreNotOne) {
+  const Pose p = At(1, 2, 0);
+  EXPECT_TRUE(OdometryReading::Make(p, {}).ok());
+  EXPECT_FALSE(OdometryReading::Make(p, {}).value().covariance);
+  std::vector<double> c(36, 0.0);
+  for (int i = 0; i < 6; ++i) c[i * 7] = 1e-4;
+  auto good = OdometryReading::Make(p, c);
+  ASSERT_TRUE(good.ok()) << good.status();
+  EXPECT_NEAR((*good->covariance)(5, 5), 1e-4, 1e-15);
+  auto expect_refused = [&](std::vector<double> values, const std::string& words) {
+    const auto r = OdometryReading::Make(p, values);
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << words;
+    EXPECT_NE(r.status().message().find(words), std::string::npos) << r.status();
+  };
+  expect_refused(std::vector<double>(6, 1e-4), "36 values");
+  auto nan = c;
+  nan[7] = std::nan("");
+  expect_refused(nan, "NaN");
+  auto asymmetric = c;
+  asymmetric[1] = 1e-5;
+  expect_refused(asymmetric, "not symmetric");
+  auto negative = c;
+  negative[14] = -1e-4;
+  expect_refused(negative, "not positive definite");
+  std::vector<double> zero(36, 0.0);
+  expect_refused(zero, "not positive definite");
 }
 
 TEST(Tracker, AFrameWithoutDepthIsLostWithAReasonAndTrackingResumes) {

@@ -116,6 +116,55 @@ TEST_F(ServerTest, GravityLevelsATrackedVisitAndAZeroVectorIsRefused) {
   EXPECT_NE(zero.status().message().find("frame.gravity"), std::string::npos) << zero.status();
 }
 
+// The robot's odometry (issue 35): every malformed reading is refused naming the field, and a
+// jump of metres between two frames of a visit is refused without touching the visit, whose
+// next frame is tracked as if the bad one had never come.
+TEST_F(ServerTest, BadOdometryIsRefusedNamingTheFieldAndLeavesTheVisitAsItWas) {
+  LIFEMAP_REQUIRE_DATASET(dir, "tum_fr1_xyz_subset");
+  const testing::TumFrames tum = testing::ReadTumFrames(dir);
+  ASSERT_GE(tum.frames.size(), 3u);
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  // Frame i with odometry that tells the truth (the mocap pose), moved `jump_x` metres along x.
+  auto request = [&](size_t i, double jump_x) {
+    v1::ProcessFrameRequest req;
+    req.set_map("m");
+    *req.mutable_frame() = tum.frames[i];
+    req.mutable_frame()->clear_pose();
+    Pose odometry = tum.truth[i].value_or(Pose{});
+    odometry.translation.x() += jump_x;
+    server::PoseToProto(odometry, req.mutable_frame()->mutable_odometry()->mutable_pose());
+    return req;
+  };
+  auto expect_refused = [&](const v1::ProcessFrameRequest& req, const std::string& words) {
+    auto r = client_->ProcessFrame(req);
+    EXPECT_TRUE(absl::IsInvalidArgument(r.status())) << words << ": " << r.status();
+    EXPECT_NE(r.status().message().find(words), std::string::npos) << r.status();
+  };
+  auto nan = request(0, std::nan(""));
+  expect_refused(nan, "frame.odometry.pose");
+  auto not_unit = request(0, 0.0);
+  not_unit.mutable_frame()->mutable_odometry()->mutable_pose()->set_qw(0.5);
+  expect_refused(not_unit, "frame.odometry.pose");
+  auto no_pose = request(0, 0.0);
+  no_pose.mutable_frame()->mutable_odometry()->clear_pose();
+  expect_refused(no_pose, "frame.odometry.pose is missing");
+  auto not_pd = request(0, 0.0);
+  for (int i = 0; i < 36; ++i) not_pd.mutable_frame()->mutable_odometry()->add_covariance(0.0);
+  expect_refused(not_pd, "frame.odometry: covariance is not positive definite");
+  auto short_covariance = request(0, 0.0);
+  short_covariance.mutable_frame()->mutable_odometry()->add_covariance(1e-4);
+  expect_refused(short_covariance, "36 values");
+
+  auto first = client_->ProcessFrame(request(0, 0.0));
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->tracking().state(), v1::TRACKING_STARTED);
+  expect_refused(request(1, 4.0), "frame.odometry.pose jumped 3.99 m");
+  auto next = client_->ProcessFrame(request(2, 0.0));
+  ASSERT_TRUE(next.ok()) << next.status();
+  EXPECT_EQ(next->tracking().state(), v1::TRACKING_OK) << next->tracking().reason();
+  EXPECT_EQ(next->tracking().method(), v1::TRACKING_METHOD_DENSE) << "the images agree with it";
+}
+
 // A robot whose own poses are noisy asks for them to be refined (FrameOptions.refine_pose):
 // the results say REFINED and lie closer to the ground truth than what was sent.
 TEST_F(ServerTest, ClientPosesAreRefinedWhenAsked) {
