@@ -399,6 +399,9 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
               if (v.frame() == v1::VISIT_FRAME_ANCHORED) {
                 frame = absl::StrFormat("anchored->%d (%.1fcm)", v.anchor().to_visit(),
                                         v.anchor().residual_m() * 100);
+                if (v.anchor().revisions() > 0) {
+                  absl::StrAppend(&frame, " revised ", v.anchor().revisions(), "x");
+                }
               } else if (v.frame() == v1::VISIT_FRAME_UNANCHORED) {
                 frame = "unanchored";
               }
@@ -409,6 +412,11 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                   absl::StrCat(v.loops_accepted(), "/", v.loops_rejected(), "/",
                                v.pose_graph_solves()),
                   frame, HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
+              // The evidence the anchor rests on (issue 35): its matches and checks.
+              if (v.frame() == v1::VISIT_FRAME_ANCHORED && !v.anchor().evidence().empty()) {
+                std::cout << absl::StrFormat("%6s anchor evidence: %s\n", "",
+                                             v.anchor().evidence());
+              }
             }
           });
     };

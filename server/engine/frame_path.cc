@@ -541,11 +541,12 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
         absl::MutexLock correction(&visit_state->correction_mu);
         visit_state->world_from_odom = world_from_odom;
       };
-      job.on_anchored = [visit_state, architecture = parts_.architecture](const Pose& T_map_visit) {
+      job.on_anchored = [visit_state, architecture = parts_.architecture](const Pose& moved_by,
+                                                                          const Pose& T_map_visit) {
         {
           absl::MutexLock correction(&visit_state->correction_mu);
-          visit_state->world_from_odom = Pose::FromIsometry(
-              T_map_visit.ToIsometry() * visit_state->world_from_odom.ToIsometry());
+          visit_state->world_from_odom =
+              Pose::FromIsometry(moved_by.ToIsometry() * visit_state->world_from_odom.ToIsometry());
           visit_state->T_map_visit = T_map_visit;
         }
         // Its stored key frames moved into the map's frame: its floor plan follows them (the

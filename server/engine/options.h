@@ -57,6 +57,12 @@ struct PoseGraphOptions {
   // keyframes, placed where the matches put them, may have at most this share of their depth
   // readings beyond the walls of the matched visit's plan (where it has one), [0, 1].
   double layout_max_through_share = 0.05;
+  // An anchor is a hypothesis (issue 35): when at least this many matches of an anchored
+  // visit's later keyframes (from as many keyframes) agree with each other on another place for
+  // it, disagree with where the anchor put it, outnumber the matches that support the anchor
+  // (its own two and every tie accepted since) and pass the floor-plan check there, the anchor
+  // is revised: the visit's keyframes move and the history says why. [2, 100].
+  int anchor_revision_min_matches = 3;
 
   absl::Status Validate() const;
 };

@@ -331,7 +331,15 @@ void PoseGraphWorker::Process(Job job) {
     ++stats_.candidates;
     ++(edge.accepted ? stats_.accepted : stats_.rejected);
   }
-  if (was_anchored) accepted += ProcessTies(job, *query, *keyframes);
+  if (was_anchored) {
+    accepted += ProcessTies(job, *visit, *query, *keyframes);
+    if (const int revised = ReviseAnchor(job, *visit, *keyframes); revised > 0) {
+      // The keyframes moved: the solve reads them again.
+      keyframes = KeyframesById(store_, job.map_id, job.visit_id);
+      if (!keyframes.ok()) return;
+      accepted += revised;
+    }
+  }
   if (accepted == 0) return;
   auto correction = Solve(job.map_id, job.visit_id, *keyframes);
   if (!correction.ok()) {
@@ -342,12 +350,14 @@ void PoseGraphWorker::Process(Job job) {
   if (job.on_corrected) job.on_corrected(*correction);
 }
 
-void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, double path_m,
-                            const char* poses, const store::KeyframeRecord& match,
-                            const place::FloorPlan* plan, store::PoseEdgeRecord* edge) {
+PoseGraphWorker::Verdict PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted,
+                                                double path_m, const char* poses,
+                                                const store::KeyframeRecord& match,
+                                                const place::FloorPlan* plan,
+                                                store::PoseEdgeRecord* edge) {
   if (const std::string weak = WeakMatchReason(c, options_); !weak.empty()) {
     edge->reason = weak;
-    return;
+    return Verdict::kWeak;
   }
   const double off_m = (predicted.translation - c.T_match_query.translation).norm();
   const double off_deg = RotationAngleRad(predicted, c.T_match_query) * kRadToDeg;
@@ -359,7 +369,7 @@ void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, doubl
     edge->reason = absl::StrFormat(
         "disagrees with %s by %.2f m / %.1f deg after %.1f m of path (allowed %.2f m / %.1f deg)",
         poses, off_m, off_deg, path_m, allow_m, allow_deg);
-    return;
+    return Verdict::kDisagrees;
   }
   edge->reason = absl::StrFormat("%d inliers, %.2f px; %s off by %.3f m / %.2f deg after %.1f m",
                                  c.inliers, c.reprojection_px, poses, off_m, off_deg, path_m);
@@ -368,7 +378,7 @@ void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, doubl
   if (!plan || !match.T_world_camera) {
     absl::StrAppend(&edge->reason, "; no floor plan to check against yet");
     edge->accepted = true;
-    return;
+    return Verdict::kAccepted;
   }
   const Pose placed =
       Pose::FromIsometry(match.T_world_camera->ToIsometry() * c.T_match_query.ToIsometry());
@@ -378,13 +388,15 @@ void PoseGraphWorker::Judge(const LoopCandidate& c, const Pose& predicted, doubl
     edge->reason = layout;
     absl::MutexLock lock(&mu_);
     ++stats_.rejected_by_layout;
-    return;
+    return Verdict::kLayout;
   }
   absl::StrAppend(&edge->reason, "; floor plan: ", evidence.Text());
   edge->accepted = true;
+  return Verdict::kAccepted;
 }
 
-int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& query,
+int PoseGraphWorker::ProcessTies(const Job& job, const store::VisitRecord& visit,
+                                 const store::KeyframeRecord& query,
                                  const std::vector<store::KeyframeRecord>& visit_keyframes) {
   if (!query.T_world_camera) return 0;
   int accepted = 0;
@@ -417,12 +429,29 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& qu
         EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, c.match, query.id);
     // Both visits are in the map's frame: their stored poses predict the match, up to this
     // visit's drift since its start.
-    Judge(c.match, posegraph::Relative(*matched->T_world_camera, *query.T_world_camera),
-          PathM(visit_keyframes, 0, query.id), "the map's poses", *matched,
-          other.plan ? &other.plan->first : nullptr, &edge);
+    const Verdict verdict =
+        Judge(c.match, posegraph::Relative(*matched->T_world_camera, *query.T_world_camera),
+              PathM(visit_keyframes, 0, query.id), "the map's poses", *matched,
+              other.plan ? &other.plan->first : nullptr, &edge);
     if (edge.accepted) {
       edge.reason =
           absl::StrCat("ties visit ", job.visit_id, " to visit ", c.visit_id, ": ", edge.reason);
+      ++support_.try_emplace(job.visit_id, 2).first->second;
+    } else if (verdict == Verdict::kDisagrees && visit.anchor) {
+      // A strong match that puts the visit elsewhere: dissent against its anchor, with the
+      // correction it asks for.
+      auto& dissent = dissent_[job.visit_id];
+      if (dissent.size() < kMaxPendingAnchors) {
+        AnchorEstimate e;
+        e.query_keyframe = query.id;
+        e.to_visit = c.visit_id;
+        e.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, c.match, query.id);
+        e.edge.accepted = true;
+        e.T_map_visit = Pose::FromIsometry(matched->T_world_camera->ToIsometry() *
+                                           c.match.T_match_query.ToIsometry() *
+                                           query.T_world_camera->ToIsometry().inverse());
+        dissent.push_back(std::move(e));
+      }
     }
     if (auto id = store_->InsertPoseEdge(edge); !id.ok()) {
       spdlog::warn("visit {}: tie edge not stored: {}", job.visit_id, id.status().ToString());
@@ -529,7 +558,9 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         absl::MutexLock lock(&mu_);
         ++stats_.anchors;
       }
-      if (job.on_anchored) job.on_anchored(anchor.T_map_visit);
+      support_[job.visit_id] = 2;
+      dissent_.erase(job.visit_id);
+      if (job.on_anchored) job.on_anchored(anchor.T_map_visit, anchor.T_map_visit);
       return true;
     }
     if (pending.size() < kMaxPendingAnchors && estimate.edge.accepted) {
@@ -537,6 +568,93 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     }
   }
   return false;
+}
+
+int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visit,
+                                  const std::vector<store::KeyframeRecord>& visit_keyframes) {
+  auto found = dissent_.find(job.visit_id);
+  if (!visit.anchor || found == dissent_.end()) return 0;
+  std::vector<AnchorEstimate>& dissent = found->second;
+  // The largest group of dissenting matches that agree with one of them, counted by distinct
+  // keyframes: consecutive matches of one keyframe are one piece of evidence.
+  auto keyframes_of = [&](const std::vector<size_t>& group) {
+    std::vector<int64_t> ids;
+    for (size_t j : group) ids.push_back(dissent[j].query_keyframe);
+    std::sort(ids.begin(), ids.end());
+    return static_cast<int>(std::unique(ids.begin(), ids.end()) - ids.begin());
+  };
+  size_t best = 0;
+  std::vector<size_t> best_group;
+  int votes = 0;
+  for (size_t i = 0; i < dissent.size(); ++i) {
+    std::vector<size_t> group;
+    for (size_t j = 0; j < dissent.size(); ++j) {
+      if (AnchorsAgree(dissent[i].T_map_visit, dissent[j].T_map_visit)) group.push_back(j);
+    }
+    const int n = keyframes_of(group);
+    if (n > votes || (n == votes && group.size() > best_group.size())) {
+      best = i;
+      best_group = std::move(group);
+      votes = n;
+    }
+  }
+  const int support = support_.try_emplace(job.visit_id, 2).first->second;
+  if (votes < options_.anchor_revision_min_matches || votes <= support) return 0;
+  const Pose T_moved_by = dissent[best].T_map_visit;
+  auto to_visit = store_->GetVisit(dissent[best].to_visit);
+  if (!to_visit.ok()) return 0;
+  std::string evidence;
+  const std::optional<std::string> layout =
+      CheckAnchorLayout(job, *to_visit, T_moved_by, visit_keyframes, &evidence);
+  if (!layout) return 0;  // too few keyframes to check: wait for more
+  if (!layout->empty()) {
+    spdlog::info("visit {}: anchor revision to visit {} refused: {}", job.visit_id, to_visit->id,
+                 *layout);
+    // The group is as wrong as an anchor the plan refuses: dropped.
+    const Pose wrong = T_moved_by;
+    dissent.erase(
+        std::remove_if(dissent.begin(), dissent.end(),
+                       [&](const AnchorEstimate& e) { return AnchorsAgree(e.T_map_visit, wrong); }),
+        dissent.end());
+    return 0;
+  }
+  double spread_m = 0, spread_deg = 0;
+  std::vector<store::PoseEdgeRecord> edges;
+  for (size_t j : best_group) {
+    spread_m =
+        std::max(spread_m, (dissent[j].T_map_visit.translation - T_moved_by.translation).norm());
+    spread_deg =
+        std::max(spread_deg, RotationAngleRad(dissent[j].T_map_visit, T_moved_by) * kRadToDeg);
+    store::PoseEdgeRecord e = dissent[j].edge;
+    e.reason = absl::StrFormat("revises the anchor of visit %d (to visit %d): %d inliers, %.2f px",
+                               job.visit_id, dissent[j].to_visit, e.inliers, e.reprojection_px);
+    edges.push_back(std::move(e));
+  }
+  const Eigen::Isometry3d moved = T_moved_by.ToIsometry();
+  store::VisitAnchor anchor;
+  anchor.to_visit_id = to_visit->id;
+  anchor.T_map_visit = Pose::FromIsometry(moved * visit.anchor->T_map_visit.ToIsometry());
+  anchor.residual_m = spread_m;
+  anchor.residual_deg = spread_deg;
+  anchor.anchored_time_s = NowSeconds();
+  const std::string reason = absl::StrFormat(
+      "%d keyframes' matches agree (within %.3f m / %.2f deg) on a place %.2f m / %.1f deg from "
+      "the anchor, against %d that supported it; %s",
+      votes, spread_m, spread_deg, T_moved_by.translation.norm(),
+      Eigen::AngleAxisd(T_moved_by.rotation).angle() * kRadToDeg, support, evidence);
+  if (auto s = store_->ReviseAnchor(job.visit_id, T_moved_by, edges, reason, &anchor); !s.ok()) {
+    spdlog::warn("visit {}: anchor not revised: {}", job.visit_id, s.ToString());
+    return 0;
+  }
+  spdlog::info("visit {}: anchor revised: {}", job.visit_id, reason);
+  dissent_.erase(found);
+  support_[job.visit_id] = votes;
+  {
+    absl::MutexLock lock(&mu_);
+    ++stats_.anchors_revised;
+  }
+  if (job.on_anchored) job.on_anchored(T_moved_by, anchor.T_map_visit);
+  return votes;
 }
 
 std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(

@@ -67,6 +67,7 @@ struct LoopClosureStats {
   int64_t anchors_rejected = 0;  // agreeing matches whose placed visit disagreed with the plan
   int64_t ties = 0;              // edges tying an anchored visit to other visits of its map
   int64_t ties_rejected = 0;
+  int64_t anchors_revised = 0;  // anchors moved by later matches that outvoted them
 };
 
 // Thread-safe.
@@ -88,9 +89,10 @@ class PoseGraphWorker {
     // Called on the worker's thread after a solve with the visit's new correction
     // (T_world_odom: its odometry frame in its corrected frame).
     std::function<void(const Pose&)> on_corrected;
-    // Called on the worker's thread once the visit is anchored, with T_map_visit: its frame in
-    // the map's (its stored keyframes were moved by it; later frames must be too).
-    std::function<void(const Pose&)> on_anchored;
+    // Called on the worker's thread once the visit is anchored or its anchor revised, with the
+    // transform its stored keyframes were moved by (left-multiplied; later frames must be too)
+    // and its T_map_visit now (its frame in the map's). On the first anchor the two are equal.
+    std::function<void(const Pose& moved_by, const Pose& T_map_visit)> on_anchored;
   };
   // Queues a job; returns its ticket for Wait().
   uint64_t Submit(Job job);
@@ -114,17 +116,24 @@ class PoseGraphWorker {
                       const std::vector<store::KeyframeRecord>& visit_keyframes);
   // An anchored visit's matches to other visits in the map's frame, checked like loops (against
   // both visits' stored poses) and stored as edges that tie the visit to them in its solves;
-  // returns how many were accepted.
-  int ProcessTies(const Job& job, const store::KeyframeRecord& query,
+  // returns how many were accepted. Those that disagree with the map's poses are kept as
+  // dissent against the anchor, which they may revise (ReviseAnchor).
+  int ProcessTies(const Job& job, const store::VisitRecord& visit,
+                  const store::KeyframeRecord& query,
                   const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // Revises the visit's anchor when its dissent outvotes it (PoseGraphOptions::
+  // anchor_revision_min_matches); how many matches the new anchor rests on (0: not revised).
+  int ReviseAnchor(const Job& job, const store::VisitRecord& visit,
+                   const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
   // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
   // odometry, or the map's stored poses) up to the drift allowed over `path_m`; and, where
   // `plan` (the matched visit's floor plan, else its map's first visit's; or null) exists, the
   // query placed by the match against it.
-  void Judge(const LoopCandidate& c, const Pose& predicted, double path_m, const char* poses,
-             const store::KeyframeRecord& match, const place::FloorPlan* plan,
-             store::PoseEdgeRecord* edge);
+  enum class Verdict { kWeak, kDisagrees, kLayout, kAccepted };
+  Verdict Judge(const LoopCandidate& c, const Pose& predicted, double path_m, const char* poses,
+                const store::KeyframeRecord& match, const place::FloorPlan* plan,
+                store::PoseEdgeRecord* edge);
   // The architecture check of an anchor: the visit's keyframes placed by `T_map_visit` against
   // `to_visit`'s floor plan. Why they disagree (empty when they do not, or when there is no plan
   // to check; nullopt while the visit has too few keyframes to tell); `evidence_text` says what
@@ -141,6 +150,11 @@ class PoseGraphWorker {
     Pose T_map_visit;
   };
   std::map<int64_t, std::vector<AnchorEstimate>> pending_anchors_;
+  // An anchored visit's matches that disagree with its anchor, each with the correction it asks
+  // for (in `T_map_visit`: the transform that would move the visit's keyframes where the match
+  // puts them), and how many matches support the anchor as it is (worker thread only).
+  std::map<int64_t, std::vector<AnchorEstimate>> dissent_;
+  std::map<int64_t, int> support_;
   // The last keyframe decoded for a floor-plan check (worker thread only): a keyframe's loop and
   // tie candidates are checked one after another.
   std::unique_ptr<DecodedKeyframe> last_decoded_;

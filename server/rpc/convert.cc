@@ -224,6 +224,8 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
     a->set_residual_m(v.anchor->residual_m);
     a->set_residual_deg(v.anchor->residual_deg);
     a->set_anchored_time_s(v.anchor->anchored_time_s);
+    a->set_revisions(static_cast<uint32_t>(v.anchor->revisions));
+    a->set_evidence(v.anchor->evidence);
   } else if (MapFromVisit(v)) {
     out->set_frame(v1::VISIT_FRAME_MAP);
   } else {

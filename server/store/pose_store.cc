@@ -50,48 +50,9 @@ absl::StatusOr<std::vector<std::pair<int64_t, Pose>>> MovedPoses(Statement* sele
   return moved;
 }
 
-}  // namespace
-
-absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
-  absl::MutexLock lock(&impl_->write_mu);
-  return InsertEdgeLocked(impl_->write_db.get(), e);
-}
-
-absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, VisitAnchor* anchor) {
-  absl::MutexLock lock(&impl_->write_mu);
-  Database* db = impl_->write_db.get();
-  Transaction tx(db);
-  if (auto s = tx.Begin(); !s.ok()) return s;
-  {
-    auto check = db->Prepare("SELECT anchor_visit_id FROM visits WHERE id = ?1");
-    if (!check.ok()) return check.status();
-    StatementScope s(*check);
-    s->Bind(1, visit_id);
-    auto row = s->Step();
-    if (!row.ok()) return row.status();
-    if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
-    if (!s->ColumnIsNull(0)) {
-      return absl::FailedPreconditionError(absl::StrCat(
-          "visit ", visit_id, " is anchored already (to visit ", s->ColumnInt(0), ")"));
-    }
-  }
-  auto edge_id = InsertEdgeLocked(db, edge);
-  if (!edge_id.ok()) return edge_id.status();
-  anchor->edge_id = *edge_id;
-  auto update = db->Prepare(
-      "UPDATE visits SET anchor_visit_id = ?1, anchor_edge_id = ?2, map_tx = ?3, map_ty = ?4, "
-      "map_tz = ?5, map_qx = ?6, map_qy = ?7, map_qz = ?8, map_qw = ?9, anchor_residual_m = ?10, "
-      "anchor_residual_deg = ?11, anchored_time_s = ?12 WHERE id = ?13");
-  if (!update.ok()) return update.status();
-  {
-    StatementScope s(*update);
-    s->Bind(1, anchor->to_visit_id).Bind(2, anchor->edge_id);
-    BindPose(&*s, 3, anchor->T_map_visit);
-    s->Bind(10, anchor->residual_m).Bind(11, anchor->residual_deg);
-    s->Bind(12, anchor->anchored_time_s).Bind(13, visit_id);
-    if (auto st = s->Run(); !st.ok()) return st;
-  }
-  // The visit's keyframes move into the map's frame.
+// Moves visit `visit_id`'s posed keyframes by `T` (T * pose), on `db` within the caller's
+// transaction.
+absl::Status MoveVisitKeyframesLocked(Database* db, int64_t visit_id, const Pose& T) {
   absl::StatusOr<std::vector<std::pair<int64_t, Pose>>> moved;
   {
     auto posed = db->Prepare(
@@ -100,7 +61,7 @@ absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, Vi
     if (!posed.ok()) return posed.status();
     StatementScope s(*posed);
     s->Bind(1, visit_id);
-    moved = MovedPoses(&*s, anchor->T_map_visit);
+    moved = MovedPoses(&*s, T);
   }
   if (!moved.ok()) return moved.status();
   auto move = db->Prepare(
@@ -113,7 +74,144 @@ absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, Vi
     s->Bind(8, id);
     if (auto st = s->Run(); !st.ok()) return st;
   }
+  return absl::OkStatus();
+}
+
+// Writes `anchor` into the visit's row and appends `action` to its history, on `db` within the
+// caller's transaction.
+absl::Status RecordAnchorLocked(Database* db, int64_t visit_id, const VisitAnchor& anchor,
+                                const char* action, const std::string& reason) {
+  auto update = db->Prepare(
+      "UPDATE visits SET anchor_visit_id = ?1, anchor_edge_id = ?2, map_tx = ?3, map_ty = ?4, "
+      "map_tz = ?5, map_qx = ?6, map_qy = ?7, map_qz = ?8, map_qw = ?9, anchor_residual_m = ?10, "
+      "anchor_residual_deg = ?11, anchored_time_s = ?12 WHERE id = ?13");
+  if (!update.ok()) return update.status();
+  {
+    StatementScope s(*update);
+    s->Bind(1, anchor.to_visit_id).Bind(2, anchor.edge_id);
+    BindPose(&*s, 3, anchor.T_map_visit);
+    s->Bind(10, anchor.residual_m).Bind(11, anchor.residual_deg);
+    s->Bind(12, anchor.anchored_time_s).Bind(13, visit_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  auto history = db->Prepare(
+      "INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, map_tx, "
+      "map_ty, map_tz, map_qx, map_qy, map_qz, map_qw, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, "
+      "?7, ?8, ?9, ?10, ?11, ?12, ?13)");
+  if (!history.ok()) return history.status();
+  StatementScope s(*history);
+  s->Bind(1, visit_id).Bind(2, anchor.anchored_time_s).Bind(3, std::string(action));
+  s->Bind(4, anchor.to_visit_id).Bind(5, anchor.edge_id);
+  BindPose(&*s, 6, anchor.T_map_visit);
+  s->Bind(13, reason);
+  return s->Run();
+}
+
+// The visit `visit_id`'s anchor column: NOT_FOUND for no such visit; nullopt when unanchored.
+absl::StatusOr<std::optional<int64_t>> AnchoredToLocked(Database* db, int64_t visit_id) {
+  auto check = db->Prepare("SELECT anchor_visit_id FROM visits WHERE id = ?1");
+  if (!check.ok()) return check.status();
+  StatementScope s(*check);
+  s->Bind(1, visit_id);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+  if (s->ColumnIsNull(0)) return std::optional<int64_t>();
+  return std::optional<int64_t>(s->ColumnInt(0));
+}
+
+}  // namespace
+
+absl::StatusOr<int64_t> Store::InsertPoseEdge(const PoseEdgeRecord& e) {
+  absl::MutexLock lock(&impl_->write_mu);
+  return InsertEdgeLocked(impl_->write_db.get(), e);
+}
+
+absl::Status Store::AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, VisitAnchor* anchor) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto anchored_to = AnchoredToLocked(db, visit_id);
+  if (!anchored_to.ok()) return anchored_to.status();
+  if (*anchored_to) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " is anchored already (to visit ", **anchored_to, ")"));
+  }
+  auto edge_id = InsertEdgeLocked(db, edge);
+  if (!edge_id.ok()) return edge_id.status();
+  anchor->edge_id = *edge_id;
+  if (auto s = RecordAnchorLocked(db, visit_id, *anchor, "anchored", edge.reason); !s.ok()) {
+    return s;
+  }
+  // The visit's keyframes move into the map's frame.
+  if (auto s = MoveVisitKeyframesLocked(db, visit_id, anchor->T_map_visit); !s.ok()) return s;
   return tx.Commit();
+}
+
+absl::Status Store::ReviseAnchor(int64_t visit_id, const Pose& T_moved_by,
+                                 const std::vector<PoseEdgeRecord>& edges,
+                                 const std::string& reason, VisitAnchor* anchor) {
+  if (edges.empty()) {
+    return absl::InvalidArgumentError("an anchor revision needs the matches it rests on");
+  }
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto anchored_to = AnchoredToLocked(db, visit_id);
+  if (!anchored_to.ok()) return anchored_to.status();
+  if (!*anchored_to) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " is not anchored: there is no anchor to revise"));
+  }
+  {
+    // kind 3: anchor and tie edges (StoredEdgeKind::kAnchor).
+    auto supersede = db->Prepare(
+        "UPDATE pose_edges SET accepted = 0, reason = ?1 || reason WHERE kind = ?2 AND "
+        "accepted = 1 AND to_keyframe IN (SELECT id FROM keyframes WHERE visit_id = ?3)");
+    if (!supersede.ok()) return supersede.status();
+    StatementScope s(*supersede);
+    s->Bind(1, absl::StrCat("superseded by anchor revision (", reason, "): "));
+    s->Bind(2, static_cast<int64_t>(StoredEdgeKind::kAnchor)).Bind(3, visit_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  for (size_t i = 0; i < edges.size(); ++i) {
+    auto id = InsertEdgeLocked(db, edges[i]);
+    if (!id.ok()) return id.status();
+    if (i == 0) anchor->edge_id = *id;
+  }
+  if (auto s = RecordAnchorLocked(db, visit_id, *anchor, "revised", reason); !s.ok()) return s;
+  if (auto s = MoveVisitKeyframesLocked(db, visit_id, T_moved_by); !s.ok()) return s;
+  return tx.Commit();
+}
+
+absl::StatusOr<std::vector<AnchorRevision>> Store::ListAnchorRevisions(int64_t visit_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT id, visit_id, time_s, action, to_visit_id, COALESCE(edge_id, 0), map_tx, map_ty, "
+      "map_tz, map_qx, map_qy, map_qz, map_qw, reason FROM anchor_revisions WHERE visit_id = ?1 "
+      "ORDER BY id");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, visit_id);
+  std::vector<AnchorRevision> out;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    AnchorRevision r;
+    r.id = s->ColumnInt(0);
+    r.visit_id = s->ColumnInt(1);
+    r.time_s = s->ColumnDouble(2);
+    r.action = s->ColumnText(3);
+    r.to_visit_id = s->ColumnInt(4);
+    r.edge_id = s->ColumnInt(5);
+    r.T_map_visit = ReadPose(*s, 6);
+    r.reason = s->ColumnText(13);
+    out.push_back(std::move(r));
+  }
+  return out;
 }
 
 absl::StatusOr<std::vector<PoseEdgeRecord>> Store::ListPoseEdges(int64_t map_id, int64_t visit_id) {

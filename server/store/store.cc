@@ -365,6 +365,28 @@ CREATE INDEX audit_log_time ON audit_log(time_s);
     R"sql(
 ALTER TABLE api_keys ADD COLUMN max_visits_per_hour INTEGER NOT NULL DEFAULT 0;
 )sql",
+    // 14 -> 15: each visit's anchor history (issue 35): anchored, revised (the visit's
+    // keyframes moved again, by T_moved_by) with the visit it is anchored to after, its
+    // T_map_visit after and why. Visits anchored before have their anchor as the first entry.
+    R"sql(
+CREATE TABLE anchor_revisions (
+  id INTEGER PRIMARY KEY,
+  visit_id INTEGER NOT NULL REFERENCES visits(id) ON DELETE CASCADE,
+  time_s REAL NOT NULL,
+  action TEXT NOT NULL,
+  to_visit_id INTEGER NOT NULL,
+  edge_id INTEGER,
+  map_tx REAL NOT NULL, map_ty REAL NOT NULL, map_tz REAL NOT NULL,
+  map_qx REAL NOT NULL, map_qy REAL NOT NULL, map_qz REAL NOT NULL, map_qw REAL NOT NULL,
+  reason TEXT NOT NULL
+);
+CREATE INDEX anchor_revisions_visit ON anchor_revisions(visit_id);
+INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, map_tx, map_ty,
+  map_tz, map_qx, map_qy, map_qz, map_qw, reason)
+  SELECT id, anchored_time_s, 'anchored', anchor_visit_id, anchor_edge_id, map_tx, map_ty, map_tz,
+    map_qx, map_qy, map_qz, map_qw, 'anchored before anchor revisions were recorded'
+  FROM visits WHERE anchor_visit_id IS NOT NULL;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -537,6 +559,8 @@ VisitRecord ReadVisit(const Statement& s) {
     a.residual_m = s.ColumnDouble(22);
     a.residual_deg = s.ColumnDouble(23);
     a.anchored_time_s = s.ColumnDouble(24);
+    a.revisions = static_cast<int>(s.ColumnInt(27));
+    a.evidence = s.ColumnText(28);
     v.anchor = a;
   }
   v.tracked_keyframes = s.ColumnInt(25);
@@ -556,7 +580,9 @@ constexpr char kVisitSelect[] =
     "o.visit_id = v.id), v.anchor_visit_id, v.anchor_edge_id, v.map_tx, v.map_ty, v.map_tz, "
     "v.map_qx, v.map_qy, v.map_qz, v.map_qw, v.anchor_residual_m, v.anchor_residual_deg, "
     "v.anchored_time_s, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id AND "
-    "k.odom_tx IS NOT NULL), v.id = (SELECT MIN(w.id) FROM visits w WHERE w.map_id = v.map_id) "
+    "k.odom_tx IS NOT NULL), v.id = (SELECT MIN(w.id) FROM visits w WHERE w.map_id = v.map_id), "
+    "(SELECT COUNT(*) FROM anchor_revisions r WHERE r.visit_id = v.id AND r.action = 'revised'), "
+    "COALESCE((SELECT e.reason FROM pose_edges e WHERE e.id = v.anchor_edge_id), '') "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =

@@ -66,7 +66,21 @@ struct VisitAnchor {
   Pose T_map_visit;
   double residual_m = 0;
   double residual_deg = 0;
-  double anchored_time_s = 0;
+  double anchored_time_s = 0;  // of the current anchor (the last revision's, if revised)
+  int revisions = 0;           // times the anchor was revised since the visit was anchored
+  std::string evidence;        // the current anchor edge's reason: the matches and checks
+};
+
+// One entry of a visit's anchor history (issue 35).
+struct AnchorRevision {
+  int64_t id = 0;
+  int64_t visit_id = 0;
+  double time_s = 0;
+  std::string action;  // "anchored" | "revised"
+  int64_t to_visit_id = 0;
+  int64_t edge_id = 0;  // the anchor edge it rests on (0: none recorded)
+  Pose T_map_visit;     // after this entry
+  std::string reason;
 };
 
 struct VisitRecord {
@@ -317,7 +331,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 14;
+  static constexpr int kSchemaVersion = 15;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -436,6 +450,19 @@ class Store {
   // transaction; sets anchor.edge_id. FAILED_PRECONDITION when the visit is anchored already;
   // NOT_FOUND when it or a keyframe is gone.
   absl::Status AnchorVisit(int64_t visit_id, const PoseEdgeRecord& edge, VisitAnchor* anchor);
+  // Revises an anchored visit's anchor (issue 35), in one transaction: the visit's accepted
+  // anchor and tie edges are marked rejected ("superseded by anchor revision: <reason>"),
+  // `edges` (the matches that agree on the new anchor) are stored accepted, the first being the
+  // anchor edge; its keyframes move by `T_moved_by` (left-multiplied: T_map_visit becomes
+  // T_moved_by * T_map_visit, given in `anchor` with the visit it is anchored to and the
+  // residual); the history gains a "revised" entry with `reason`. FAILED_PRECONDITION for a
+  // visit that is not anchored, NOT_FOUND for one that does not exist. A kill leaves the
+  // poses before or after, never between.
+  absl::Status ReviseAnchor(int64_t visit_id, const Pose& T_moved_by,
+                            const std::vector<PoseEdgeRecord>& edges, const std::string& reason,
+                            VisitAnchor* anchor);
+  // A visit's anchor history, oldest first.
+  absl::StatusOr<std::vector<AnchorRevision>> ListAnchorRevisions(int64_t visit_id);
   // A map's solves (of one visit, or all for 0), oldest first.
   absl::StatusOr<std::vector<PoseOptimisationRecord>> ListPoseOptimisations(int64_t map_id,
                                                                             int64_t visit_id);

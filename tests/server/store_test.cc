@@ -825,5 +825,103 @@ TEST(SemanticSnapshotStore, AKillWhileASnapshotIsWrittenLeavesThePreviousOneWhol
       });
 }
 
+// Issue 35: an anchor revision is one transaction. One that fails part-way (an edge to a
+// keyframe that is gone) changes nothing; and a kill while revisions are written leaves the
+// visit's keyframes, its anchor and its history all at the same revision.
+TEST(StoreKills, AKillDuringAnAnchorRevisionLeavesTheLastConsistentPoses) {
+  testing::TempDir tmp;
+  int64_t visit_id = 0, reference_keyframe = 0;
+  std::vector<int64_t> keyframe_ids;
+  {
+    auto store = Store::Open(tmp.File("db"));
+    ASSERT_TRUE(store.ok());
+    ASSERT_TRUE((*store)->CreateMap("m", "", 1.0).ok());
+    auto first = (*store)->StartVisit("m", "", "", 1.0);
+    std::vector<KeyframeRecord> reference = {Keyframe(first->id, 1.0)};
+    ASSERT_TRUE((*store)->InsertKeyframes(&reference, {}).ok());
+    reference_keyframe = reference[0].id;
+    auto second = (*store)->StartVisit("m", "", "", 2.0);
+    visit_id = second->id;
+    // Enough keyframes that a revision takes a while to write.
+    std::vector<KeyframeRecord> batch;
+    for (int i = 0; i < 3000; ++i) {
+      KeyframeRecord k = Keyframe(visit_id, 10.0 + i * 0.01);
+      k.T_world_camera->translation = {0.0, 0.001 * i, 0.0};
+      k.pose_source = StoredPoseSource::kEstimated;
+      k.T_odom_camera = k.T_world_camera;
+      batch.push_back(k);
+    }
+    ASSERT_TRUE((*store)->InsertKeyframes(&batch, {}).ok());
+    for (const auto& k : batch) keyframe_ids.push_back(k.id);
+    PoseEdgeRecord edge;
+    edge.map_id = second->map_id;
+    edge.kind = StoredEdgeKind::kAnchor;
+    edge.from_keyframe = reference_keyframe;
+    edge.to_keyframe = keyframe_ids[0];
+    edge.accepted = true;
+    edge.reason = "anchors it";
+    VisitAnchor anchor;
+    anchor.to_visit_id = first->id;
+    ASSERT_TRUE((*store)->AnchorVisit(visit_id, edge, &anchor).ok());
+    // A revision resting on an edge to a keyframe that does not exist fails and changes nothing.
+    PoseEdgeRecord dangling = edge;
+    dangling.to_keyframe = 999999;
+    Pose moved;
+    moved.translation = {5, 0, 0};
+    VisitAnchor revised = anchor;
+    revised.T_map_visit = moved;
+    const absl::Status failed =
+        (*store)->ReviseAnchor(visit_id, moved, {edge, dangling}, "test", &revised);
+    EXPECT_TRUE(absl::IsNotFound(failed)) << failed;
+    auto kept = (*store)->ListKeyframes(second->map_id, visit_id);
+    ASSERT_TRUE(kept.ok());
+    EXPECT_NEAR(kept->back().T_world_camera->translation.x(), 0.0, 1e-12) << "nothing moved";
+    EXPECT_EQ((*store)->ListAnchorRevisions(visit_id)->size(), 1u);
+    auto edges = (*store)->ListPoseEdges(second->map_id, visit_id);
+    ASSERT_TRUE(edges.ok());
+    ASSERT_EQ(edges->size(), 1u);
+    EXPECT_TRUE((*edges)[0].accepted) << "the anchor's edge was not superseded";
+  }
+  // Revision n moves the visit 1 m further along x: after a kill, every keyframe, the anchor
+  // and the history say the same n.
+  auto revise = [&](Store& s, int64_t n) {
+    Pose step;
+    step.translation = {1.0, 0, 0};
+    PoseEdgeRecord edge;
+    edge.map_id = 1;
+    edge.kind = StoredEdgeKind::kAnchor;
+    edge.from_keyframe = reference_keyframe;
+    edge.to_keyframe = keyframe_ids[static_cast<size_t>(n) % keyframe_ids.size()];
+    edge.accepted = true;
+    edge.reason = absl::StrCat("revision ", n + 1);
+    VisitAnchor anchor;
+    anchor.to_visit_id = 1;
+    anchor.T_map_visit.translation = {static_cast<double>(n + 1), 0, 0};
+    return s.ReviseAnchor(visit_id, step, {edge}, absl::StrCat("test revision ", n + 1), &anchor);
+  };
+  KillWhileWriting(tmp.File("db"), {150, 400, 900}, revise, [&](Store& s) -> int64_t {
+    auto history = s.ListAnchorRevisions(visit_id);
+    EXPECT_TRUE(history.ok()) << history.status();
+    if (!history.ok()) return -1;
+    const int64_t revisions = static_cast<int64_t>(history->size()) - 1;
+    auto visit = s.GetVisit(visit_id);
+    EXPECT_TRUE(visit.ok() && visit->anchor);
+    if (!visit.ok() || !visit->anchor) return -1;
+    EXPECT_EQ(visit->anchor->revisions, revisions);
+    EXPECT_NEAR(visit->anchor->T_map_visit.translation.x(), static_cast<double>(revisions), 1e-9);
+    auto keyframes = s.ListKeyframes(visit->map_id, visit_id);
+    EXPECT_TRUE(keyframes.ok());
+    if (!keyframes.ok()) return -1;
+    for (const auto& k : *keyframes) {
+      if (std::abs(k.T_world_camera->translation.x() - static_cast<double>(revisions)) > 1e-9) {
+        ADD_FAILURE() << "keyframe " << k.id << " at x = " << k.T_world_camera->translation.x()
+                      << " after " << revisions << " revisions: torn";
+        break;
+      }
+    }
+    return revisions - 1;  // the last n written whole
+  });
+}
+
 }  // namespace
 }  // namespace lifemap::store

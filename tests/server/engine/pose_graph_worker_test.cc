@@ -81,7 +81,7 @@ class PoseGraphWorkerTest : public ::testing::Test {
     job.visit_id = visit_id;
     job.committed = Committed(query_id);
     job.anchors = {{visit_.id, {keyframes_[i].id, T_match_query, 60, 1.0}}};
-    job.on_anchored = [anchored](const Pose& t) { *anchored = t; };
+    job.on_anchored = [anchored](const Pose&, const Pose& t) { *anchored = t; };
     return job;
   }
 
@@ -248,6 +248,98 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
       (*listed)[3].T_world_camera->translation.x() - keyframes_[3].T_world_camera->translation.x();
   EXPECT_GT(moved_x, 0.005) << "pulled towards the tie";
   EXPECT_LT(moved_x, 0.045);
+}
+
+// The revision study (issue 35): a visit anchored wrongly (two matches that agree on a place
+// 1 m off, an alias) is revised once three later keyframes' matches agree on the true place and
+// outnumber the two that made the anchor; its keyframes move there, the anchor's history says
+// why, the wrong anchor edges are superseded, and the frame path is told how far it moved.
+TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
+  Pose T;  // the second visit's frame in the map's (the truth)
+  T.translation = {2.0, 0.0, 0.0};
+  T.rotation = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ());
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  std::vector<store::KeyframeRecord> b;
+  for (int i = 0; i < 10; ++i) {
+    store::KeyframeRecord k = CopiedInto(second->id, i);
+    const Pose own =
+        Pose::FromIsometry(T.ToIsometry().inverse() * keyframes_[i].T_world_camera->ToIsometry());
+    k.T_world_camera = own;
+    k.T_odom_camera = own;
+    b.push_back(k);
+  }
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored, moved_by;
+  auto job_for = [&](int i, const Pose& T_match_query) {
+    PoseGraphWorker::Job job = AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
+    job.on_anchored = [&](const Pose& m, const Pose& t) {
+      moved_by = m;
+      anchored = t;
+    };
+    return job;
+  };
+  Pose alias;  // where an alias puts the query: 1 m further along the matched camera's x
+  alias.translation = {1.0, 0, 0};
+  worker.Wait(worker.Submit(job_for(0, alias)));
+  worker.Wait(worker.Submit(job_for(1, alias)));
+  ASSERT_TRUE(anchored.has_value()) << "the alias anchors it: the injected wrong anchor";
+  const double wrong_m = (anchored->translation - T.translation).norm();
+  EXPECT_GT(wrong_m, 0.9);
+  // Two keyframes' true matches: dissent, not yet a majority.
+  anchored.reset();
+  worker.Wait(worker.Submit(job_for(2, Pose{})));
+  worker.Wait(worker.Submit(job_for(3, Pose{})));
+  EXPECT_FALSE(anchored.has_value());
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok() && v->anchor);
+  EXPECT_EQ(v->anchor->revisions, 0);
+  // The third outvotes the anchor's two: revised to the truth.
+  worker.Wait(worker.Submit(job_for(4, Pose{})));
+  ASSERT_TRUE(anchored.has_value()) << "revised after 3 more keyframes";
+  EXPECT_LT((anchored->translation - T.translation).norm(), 1e-6);
+  EXPECT_LT(RotationAngleRad(*anchored, T), 1e-6);
+  ASSERT_TRUE(moved_by.has_value());
+  EXPECT_NEAR(moved_by->translation.norm(), 1.0, 1e-6) << "moved back by the alias's metre";
+  EXPECT_EQ(worker.Stats().anchors_revised, 1);
+  v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok() && v->anchor);
+  EXPECT_EQ(v->anchor->revisions, 1);
+  EXPECT_NE(v->anchor->evidence.find("revises the anchor of visit"), std::string::npos)
+      << v->anchor->evidence;
+  auto listed = store_->ListKeyframes(visit_.map_id, second->id);
+  ASSERT_TRUE(listed.ok());
+  for (int i = 0; i < 10; ++i) {
+    EXPECT_LT(((*listed)[i].T_world_camera->translation - keyframes_[i].T_world_camera->translation)
+                  .norm(),
+              0.02)
+        << "keyframe " << i << " where the truth has it";
+  }
+  auto history = store_->ListAnchorRevisions(second->id);
+  ASSERT_TRUE(history.ok());
+  ASSERT_EQ(history->size(), 2u);
+  EXPECT_EQ((*history)[0].action, "anchored");
+  EXPECT_EQ((*history)[1].action, "revised");
+  EXPECT_NE((*history)[1].reason.find("3 keyframes' matches agree"), std::string::npos)
+      << (*history)[1].reason;
+  EXPECT_NE((*history)[1].reason.find("against 2 that supported it"), std::string::npos)
+      << (*history)[1].reason;
+  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  int superseded = 0, accepted = 0;
+  for (const auto& e : *edges) {
+    superseded += e.reason.rfind("superseded by anchor revision", 0) == 0;
+    accepted += e.accepted;
+  }
+  EXPECT_EQ(superseded, 1) << "the wrong anchor's edge";
+  EXPECT_EQ(accepted, 3) << "the three that revised it";
+  // A later true match now ties it (accepted), and a lone alias is only dissent.
+  anchored.reset();
+  worker.Wait(worker.Submit(job_for(5, Pose{})));
+  worker.Wait(worker.Submit(job_for(6, alias)));
+  EXPECT_FALSE(anchored.has_value());
+  EXPECT_EQ(worker.Stats().anchors_revised, 1);
 }
 
 }  // namespace
