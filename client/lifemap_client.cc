@@ -269,6 +269,13 @@ class GrpcClient final : public Client {
     req.set_map(map);
     return Unary(&v1::VisitService::Stub::ListVisits, visits_.get(), req);
   }
+  absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map,
+                                                        uint64_t visit_id) override {
+    v1::AnchorVisitsRequest req;
+    req.set_map(map);
+    req.set_visit_id(visit_id);
+    return Unary(&v1::VisitService::Stub::AnchorVisits, visits_.get(), req);
+  }
 
   absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) override {
     return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request);

@@ -378,7 +378,7 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
 }
 
 void AddVisitCommands(CLI::App* app, CliContext* ctx) {
-  auto* visits = app->add_subcommand("visits", "List and end visits of a map");
+  auto* visits = app->add_subcommand("visits", "List, end and anchor visits of a map");
   visits->require_subcommand(1);
   auto* list = visits->add_subcommand("list", "List a map's visits");
   auto map = std::make_shared<std::string>();
@@ -431,6 +431,34 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
           *ctx, [&](client::Client& c) { return c.EndVisit(*visit_id); },
           [](const v1::Visit& v) {
             std::cout << "ended visit " << v.id() << " of map '" << v.map() << "'\n";
+          });
+    };
+  });
+
+  // Issue 35: visits tracked before the appearance index could anchor them are retried.
+  auto* anchor = visits->add_subcommand(
+      "anchor",
+      "Retry anchoring a map's tracked visits not in its frame (one, or every ended one) against "
+      "the appearance index as it is now");
+  auto anchor_map = std::make_shared<std::string>();
+  auto anchor_visit = std::make_shared<uint64_t>(0);
+  anchor->add_option("MAP", *anchor_map, "map name")->required();
+  anchor->add_option("VISIT", *anchor_visit, "only this visit (default: every ended one)");
+  anchor->callback([ctx, anchor_map, anchor_visit] {
+    ctx->run = [ctx, anchor_map, anchor_visit] {
+      return RunCall<v1::AnchorVisitsResponse>(
+          *ctx, [&](client::Client& c) { return c.AnchorVisits(*anchor_map, *anchor_visit); },
+          [](const v1::AnchorVisitsResponse& r) {
+            if (r.attempts().empty()) {
+              std::cout << "no visit to retry: every ended tracked visit is in the map's frame\n";
+            }
+            for (const auto& a : r.attempts()) {
+              std::cout << absl::StrFormat(
+                  "visit %d: %s (%d keyframes queried, %d candidate matches): %s\n", a.visit_id(),
+                  a.anchored() ? absl::StrCat("anchored to visit ", a.to_visit())
+                               : std::string("not anchored"),
+                  a.keyframes_queried(), a.candidates(), a.reason());
+            }
           });
     };
   });

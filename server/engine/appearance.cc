@@ -248,7 +248,15 @@ absl::Status AppearanceIndex::TrainLocked(bool asked) {
     vocabulary_ = std::make_shared<appearance::Vocabulary>(*std::move(vocabulary));
     vocabulary_id_ = *id;
   }
-  return IndexStored(0);
+  if (auto s = IndexStored(0); !s.ok()) return s;
+  absl::MutexLock lock(&on_trained_mu_);
+  if (on_trained_) on_trained_();
+  return absl::OkStatus();
+}
+
+void AppearanceIndex::SetOnTrained(std::function<void()> on_trained) {
+  absl::MutexLock lock(&on_trained_mu_);
+  on_trained_ = std::move(on_trained);
 }
 
 absl::Status AppearanceIndex::IndexStored(int64_t map_id) {

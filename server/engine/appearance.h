@@ -13,6 +13,7 @@
 
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <future>
 #include <map>
 #include <memory>
@@ -69,6 +70,10 @@ class AppearanceIndex {
   absl::StatusOr<AppearanceIndexStats> Rebuild(bool retrain);
 
   AppearanceIndexStats Stats() const;
+  // Called on the index's thread each time a new vocabulary has been trained and the stored
+  // keyframes indexed with it (the engine retries unanchored visits then: anchor_retry.h).
+  // nullptr to stop; returns once a call in progress has finished.
+  void SetOnTrained(std::function<void()> on_trained);
   const AppearanceOptions& options() const { return options_; }
 
  private:
@@ -105,6 +110,8 @@ class AppearanceIndex {
 
   absl::Mutex queue_mu_;
   std::deque<Job> queue_ ABSL_GUARDED_BY(queue_mu_);
+  absl::Mutex on_trained_mu_;
+  std::function<void()> on_trained_ ABSL_GUARDED_BY(on_trained_mu_);
   bool stopping_ ABSL_GUARDED_BY(queue_mu_) = false;
   std::unordered_map<int64_t, int64_t> visit_maps_;  // worker thread only
   std::thread thread_;

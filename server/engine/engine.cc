@@ -2,7 +2,10 @@
 
 #include <utility>
 
+#include <spdlog/spdlog.h>
+
 #include "absl/strings/str_cat.h"
+#include "server/engine/anchor_retry.h"
 #include "server/engine/appearance.h"
 #include "server/engine/clock.h"
 #include "server/engine/keyframe_committer.h"
@@ -32,6 +35,9 @@ struct Engine::Parts {
   std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<FramePath> frames;            // uses the parts above
   std::unique_ptr<PlaceQueries> place_queries;  // likewise
+  // Retries unanchored visits after each new vocabulary (anchor_retry.h): uses the appearance
+  // index and the pose-graph worker, so it goes before them.
+  std::unique_ptr<SerialWorker> anchor_retries;
 };
 
 absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& options) {
@@ -73,6 +79,26 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& option
   p->place_queries =
       std::make_unique<PlaceQueries>(p->store.get(), p->places.get(), p->visits.get(),
                                      p->appearance.get(), p->pipeline.get(), options);
+  p->anchor_retries = std::make_unique<SerialWorker>();
+  p->appearance->SetOnTrained([store = p->store.get(), appearance = p->appearance.get(),
+                               pose_graph = p->pose_graph.get(),
+                               retries = p->anchor_retries.get()] {
+    // Off the index's thread: a retry queries the index and waits for the pose-graph worker.
+    retries->Submit([store, appearance, pose_graph] {
+      auto maps = store->ListMaps();
+      if (!maps.ok()) return;
+      for (const auto& m : *maps) {
+        auto attempts = server::RetryAnchors(store, appearance, pose_graph, m.id, 0);
+        if (!attempts.ok()) continue;
+        int anchored = 0;
+        for (const auto& a : *attempts) anchored += a.anchored;
+        if (!attempts->empty()) {
+          spdlog::info("map '{}': new appearance vocabulary: {} of {} unanchored visits anchored",
+                       m.name, anchored, attempts->size());
+        }
+      }
+    });
+  });
   return std::unique_ptr<Engine>(new Engine(options, std::move(p)));
 }
 
@@ -81,6 +107,9 @@ Engine::Engine(const EngineOptions& options, std::unique_ptr<Parts> parts)
 
 Engine::~Engine() {
   Parts& p = *parts_;
+  // Anchor retries before the pose-graph worker and the index they use.
+  p.appearance->SetOnTrained(nullptr);
+  p.anchor_retries.reset();
   // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
   p.pose_graph.reset();
   // Every open visit's octree into the store once its queued keyframes are fused (the periodic
@@ -99,6 +128,17 @@ Engine::~Engine() {
   p.visits.reset();
   p.models.reset();
   p.store.reset();
+}
+
+absl::StatusOr<std::vector<AnchorAttempt>> Engine::RetryAnchors(int64_t map_id, int64_t visit_id) {
+  Parts& p = *parts_;
+  absl::StatusOr<std::vector<AnchorAttempt>> out = absl::InternalError("not run");
+  // On the retries' worker, after any retry a new vocabulary queued: one at a time.
+  p.anchor_retries->Wait(p.anchor_retries->Submit([&] {
+    out = server::RetryAnchors(p.store.get(), p.appearance.get(), p.pose_graph.get(), map_id,
+                               visit_id);
+  }));
+  return out;
 }
 
 absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {

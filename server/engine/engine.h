@@ -29,6 +29,7 @@
 
 namespace lifemap::server {
 
+struct AnchorAttempt;
 class AppearanceIndex;
 class KeyframeCommitter;
 class ModelRegistry;
@@ -51,6 +52,11 @@ class Engine {
   // its semantic octree stored before the visit is marked ended (its map's octree is merged
   // again off the reply path). NOT_FOUND for an unknown visit.
   absl::StatusOr<store::VisitRecord> EndVisit(int64_t visit_id);
+
+  // Retries anchoring map `map_id`'s visits not in its frame (one, or every ended one for 0;
+  // anchor_retry.h), after any retry the engine queued itself (each new appearance vocabulary
+  // queues one for every map). Blocks until done.
+  absl::StatusOr<std::vector<AnchorAttempt>> RetryAnchors(int64_t map_id, int64_t visit_id);
 
   const EngineOptions& options() const { return options_; }
   store::Store* store() const;

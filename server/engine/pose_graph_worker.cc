@@ -670,7 +670,8 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
   for (const auto& k : visit_keyframes) {
     if (k.T_world_camera) placed.emplace_back(k.id, *k.T_world_camera);
   }
-  if (placed.size() < kLayoutMinKeyframes) return std::nullopt;
+  // An ended visit (a retry) has all the keyframes it will have: checked with those.
+  if (placed.size() < kLayoutMinKeyframes && !job.visit_ended) return std::nullopt;
   // At most kLayoutKeyframes, spread over the visit.
   if (placed.size() > kLayoutKeyframes) {
     std::vector<std::pair<int64_t, Pose>> spread;

@@ -86,6 +86,9 @@ class PoseGraphWorker {
     std::shared_future<absl::StatusOr<int64_t>> committed;
     std::vector<LoopCandidate> candidates;
     std::vector<AnchorCandidate> anchors;
+    // The visit has ended (an anchor retry, anchor_retry.h): the floor-plan check of an anchor
+    // does not wait for more keyframes than it has.
+    bool visit_ended = false;
     // Called on the worker's thread after a solve with the visit's new correction
     // (T_world_odom: its odometry frame in its corrected frame).
     std::function<void(const Pose&)> on_corrected;

@@ -73,6 +73,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"MapService/RenameMap", Role::kOperator},
       {"MapService/UpdateMap", Role::kOperator},
       {"MapService/ExportMap", Role::kOperator},
+      {"VisitService/AnchorVisits", Role::kOperator},
       {"MapService/ImportMap", Role::kOperator},
       {"MapService/RebuildSemanticOctrees", Role::kOperator},
       {"ModelService/UploadModel", Role::kOperator},

@@ -75,6 +75,8 @@ class VisitServiceImpl final : public v1::VisitService::Service {
   grpc::Status EndVisit(grpc::ServerContext*, const v1::EndVisitRequest*, v1::Visit*) override;
   grpc::Status ListVisits(grpc::ServerContext*, const v1::ListVisitsRequest*,
                           v1::ListVisitsResponse*) override;
+  grpc::Status AnchorVisits(grpc::ServerContext*, const v1::AnchorVisitsRequest*,
+                            v1::AnchorVisitsResponse*) override;
 
  private:
   ServiceContext* ctx_;

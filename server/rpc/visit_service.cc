@@ -1,6 +1,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "server/engine/anchor_retry.h"
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/semantic_export.h"
 #include "server/rpc/convert.h"
@@ -71,6 +72,29 @@ grpc::Status VisitServiceImpl::ListVisits(grpc::ServerContext* context,
   auto visits = ctx_->engine->store()->ListVisits(req->map());
   if (!visits.ok()) return ToGrpcStatus(visits.status());
   for (const auto& v : *visits) VisitToProto(v, resp->add_visits());
+  return grpc::Status::OK;
+}
+
+grpc::Status VisitServiceImpl::AnchorVisits(grpc::ServerContext* context,
+                                            const v1::AnchorVisitsRequest* req,
+                                            v1::AnchorVisitsResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/AnchorVisits");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+  if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+  auto attempts = ctx_->engine->RetryAnchors(map->id, *visit_id);
+  if (!attempts.ok()) return ToGrpcStatus(attempts.status());
+  for (const AnchorAttempt& a : *attempts) {
+    v1::AnchorAttempt* out = resp->add_attempts();
+    out->set_visit_id(static_cast<uint64_t>(a.visit_id));
+    out->set_anchored(a.anchored);
+    out->set_to_visit(static_cast<uint64_t>(a.to_visit));
+    out->set_keyframes_queried(static_cast<uint32_t>(a.keyframes_queried));
+    out->set_candidates(static_cast<uint32_t>(a.candidates));
+    out->set_reason(a.reason);
+  }
   return grpc::Status::OK;
 }
 

@@ -466,6 +466,60 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
   EXPECT_NE(Slurp(tmp_.File("v.txt")).find("in its own frame"), std::string::npos);
 }
 
+// Issue 35: a visit tracked before the map had an appearance vocabulary is anchored later: each
+// new vocabulary retries the unanchored visits, and `visits anchor` does on demand (both query
+// the stored keyframes against the index as it is now).
+TEST_F(CliTest, AVisitTrackedBeforeTheVocabularyIsAnchoredWhenRetried) {
+  LIFEMAP_REQUIRE_DATASET(tum, "tum_fr1_xyz_subset");
+  // A server that trains no vocabulary on its own: only on demand (a synthetic walk of a few
+  // dozen frames loses too many to anchor: its keyframes disagree by 40 cm; the retry rightly
+  // refuses it).
+  server_.reset();
+  {
+    std::ofstream(tmp_.File("config.json"))
+        << R"({"appearance": {"min_training_keyframes": 1000}})";
+  }
+  StartServer({"--config", tmp_.File("config.json")});
+  // The same recording twice: posed by its ground truth (the map's frame), then tracked.
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  auto r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--use-groundtruth",
+                "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--json", "stream", "--map", "m", "--tum", tum, "--rate", "0", "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto tracked = json::parse(Lines(r.out).back())["summary"];
+  ASSERT_EQ(tracked["visit_frame"], "unanchored") << "no vocabulary yet: " << tracked;
+  const std::string tracked_id = std::to_string(tracked["visit_id"].get<uint64_t>());
+  // Asking for the map's own first visit says why not.
+  r = Run({"visits", "anchor", "m", "1"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("in the map's frame already"), std::string::npos) << r.err;
+  // Before a vocabulary: retried, not anchored, and says why.
+  r = Run({"visits", "anchor", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("visit " + tracked_id + ": not anchored"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("vocabulary"), std::string::npos) << r.out;
+  r = Run({"--json", "visits", "anchor", "m", tracked_id});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json attempt = json::parse(r.out)["attempts"][0];
+  EXPECT_GT(attempt.value("keyframes_queried", 0), 1) << attempt;
+  EXPECT_FALSE(attempt.value("anchored", true)) << attempt;
+  // A new vocabulary retries every unanchored visit by itself; an operator's retry waits
+  // behind it and finds the visit anchored.
+  ASSERT_EQ(Run({"places", "index", "rebuild", "--retrain"}).code, 0);
+  r = Run({"visits", "anchor", "m", tracked_id});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("anchored already (to visit 1)"), std::string::npos) << r.err;
+  r = Run({"visits", "list", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("anchored->1"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("anchor evidence: anchors visit " + tracked_id), std::string::npos) << r.out;
+  // Anchored now: nothing left to retry.
+  r = Run({"visits", "anchor", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("no visit to retry"), std::string::npos) << r.out;
+}
+
 TEST_F(CliTest, StreamSummaryCountsMissingFilesAndAMapDeletedUnderIt) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 40, 0.021);
