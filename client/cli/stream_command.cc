@@ -15,6 +15,7 @@
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
+#include "client/cli/unposed_stream.h"
 #include "core/common/image_codec.h"
 #include "core/io/tum_dataset.h"
 
@@ -28,6 +29,7 @@ struct StreamArgs {
   std::string tum_dir;
   double rate_hz = -1.0;  // < 0: the recording's own timing; 0: as fast as the server takes
   bool use_groundtruth = false;
+  bool send_odometry = false;  // --odometry wheel: Frame.odometry from odometry.txt
   std::string visit_label;
   std::string robot;
   uint64_t visit_id = 0;
@@ -53,6 +55,11 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         absl::StrCat(a.tum_dir, ": --use-groundtruth given but ",
                      seq->has_groundtruth ? "no frame lies within groundtruth.txt"
                                           : "there is no groundtruth.txt")));
+  }
+  if (a.send_odometry && seq->frames_with_odometry == 0) {
+    return Fail(absl::FailedPreconditionError(absl::StrCat(
+        a.tum_dir, ": --odometry wheel given but ",
+        seq->has_odometry ? "no frame lies within odometry.txt" : "there is no odometry.txt")));
   }
   size_t n = seq->frames.size();
   if (a.max_frames > 0) n = std::min(n, static_cast<size_t>(a.max_frames));
@@ -152,6 +159,9 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
       }
       if (a.use_groundtruth && e.T_world_camera) {
         *frame->mutable_pose() = PoseProto(*e.T_world_camera);
+      }
+      if (a.send_odometry && e.T_odom_camera) {
+        *frame->mutable_odometry()->mutable_pose() = PoseProto(*e.T_odom_camera);
       }
       {
         std::lock_guard<std::mutex> lock(sent_mu);
@@ -344,6 +354,7 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
   stream->add_option("--max-frames", a->max_frames, "stop after N frames");
   stream->add_option("--associations", a->associations,
                      "file of 't_rgb rgb t_depth depth' pairs (default: pair rgb.txt/depth.txt)");
+  AddOdometryOption(stream, &a->send_odometry);
   stream->add_flag("--create-map", a->create_map, "create the map if it does not exist");
   stream->add_flag("--end-visit", a->end_visit,
                    "end the visit once the recording is sent (else it stays open to resume)");

@@ -466,6 +466,31 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
   EXPECT_NE(Slurp(tmp_.File("v.txt")).find("in its own frame"), std::string::npos);
 }
 
+// Issue 35: a sparse walk (40 frames for a room's loop) loses frames on images alone; with the
+// robot's wheel odometry (odometry.txt, sent as Frame.odometry) it loses none. A folder without
+// odometry.txt is refused when odometry is asked for.
+TEST_F(CliTest, StreamingWithWheelOdometryLosesNoFrameOfASparseWalk) {
+  auto r = Run({"sim", "--seed", "3", "--place-shape", "rect", "--visits", "1", "--frames", "40",
+                "--out", tmp_.File("sim")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string walk = tmp_.File("sim/visit_00");
+  ASSERT_EQ(Run({"maps", "create", "m"}).code, 0);
+  r = Run({"--json", "stream", "--map", "m", "--tum", walk, "--rate", "0", "--end-visit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto images_only = json::parse(Lines(r.out).back())["summary"];
+  r = Run({"--json", "stream", "--map", "m", "--tum", walk, "--rate", "0", "--end-visit",
+           "--odometry", "wheel"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto with_odometry = json::parse(Lines(r.out).back())["summary"];
+  EXPECT_GT(images_only["frames_lost_by_tracker"].get<int>(), 5) << images_only;
+  EXPECT_EQ(with_odometry["frames_lost_by_tracker"].get<int>(), 0) << with_odometry;
+  const std::string no_odometry = tmp_.File("no_odometry");
+  testing::WriteSyntheticTum(no_odometry, 3, 0.02);
+  r = Run({"stream", "--map", "m", "--tum", no_odometry, "--odometry", "wheel"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("there is no odometry.txt"), std::string::npos) << r.err;
+}
+
 // Issue 35: a visit tracked before the map had an appearance vocabulary is anchored later: each
 // new vocabulary retries the unanchored visits, and `visits anchor` does on demand (both query
 // the stored keyframes against the index as it is now).
