@@ -144,9 +144,10 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
   const auto kf_errors = eval::CompareTrajectories(keyframes, truth);
   const auto all_errors = eval::CompareTrajectories(all, truth);
   // How many tracked frames each estimate gave (docs/API.md "Tracking").
-  nlohmann::json by_method = {{"dense", 0}, {"refit", 0}, {"features", 0}, {"relocalised", 0}};
+  nlohmann::json by_method = {
+      {"dense", 0}, {"refit", 0}, {"features", 0}, {"relocalised", 0}, {"odometry", 0}};
   for (const auto& f : frames) {
-    if (!f.method.empty()) by_method[f.method] = by_method[f.method].get<int>() + 1;
+    if (!f.method.empty()) by_method[f.method] = by_method.value(f.method, 0) + 1;
   }
   std::sort(track_ms.begin(), track_ms.end());
   const double track_p50 = track_ms.empty() ? 0.0 : track_ms[track_ms.size() / 2];

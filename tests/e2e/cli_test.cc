@@ -484,6 +484,14 @@ TEST_F(CliTest, StreamingWithWheelOdometryLosesNoFrameOfASparseWalk) {
   const auto with_odometry = json::parse(Lines(r.out).back())["summary"];
   EXPECT_GT(images_only["frames_lost_by_tracker"].get<int>(), 5) << images_only;
   EXPECT_EQ(with_odometry["frames_lost_by_tracker"].get<int>(), 0) << with_odometry;
+  // The evaluation sends it too, and counts the frames placed by it (it once crashed on them).
+  r = Run({"--json", "eval", "trajectory", "--tum", walk, "--odometry", "wheel", "--rate", "0",
+           "--out", tmp_.File("trajectory")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto scored = json::parse(Lines(r.out).back());
+  EXPECT_EQ(scored["frames_with_odometry"], 40) << scored;
+  EXPECT_TRUE(scored["frames_by_method"].contains("odometry")) << scored;
+  EXPECT_EQ(scored["lost_frames"], 0) << scored;
   const std::string no_odometry = tmp_.File("no_odometry");
   testing::WriteSyntheticTum(no_odometry, 3, 0.02);
   r = Run({"stream", "--map", "m", "--tum", no_odometry, "--odometry", "wheel"});
