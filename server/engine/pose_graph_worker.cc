@@ -63,6 +63,15 @@ bool AnchorsAgree(const Pose& a, const Pose& b) {
          RotationAngleRad(a, b) * kRadToDeg <= kAnchorAgreementDeg;
 }
 constexpr size_t kMaxPendingAnchors = 64;
+// A placement this close to one the floor-plan check refused is the same placement.
+constexpr double kRefusedAgreementM = 0.30;
+constexpr double kRefusedAgreementDeg = 5.0;
+bool SameAsRefused(const std::vector<Pose>& refused, const Pose& T_map_visit) {
+  return std::any_of(refused.begin(), refused.end(), [&](const Pose& r) {
+    return (r.translation - T_map_visit.translation).norm() <= kRefusedAgreementM &&
+           RotationAngleRad(r, T_map_visit) * kRadToDeg <= kRefusedAgreementDeg;
+  });
+}
 
 // A visit's keyframes (without images) by id, for FindKeyframe.
 absl::StatusOr<std::vector<store::KeyframeRecord>> KeyframesById(store::Store* store,
@@ -441,15 +450,17 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::VisitRecord& visit
       // A strong match that puts the visit elsewhere: dissent against its anchor, with the
       // correction it asks for.
       auto& dissent = dissent_[job.visit_id];
-      if (dissent.size() < kMaxPendingAnchors) {
+      const Pose asked = Pose::FromIsometry(matched->T_world_camera->ToIsometry() *
+                                            c.match.T_match_query.ToIsometry() *
+                                            query.T_world_camera->ToIsometry().inverse());
+      if (dissent.size() < kMaxPendingAnchors &&
+          !SameAsRefused(refused_revisions_[job.visit_id], asked)) {
         AnchorEstimate e;
         e.query_keyframe = query.id;
         e.to_visit = c.visit_id;
         e.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, c.match, query.id);
         e.edge.accepted = true;
-        e.T_map_visit = Pose::FromIsometry(matched->T_world_camera->ToIsometry() *
-                                           c.match.T_match_query.ToIsometry() *
-                                           query.T_world_camera->ToIsometry().inverse());
+        e.T_map_visit = asked;
         dissent.push_back(std::move(e));
       }
     }
@@ -503,6 +514,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         Pose::FromIsometry(T_map_query * query.T_world_camera->ToIsometry().inverse());
     estimate.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, m, query.id);
     estimate.edge.accepted = true;
+    if (SameAsRefused(refused_anchors_[job.visit_id], estimate.T_map_visit)) continue;
     // Two matches from different keyframes of the visit must agree: one match can be an alias.
     for (const AnchorEstimate& other : pending) {
       if (other.query_keyframe == query.id) continue;
@@ -525,8 +537,11 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         }
         spdlog::info("visit {}: anchor to visit {} rejected: {}", job.visit_id, estimate.to_visit,
                      layout);
-        // Every pending match that agrees with this one is as wrong.
+        // Every pending match that agrees with this one is as wrong, and so are later ones.
         const Pose wrong = estimate.T_map_visit;
+        if (refused_anchors_[job.visit_id].size() < kMaxPendingAnchors) {
+          refused_anchors_[job.visit_id].push_back(wrong);
+        }
         pending.erase(std::remove_if(pending.begin(), pending.end(),
                                      [&](const AnchorEstimate& e) {
                                        return AnchorsAgree(e.T_map_visit, wrong);
@@ -554,6 +569,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
                    job.visit_id, anchor.to_visit_id, visit.map_name, off_m, off_deg);
       pending_anchors_.erase(job.visit_id);
+      refused_anchors_.erase(job.visit_id);
       {
         absl::MutexLock lock(&mu_);
         ++stats_.anchors;
@@ -610,8 +626,12 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
   if (!layout->empty()) {
     spdlog::info("visit {}: anchor revision to visit {} refused: {}", job.visit_id, to_visit->id,
                  *layout);
-    // The group is as wrong as an anchor the plan refuses: dropped.
+    // The group is as wrong as an anchor the plan refuses: dropped, and later dissent agreeing
+    // with it too.
     const Pose wrong = T_moved_by;
+    if (refused_revisions_[job.visit_id].size() < kMaxPendingAnchors) {
+      refused_revisions_[job.visit_id].push_back(wrong);
+    }
     dissent.erase(
         std::remove_if(dissent.begin(), dissent.end(),
                        [&](const AnchorEstimate& e) { return AnchorsAgree(e.T_map_visit, wrong); }),
@@ -648,6 +668,7 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
   }
   spdlog::info("visit {}: anchor revised: {}", job.visit_id, reason);
   dissent_.erase(found);
+  refused_revisions_.erase(job.visit_id);
   support_[job.visit_id] = votes;
   {
     absl::MutexLock lock(&mu_);

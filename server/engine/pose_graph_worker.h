@@ -157,6 +157,15 @@ class PoseGraphWorker {
   // for (in `T_map_visit`: the transform that would move the visit's keyframes where the match
   // puts them), and how many matches support the anchor as it is (worker thread only).
   std::map<int64_t, std::vector<AnchorEstimate>> dissent_;
+  // Where the floor-plan check refused to place each visit (T_map_visit): a later estimate
+  // that agrees with a refused one (kRefusedAgreementM / Deg) is refused too (worker thread
+  // only). More keyframes of the same visit seeing the same alias do not make it right: on the
+  // building world an L room's visit refused 6 times (5.8-14.7 % of its readings beyond the
+  // walls) passed at the 7th with 24 keyframes (2.6 %).
+  std::map<int64_t, std::vector<Pose>> refused_anchors_;
+  // Likewise the corrections a revision was refused by the floor-plan check for (in the
+  // visit's current frame; cleared when it is revised).
+  std::map<int64_t, std::vector<Pose>> refused_revisions_;
   std::map<int64_t, int> support_;
   // The last keyframe decoded for a floor-plan check (worker thread only): a keyframe's loop and
   // tie candidates are checked one after another.
