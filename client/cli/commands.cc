@@ -79,6 +79,8 @@ void PrintMap(const v1::Map& m) {
       m.entropy_threshold() > 0 ? absl::StrFormat("%.2f", m.entropy_threshold())
                                 : std::string("server default"),
       m.keep_original_color() ? "as the client sent it" : "JPEG (PNG and raw re-encoded)");
+  // Issue 35: what is not in the map's frame, and why.
+  for (const auto& why : m.left_out()) std::cout << "left out of the map's frame: " << why << "\n";
 }
 
 const char* OutputName(v1::FrameOutput o) {

@@ -110,6 +110,9 @@ grpc::Status MapServiceImpl::GetMap(grpc::ServerContext* context, const v1::GetM
   auto map = FindCallersMap(ctx_->engine->store(), *caller, req->name());
   if (!map.ok()) return ToGrpcStatus(map.status());
   MapToProto(*map, resp);
+  auto in_frame = VisitsInMapFrame(ctx_->engine->store(), map->name);
+  if (!in_frame.ok()) return ToGrpcStatus(in_frame.status());
+  for (const std::string& why : in_frame->left_out) resp->add_left_out(why);
   return grpc::Status::OK;
 }
 

@@ -452,6 +452,11 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
   EXPECT_NE(poses.find("# left out: visit " + tracked_id), std::string::npos) << poses;
   EXPECT_EQ(poses.find("# visit " + tracked_id + "\n"), std::string::npos) << poses;
 
+  // maps show names it too.
+  r = Run({"maps", "show", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("left out of the map's frame: visit " + tracked_id), std::string::npos)
+      << r.out;
   r = Run({"--json", "export", "--map", "m", "--what", "cloud", "--out", tmp_.File("c.ply")});
   ASSERT_EQ(r.code, 0) << r.err;
   const auto cloud = json::parse(Lines(r.out).back());
