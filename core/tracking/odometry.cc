@@ -249,9 +249,10 @@ OdometryStep StepOf(const OdometryReading& last, const OdometryReading& current,
   step.T_last_current =
       last.T_odom_camera.ToIsometry().inverse() * current.T_odom_camera.ToIsometry();
   const double distance = step.T_last_current.translation().norm();
-  step.sigma_m = o.odometry_drift * distance + o.odometry_floor_m;
-  step.sigma_rad = (o.odometry_drift_deg_per_m * distance + o.odometry_floor_deg) * M_PI / 180.0;
-  if (last.covariance && current.covariance) {
+  if (!last.covariance || !current.covariance) {
+    step.sigma_m = o.odometry_drift * distance + o.odometry_floor_m;
+    step.sigma_rad = (o.odometry_drift_deg_per_m * distance + o.odometry_floor_deg) * M_PI / 180.0;
+  } else {
     // Cumulative covariances: the increment's is their difference (independent increments);
     // its translation and rotation sigmas are the roots of its blocks' traces. The floor stays:
     // a covariance that did not grow does not make the step exact.

@@ -70,12 +70,7 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
     job.visit_id = visit.id;
     job.committed = Committed(k->id);
     job.visit_ended = true;
-    for (const auto& m : recognition->matches) {
-      if (!m.verification.verified || m.keyframe.map_id != visit.map_id) continue;
-      job.anchors.push_back({m.keyframe.visit_id,
-                             {m.keyframe.keyframe_id, m.verification.T_match_query,
-                              m.verification.inliers, m.verification.reprojection_px}});
-    }
+    job.anchors = AnchorCandidatesOf(*recognition, visit.map_id, visit.id);
     if (job.anchors.empty()) continue;
     out.candidates += static_cast<int>(job.anchors.size());
     ticket = pose_graph->Submit(std::move(job));

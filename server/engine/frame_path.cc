@@ -232,16 +232,14 @@ absl::Status FramePath::AppearanceMatches(
   for (size_t i = 0; i < n; ++i) {
     out->place_matches.push_back(AppearancePlaceMatch(recognition->matches[i], &names));
   }
-  for (const auto& m : recognition->matches) {
-    if (!m.verification.verified) continue;
-    const LoopCandidate c{m.keyframe.keyframe_id, m.verification.T_match_query,
-                          m.verification.inliers, m.verification.reprojection_px};
-    if (loops != nullptr && m.keyframe.visit_id == visit_id) loops->push_back(c);
-    if (anchors != nullptr && m.keyframe.visit_id != visit_id &&
-        m.keyframe.map_id == visit.map_id) {
-      anchors->push_back({m.keyframe.visit_id, c});
+  if (loops != nullptr) {
+    for (const auto& m : recognition->matches) {
+      if (m.verification.verified && m.keyframe.visit_id == visit_id) {
+        loops->push_back(LoopCandidateOf(m));
+      }
     }
   }
+  if (anchors != nullptr) *anchors = AnchorCandidatesOf(*recognition, visit.map_id, visit_id);
   return absl::OkStatus();
 }
 

@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/appearance/recognizer.h"
 #include "core/common/image_codec.h"
 #include "core/place/layout_check.h"
 #include "core/place/serialize.h"
@@ -57,10 +58,13 @@ constexpr double kLoopSigmaRad = 0.01;
 constexpr double kAnchorAgreementM = 0.10;
 constexpr double kAnchorAgreementDeg = 3.0;
 
+// Whether two poses are within `m` metres and `deg` degrees of each other.
+bool Within(const Pose& a, const Pose& b, double m, double deg) {
+  return (a.translation - b.translation).norm() <= m && RotationAngleRad(a, b) * kRadToDeg <= deg;
+}
 // Whether two estimates of a visit's place in the map agree (kAnchorAgreementM / Deg).
 bool AnchorsAgree(const Pose& a, const Pose& b) {
-  return (a.translation - b.translation).norm() <= kAnchorAgreementM &&
-         RotationAngleRad(a, b) * kRadToDeg <= kAnchorAgreementDeg;
+  return Within(a, b, kAnchorAgreementM, kAnchorAgreementDeg);
 }
 constexpr size_t kMaxPendingAnchors = 64;
 // A placement this close to one the floor-plan check refused is the same placement.
@@ -68,9 +72,18 @@ constexpr double kRefusedAgreementM = 0.30;
 constexpr double kRefusedAgreementDeg = 5.0;
 bool SameAsRefused(const std::vector<Pose>& refused, const Pose& T_map_visit) {
   return std::any_of(refused.begin(), refused.end(), [&](const Pose& r) {
-    return (r.translation - T_map_visit.translation).norm() <= kRefusedAgreementM &&
-           RotationAngleRad(r, T_map_visit) * kRadToDeg <= kRefusedAgreementDeg;
+    return Within(r, T_map_visit, kRefusedAgreementM, kRefusedAgreementDeg);
   });
+}
+// The floor-plan check refused placing a visit at `wrong`: remembered in `refused` (up to
+// kMaxPendingAnchors), and every estimate in `estimates` that agrees with it dropped.
+template <typename Estimate>
+void Refuse(const Pose& wrong, std::vector<Pose>* refused, std::vector<Estimate>* estimates) {
+  if (refused->size() < kMaxPendingAnchors) refused->push_back(wrong);
+  estimates->erase(
+      std::remove_if(estimates->begin(), estimates->end(),
+                     [&](const Estimate& e) { return AnchorsAgree(e.T_map_visit, wrong); }),
+      estimates->end());
 }
 
 // A visit's keyframes (without images) by id, for FindKeyframe.
@@ -219,6 +232,22 @@ LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
 
 }  // namespace
 
+LoopCandidate LoopCandidateOf(const appearance::AppearanceMatch& m) {
+  return {m.keyframe.keyframe_id, m.verification.T_match_query, m.verification.inliers,
+          m.verification.reprojection_px};
+}
+
+std::vector<AnchorCandidate> AnchorCandidatesOf(const appearance::Recognition& recognition,
+                                                int64_t map_id, int64_t visit_id) {
+  std::vector<AnchorCandidate> out;
+  for (const auto& m : recognition.matches) {
+    if (m.verification.verified && m.keyframe.visit_id != visit_id && m.keyframe.map_id == map_id) {
+      out.push_back({m.keyframe.visit_id, LoopCandidateOf(m)});
+    }
+  }
+  return out;
+}
+
 std::string WeakMatchReason(const LoopCandidate& c, const PoseGraphOptions& options) {
   if (c.inliers < options.loop_min_inliers) {
     return absl::StrCat(c.inliers, " PnP inliers, a loop needs ", options.loop_min_inliers);
@@ -341,7 +370,7 @@ void PoseGraphWorker::Process(Job job) {
     ++(edge.accepted ? stats_.accepted : stats_.rejected);
   }
   if (was_anchored) {
-    accepted += ProcessTies(job, *visit, *query, *keyframes);
+    accepted += ProcessTies(job, *query, *keyframes);
     if (const int revised = ReviseAnchor(job, *visit, *keyframes); revised > 0) {
       // The keyframes moved: the solve reads them again.
       keyframes = KeyframesById(store_, job.map_id, job.visit_id);
@@ -404,8 +433,7 @@ PoseGraphWorker::Verdict PoseGraphWorker::Judge(const LoopCandidate& c, const Po
   return Verdict::kAccepted;
 }
 
-int PoseGraphWorker::ProcessTies(const Job& job, const store::VisitRecord& visit,
-                                 const store::KeyframeRecord& query,
+int PoseGraphWorker::ProcessTies(const Job& job, const store::KeyframeRecord& query,
                                  const std::vector<store::KeyframeRecord>& visit_keyframes) {
   if (!query.T_world_camera) return 0;
   int accepted = 0;
@@ -445,16 +473,16 @@ int PoseGraphWorker::ProcessTies(const Job& job, const store::VisitRecord& visit
     if (edge.accepted) {
       edge.reason =
           absl::StrCat("ties visit ", job.visit_id, " to visit ", c.visit_id, ": ", edge.reason);
-      ++support_.try_emplace(job.visit_id, 2).first->second;
-    } else if (verdict == Verdict::kDisagrees && visit.anchor) {
+      ++anchoring_[job.visit_id].support;
+    } else if (verdict == Verdict::kDisagrees) {
       // A strong match that puts the visit elsewhere: dissent against its anchor, with the
       // correction it asks for.
-      auto& dissent = dissent_[job.visit_id];
+      AnchorState& state = anchoring_[job.visit_id];
+      std::vector<AnchorEstimate>& dissent = state.dissent;
       const Pose asked = Pose::FromIsometry(matched->T_world_camera->ToIsometry() *
                                             c.match.T_match_query.ToIsometry() *
                                             query.T_world_camera->ToIsometry().inverse());
-      if (dissent.size() < kMaxPendingAnchors &&
-          !SameAsRefused(refused_revisions_[job.visit_id], asked)) {
+      if (dissent.size() < kMaxPendingAnchors && !SameAsRefused(state.refused_revisions, asked)) {
         AnchorEstimate e;
         e.query_keyframe = query.id;
         e.to_visit = c.visit_id;
@@ -486,7 +514,8 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
   for (const auto& v : *visits) by_id[v.id] = &v;
   // The matched visits' keyframes (poses, no images), read once per visit.
   std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
-  auto& pending = pending_anchors_[job.visit_id];
+  AnchorState& state = anchoring_[job.visit_id];
+  std::vector<AnchorEstimate>& pending = state.pending;
   for (const AnchorCandidate& c : job.anchors) {
     {
       absl::MutexLock lock(&mu_);
@@ -514,7 +543,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         Pose::FromIsometry(T_map_query * query.T_world_camera->ToIsometry().inverse());
     estimate.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, m, query.id);
     estimate.edge.accepted = true;
-    if (SameAsRefused(refused_anchors_[job.visit_id], estimate.T_map_visit)) continue;
+    if (SameAsRefused(state.refused_anchors, estimate.T_map_visit)) continue;
     // Two matches from different keyframes of the visit must agree: one match can be an alias.
     for (const AnchorEstimate& other : pending) {
       if (other.query_keyframe == query.id) continue;
@@ -538,15 +567,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         spdlog::info("visit {}: anchor to visit {} rejected: {}", job.visit_id, estimate.to_visit,
                      layout);
         // Every pending match that agrees with this one is as wrong, and so are later ones.
-        const Pose wrong = estimate.T_map_visit;
-        if (refused_anchors_[job.visit_id].size() < kMaxPendingAnchors) {
-          refused_anchors_[job.visit_id].push_back(wrong);
-        }
-        pending.erase(std::remove_if(pending.begin(), pending.end(),
-                                     [&](const AnchorEstimate& e) {
-                                       return AnchorsAgree(e.T_map_visit, wrong);
-                                     }),
-                      pending.end());
+        Refuse(estimate.T_map_visit, &state.refused_anchors, &pending);
         absl::MutexLock lock(&mu_);
         ++stats_.anchors_rejected;
         break;
@@ -568,14 +589,11 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       }
       spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
                    job.visit_id, anchor.to_visit_id, visit.map_name, off_m, off_deg);
-      pending_anchors_.erase(job.visit_id);
-      refused_anchors_.erase(job.visit_id);
+      state = AnchorState{};  // anchored: supported by its two matches, no dissent yet
       {
         absl::MutexLock lock(&mu_);
         ++stats_.anchors;
       }
-      support_[job.visit_id] = 2;
-      dissent_.erase(job.visit_id);
       if (job.on_anchored) job.on_anchored(anchor.T_map_visit, anchor.T_map_visit);
       return true;
     }
@@ -588,9 +606,9 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
 
 int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visit,
                                   const std::vector<store::KeyframeRecord>& visit_keyframes) {
-  auto found = dissent_.find(job.visit_id);
-  if (!visit.anchor || found == dissent_.end()) return 0;
-  std::vector<AnchorEstimate>& dissent = found->second;
+  AnchorState& state = anchoring_[job.visit_id];
+  std::vector<AnchorEstimate>& dissent = state.dissent;
+  if (!visit.anchor || dissent.empty()) return 0;
   // The largest group of dissenting matches that agree with one of them, counted by distinct
   // keyframes: consecutive matches of one keyframe are one piece of evidence.
   auto keyframes_of = [&](const std::vector<size_t>& group) {
@@ -614,7 +632,7 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
       votes = n;
     }
   }
-  const int support = support_.try_emplace(job.visit_id, 2).first->second;
+  const int support = state.support;
   if (votes < options_.anchor_revision_min_matches || votes <= support) return 0;
   const Pose T_moved_by = dissent[best].T_map_visit;
   auto to_visit = store_->GetVisit(dissent[best].to_visit);
@@ -628,14 +646,7 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
                  *layout);
     // The group is as wrong as an anchor the plan refuses: dropped, and later dissent agreeing
     // with it too.
-    const Pose wrong = T_moved_by;
-    if (refused_revisions_[job.visit_id].size() < kMaxPendingAnchors) {
-      refused_revisions_[job.visit_id].push_back(wrong);
-    }
-    dissent.erase(
-        std::remove_if(dissent.begin(), dissent.end(),
-                       [&](const AnchorEstimate& e) { return AnchorsAgree(e.T_map_visit, wrong); }),
-        dissent.end());
+    Refuse(T_moved_by, &state.refused_revisions, &dissent);
     return 0;
   }
   double spread_m = 0, spread_deg = 0;
@@ -667,9 +678,9 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
     return 0;
   }
   spdlog::info("visit {}: anchor revised: {}", job.visit_id, reason);
-  dissent_.erase(found);
-  refused_revisions_.erase(job.visit_id);
-  support_[job.visit_id] = votes;
+  dissent.clear();
+  state.refused_revisions.clear();
+  state.support = votes;
   {
     absl::MutexLock lock(&mu_);
     ++stats_.anchors_revised;

@@ -30,6 +30,10 @@
 namespace lifemap::place {
 struct FloorPlan;
 }  // namespace lifemap::place
+namespace lifemap::appearance {
+struct AppearanceMatch;
+struct Recognition;
+}  // namespace lifemap::appearance
 
 namespace lifemap::server {
 
@@ -53,6 +57,13 @@ struct AnchorCandidate {
   int64_t visit_id = 0;  // the matched keyframe's visit
   LoopCandidate match;
 };
+
+// A verified appearance match as a loop candidate (its matched keyframe and PnP figures).
+LoopCandidate LoopCandidateOf(const appearance::AppearanceMatch& m);
+// The verified matches of `recognition` to keyframes of other visits of map `map_id` than
+// `visit_id`: anchor candidates for that visit.
+std::vector<AnchorCandidate> AnchorCandidatesOf(const appearance::Recognition& recognition,
+                                                int64_t map_id, int64_t visit_id);
 
 // What the worker counted since it started (all visits), for logs and tests.
 struct LoopClosureStats {
@@ -121,8 +132,7 @@ class PoseGraphWorker {
   // both visits' stored poses) and stored as edges that tie the visit to them in its solves;
   // returns how many were accepted. Those that disagree with the map's poses are kept as
   // dissent against the anchor, which they may revise (ReviseAnchor).
-  int ProcessTies(const Job& job, const store::VisitRecord& visit,
-                  const store::KeyframeRecord& query,
+  int ProcessTies(const Job& job, const store::KeyframeRecord& query,
                   const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Revises the visit's anchor when its dissent outvotes it (PoseGraphOptions::
   // anchor_revision_min_matches); how many matches the new anchor rests on (0: not revised).
@@ -152,21 +162,26 @@ class PoseGraphWorker {
     store::PoseEdgeRecord edge;
     Pose T_map_visit;
   };
-  std::map<int64_t, std::vector<AnchorEstimate>> pending_anchors_;
-  // An anchored visit's matches that disagree with its anchor, each with the correction it asks
-  // for (in `T_map_visit`: the transform that would move the visit's keyframes where the match
-  // puts them), and how many matches support the anchor as it is (worker thread only).
-  std::map<int64_t, std::vector<AnchorEstimate>> dissent_;
-  // Where the floor-plan check refused to place each visit (T_map_visit): a later estimate
-  // that agrees with a refused one (kRefusedAgreementM / Deg) is refused too (worker thread
-  // only). More keyframes of the same visit seeing the same alias do not make it right: on the
-  // building world an L room's visit refused 6 times (5.8-14.7 % of its readings beyond the
-  // walls) passed at the 7th with 24 keyframes (2.6 %).
-  std::map<int64_t, std::vector<Pose>> refused_anchors_;
-  // Likewise the corrections a revision was refused by the floor-plan check for (in the
-  // visit's current frame; cleared when it is revised).
-  std::map<int64_t, std::vector<Pose>> refused_revisions_;
-  std::map<int64_t, int> support_;
+  // What the worker holds of one visit's anchoring between its keyframes (worker thread only;
+  // lost on restart).
+  struct AnchorState {
+    // Unanchored: where its keyframes' matches would put it, until two agree.
+    std::vector<AnchorEstimate> pending;
+    // Anchored: its matches that disagree with the anchor, each with the correction it asks for
+    // (in `T_map_visit`: the transform that would move the visit's keyframes where the match
+    // puts them), and how many matches support the anchor as it is (its own two, then every
+    // tie accepted since; the revision's votes after a revision).
+    std::vector<AnchorEstimate> dissent;
+    int support = 2;
+    // Where the floor-plan check refused to place the visit (T_map_visit), and the corrections
+    // it refused a revision for: a later estimate close to one of them (kRefusedAgreementM /
+    // Deg) is refused too. More keyframes of the same visit seeing the same alias do not make it
+    // right: on the building world an L room's visit refused 6 times (5.8-14.7 % of its
+    // readings beyond the walls) passed at the 7th with 24 keyframes (2.6 %).
+    std::vector<Pose> refused_anchors;
+    std::vector<Pose> refused_revisions;
+  };
+  std::map<int64_t, AnchorState> anchoring_;  // by visit id
   // The last keyframe decoded for a floor-plan check (worker thread only): a keyframe's loop and
   // tie candidates are checked one after another.
   std::unique_ptr<DecodedKeyframe> last_decoded_;

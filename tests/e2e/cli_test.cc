@@ -528,6 +528,13 @@ TEST_F(CliTest, AVisitTrackedBeforeTheVocabularyIsAnchoredWhenRetried) {
   const auto tracked = json::parse(Lines(r.out).back())["summary"];
   ASSERT_EQ(tracked["visit_frame"], "unanchored") << "no vocabulary yet: " << tracked;
   const std::string tracked_id = std::to_string(tracked["visit_id"].get<uint64_t>());
+  // A visit that is not the map's, or a map that does not exist, is named.
+  r = Run({"visits", "anchor", "m", "999"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("visit 999 is not a visit of map 'm'"), std::string::npos) << r.err;
+  r = Run({"visits", "anchor", "nope"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("nope"), std::string::npos) << r.err;
   // Asking for the map's own first visit says why not.
   r = Run({"visits", "anchor", "m", "1"});
   EXPECT_EQ(r.code, 1);

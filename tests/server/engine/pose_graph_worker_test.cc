@@ -72,6 +72,27 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return k;
   }
 
+  // A second tracked visit of `n` keyframes whose own frame is the first visit's moved by T:
+  // its keyframe i stands where the first visit's keyframe i does, in its own frame
+  // (T^-1 * the first visit's pose). Stored; returned with their ids, the visit's id in `id`.
+  std::vector<store::KeyframeRecord> SecondVisit(const Pose& T, int n, int64_t* id) {
+    auto second = store_->StartVisit("m", "", "", 2.0);
+    EXPECT_TRUE(second.ok()) << second.status();
+    if (!second.ok()) return {};
+    *id = second->id;
+    std::vector<store::KeyframeRecord> b;
+    for (int i = 0; i < n; ++i) {
+      store::KeyframeRecord k = CopiedInto(second->id, i);
+      const Pose own =
+          Pose::FromIsometry(T.ToIsometry().inverse() * keyframes_[i].T_world_camera->ToIsometry());
+      k.T_world_camera = own;
+      k.T_odom_camera = own;
+      b.push_back(k);
+    }
+    EXPECT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+    return b;
+  }
+
   // A job for keyframe `query_id` of visit `visit_id` whose one anchor candidate is a match to
   // keyframe `i` of the first visit; an anchor is reported into `anchored`.
   PoseGraphWorker::Job AnchorJob(int64_t visit_id, int64_t query_id, int i,
@@ -155,24 +176,13 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   Pose T;  // the second visit's frame in the map's
   T.translation = {2.0, 0.0, 0.0};
   T.rotation = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ());
-  auto second = store_->StartVisit("m", "", "", 2.0);
-  ASSERT_TRUE(second.ok());
-  std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 4; ++i) {
-    store::KeyframeRecord k = CopiedInto(second->id, i);
-    // Keyframe i of the second visit stands where keyframe i of the first does, in its own
-    // frame: T^-1 * (the first visit's pose).
-    const Pose own =
-        Pose::FromIsometry(T.ToIsometry().inverse() * keyframes_[i].T_world_camera->ToIsometry());
-    k.T_world_camera = own;
-    k.T_odom_camera = own;
-    b.push_back(k);
-  }
-  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  int64_t second_id = 0;
+  const std::vector<store::KeyframeRecord> b = SecondVisit(T, 4, &second_id);
+  ASSERT_EQ(b.size(), 4u);
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
   std::optional<Pose> anchored;
   auto job_for = [&](int i, const Pose& T_match_query) {
-    return AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
+    return AnchorJob(second_id, b[i].id, i, T_match_query, &anchored);
   };
   // Keyframe 0's match, then keyframe 1's that disagrees by 0.5 m: nothing yet.
   Pose off;
@@ -180,7 +190,7 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   worker.Wait(worker.Submit(job_for(0, Pose{})));
   worker.Wait(worker.Submit(job_for(1, off)));
   EXPECT_FALSE(anchored.has_value());
-  auto v = store_->GetVisit(second->id);
+  auto v = store_->GetVisit(second_id);
   ASSERT_TRUE(v.ok());
   EXPECT_FALSE(v->anchor.has_value());
   EXPECT_FALSE(v->first_of_map);
@@ -193,14 +203,14 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   ASSERT_TRUE(anchored.has_value());
   EXPECT_LT((anchored->translation - T.translation).norm(), 1e-6);
   EXPECT_LT(RotationAngleRad(*anchored, T), 1e-6);
-  v = store_->GetVisit(second->id);
+  v = store_->GetVisit(second_id);
   ASSERT_TRUE(v.ok());
   ASSERT_TRUE(v->anchor.has_value());
   EXPECT_EQ(v->anchor->to_visit_id, visit_.id);
   EXPECT_LT(v->anchor->residual_m, 1e-6);
   EXPECT_GT(v->anchor->edge_id, 0);
   // Its keyframes are in the map's frame now: where the first visit's are.
-  auto listed = store_->ListKeyframes(visit_.map_id, second->id);
+  auto listed = store_->ListKeyframes(visit_.map_id, second_id);
   ASSERT_TRUE(listed.ok());
   ASSERT_EQ(listed->size(), 4u);
   for (int i = 0; i < 4; ++i) {
@@ -225,7 +235,7 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
   worker.Wait(worker.Submit(std::move(tie)));
   EXPECT_EQ(worker.Stats().ties, 1);
   EXPECT_TRUE(corrected);
-  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  auto edges = store_->ListPoseEdges(visit_.map_id, second_id);
   ASSERT_TRUE(edges.ok());
   ASSERT_EQ(edges->size(), 3u);  // the anchor, the rejected tie, the tie
   EXPECT_FALSE((*edges)[1].accepted);
@@ -242,7 +252,7 @@ TEST_F(PoseGraphWorkerTest, ATrackedVisitIsAnchoredWhenTwoMatchesAgree) {
         1e-9)
         << "the map's first visit is held where it is";
   }
-  listed = store_->ListKeyframes(visit_.map_id, second->id);
+  listed = store_->ListKeyframes(visit_.map_id, second_id);
   ASSERT_TRUE(listed.ok());
   const double moved_x =
       (*listed)[3].T_world_camera->translation.x() - keyframes_[3].T_world_camera->translation.x();
@@ -258,22 +268,13 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
   Pose T;  // the second visit's frame in the map's (the truth)
   T.translation = {2.0, 0.0, 0.0};
   T.rotation = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ());
-  auto second = store_->StartVisit("m", "", "", 2.0);
-  ASSERT_TRUE(second.ok());
-  std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 10; ++i) {
-    store::KeyframeRecord k = CopiedInto(second->id, i);
-    const Pose own =
-        Pose::FromIsometry(T.ToIsometry().inverse() * keyframes_[i].T_world_camera->ToIsometry());
-    k.T_world_camera = own;
-    k.T_odom_camera = own;
-    b.push_back(k);
-  }
-  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  int64_t second_id = 0;
+  const std::vector<store::KeyframeRecord> b = SecondVisit(T, 10, &second_id);
+  ASSERT_EQ(b.size(), 10u);
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
   std::optional<Pose> anchored, moved_by;
   auto job_for = [&](int i, const Pose& T_match_query) {
-    PoseGraphWorker::Job job = AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
+    PoseGraphWorker::Job job = AnchorJob(second_id, b[i].id, i, T_match_query, &anchored);
     job.on_anchored = [&](const Pose& m, const Pose& t) {
       moved_by = m;
       anchored = t;
@@ -292,7 +293,7 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
   worker.Wait(worker.Submit(job_for(2, Pose{})));
   worker.Wait(worker.Submit(job_for(3, Pose{})));
   EXPECT_FALSE(anchored.has_value());
-  auto v = store_->GetVisit(second->id);
+  auto v = store_->GetVisit(second_id);
   ASSERT_TRUE(v.ok() && v->anchor);
   EXPECT_EQ(v->anchor->revisions, 0);
   // The third outvotes the anchor's two: revised to the truth.
@@ -303,12 +304,12 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
   ASSERT_TRUE(moved_by.has_value());
   EXPECT_NEAR(moved_by->translation.norm(), 1.0, 1e-6) << "moved back by the alias's metre";
   EXPECT_EQ(worker.Stats().anchors_revised, 1);
-  v = store_->GetVisit(second->id);
+  v = store_->GetVisit(second_id);
   ASSERT_TRUE(v.ok() && v->anchor);
   EXPECT_EQ(v->anchor->revisions, 1);
   EXPECT_NE(v->anchor->evidence.find("revises the anchor of visit"), std::string::npos)
       << v->anchor->evidence;
-  auto listed = store_->ListKeyframes(visit_.map_id, second->id);
+  auto listed = store_->ListKeyframes(visit_.map_id, second_id);
   ASSERT_TRUE(listed.ok());
   for (int i = 0; i < 10; ++i) {
     EXPECT_LT(((*listed)[i].T_world_camera->translation - keyframes_[i].T_world_camera->translation)
@@ -316,7 +317,7 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
               0.02)
         << "keyframe " << i << " where the truth has it";
   }
-  auto history = store_->ListAnchorRevisions(second->id);
+  auto history = store_->ListAnchorRevisions(second_id);
   ASSERT_TRUE(history.ok());
   ASSERT_EQ(history->size(), 2u);
   EXPECT_EQ((*history)[0].action, "anchored");
@@ -325,7 +326,7 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
       << (*history)[1].reason;
   EXPECT_NE((*history)[1].reason.find("against 2 that supported it"), std::string::npos)
       << (*history)[1].reason;
-  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  auto edges = store_->ListPoseEdges(visit_.map_id, second_id);
   ASSERT_TRUE(edges.ok());
   int superseded = 0, accepted = 0;
   for (const auto& e : *edges) {
