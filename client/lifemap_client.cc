@@ -269,11 +269,12 @@ class GrpcClient final : public Client {
     req.set_map(map);
     return Unary(&v1::VisitService::Stub::ListVisits, visits_.get(), req);
   }
-  absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map,
-                                                        uint64_t visit_id) override {
+  absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map, uint64_t visit_id,
+                                                        bool dry_run) override {
     v1::AnchorVisitsRequest req;
     req.set_map(map);
     req.set_visit_id(visit_id);
+    req.set_dry_run(dry_run);
     return Unary(&v1::VisitService::Stub::AnchorVisits, visits_.get(), req);
   }
 

@@ -120,9 +120,11 @@ class Client {
   virtual absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) = 0;
   virtual absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) = 0;
   // Retries anchoring the map's tracked visits not in its frame (one, or every ended one for
-  // visit_id 0) against the appearance index as it is now; blocks until judged.
+  // visit_id 0) against the appearance index as it is now; blocks until judged. A dry run
+  // stores nothing and says what each candidate match would have done.
   virtual absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map,
-                                                                uint64_t visit_id) = 0;
+                                                                uint64_t visit_id,
+                                                                bool dry_run) = 0;
 
   // Models (random forests from `lifemap train`). UploadModel sends the file in 1 MiB chunks.
   virtual absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,

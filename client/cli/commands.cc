@@ -419,6 +419,9 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                 std::cout << absl::StrFormat("%6s anchor evidence: %s\n", "",
                                              v.anchor().evidence());
               }
+              if (!v.anchor_dropped().empty()) {
+                std::cout << absl::StrFormat("%6s anchor dropped: %s\n", "", v.anchor_dropped());
+              }
             }
           });
     };
@@ -446,10 +449,17 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
   auto anchor_visit = std::make_shared<uint64_t>(0);
   anchor->add_option("MAP", *anchor_map, "map name")->required();
   anchor->add_option("VISIT", *anchor_visit, "only this visit (default: every ended one)");
-  anchor->callback([ctx, anchor_map, anchor_visit] {
-    ctx->run = [ctx, anchor_map, anchor_visit] {
+  auto anchor_dry = std::make_shared<bool>(false);
+  anchor->add_flag("--dry-run", *anchor_dry,
+                   "judge the candidates, store and anchor nothing, and show each candidate "
+                   "match's verdict");
+  anchor->callback([ctx, anchor_map, anchor_visit, anchor_dry] {
+    ctx->run = [ctx, anchor_map, anchor_visit, anchor_dry] {
       return RunCall<v1::AnchorVisitsResponse>(
-          *ctx, [&](client::Client& c) { return c.AnchorVisits(*anchor_map, *anchor_visit); },
+          *ctx,
+          [&](client::Client& c) {
+            return c.AnchorVisits(*anchor_map, *anchor_visit, *anchor_dry);
+          },
           [](const v1::AnchorVisitsResponse& r) {
             if (r.attempts().empty()) {
               std::cout << "no visit to retry: every ended tracked visit is in the map's frame\n";
@@ -460,6 +470,7 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                   a.anchored() ? absl::StrCat("anchored to visit ", a.to_visit())
                                : std::string("not anchored"),
                   a.keyframes_queried(), a.candidates(), a.reason());
+              for (const auto& v : a.verdicts()) std::cout << "  " << v << "\n";
             }
           });
     };

@@ -32,7 +32,7 @@ std::shared_future<absl::StatusOr<int64_t>> Committed(int64_t keyframe_id) {
 }
 
 AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphWorker* pose_graph,
-                    const store::VisitRecord& visit, int max_keyframes) {
+                    const store::VisitRecord& visit, bool dry_run, int max_keyframes) {
   AnchorAttempt out;
   out.visit_id = visit.id;
   auto keyframes = store->ListKeyframes(visit.map_id, visit.id);
@@ -51,6 +51,7 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
   const LoopClosureStats before = pose_graph->Stats();
   std::string last_error;
   uint64_t ticket = 0;
+  auto dry = dry_run ? std::make_shared<PoseGraphWorker::Job::DryRun>() : nullptr;
   for (const store::KeyframeRecord* k : queried) {
     auto features = store->GetKeyframeFeatures(k->id);
     if (!features.ok()) {
@@ -70,12 +71,26 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
     job.visit_id = visit.id;
     job.committed = Committed(k->id);
     job.visit_ended = true;
+    job.dry_run = dry;
     job.anchors = AnchorCandidatesOf(*recognition, visit.map_id, visit.id);
     if (job.anchors.empty()) continue;
     out.candidates += static_cast<int>(job.anchors.size());
     ticket = pose_graph->Submit(std::move(job));
   }
   if (ticket != 0) pose_graph->Wait(ticket);
+  if (dry) {
+    out.verdicts = dry->verdicts;
+    const auto would = std::find_if(out.verdicts.begin(), out.verdicts.end(), [](const auto& v) {
+      return v.find("would anchor it") != std::string::npos;
+    });
+    out.reason =
+        would != out.verdicts.end()
+            ? absl::StrCat("dry run: would anchor (", *would, ")")
+            : absl::StrCat("dry run: would not anchor: ", out.candidates,
+                           " candidate matches from ", out.keyframes_queried, " keyframes queried",
+                           last_error.empty() ? "" : absl::StrCat("; ", last_error));
+    return out;
+  }
   auto after = store->GetVisit(visit.id);
   if (after.ok() && after->anchor) {
     out.anchored = true;
@@ -104,7 +119,8 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
 absl::StatusOr<std::vector<AnchorAttempt>> RetryAnchors(store::Store* store,
                                                         AppearanceIndex* appearance,
                                                         PoseGraphWorker* pose_graph, int64_t map_id,
-                                                        int64_t visit_id, int max_keyframes) {
+                                                        int64_t visit_id, bool dry_run,
+                                                        int max_keyframes) {
   auto map = store->GetMapById(map_id);
   if (!map.ok()) return map.status();
   auto visits = store->ListVisits(map->name);
@@ -121,7 +137,7 @@ absl::StatusOr<std::vector<AnchorAttempt>> RetryAnchors(store::Store* store,
       }
       continue;
     }
-    out.push_back(Retry(store, appearance, pose_graph, v, max_keyframes));
+    out.push_back(Retry(store, appearance, pose_graph, v, dry_run, max_keyframes));
     spdlog::info("visit {}: anchor retried: {}", v.id, out.back().reason);
   }
   if (!found) {

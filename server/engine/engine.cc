@@ -130,13 +130,14 @@ Engine::~Engine() {
   p.store.reset();
 }
 
-absl::StatusOr<std::vector<AnchorAttempt>> Engine::RetryAnchors(int64_t map_id, int64_t visit_id) {
+absl::StatusOr<std::vector<AnchorAttempt>> Engine::RetryAnchors(int64_t map_id, int64_t visit_id,
+                                                                bool dry_run) {
   Parts& p = *parts_;
   absl::StatusOr<std::vector<AnchorAttempt>> out = absl::InternalError("not run");
   // On the retries' worker, after any retry a new vocabulary queued: one at a time.
   p.anchor_retries->Wait(p.anchor_retries->Submit([&] {
     out = server::RetryAnchors(p.store.get(), p.appearance.get(), p.pose_graph.get(), map_id,
-                               visit_id);
+                               visit_id, dry_run);
   }));
   return out;
 }

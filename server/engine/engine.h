@@ -55,8 +55,9 @@ class Engine {
 
   // Retries anchoring map `map_id`'s visits not in its frame (one, or every ended one for 0;
   // anchor_retry.h), after any retry the engine queued itself (each new appearance vocabulary
-  // queues one for every map). Blocks until done.
-  absl::StatusOr<std::vector<AnchorAttempt>> RetryAnchors(int64_t map_id, int64_t visit_id);
+  // queues one for every map). Blocks until done. A dry run stores nothing (anchor_retry.h).
+  absl::StatusOr<std::vector<AnchorAttempt>> RetryAnchors(int64_t map_id, int64_t visit_id,
+                                                          bool dry_run = false);
 
   const EngineOptions& options() const { return options_; }
   store::Store* store() const;

@@ -528,7 +528,14 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
     p.commit =
         parts_.committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count}).share();
-    if (!loops.empty() || !anchors.empty()) {
+    // An anchored visit's keyframes go to the worker even without candidates: its anchor is
+    // re-checked as the visit grows (PoseGraphWorker::RecheckAnchor).
+    bool anchored = false;
+    if (close_loops) {
+      absl::MutexLock correction(&visit_state->correction_mu);
+      anchored = visit_state->T_map_visit.has_value();
+    }
+    if (!loops.empty() || !anchors.empty() || anchored) {
       PoseGraphWorker::Job job;
       job.map_id = visit->map_id;
       job.visit_id = visit->visit_id;
@@ -539,8 +546,8 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
         absl::MutexLock correction(&visit_state->correction_mu);
         visit_state->world_from_odom = world_from_odom;
       };
-      job.on_anchored = [visit_state, architecture = parts_.architecture](const Pose& moved_by,
-                                                                          const Pose& T_map_visit) {
+      job.on_anchored = [visit_state, architecture = parts_.architecture](
+                            const Pose& moved_by, const std::optional<Pose>& T_map_visit) {
         {
           absl::MutexLock correction(&visit_state->correction_mu);
           visit_state->world_from_odom =

@@ -17,6 +17,7 @@
 #include "core/place/serialize.h"
 #include "core/posegraph/pose_graph.h"
 #include "server/engine/clock.h"
+#include "server/engine/visit_frame.h"
 
 namespace lifemap::server {
 
@@ -103,6 +104,12 @@ const store::KeyframeRecord* FindKeyframe(const std::vector<store::KeyframeRecor
   return it != by_id.end() && it->id == id ? &*it : nullptr;
 }
 
+// How many of `keyframes` are posed.
+size_t PosedCount(const std::vector<store::KeyframeRecord>& keyframes) {
+  return static_cast<size_t>(std::count_if(keyframes.begin(), keyframes.end(),
+                                           [](const auto& k) { return k.T_world_camera; }));
+}
+
 // The architecture check of anchors and loops: at most this many keyframes of a visit are
 // placed in a plan (spread over the visit; each costs a depth decode and ~1 ms of rays).
 constexpr size_t kLayoutKeyframes = 24;
@@ -125,7 +132,10 @@ std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRe
 // where it has none (yet), its map's first visit's (every visit in the map's frame shares it).
 std::optional<std::pair<place::FloorPlan, int64_t>> PlanToCheck(
     store::Store* store, const store::VisitRecord& to_visit) {
-  if (auto plan = PlanOf(store, to_visit)) return std::make_pair(*std::move(plan), to_visit.id);
+  // A visit whose anchor was dropped has its plan in its own frame: not the map's.
+  if (MapFromVisit(to_visit)) {
+    if (auto plan = PlanOf(store, to_visit)) return std::make_pair(*std::move(plan), to_visit.id);
+  }
   if (to_visit.first_of_map) return std::nullopt;
   auto visits = store->ListVisits(to_visit.map_name);
   if (!visits.ok()) return std::nullopt;
@@ -328,6 +338,16 @@ void PoseGraphWorker::Process(Job job) {
   // An unanchored visit's matches to other visits may anchor it; an anchored visit's tie it to
   // them in its pose graph.
   const bool was_anchored = visit->anchor.has_value();
+  if (job.dry_run) {
+    if (was_anchored) {
+      job.dry_run->verdicts.push_back(absl::StrCat("keyframe ", query_id,
+                                                   ": the visit is anchored (to visit ",
+                                                   visit->anchor->to_visit_id, ")"));
+    } else {
+      ProcessAnchors(job, *visit, *query, *keyframes);
+    }
+    return;
+  }
   const bool anchored =
       !was_anchored && !job.anchors.empty() && ProcessAnchors(job, *visit, *query, *keyframes);
   // An anchor just moved the visit's poses: the checks and the solve read them again.
@@ -371,7 +391,9 @@ void PoseGraphWorker::Process(Job job) {
   }
   if (was_anchored) {
     accepted += ProcessTies(job, *query, *keyframes);
-    if (const int revised = ReviseAnchor(job, *visit, *keyframes); revised > 0) {
+    const int revised = ReviseAnchor(job, *visit, *keyframes);
+    // A revision checked the plan with every keyframe; otherwise the anchor may be re-checked.
+    if (revised > 0 || RecheckAnchor(job, *visit, *keyframes)) {
       // The keyframes moved: the solve reads them again.
       keyframes = KeyframesById(store_, job.map_id, job.visit_id);
       if (!keyframes.ok()) return;
@@ -514,15 +536,28 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
   for (const auto& v : *visits) by_id[v.id] = &v;
   // The matched visits' keyframes (poses, no images), read once per visit.
   std::map<int64_t, std::vector<store::KeyframeRecord>> matched_visits;
-  AnchorState& state = anchoring_[job.visit_id];
+  const bool dry = job.dry_run != nullptr;
+  if (dry && !job.dry_run->state) job.dry_run->state = std::make_shared<AnchorState>();
+  AnchorState& state = dry ? *job.dry_run->state : anchoring_[job.visit_id];
   std::vector<AnchorEstimate>& pending = state.pending;
+  // A dry run says what became of each candidate.
+  auto verdict = [&](const AnchorCandidate& c, const std::string& what) {
+    if (dry) {
+      job.dry_run->verdicts.push_back(absl::StrCat("keyframe ", query.id, " -> keyframe ",
+                                                   c.match.keyframe_id, " of visit ", c.visit_id,
+                                                   ": ", what));
+    }
+  };
   for (const AnchorCandidate& c : job.anchors) {
-    {
+    if (!dry) {
       absl::MutexLock lock(&mu_);
       ++stats_.anchor_candidates;
     }
     const LoopCandidate& m = c.match;
-    if (!WeakMatchReason(m, options_).empty()) continue;
+    if (const std::string weak = WeakMatchReason(m, options_); !weak.empty()) {
+      verdict(c, weak);
+      continue;
+    }
     auto it = by_id.find(c.visit_id);
     if (it == by_id.end() || c.visit_id == job.visit_id) continue;
     if (!matched_visits.count(c.visit_id)) {
@@ -533,7 +568,10 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     const store::KeyframeRecord* matched = FindKeyframe(matched_visits[c.visit_id], m.keyframe_id);
     if (matched == nullptr || !matched->T_world_camera) continue;
     // A tracked visit not anchored yet is not in the map's frame: nothing to anchor to.
-    if (!InMapFrame(*it->second, *matched)) continue;
+    if (!InMapFrame(*it->second, *matched)) {
+      verdict(c, "that visit is not in the map's frame");
+      continue;
+    }
     const Eigen::Isometry3d T_map_query =
         matched->T_world_camera->ToIsometry() * m.T_match_query.ToIsometry();
     AnchorEstimate estimate;
@@ -543,33 +581,52 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
         Pose::FromIsometry(T_map_query * query.T_world_camera->ToIsometry().inverse());
     estimate.edge = EdgeOf(job.map_id, store::StoredEdgeKind::kAnchor, m, query.id);
     estimate.edge.accepted = true;
-    if (SameAsRefused(state.refused_anchors, estimate.T_map_visit)) continue;
+    const std::string placed = absl::StrFormat(
+        "puts the visit at (%.2f, %.2f, %.2f) m, %.1f deg; ", estimate.T_map_visit.translation.x(),
+        estimate.T_map_visit.translation.y(), estimate.T_map_visit.translation.z(),
+        Eigen::AngleAxisd(estimate.T_map_visit.rotation).angle() * kRadToDeg);
+    if (SameAsRefused(state.refused_anchors, estimate.T_map_visit)) {
+      verdict(c, placed + "where the floor-plan check refused it before");
+      continue;
+    }
     // Two matches from different keyframes of the visit must agree: one match can be an alias.
+    bool agreed = false;  // with another keyframe's match: judged below, and said so
     for (const AnchorEstimate& other : pending) {
       if (other.query_keyframe == query.id) continue;
       const double off_m =
           (other.T_map_visit.translation - estimate.T_map_visit.translation).norm();
       const double off_deg = RotationAngleRad(other.T_map_visit, estimate.T_map_visit) * kRadToDeg;
       if (!AnchorsAgree(other.T_map_visit, estimate.T_map_visit)) continue;
+      agreed = true;
       // Both matches may be to furniture that another place shares: the visit's keyframes,
       // placed in the map by them, must agree with the matched visit's floor plan.
       const std::optional<std::string> checked = CheckAnchorLayout(
           job, *it->second, estimate.T_map_visit, visit_keyframes, &estimate.edge.reason);
-      if (!checked) break;  // too few keyframes to check yet: kept pending, decided later
+      if (!checked) {  // too few keyframes to check yet: kept pending, decided later
+        verdict(c, placed + "agrees with keyframe " + std::to_string(other.query_keyframe) +
+                       "'s match; too few keyframes for the floor-plan check yet");
+        break;
+      }
       const std::string& layout = *checked;
       if (!layout.empty()) {
         estimate.edge.accepted = false;
         estimate.edge.reason = layout;
-        if (auto id = store_->InsertPoseEdge(estimate.edge); !id.ok()) {
-          spdlog::warn("visit {}: anchor edge not stored: {}", job.visit_id,
-                       id.status().ToString());
+        verdict(c, absl::StrCat(placed, "agrees with keyframe ", other.query_keyframe,
+                                "'s match; refused: the visit ", layout));
+        if (!dry) {
+          if (auto id = store_->InsertPoseEdge(estimate.edge); !id.ok()) {
+            spdlog::warn("visit {}: anchor edge not stored: {}", job.visit_id,
+                         id.status().ToString());
+          }
+          spdlog::info("visit {}: anchor to visit {} rejected: {}", job.visit_id, estimate.to_visit,
+                       layout);
         }
-        spdlog::info("visit {}: anchor to visit {} rejected: {}", job.visit_id, estimate.to_visit,
-                     layout);
         // Every pending match that agrees with this one is as wrong, and so are later ones.
         Refuse(estimate.T_map_visit, &state.refused_anchors, &pending);
-        absl::MutexLock lock(&mu_);
-        ++stats_.anchors_rejected;
+        if (!dry) {
+          absl::MutexLock lock(&mu_);
+          ++stats_.anchors_rejected;
+        }
         break;
       }
       store::VisitAnchor anchor;
@@ -583,6 +640,11 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
           "deg; %s",
           job.visit_id, estimate.to_visit, other.query_keyframe, off_m, off_deg,
           estimate.edge.reason);
+      if (dry) {
+        verdict(c, placed + "would anchor it: " + estimate.edge.reason);
+        state = AnchorState{};  // as anchored: later candidates are judged afresh
+        return false;
+      }
       if (auto s = store_->AnchorVisit(job.visit_id, estimate.edge, &anchor); !s.ok()) {
         spdlog::warn("visit {}: not anchored: {}", job.visit_id, s.ToString());
         return false;
@@ -590,6 +652,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       spdlog::info("visit {} anchored to visit {} of map '{}' (residual {:.3f} m / {:.2f} deg)",
                    job.visit_id, anchor.to_visit_id, visit.map_name, off_m, off_deg);
       state = AnchorState{};  // anchored: supported by its two matches, no dissent yet
+      state.checked_keyframes = PosedCount(visit_keyframes);
       {
         absl::MutexLock lock(&mu_);
         ++stats_.anchors;
@@ -597,6 +660,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       if (job.on_anchored) job.on_anchored(anchor.T_map_visit, anchor.T_map_visit);
       return true;
     }
+    if (!agreed) verdict(c, placed + "no other keyframe's match agrees (yet)");
     if (pending.size() < kMaxPendingAnchors && estimate.edge.accepted) {
       pending.push_back(std::move(estimate));
     }
@@ -681,12 +745,57 @@ int PoseGraphWorker::ReviseAnchor(const Job& job, const store::VisitRecord& visi
   dissent.clear();
   state.refused_revisions.clear();
   state.support = votes;
+  state.checked_keyframes = PosedCount(visit_keyframes);
   {
     absl::MutexLock lock(&mu_);
     ++stats_.anchors_revised;
   }
   if (job.on_anchored) job.on_anchored(T_moved_by, anchor.T_map_visit);
   return votes;
+}
+
+bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& visit,
+                                    const std::vector<store::KeyframeRecord>& visit_keyframes) {
+  if (!visit.anchor) return false;
+  AnchorState& state = anchoring_[job.visit_id];
+  const size_t posed = PosedCount(visit_keyframes);
+  if (state.checked_keyframes == 0) {  // anchored before this run: counted from here
+    state.checked_keyframes = posed;
+    return false;
+  }
+  if (posed < 2 * state.checked_keyframes) return false;
+  auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
+  if (!to_visit.ok()) return false;
+  std::string evidence;
+  // The stored keyframes are in the map's frame already.
+  const std::optional<std::string> layout =
+      CheckAnchorLayout(job, *to_visit, Pose{}, visit_keyframes, &evidence);
+  if (!layout) return false;
+  const size_t checked_before = state.checked_keyframes;
+  state.checked_keyframes = posed;
+  if (layout->empty()) return false;
+  const std::string reason = absl::StrFormat(
+      "re-checked with %d keyframes (anchored or last checked with %d), the visit %s", posed,
+      checked_before, *layout);
+  auto dropped = store_->DropAnchor(job.visit_id, reason, NowSeconds());
+  if (!dropped.ok()) {
+    spdlog::warn("visit {}: anchor not dropped: {}", job.visit_id, dropped.status().ToString());
+    return false;
+  }
+  spdlog::info("visit {}: anchor to visit {} dropped: {}", job.visit_id, to_visit->id, reason);
+  // Unanchored again: it may be anchored anew, but not where it was.
+  std::vector<Pose> refused = std::move(state.refused_anchors);
+  state = AnchorState{};
+  state.refused_anchors = std::move(refused);
+  Refuse(*dropped, &state.refused_anchors, &state.pending);
+  {
+    absl::MutexLock lock(&mu_);
+    ++stats_.anchors_dropped;
+  }
+  if (job.on_anchored) {
+    job.on_anchored(Pose::FromIsometry(dropped->ToIsometry().inverse()), std::nullopt);
+  }
+  return true;
 }
 
 std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(

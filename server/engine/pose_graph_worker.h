@@ -79,10 +79,13 @@ struct LoopClosureStats {
   int64_t ties = 0;              // edges tying an anchored visit to other visits of its map
   int64_t ties_rejected = 0;
   int64_t anchors_revised = 0;  // anchors moved by later matches that outvoted them
+  int64_t anchors_dropped = 0;  // anchors the visit's later keyframes contradicted (RecheckAnchor)
 };
 
 // Thread-safe.
 class PoseGraphWorker {
+  struct AnchorState;
+
  public:
   PoseGraphWorker(store::Store* store, PoseGraphOptions options);
   // Finishes every queued job, then stops.
@@ -100,13 +103,23 @@ class PoseGraphWorker {
     // The visit has ended (an anchor retry, anchor_retry.h): the floor-plan check of an anchor
     // does not wait for more keyframes than it has.
     bool visit_ended = false;
+    // A dry run (`lifemap visits anchor --dry-run`): the anchor candidates are judged as
+    // always, against a state of the dry run's own (kept across its jobs), but nothing is
+    // stored, anchored or counted; each candidate's verdict is appended to `verdicts`. Shared
+    // by the dry run's jobs; read only after Wait.
+    struct DryRun {
+      std::vector<std::string> verdicts;
+      std::shared_ptr<AnchorState> state;  // the worker's
+    };
+    std::shared_ptr<DryRun> dry_run;
     // Called on the worker's thread after a solve with the visit's new correction
     // (T_world_odom: its odometry frame in its corrected frame).
     std::function<void(const Pose&)> on_corrected;
-    // Called on the worker's thread once the visit is anchored or its anchor revised, with the
-    // transform its stored keyframes were moved by (left-multiplied; later frames must be too)
-    // and its T_map_visit now (its frame in the map's). On the first anchor the two are equal.
-    std::function<void(const Pose& moved_by, const Pose& T_map_visit)> on_anchored;
+    // Called on the worker's thread once the visit is anchored, its anchor revised or dropped,
+    // with the transform its stored keyframes were moved by (left-multiplied; later frames must
+    // be too) and its T_map_visit now (its frame in the map's; nullopt once dropped). On the
+    // first anchor the two are equal; on a drop `moved_by` is the old T_map_visit⁻¹.
+    std::function<void(const Pose& moved_by, const std::optional<Pose>& T_map_visit)> on_anchored;
   };
   // Queues a job; returns its ticket for Wait().
   uint64_t Submit(Job job);
@@ -138,6 +151,12 @@ class PoseGraphWorker {
   // anchor_revision_min_matches); how many matches the new anchor rests on (0: not revised).
   int ReviseAnchor(const Job& job, const store::VisitRecord& visit,
                    const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // Re-checks an anchored visit's placement against the floor plan of the visit it is anchored
+  // to each time its posed keyframes have doubled since the last check, and drops the anchor
+  // (Store::DropAnchor) when they disagree: an anchor accepted on 7 keyframes can be
+  // contradicted by the next 10 (RESULTS.md, building seed 12). True when it was dropped.
+  bool RecheckAnchor(const Job& job, const store::VisitRecord& visit,
+                     const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
   // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
   // odometry, or the map's stored poses) up to the drift allowed over `path_m`; and, where
@@ -180,6 +199,9 @@ class PoseGraphWorker {
     // readings beyond the walls) passed at the 7th with 24 keyframes (2.6 %).
     std::vector<Pose> refused_anchors;
     std::vector<Pose> refused_revisions;
+    // Anchored: how many posed keyframes the visit had when its placement was last checked
+    // against the floor plan (0: not in this run; the next job sets it).
+    size_t checked_keyframes = 0;
   };
   std::map<int64_t, AnchorState> anchoring_;  // by visit id
   // The last keyframe decoded for a floor-plan check (worker thread only): a keyframe's loop and

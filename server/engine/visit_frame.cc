@@ -19,9 +19,13 @@ absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::
       out.in_map_frame.insert(v.id);
     } else {
       out.left_out.push_back(
-          absl::StrCat("visit ", v.id,
-                       ": tracked and not anchored in the map's frame yet (its poses are in "
-                       "its own frame)"));
+          v.anchor_dropped.empty()
+              ? absl::StrCat("visit ", v.id,
+                             ": tracked and not anchored in the map's frame yet (its poses are "
+                             "in its own frame)")
+              : absl::StrCat("visit ", v.id,
+                             ": its anchor was dropped (its poses are in its own frame again): ",
+                             v.anchor_dropped));
     }
   }
   return out;

@@ -230,6 +230,7 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
     out->set_frame(v1::VISIT_FRAME_MAP);
   } else {
     out->set_frame(v1::VISIT_FRAME_UNANCHORED);
+    out->set_anchor_dropped(ToValidUtf8(v.anchor_dropped));
   }
 }
 

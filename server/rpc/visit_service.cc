@@ -1,6 +1,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "core/common/utf8.h"
 #include "server/engine/anchor_retry.h"
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/semantic_export.h"
@@ -84,7 +85,7 @@ grpc::Status VisitServiceImpl::AnchorVisits(grpc::ServerContext* context,
   if (!map.ok()) return ToGrpcStatus(map.status());
   const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
   if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
-  auto attempts = ctx_->engine->RetryAnchors(map->id, *visit_id);
+  auto attempts = ctx_->engine->RetryAnchors(map->id, *visit_id, req->dry_run());
   if (!attempts.ok()) return ToGrpcStatus(attempts.status());
   for (const AnchorAttempt& a : *attempts) {
     v1::AnchorAttempt* out = resp->add_attempts();
@@ -93,7 +94,8 @@ grpc::Status VisitServiceImpl::AnchorVisits(grpc::ServerContext* context,
     out->set_to_visit(static_cast<uint64_t>(a.to_visit));
     out->set_keyframes_queried(static_cast<uint32_t>(a.keyframes_queried));
     out->set_candidates(static_cast<uint32_t>(a.candidates));
-    out->set_reason(a.reason);
+    out->set_reason(ToValidUtf8(a.reason));
+    for (const std::string& v : a.verdicts) out->add_verdicts(ToValidUtf8(v));
   }
   return grpc::Status::OK;
 }

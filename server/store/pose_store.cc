@@ -77,6 +77,9 @@ absl::Status MoveVisitKeyframesLocked(Database* db, int64_t visit_id, const Pose
   return absl::OkStatus();
 }
 
+absl::Status AppendAnchorHistoryLocked(Database* db, int64_t visit_id, const VisitAnchor& anchor,
+                                       const char* action, const std::string& reason);
+
 // Writes `anchor` into the visit's row and appends `action` to its history, on `db` within the
 // caller's transaction.
 absl::Status RecordAnchorLocked(Database* db, int64_t visit_id, const VisitAnchor& anchor,
@@ -94,6 +97,13 @@ absl::Status RecordAnchorLocked(Database* db, int64_t visit_id, const VisitAncho
     s->Bind(12, anchor.anchored_time_s).Bind(13, visit_id);
     if (auto st = s->Run(); !st.ok()) return st;
   }
+  return AppendAnchorHistoryLocked(db, visit_id, anchor, action, reason);
+}
+
+// Appends `action` on `anchor` (its time, visit, edge and pose) to the visit's anchor history,
+// on `db` within the caller's transaction.
+absl::Status AppendAnchorHistoryLocked(Database* db, int64_t visit_id, const VisitAnchor& anchor,
+                                       const char* action, const std::string& reason) {
   auto history = db->Prepare(
       "INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, map_tx, "
       "map_ty, map_tz, map_qx, map_qy, map_qz, map_qw, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, "
@@ -104,6 +114,19 @@ absl::Status RecordAnchorLocked(Database* db, int64_t visit_id, const VisitAncho
   s->Bind(4, anchor.to_visit_id).Bind(5, anchor.edge_id);
   BindPose(&*s, 6, anchor.T_map_visit);
   s->Bind(13, reason);
+  return s->Run();
+}
+
+// Marks the visit's accepted anchor and tie edges (kind anchor) rejected, `prefix` put before
+// their reason, on `db` within the caller's transaction.
+absl::Status SupersedeAnchorEdgesLocked(Database* db, int64_t visit_id, const std::string& prefix) {
+  auto supersede = db->Prepare(
+      "UPDATE pose_edges SET accepted = 0, reason = ?1 || reason WHERE kind = ?2 AND "
+      "accepted = 1 AND to_keyframe IN (SELECT id FROM keyframes WHERE visit_id = ?3)");
+  if (!supersede.ok()) return supersede.status();
+  StatementScope s(*supersede);
+  s->Bind(1, prefix);
+  s->Bind(2, static_cast<int64_t>(StoredEdgeKind::kAnchor)).Bind(3, visit_id);
   return s->Run();
 }
 
@@ -165,16 +188,10 @@ absl::Status Store::ReviseAnchor(int64_t visit_id, const Pose& T_moved_by,
     return absl::FailedPreconditionError(
         absl::StrCat("visit ", visit_id, " is not anchored: there is no anchor to revise"));
   }
-  {
-    // kind 3: anchor and tie edges (StoredEdgeKind::kAnchor).
-    auto supersede = db->Prepare(
-        "UPDATE pose_edges SET accepted = 0, reason = ?1 || reason WHERE kind = ?2 AND "
-        "accepted = 1 AND to_keyframe IN (SELECT id FROM keyframes WHERE visit_id = ?3)");
-    if (!supersede.ok()) return supersede.status();
-    StatementScope s(*supersede);
-    s->Bind(1, absl::StrCat("superseded by anchor revision (", reason, "): "));
-    s->Bind(2, static_cast<int64_t>(StoredEdgeKind::kAnchor)).Bind(3, visit_id);
-    if (auto st = s->Run(); !st.ok()) return st;
+  if (auto s = SupersedeAnchorEdgesLocked(
+          db, visit_id, absl::StrCat("superseded by anchor revision (", reason, "): "));
+      !s.ok()) {
+    return s;
   }
   for (size_t i = 0; i < edges.size(); ++i) {
     auto id = InsertEdgeLocked(db, edges[i]);
@@ -184,6 +201,48 @@ absl::Status Store::ReviseAnchor(int64_t visit_id, const Pose& T_moved_by,
   if (auto s = RecordAnchorLocked(db, visit_id, *anchor, "revised", reason); !s.ok()) return s;
   if (auto s = MoveVisitKeyframesLocked(db, visit_id, T_moved_by); !s.ok()) return s;
   return tx.Commit();
+}
+
+absl::StatusOr<Pose> Store::DropAnchor(int64_t visit_id, const std::string& reason, double time_s) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto visit = impl_->GetVisitLocked(db, visit_id);
+  if (!visit.ok()) return visit.status();
+  if (!visit->anchor) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("visit ", visit_id, " is not anchored: there is no anchor to drop"));
+  }
+  const VisitAnchor dropped = *visit->anchor;
+  if (auto s =
+          SupersedeAnchorEdgesLocked(db, visit_id, absl::StrCat("anchor dropped (", reason, "): "));
+      !s.ok()) {
+    return s;
+  }
+  {
+    auto clear = db->Prepare(
+        "UPDATE visits SET anchor_visit_id = NULL, anchor_edge_id = NULL, map_tx = NULL, map_ty = "
+        "NULL, map_tz = NULL, map_qx = NULL, map_qy = NULL, map_qz = NULL, map_qw = NULL, "
+        "anchor_residual_m = NULL, anchor_residual_deg = NULL, anchored_time_s = NULL WHERE id = "
+        "?1");
+    if (!clear.ok()) return clear.status();
+    StatementScope s(*clear);
+    s->Bind(1, visit_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  VisitAnchor history = dropped;
+  history.anchored_time_s = time_s;
+  if (auto s = AppendAnchorHistoryLocked(db, visit_id, history, "dropped", reason); !s.ok()) {
+    return s;
+  }
+  if (auto s = MoveVisitKeyframesLocked(
+          db, visit_id, Pose::FromIsometry(dropped.T_map_visit.ToIsometry().inverse()));
+      !s.ok()) {
+    return s;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return dropped.T_map_visit;
 }
 
 absl::StatusOr<std::vector<AnchorRevision>> Store::ListAnchorRevisions(int64_t visit_id) {

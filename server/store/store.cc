@@ -565,6 +565,7 @@ VisitRecord ReadVisit(const Statement& s) {
   }
   v.tracked_keyframes = s.ColumnInt(25);
   v.first_of_map = s.ColumnInt(26) != 0;
+  v.anchor_dropped = s.ColumnText(29);
   return v;
 }
 
@@ -582,7 +583,10 @@ constexpr char kVisitSelect[] =
     "v.anchored_time_s, (SELECT COUNT(*) FROM keyframes k WHERE k.visit_id = v.id AND "
     "k.odom_tx IS NOT NULL), v.id = (SELECT MIN(w.id) FROM visits w WHERE w.map_id = v.map_id), "
     "(SELECT COUNT(*) FROM anchor_revisions r WHERE r.visit_id = v.id AND r.action = 'revised'), "
-    "COALESCE((SELECT e.reason FROM pose_edges e WHERE e.id = v.anchor_edge_id), '') "
+    "COALESCE((SELECT e.reason FROM pose_edges e WHERE e.id = v.anchor_edge_id), ''), "
+    "CASE WHEN v.anchor_visit_id IS NULL THEN COALESCE((SELECT r.reason FROM anchor_revisions r "
+    "WHERE r.visit_id = v.id AND r.action = 'dropped' ORDER BY r.id DESC LIMIT 1), '') ELSE '' "
+    "END "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =

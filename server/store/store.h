@@ -76,10 +76,10 @@ struct AnchorRevision {
   int64_t id = 0;
   int64_t visit_id = 0;
   double time_s = 0;
-  std::string action;  // "anchored" | "revised"
+  std::string action;  // "anchored" | "revised" | "dropped"
   int64_t to_visit_id = 0;
   int64_t edge_id = 0;  // the anchor edge it rests on (0: none recorded)
-  Pose T_map_visit;     // after this entry
+  Pose T_map_visit;     // after this entry ("dropped": the anchor that was dropped)
   std::string reason;
 };
 
@@ -106,6 +106,8 @@ struct VisitRecord {
   std::optional<VisitAnchor> anchor;
   int64_t tracked_keyframes = 0;  // keyframes posed by the server's tracker
   bool first_of_map = false;      // the map's first visit: its frame is the map's
+  // Why the visit's latest anchor was dropped (issue 35), while it is unanchored; else empty.
+  std::string anchor_dropped;
 };
 
 enum class StoredColorEncoding : int { kJpeg = 1, kPng = 2 };
@@ -461,6 +463,14 @@ class Store {
   absl::Status ReviseAnchor(int64_t visit_id, const Pose& T_moved_by,
                             const std::vector<PoseEdgeRecord>& edges, const std::string& reason,
                             VisitAnchor* anchor);
+  // Drops an anchored visit's anchor (issue 35: a later check found it wrong), in one
+  // transaction: its accepted anchor and tie edges are marked rejected ("anchor dropped:
+  // <reason>"), its posed keyframes move back into its own frame (T_map_visit⁻¹ * pose), its
+  // anchor is cleared and the history gains a "dropped" entry at `time_s` with `reason`.
+  // Returns the T_map_visit dropped. FAILED_PRECONDITION for a visit that is not anchored,
+  // NOT_FOUND for one that does not exist. A kill leaves the poses before or after, never
+  // between.
+  absl::StatusOr<Pose> DropAnchor(int64_t visit_id, const std::string& reason, double time_s);
   // A visit's anchor history, oldest first.
   absl::StatusOr<std::vector<AnchorRevision>> ListAnchorRevisions(int64_t visit_id);
   // A map's solves (of one visit, or all for 0), oldest first.

@@ -549,6 +549,9 @@ TEST_F(CliTest, AVisitTrackedBeforeTheVocabularyIsAnchoredWhenRetried) {
   const json attempt = json::parse(r.out)["attempts"][0];
   EXPECT_GT(attempt.value("keyframes_queried", 0), 1) << attempt;
   EXPECT_FALSE(attempt.value("anchored", true)) << attempt;
+  r = Run({"visits", "anchor", "m", tracked_id, "--dry-run"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("dry run: would not anchor"), std::string::npos) << r.out;
   // A new vocabulary retries every unanchored visit by itself; an operator's retry waits
   // behind it and finds the visit anchored.
   ASSERT_EQ(Run({"places", "index", "rebuild", "--retrain"}).code, 0);

@@ -827,8 +827,8 @@ TEST(SemanticSnapshotStore, AKillWhileASnapshotIsWrittenLeavesThePreviousOneWhol
 
 // Issue 35: an anchor revision is one transaction. One that fails part-way (an edge to a
 // keyframe that is gone) changes nothing; and a kill while revisions are written leaves the
-// visit's keyframes, its anchor and its history all at the same revision.
-TEST(StoreKills, AKillDuringAnAnchorRevisionLeavesTheLastConsistentPoses) {
+// visit's keyframes, its anchor and its history all at the same revision; so does a drop.
+TEST(StoreKills, AKillDuringAnAnchorRevisionOrDropLeavesTheLastConsistentPoses) {
   testing::TempDir tmp;
   int64_t visit_id = 0, reference_keyframe = 0;
   std::vector<int64_t> keyframe_ids;
@@ -920,6 +920,60 @@ TEST(StoreKills, AKillDuringAnAnchorRevisionLeavesTheLastConsistentPoses) {
       }
     }
     return revisions - 1;  // the last n written whole
+  });
+
+  // Drops and anchors in turn (n even: the anchor dropped, its keyframes back in the visit's
+  // own frame at x = 0; n odd: anchored anew at x = 1): after a kill, the keyframes, the visit
+  // and the history's last entry agree.
+  size_t base = 0;
+  {
+    auto store = Store::Open(tmp.File("db"));
+    ASSERT_TRUE(store.ok());
+    base = (*store)->ListAnchorRevisions(visit_id)->size();
+    EXPECT_TRUE(absl::IsNotFound((*store)->DropAnchor(999999, "test", 1.0).status()));
+  }
+  auto drop_or_anchor = [&](Store& s, int64_t n) -> absl::Status {
+    if (n % 2 == 0) return s.DropAnchor(visit_id, absl::StrCat("test drop ", n), 1.0).status();
+    PoseEdgeRecord edge;
+    edge.map_id = 1;
+    edge.kind = StoredEdgeKind::kAnchor;
+    edge.from_keyframe = reference_keyframe;
+    edge.to_keyframe = keyframe_ids[0];
+    edge.accepted = true;
+    edge.reason = absl::StrCat("anchor ", n);
+    VisitAnchor anchor;
+    anchor.to_visit_id = 1;
+    anchor.T_map_visit.translation = {1.0, 0, 0};
+    return s.AnchorVisit(visit_id, edge, &anchor);
+  };
+  KillWhileWriting(tmp.File("db"), {150, 400, 900}, drop_or_anchor, [&](Store& s) -> int64_t {
+    auto history = s.ListAnchorRevisions(visit_id);
+    EXPECT_TRUE(history.ok()) << history.status();
+    if (!history.ok() || history->size() < base) return -1;
+    const int64_t done = static_cast<int64_t>(history->size() - base);
+    auto visit = s.GetVisit(visit_id);
+    EXPECT_TRUE(visit.ok());
+    if (!visit.ok() || done == 0) return -1;
+    const bool dropped = history->back().action == "dropped";
+    EXPECT_EQ(dropped, done % 2 == 1);
+    EXPECT_EQ(visit->anchor.has_value(), !dropped);
+    EXPECT_EQ(visit->anchor_dropped.empty(), !dropped) << visit->anchor_dropped;
+    if (dropped) {
+      EXPECT_TRUE(absl::IsFailedPrecondition(s.DropAnchor(visit_id, "again", 1.0).status()))
+          << "an unanchored visit has no anchor to drop";
+    }
+    auto keyframes = s.ListKeyframes(visit->map_id, visit_id);
+    EXPECT_TRUE(keyframes.ok());
+    if (!keyframes.ok()) return -1;
+    const double x = dropped ? 0.0 : 1.0;
+    for (const auto& k : *keyframes) {
+      if (std::abs(k.T_world_camera->translation.x() - x) > 1e-9) {
+        ADD_FAILURE() << "keyframe " << k.id << " at x = " << k.T_world_camera->translation.x()
+                      << " after " << history->back().action << ": torn";
+        break;
+      }
+    }
+    return done - 1;
   });
 }
 

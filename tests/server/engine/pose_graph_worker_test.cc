@@ -93,6 +93,53 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return b;
   }
 
+  // The map's first visit's floor plan: a 4 m square room round the origin, 1 m walls.
+  void PutRoomPlan() {
+    place::FloorPlan room;
+    const Eigen::Vector2d corners[] = {{-2, -2}, {2, -2}, {2, 2}, {-2, 2}};
+    for (int i = 0; i < 4; ++i) room.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
+    store::VisitPlaceRecord plan;
+    plan.visit_id = visit_.id;
+    plan.keyframes = 10;
+    plan.floor_plan_json = place::FloorPlanToJson(room);
+    plan.descriptor_json = place::DescriptorToJson(place::Describe(room));
+    plan.updated_time_s = 1.0;
+    ASSERT_TRUE(store_->PutVisitPlace(plan).ok());
+  }
+
+  // A camera at the origin, 1.2 m up, looking along +x: camera z = world x, camera x = world
+  // -y, camera y = world -z.
+  static Pose LookingAlongX() {
+    Pose p;
+    Eigen::Matrix3d R;
+    R << 0, 0, 1, -1, 0, 0, 0, -1, 0;
+    p.rotation = Eigen::Quaterniond(R);
+    p.translation = {0, 0, 1.2};
+    return p;
+  }
+
+  // A match to the first visit's keyframe i of a query camera at LookingAlongX() in its own
+  // visit's frame, that puts that visit at `T_map_visit` (a translation) in the map's: keyframe
+  // i of the first visit stands 0.3 i m along x, not turned.
+  Pose MatchPlacing(int i, const Eigen::Vector3d& T_map_visit) const {
+    Pose q = LookingAlongX();
+    q.translation += T_map_visit - keyframes_[i].T_world_camera->translation;
+    return q;
+  }
+
+  // Keyframe `i` of visit `visit_id` at `pose` (tracked), its depth 1.5 m everywhere.
+  store::KeyframeRecord SeeingKeyframe(int64_t visit_id, int i, const Pose& pose) const {
+    store::KeyframeRecord k = CopiedInto(visit_id, i % 10);  // the first visit has 10
+    k.timestamp_s = 100.0 + i;
+    k.T_world_camera = pose;
+    k.T_odom_camera = pose;
+    auto depth = EncodeDepthPng16(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.5f)), 5000);
+    EXPECT_TRUE(depth.ok());
+    if (depth.ok()) k.depth = *std::move(depth);
+    k.depth_encoding = store::StoredDepthEncoding::kPng16;
+    return k;
+  }
+
   // A job for keyframe `query_id` of visit `visit_id` whose one anchor candidate is a match to
   // keyframe `i` of the first visit; an anchor is reported into `anchored`.
   PoseGraphWorker::Job AnchorJob(int64_t visit_id, int64_t query_id, int i,
@@ -102,7 +149,7 @@ class PoseGraphWorkerTest : public ::testing::Test {
     job.visit_id = visit_id;
     job.committed = Committed(query_id);
     job.anchors = {{visit_.id, {keyframes_[i].id, T_match_query, 60, 1.0}}};
-    job.on_anchored = [anchored](const Pose&, const Pose& t) { *anchored = t; };
+    job.on_anchored = [anchored](const Pose&, const std::optional<Pose>& t) { *anchored = t; };
     return job;
   }
 
@@ -275,7 +322,7 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
   std::optional<Pose> anchored, moved_by;
   auto job_for = [&](int i, const Pose& T_match_query) {
     PoseGraphWorker::Job job = AnchorJob(second_id, b[i].id, i, T_match_query, &anchored);
-    job.on_anchored = [&](const Pose& m, const Pose& t) {
+    job.on_anchored = [&](const Pose& m, const std::optional<Pose>& t) {
       moved_by = m;
       anchored = t;
     };
@@ -350,54 +397,25 @@ TEST_F(PoseGraphWorkerTest, AWrongAnchorIsRevisedWhenLaterMatchesOutvoteIt) {
 // beyond the room's wall: while the visit has fewer than 6 keyframes they wait; then they are
 // rejected, with the reason, nothing moved; two that put it at the origin anchor it.
 TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsRejected) {
-  place::FloorPlan room;
-  const Eigen::Vector2d corners[] = {{-2, -2}, {2, -2}, {2, 2}, {-2, 2}};
-  for (int i = 0; i < 4; ++i) room.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
-  store::VisitPlaceRecord plan;
-  plan.visit_id = visit_.id;
-  plan.keyframes = 10;
-  plan.floor_plan_json = place::FloorPlanToJson(room);
-  plan.descriptor_json = place::DescriptorToJson(place::Describe(room));
-  plan.updated_time_s = 1.0;
-  ASSERT_TRUE(store_->PutVisitPlace(plan).ok());
+  ASSERT_NO_FATAL_FAILURE(PutRoomPlan());
 
   auto second = store_->StartVisit("m", "", "", 2.0);
   ASSERT_TRUE(second.ok());
-  auto depth = EncodeDepthPng16(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.5f)), 5000);
-  ASSERT_TRUE(depth.ok());
-  Pose looking_along_x;  // camera z = world x, camera x = world -y, camera y = world -z
-  Eigen::Matrix3d R;
-  R << 0, 0, 1, -1, 0, 0, 0, -1, 0;
-  looking_along_x.rotation = Eigen::Quaterniond(R);
-  looking_along_x.translation = {0, 0, 1.2};
+  const Pose looking_along_x = LookingAlongX();
   std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 6; ++i) {
-    store::KeyframeRecord k = CopiedInto(second->id, i);
-    k.T_world_camera = looking_along_x;
-    k.T_odom_camera = looking_along_x;
-    k.depth = *depth;
-    k.depth_encoding = store::StoredDepthEncoding::kPng16;
-    b.push_back(k);
-  }
+  for (int i = 0; i < 6; ++i) b.push_back(SeeingKeyframe(second->id, i, looking_along_x));
   // The first two keyframes now, the other four later.
   std::vector<store::KeyframeRecord> later(b.begin() + 2, b.end());
   b.resize(2);
   ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
-  // Keyframe i of the first visit stands 0.3 i m along x, not turned: the query's camera in
-  // its frame is where it must be for the visit to lie at `T_map_visit`.
-  auto match = [&](int i, const Eigen::Vector3d& T_map_visit) {
-    Pose q = looking_along_x;
-    q.translation += T_map_visit - keyframes_[i].T_world_camera->translation;
-    return q;
-  };
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
   std::optional<Pose> anchored;
   auto job_for = [&](int i, const Pose& T_match_query) {
     return AnchorJob(second->id, b[i].id, i, T_match_query, &anchored);
   };
   const Eigen::Vector3d wrong(1.5, 0, 0);
-  worker.Wait(worker.Submit(job_for(0, match(0, wrong))));
-  worker.Wait(worker.Submit(job_for(1, match(1, wrong))));
+  worker.Wait(worker.Submit(job_for(0, MatchPlacing(0, wrong))));
+  worker.Wait(worker.Submit(job_for(1, MatchPlacing(1, wrong))));
   EXPECT_FALSE(anchored.has_value());
   EXPECT_EQ(worker.Stats().anchors_rejected, 0) << "two keyframes: too few to tell, it waits";
   auto none = store_->ListPoseEdges(visit_.map_id, second->id);
@@ -405,7 +423,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   EXPECT_TRUE(none->empty());
   ASSERT_TRUE(store_->InsertKeyframes(&later, {}).ok());
   b.insert(b.end(), later.begin(), later.end());
-  worker.Wait(worker.Submit(job_for(2, match(2, wrong))));
+  worker.Wait(worker.Submit(job_for(2, MatchPlacing(2, wrong))));
   EXPECT_FALSE(anchored.has_value());
   EXPECT_EQ(worker.Stats().anchors_rejected, 1);
   auto v = store_->GetVisit(second->id);
@@ -418,12 +436,12 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   EXPECT_NE((*edges)[0].reason.find("disagrees with the floor plan"), std::string::npos)
       << (*edges)[0].reason;
   // The rejected ones are forgotten: another match agreeing with them anchors nothing either.
-  worker.Wait(worker.Submit(job_for(3, match(3, wrong))));
+  worker.Wait(worker.Submit(job_for(3, MatchPlacing(3, wrong))));
   EXPECT_FALSE(anchored.has_value());
 
   // Two matches that place it at the origin, inside the room: anchored.
-  worker.Wait(worker.Submit(job_for(4, match(4, Eigen::Vector3d::Zero()))));
-  worker.Wait(worker.Submit(job_for(5, match(5, Eigen::Vector3d::Zero()))));
+  worker.Wait(worker.Submit(job_for(4, MatchPlacing(4, Eigen::Vector3d::Zero()))));
+  worker.Wait(worker.Submit(job_for(5, MatchPlacing(5, Eigen::Vector3d::Zero()))));
   ASSERT_TRUE(anchored.has_value());
   EXPECT_LT(anchored->translation.norm(), 1e-6);
   v = store_->GetVisit(second->id);
@@ -433,6 +451,160 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   ASSERT_EQ(edges->size(), 2u);
   EXPECT_TRUE((*edges)[1].accepted);
   EXPECT_NE((*edges)[1].reason.find("0.0 % of"), std::string::npos) << (*edges)[1].reason;
+}
+
+// An anchor is re-checked as its visit grows (issue 35; building seed 12): anchored on 6
+// keyframes that agree with the floor plan, the visit's next 6 (tracked on, placed by the anchor)
+// look a metre through the room's wall. When its keyframes have doubled the anchor is checked
+// again and dropped: its keyframes move back into its own frame, the anchor edge is rejected,
+// the history and the visit say why, the frame path is told, and the same placement is not
+// taken again.
+TEST_F(PoseGraphWorkerTest, AnAnchorItsLaterKeyframesContradictIsDropped) {
+  ASSERT_NO_FATAL_FAILURE(PutRoomPlan());
+
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  const Pose looking_along_x = LookingAlongX();
+  auto keyframe = [&](int i, const Pose& pose) { return SeeingKeyframe(second->id, i, pose); };
+  std::vector<store::KeyframeRecord> b;
+  for (int i = 0; i < 6; ++i) b.push_back(keyframe(i, looking_along_x));
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  const Eigen::Vector3d placed(0, 0.5, 0);  // where the matches put the visit's frame
+  auto match = [&](int i) { return MatchPlacing(i, placed); };
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored, moved_by;
+  bool told = false;
+  auto job_for = [&](int64_t query_id, int i) {
+    PoseGraphWorker::Job job = AnchorJob(second->id, query_id, i, match(i), &anchored);
+    job.on_anchored = [&](const Pose& m, const std::optional<Pose>& t) {
+      told = true;
+      moved_by = m;
+      anchored = t;
+    };
+    return job;
+  };
+  worker.Wait(worker.Submit(job_for(b[0].id, 0)));
+  worker.Wait(worker.Submit(job_for(b[1].id, 1)));
+  ASSERT_TRUE(anchored.has_value()) << "6 keyframes inside the room: anchored";
+
+  // Tracked on in the map's frame: the next keyframes stand 1.5 m further along x and read
+  // 1.5 m, a metre beyond the wall. Five more (11 of 12) are not yet a doubling: kept.
+  Pose further = looking_along_x;
+  further.translation += placed + Eigen::Vector3d(1.5, 0, 0);
+  std::vector<store::KeyframeRecord> later;
+  for (int i = 6; i < 12; ++i) later.push_back(keyframe(i, further));
+  std::vector<store::KeyframeRecord> five(later.begin(), later.begin() + 5);
+  ASSERT_TRUE(store_->InsertKeyframes(&five, {}).ok());
+  PoseGraphWorker::Job plain = job_for(five.back().id, 0);
+  plain.anchors.clear();  // an anchored visit's keyframe with no candidates
+  told = false;
+  worker.Wait(worker.Submit(plain));
+  EXPECT_FALSE(told);
+  EXPECT_EQ(worker.Stats().anchors_dropped, 0);
+  std::vector<store::KeyframeRecord> last(later.begin() + 5, later.end());
+  ASSERT_TRUE(store_->InsertKeyframes(&last, {}).ok());
+  plain.committed = Committed(last.back().id);
+  worker.Wait(worker.Submit(plain));
+  ASSERT_TRUE(told) << "12 keyframes, half of them through the wall: dropped";
+  EXPECT_FALSE(anchored.has_value());
+  ASSERT_TRUE(moved_by.has_value());
+  EXPECT_LT((moved_by->translation + placed).norm(), 1e-6) << "moved back by the anchor's inverse";
+  EXPECT_EQ(worker.Stats().anchors_dropped, 1);
+
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_NE(
+      v->anchor_dropped.find("re-checked with 12 keyframes (anchored or last checked with 6)"),
+      std::string::npos)
+      << v->anchor_dropped;
+  EXPECT_NE(v->anchor_dropped.find("disagrees with the floor plan"), std::string::npos)
+      << v->anchor_dropped;
+  auto listed = store_->ListKeyframes(visit_.map_id, second->id);
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 12u);
+  EXPECT_LT(((*listed)[0].T_world_camera->translation - looking_along_x.translation).norm(), 1e-6)
+      << "back in the visit's own frame";
+  auto history = store_->ListAnchorRevisions(second->id);
+  ASSERT_TRUE(history.ok());
+  ASSERT_EQ(history->size(), 2u);
+  EXPECT_EQ((*history)[1].action, "dropped");
+  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  for (const auto& e : *edges) {
+    EXPECT_FALSE(e.accepted) << e.reason;
+  }
+  ASSERT_FALSE(edges->empty());
+  EXPECT_EQ(edges->back().reason.rfind("anchor dropped (", 0), 0u) << edges->back().reason;
+
+  // The same placement, matched again, anchors nothing.
+  worker.Wait(worker.Submit(job_for(b[2].id, 2)));
+  worker.Wait(worker.Submit(job_for(b[3].id, 3)));
+  EXPECT_FALSE(anchored.has_value());
+  v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+}
+
+// `lifemap visits anchor --dry-run` (issue 35): the same candidates judged as a retry would,
+// each with its verdict (a placement the floor plan refuses, one that would anchor), and nothing
+// stored, anchored or counted; the visit's own anchoring state is untouched.
+TEST_F(PoseGraphWorkerTest, ADryRunJudgesTheCandidatesAndStoresNothing) {
+  ASSERT_NO_FATAL_FAILURE(PutRoomPlan());
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  const Pose looking_along_x = LookingAlongX();
+  std::vector<store::KeyframeRecord> b;
+  for (int i = 0; i < 6; ++i) b.push_back(SeeingKeyframe(second->id, i, looking_along_x));
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  auto dry = std::make_shared<PoseGraphWorker::Job::DryRun>();
+  auto job_for = [&](int i, const Eigen::Vector3d& T_map_visit) {
+    PoseGraphWorker::Job job =
+        AnchorJob(second->id, b[i].id, i, MatchPlacing(i, T_map_visit), &anchored);
+    job.visit_ended = true;
+    job.dry_run = dry;
+    return job;
+  };
+  const Eigen::Vector3d wrong(1.5, 0, 0);
+  worker.Submit(job_for(0, wrong));
+  worker.Submit(job_for(1, wrong));
+  worker.Submit(job_for(2, Eigen::Vector3d::Zero()));
+  PoseGraphWorker::Job weak = job_for(4, Eigen::Vector3d::Zero());
+  weak.anchors[0].match.inliers = 12;
+  worker.Submit(std::move(weak));
+  worker.Wait(worker.Submit(job_for(3, Eigen::Vector3d::Zero())));
+  ASSERT_EQ(dry->verdicts.size(), 5u);
+  EXPECT_NE(dry->verdicts[0].find("puts the visit at (1.50, 0.00, 0.00) m"), std::string::npos)
+      << dry->verdicts[0];
+  EXPECT_NE(dry->verdicts[0].find("no other keyframe's match agrees"), std::string::npos)
+      << dry->verdicts[0];
+  EXPECT_NE(dry->verdicts[1].find("refused: the visit disagrees with the floor plan"),
+            std::string::npos)
+      << dry->verdicts[1];
+  EXPECT_NE(dry->verdicts[2].find("no other keyframe's match agrees"), std::string::npos)
+      << dry->verdicts[2];
+  EXPECT_NE(dry->verdicts[3].find("12 PnP inliers"), std::string::npos) << dry->verdicts[3];
+  EXPECT_NE(dry->verdicts[4].find("would anchor it: anchors visit"), std::string::npos)
+      << dry->verdicts[4];
+  EXPECT_EQ(dry->verdicts[4].rfind("keyframe " + std::to_string(b[3].id) + " -> keyframe ", 0), 0u)
+      << dry->verdicts[4];
+  EXPECT_FALSE(anchored.has_value());
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  auto edges = store_->ListPoseEdges(visit_.map_id, second->id);
+  ASSERT_TRUE(edges.ok());
+  EXPECT_TRUE(edges->empty());
+  const LoopClosureStats stats = worker.Stats();
+  EXPECT_EQ(stats.anchor_candidates + stats.anchors + stats.anchors_rejected, 0);
+  // The visit's own state is untouched: the real candidates anchor it.
+  worker.Wait(
+      worker.Submit(AnchorJob(second->id, b[2].id, 2, MatchPlacing(2, {0, 0, 0}), &anchored)));
+  worker.Wait(
+      worker.Submit(AnchorJob(second->id, b[3].id, 3, MatchPlacing(3, {0, 0, 0}), &anchored)));
+  EXPECT_TRUE(anchored.has_value());
 }
 
 }  // namespace lifemap::server
