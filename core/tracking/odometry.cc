@@ -1,6 +1,9 @@
 #include "core/tracking/odometry.h"
 
+#include <algorithm>
 #include <cmath>
+
+#include <Eigen/Eigenvalues>
 
 #include <opencv2/core/eigen.hpp>
 #include <opencv2/imgproc.hpp>
@@ -93,6 +96,10 @@ absl::Status OdometryOptions::Validate() const {
     return absl::InvalidArgumentError(
         "odometry feature_check_speed_mps must be within (0, 100] and feature_check_turn_dps "
         "within (0, 3600]");
+  }
+  if (!(degenerate_share >= 0 && degenerate_share <= 0.1)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry degenerate_share must be within [0, 0.1], got ", degenerate_share));
   }
   if (!(feature_agree_m > 0 && feature_agree_m <= 1 && feature_agree_deg > 0 &&
         feature_agree_deg <= 45)) {
@@ -266,6 +273,80 @@ OdometryStep StepOf(const OdometryReading& last, const OdometryReading& current,
 
 }  // namespace
 
+namespace {
+
+// The pyramid level whose points and normals DegeneracyOf reads: half the odometry's resolution
+// (160x120 at 320x240). At 40x30 a desk's objects vanish and TUM fr1_xyz's views looked as
+// free along the desk as a plain wall (0.00 % of the information).
+constexpr int kDegeneracyLevel = 1;
+
+// DepthDegeneracy of a prepared reference frame (its cached cloud and normals at
+// kDegeneracyLevel), placed at `T_world_camera`.
+std::vector<std::string> DegeneracyOf(const cv::rgbd::OdometryFrame& f,
+                                      const Eigen::Isometry3d& T_world_camera, double min_share) {
+  if (min_share <= 0 || static_cast<int>(f.pyramidNormals.size()) <= kDegeneracyLevel ||
+      static_cast<int>(f.pyramidCloud.size()) <= kDegeneracyLevel) {
+    return {};
+  }
+  const cv::Mat& cloud = f.pyramidCloud[kDegeneracyLevel];
+  const cv::Mat& normals = f.pyramidNormals[kDegeneracyLevel];
+  if (cloud.size() != normals.size() || cloud.type() != CV_32FC3 || normals.type() != CV_32FC3) {
+    return {};
+  }
+  const cv::Mat& depth = f.pyramidDepth[kDegeneracyLevel];
+  std::vector<Eigen::Vector3d> points, unit_normals;
+  for (int r = 0; r < cloud.rows; ++r) {
+    for (int c = 0; c < cloud.cols; ++c) {
+      if (!(depth.at<float>(r, c) > 0)) continue;
+      const cv::Vec3f p = cloud.at<cv::Vec3f>(r, c), n = normals.at<cv::Vec3f>(r, c);
+      if (!std::isfinite(n[0]) || !std::isfinite(p[2]) || !(p[2] > 0)) continue;
+      const Eigen::Vector3d nn(n[0], n[1], n[2]);
+      if (nn.norm() < 0.5) continue;
+      points.emplace_back(p[0], p[1], p[2]);
+      unit_normals.push_back(nn.normalized());
+    }
+  }
+  return DepthDegeneracy(points, unit_normals, T_world_camera.linear(), min_share);
+}
+
+}  // namespace
+
+std::vector<std::string> DepthDegeneracy(const std::vector<Eigen::Vector3d>& points,
+                                         const std::vector<Eigen::Vector3d>& normals,
+                                         const Eigen::Matrix3d& R_world_camera, double min_share) {
+  if (points.size() < 50 || points.size() != normals.size()) return {};
+  std::vector<double> depths;
+  depths.reserve(points.size());
+  for (const auto& p : points) depths.push_back(p.z());
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+  const double d = std::max(depths[depths.size() / 2], 0.1);
+  // Rows in the world's axes: a translation t of the camera and a rotation w about it move the
+  // point-to-plane residual by n.t + (p x n).w (both rotated into the world).
+  Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+  for (size_t i = 0; i < points.size(); ++i) {
+    Eigen::Matrix<double, 6, 1> row;
+    row.head<3>() = R_world_camera * normals[i];
+    row.tail<3>() = R_world_camera * points[i].cross(normals[i]) / d;
+    H.noalias() += row * row.transpose();
+  }
+  const double trace = H.trace();
+  if (!(trace > 0)) return {};
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(H);
+  std::vector<std::string> free;
+  static const char* kAxis[] = {"x", "y", "z"};
+  for (int i = 0; i < 6; ++i) {
+    const double share = eigen.eigenvalues()(i) / trace;
+    if (share >= min_share) continue;
+    const Eigen::Matrix<double, 6, 1> v = eigen.eigenvectors().col(i);
+    int axis = 0;
+    v.cwiseAbs().maxCoeff(&axis);
+    free.push_back(absl::StrFormat("%s %s (%.2f %% of the depth's information)",
+                                   axis < 3 ? "translation along" : "rotation about",
+                                   kAxis[axis % 3], 100 * share));
+  }
+  return free;
+}
+
 struct TrackingInput {
   CameraIntrinsics intrinsics;
   OdometryOptions options;                 // prepared with these
@@ -347,6 +428,9 @@ struct Tracker::Impl {
   // the feature check: ~2.1 MB each at 640x480, so about 4 MB per tracked visit.
   std::shared_ptr<TrackingInput> reference;
   Eigen::Isometry3d T_world_reference = Eigen::Isometry3d::Identity();
+  // The directions the reference's depth leaves free (DepthDegeneracy), found once per
+  // reference (~0.1 ms).
+  std::vector<std::string> reference_degenerate;
   // The last frame tracked, prepared, and its pose relative to the reference.
   std::shared_ptr<TrackingInput> last;
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
@@ -374,6 +458,8 @@ struct Tracker::Impl {
     reference = input;
     last = std::move(input);
     T_world_reference = T_world_camera;
+    reference_degenerate =
+        DegeneracyOf(*reference->frame, T_world_reference, options.degenerate_share);
     T_reference_last = Eigen::Isometry3d::Identity();
     last_tracked = true;
     last_tracked_timestamp_s = timestamp_s;
@@ -578,6 +664,7 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   }
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   out.method = method;
+  out.degenerate_axes = m.reference_degenerate;
   m.T_reference_last = T_reference_current;
   m.last = prepared;
   m.last_odometry = frame.odometry;
@@ -636,6 +723,8 @@ void Tracker::PromoteLastToReference() {
   m.T_world_reference = m.T_world_reference * m.T_reference_last;
   m.reference = m.last;
   m.T_reference_last = Eigen::Isometry3d::Identity();
+  m.reference_degenerate =
+      DegeneracyOf(*m.reference->frame, m.T_world_reference, m.options.degenerate_share);
 }
 
 }  // namespace lifemap::tracking

@@ -8,6 +8,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "core/common/rgbd_frame.h"
@@ -75,6 +76,12 @@ struct OdometryOptions {
   // (CheckOdometry): odometry drifts, it does not jump.
   double odometry_max_speed_mps = 3.0;
   double odometry_max_turn_dps = 360.0;
+  // A direction of the reference keyframe's depth whose share of the point-to-plane information
+  // is below this is reported free (TrackedPose::degenerate_axes; DepthDegeneracy). 0 turns the
+  // check off. Chosen between a painted wall seen close up (sim rooms seed 7: the weakest
+  // direction 0.04-0.14 % of the information) and a cluttered desk (TUM fr1_xyz: 0.86-1.36 %);
+  // docs/RESULTS.md "Issue 35 (session 22)".
+  double degenerate_share = 0.0025;
 
   // InvalidArgument naming the first field out of range.
   absl::Status Validate() const;
@@ -103,7 +110,23 @@ struct TrackedPose {
   std::optional<Pose> T_world_camera;  // unset when lost
   std::string reason;                  // why lost, for people reading results
   int lost_frames = 0;                 // consecutive frames lost, this one included
+  // Directions the reference keyframe's depth does not pin (issue 35), in the visit's frame,
+  // e.g. "translation along x": point-to-plane ICP is free along them (a plain wall, a
+  // corridor), and only the photometric term, the feature check or the robot's odometry holds
+  // the pose there. Empty when the depth pins all six; set on frames aligned to such a
+  // reference (DepthDegeneracy).
+  std::vector<std::string> degenerate_axes;
 };
+
+// The directions a view's surfaces leave point-to-plane alignment free along: `points` and
+// their unit `normals` (camera frame, metres), rotated by `R_world_camera` so the directions
+// are named in the world's axes ("translation along x", "rotation about z"). Each point's
+// constraint row is (n, (p x n) / d) with d the points' median depth (rotations in metres at
+// that depth); a direction whose share of the information matrix (its eigenvalue over the
+// trace) is below `min_share` is free. Where the points are too few (< 50) nothing is said.
+std::vector<std::string> DepthDegeneracy(const std::vector<Eigen::Vector3d>& points,
+                                         const std::vector<Eigen::Vector3d>& normals,
+                                         const Eigen::Matrix3d& R_world_camera, double min_share);
 
 // A frame made ready for alignment: grey and depth at the odometry's resolution, and the image
 // pyramids and gradients of the photometric and ICP terms. It does not depend on the visit, so

@@ -422,6 +422,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     t.state = tracked.state;
     t.method = tracked.method;
     t.lost_frames = tracked.lost_frames;
+    t.degenerate_axes = tracked.degenerate_axes;
     if (tracked.T_world_camera && f.T_world_camera) {
       // A refined client pose stays in the client's frame: no pose graph moves it.
       p.pose_source = store::StoredPoseSource::kRefined;

@@ -118,6 +118,7 @@ struct FrameTracking {
   int lost_frames = 0;
   std::string reason;  // why lost, or how it was relocalised
   double track_ms = 0.0;
+  std::vector<std::string> degenerate_axes;  // tracking::TrackedPose::degenerate_axes
 };
 
 // Stage 2's result: the frame placed in its visit.

@@ -536,6 +536,7 @@ void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
     t->set_method(TrackingMethodToProto(p.tracking->method));
     t->set_lost_frames(static_cast<uint32_t>(p.tracking->lost_frames));
     t->set_reason(p.tracking->reason);
+    for (const auto& axis : p.tracking->degenerate_axes) t->add_degenerate_axes(axis);
   }
   if (p.keyframe) {
     r->mutable_keyframe()->set_selected(p.keyframe->selected);

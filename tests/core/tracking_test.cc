@@ -3,9 +3,12 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <functional>
+#include <map>
 #include <opencv2/core.hpp>
 
+#include "absl/strings/str_join.h"
 #include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
 #include "core/sim/generator.h"
@@ -122,6 +125,9 @@ TEST(OdometryOptions, RefusesValuesOutOfRange) {
   o.hole_margin = 9;
   EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
   o = {};
+  o.degenerate_share = 0.5;
+  EXPECT_TRUE(absl::IsInvalidArgument(o.Validate()));
+  o = {};
   o.feature_keypoints = 0;  // no feature check
   EXPECT_TRUE(o.Validate().ok());
 }
@@ -133,6 +139,8 @@ struct Tracked {
   int lost = 0;
   int by_features = 0;  // frames whose pose came from the feature check (refit or PnP)
   int by_odometry = 0;  // frames placed by the robot's odometry alone
+  int degenerate = 0;   // tracked frames whose reference's depth leaves a direction free
+  std::map<std::string, int> free_directions;  // by name ("translation along x"), over frames
 };
 // `edit`, when given, changes each decoded frame before it is tracked. With `wheel_odometry`
 // each frame carries the recording's odometry.txt reading (RgbdFrame::odometry).
@@ -162,6 +170,10 @@ Tracked TrackRecording(const std::string& dir, const tracking::OdometryOptions& 
     out.by_features += tracked.method == tracking::TrackingMethod::kRefit ||
                        tracked.method == tracking::TrackingMethod::kFeatures;
     out.by_odometry += tracked.method == tracking::TrackingMethod::kOdometry;
+    out.degenerate += !tracked.degenerate_axes.empty();
+    for (const std::string& axis : tracked.degenerate_axes) {
+      ++out.free_directions[axis.substr(0, axis.find(" ("))];
+    }
     if (selector.Decide(e.timestamp_s, tracked.T_world_camera).selected) {
       selector.Accept(e.timestamp_s, tracked.T_world_camera);
       tracker.PromoteLastToReference();
@@ -179,8 +191,47 @@ TEST(Tracker, TracksTumFr1XyzWithinMillimetres) {
   EXPECT_EQ(errors->associated, static_cast<int>(t.estimate.size()));
   std::cerr << "fr1_xyz: " << t.estimate.size() << " frames, ATE " << errors->ate_rmse_m * 1000
             << " mm, RPE " << errors->rpe_trans_m * 1000 << " mm / " << errors->rpe_rot_deg
-            << " deg over " << errors->rpe_delta_s << " s\n";
+            << " deg over " << errors->rpe_delta_s << " s, " << t.degenerate
+            << " with a free direction:";
+  for (const auto& [axis, n] : t.free_directions) std::cerr << " " << axis << " " << n;
+  std::cerr << "\n";
   EXPECT_LT(errors->ate_rmse_m, 0.01);
+  EXPECT_EQ(t.degenerate, 0) << "a cluttered desk pins every direction";
+}
+
+// The directions a view's depth leaves free (issue 35): a plain wall leaves the two directions
+// along it and the turn about its normal free; a room's corner (wall, wall, floor) pins all six.
+TEST(DepthDegeneracy, APlainWallLeavesThreeDirectionsFreeACornerNone) {
+  std::vector<Eigen::Vector3d> points, normals;
+  for (int i = 0; i < 20; ++i) {
+    for (int j = 0; j < 20; ++j) {
+      points.emplace_back(-1 + 0.1 * i, -1 + 0.1 * j, 2.0);  // a wall 2 m ahead
+      normals.emplace_back(0, 0, -1);
+    }
+  }
+  // The camera level, looking along the world's x: camera z = world x, x = -y, y = -z.
+  Eigen::Matrix3d R_world_camera;
+  R_world_camera << 0, 0, 1, -1, 0, 0, 0, -1, 0;
+  std::vector<std::string> free = tracking::DepthDegeneracy(points, normals, R_world_camera, 0.01);
+  ASSERT_EQ(free.size(), 3u) << absl::StrJoin(free, "; ");
+  std::sort(free.begin(), free.end());
+  EXPECT_EQ(free[0].rfind("rotation about x", 0), 0u) << free[0];
+  EXPECT_EQ(free[1].rfind("translation along ", 0), 0u) << free[1];
+  EXPECT_EQ(free[2].rfind("translation along ", 0), 0u) << free[2];
+  EXPECT_EQ(absl::StrJoin(free, ";").find("translation along x"), std::string::npos)
+      << "the wall pins the motion towards it";
+  // Add a side wall (x = 1, facing the camera's left) and the floor (y = 1 below the camera).
+  for (int i = 0; i < 20; ++i) {
+    for (int j = 0; j < 20; ++j) {
+      points.emplace_back(1.0, -1 + 0.1 * i, 1.0 + 0.05 * j);
+      normals.emplace_back(-1, 0, 0);
+      points.emplace_back(-1 + 0.1 * i, 1.0, 1.0 + 0.05 * j);
+      normals.emplace_back(0, -1, 0);
+    }
+  }
+  free = tracking::DepthDegeneracy(points, normals, R_world_camera, 0.0025);
+  EXPECT_TRUE(free.empty()) << absl::StrJoin(free, "; ");
+  EXPECT_TRUE(tracking::DepthDegeneracy({}, {}, R_world_camera, 0.0025).empty()) << "too few";
 }
 
 // A synthetic visit with the sensor model on (no shared data needed): the first 150 frames of
@@ -243,7 +294,11 @@ TEST(Tracker, APlainWallCloseUpKeepsItsPhotometricTerm) {
   before.feature_keypoints = 0;
   const Tracked b = TrackRecording(tmp.File("visit"), before);
   std::cerr << "sim seed 7, 60 frames: ATE " << Ate(t) * 1000
-            << " mm (OpenCV's threshold: " << Ate(b) * 1000 << " mm)\n";
+            << " mm (OpenCV's threshold: " << Ate(b) * 1000 << " mm), " << t.degenerate
+            << " frames with a free direction:";
+  for (const auto& [axis, n] : t.free_directions) std::cerr << " " << axis << " " << n;
+  std::cerr << "\n";
+  EXPECT_GT(t.degenerate, 0) << "the wall's depth alone does not pin the slide along it";
   EXPECT_LT(Ate(t), 0.005);
   EXPECT_GT(Ate(b), 3 * Ate(t)) << "the scene no longer tests the threshold";
 }
