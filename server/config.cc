@@ -338,6 +338,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             g.loop_max_disagreement_deg_per_m = v.get<double>();
           } else if (k == "layout_max_through_share") {
             g.layout_max_through_share = v.get<double>();
+          } else if (k == "anchor_drop_through_share") {
+            g.anchor_drop_through_share = v.get<double>();
           } else if (k == "anchor_revision_min_matches") {
             g.anchor_revision_min_matches = v.get<int>();
           } else {

@@ -166,6 +166,8 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
       {"frames_with_odometry", streamed->frames_with_odometry},
       {"track_ms_p50", track_p50},
       {"frames_by_method", by_method},
+      {"frames_with_free_directions", streamed->with_free_directions},
+      {"free_directions", streamed->free_directions},
       {"keyframe_trajectory", ErrorsJson(kf_errors)},
       {"stored_keyframes", ErrorsJson(stored_errors)},
       {"all_frames", ErrorsJson(all_errors)},

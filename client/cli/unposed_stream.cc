@@ -135,6 +135,10 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
       o.state = TrackingName(r.tracking().state());
       o.method = MethodName(r.tracking().method());
       visit.placed_by_odometry += r.tracking().method() == v1::TRACKING_METHOD_ODOMETRY;
+      visit.with_free_directions += r.tracking().degenerate_axes_size() > 0;
+      for (const std::string& axis : r.tracking().degenerate_axes()) {
+        ++visit.free_directions[axis.substr(0, axis.find(" ("))];
+      }
       visit.lost += r.tracking().state() == v1::TRACKING_LOST;
       visit.track_ms.push_back(r.tracking().track_ms());
       if (r.pose_source() == v1::POSE_SOURCE_ESTIMATED) {

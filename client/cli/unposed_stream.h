@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -58,6 +59,10 @@ struct StreamedVisit {
   int frames_with_gravity = 0;       // frames sent with Frame.gravity
   int frames_with_odometry = 0;      // frames sent with Frame.odometry
   int placed_by_odometry = 0;        // frames answered TRACKING_METHOD_ODOMETRY
+  // Tracked frames whose reference's depth left a direction free (Tracking.degenerate_axes),
+  // and how many frames named each direction ("translation along y").
+  int with_free_directions = 0;
+  std::map<std::string, int> free_directions;
 };
 
 // Streams `sequence` into `map` (which must exist) without poses and collects every answer.

@@ -63,6 +63,13 @@ struct PoseGraphOptions {
   // (its own two and every tie accepted since) and pass the floor-plan check there, the anchor
   // is revised: the visit's keyframes move and the history says why. [2, 100].
   int anchor_revision_min_matches = 3;
+  // An anchored visit is re-checked against the floor plan as its keyframes double, and its
+  // anchor dropped when more than this share of their readings lie beyond the walls (of the
+  // plan it was anchored against and of the map's first visit's), [0, 1]. Above
+  // layout_max_through_share: an anchor is a hypothesis that earned its place, and right anchors
+  // of sparse visits re-checked at 6.7 % (building seed 9, 40 frames) while a wrong one (another
+  // place) was at 13.1 % (building seed 12): RESULTS.md "Issue 35 (session 22)".
+  double anchor_drop_through_share = 0.10;
 
   absl::Status Validate() const;
 };

@@ -607,4 +607,68 @@ TEST_F(PoseGraphWorkerTest, ADryRunJudgesTheCandidatesAndStoresNothing) {
   EXPECT_TRUE(anchored.has_value());
 }
 
+// A re-check drops an anchor only when the map's first visit's plan disagrees too (issue 35):
+// the plan of a visit anchored itself can be partial (a sparse visit's walls cut short). Here
+// visit B's plan is a 2 m room inside the first visit's 4 m one, and visit C, anchored to B,
+// reads a metre past B's walls but within the first visit's: its anchor is kept.
+TEST_F(PoseGraphWorkerTest, AnAnchorIsKeptWhenOnlyAPartialPlanDisagrees) {
+  ASSERT_NO_FATAL_FAILURE(PutRoomPlan());
+  auto anchor_to = [&](int64_t visit_id, int64_t to_visit, int64_t from_keyframe,
+                       int64_t to_keyframe) {
+    store::PoseEdgeRecord edge;
+    edge.map_id = visit_.map_id;
+    edge.kind = store::StoredEdgeKind::kAnchor;
+    edge.from_keyframe = from_keyframe;
+    edge.to_keyframe = to_keyframe;
+    edge.accepted = true;
+    edge.reason = "test anchor";
+    store::VisitAnchor anchor;
+    anchor.to_visit_id = to_visit;
+    anchor.anchored_time_s = 10.0;
+    return store_->AnchorVisit(visit_id, edge, &anchor);
+  };
+  auto b = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(b.ok());
+  std::vector<store::KeyframeRecord> b_keyframes = {SeeingKeyframe(b->id, 0, LookingAlongX())};
+  ASSERT_TRUE(store_->InsertKeyframes(&b_keyframes, {}).ok());
+  ASSERT_TRUE(anchor_to(b->id, visit_.id, keyframes_[0].id, b_keyframes[0].id).ok());
+  place::FloorPlan small;
+  const Eigen::Vector2d corners[] = {{-1, -1}, {1, -1}, {1, 1}, {-1, 1}};
+  for (int i = 0; i < 4; ++i) small.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
+  store::VisitPlaceRecord plan;
+  plan.visit_id = b->id;
+  plan.keyframes = 1;
+  plan.floor_plan_json = place::FloorPlanToJson(small);
+  plan.descriptor_json = place::DescriptorToJson(place::Describe(small));
+  plan.updated_time_s = 20.0;  // derived after B's anchor: in the map's frame
+  ASSERT_TRUE(store_->PutVisitPlace(plan).ok());
+
+  auto c = store_->StartVisit("m", "", "", 3.0);
+  ASSERT_TRUE(c.ok());
+  Pose at = LookingAlongX();
+  at.translation.y() = 0.5;  // reads 1.5 m along x: past B's wall at 1 m, short of the first's
+  std::vector<store::KeyframeRecord> c_keyframes;
+  for (int i = 0; i < 6; ++i) c_keyframes.push_back(SeeingKeyframe(c->id, i, at));
+  ASSERT_TRUE(store_->InsertKeyframes(&c_keyframes, {}).ok());
+  ASSERT_TRUE(anchor_to(c->id, b->id, b_keyframes[0].id, c_keyframes[0].id).ok());
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  bool told = false;
+  PoseGraphWorker::Job plain;
+  plain.map_id = visit_.map_id;
+  plain.visit_id = c->id;
+  plain.committed = Committed(c_keyframes.back().id);
+  plain.on_anchored = [&](const Pose&, const std::optional<Pose>&) { told = true; };
+  worker.Wait(worker.Submit(plain));  // anchored before the worker knew it: counted from here
+  std::vector<store::KeyframeRecord> more;
+  for (int i = 6; i < 12; ++i) more.push_back(SeeingKeyframe(c->id, i, at));
+  ASSERT_TRUE(store_->InsertKeyframes(&more, {}).ok());
+  plain.committed = Committed(more.back().id);
+  worker.Wait(worker.Submit(plain));
+  EXPECT_FALSE(told);
+  EXPECT_EQ(worker.Stats().anchors_dropped, 0);
+  auto v = store_->GetVisit(c->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_TRUE(v->anchor.has_value()) << "kept: only B's partial plan disagrees";
+}
+
 }  // namespace lifemap::server
