@@ -13,6 +13,7 @@
 #include "absl/strings/str_format.h"
 #include "core/appearance/verify.h"
 #include "core/features/keypoints.h"
+#include "core/planes/planes.h"
 
 namespace lifemap::tracking {
 namespace {
@@ -492,6 +493,22 @@ Pose Tracker::FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera) {
   return p;
 }
 
+std::optional<Eigen::Vector3d> Tracker::FloorGravity(const cv::Mat& depth_m,
+                                                     const CameraIntrinsics& k, double max_tilt_deg,
+                                                     double min_area_m2) {
+  auto planes = planes::ExtractPlanes(depth_m, k);
+  if (!planes.ok()) return std::nullopt;
+  const Eigen::Vector3f level_up(0, -1, 0);  // a level camera's up, in its own frame
+  const float min_cos = static_cast<float>(std::cos(max_tilt_deg * M_PI / 180.0));
+  for (const planes::Plane& p : planes->planes) {  // largest first
+    if (p.area_m2 < min_area_m2) break;
+    // The floor is below the camera (+y) and faces it: its normal, towards the camera, is up.
+    if (p.normal.dot(level_up) < min_cos || p.centroid.y() <= 0) continue;
+    return Eigen::Vector3d(-p.normal.cast<double>().normalized());
+  }
+  return std::nullopt;
+}
+
 TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput> prepared,
                            const std::optional<Pose>& prior) {
   Impl& m = *impl_;
@@ -550,8 +567,9 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
   cv::Ptr<cv::rgbd::OdometryFrame> current = prepared->frame;
   if (m.reference == nullptr) {
     // The visit's first trackable frame defines its frame.
-    m.RestartAt(prepared,
-                prior ? prior->ToIsometry() : FirstPose(frame.gravity_camera).ToIsometry(),
+    std::optional<Eigen::Vector3d> gravity = frame.gravity_camera;
+    if (!gravity && !prior) gravity = FloorGravity(frame.depth_m, k);
+    m.RestartAt(prepared, prior ? prior->ToIsometry() : FirstPose(gravity).ToIsometry(),
                 frame.timestamp_s, frame.odometry);
     out.state = TrackingState::kStarted;
     out.T_world_camera = Pose::FromIsometry(m.T_world_reference);

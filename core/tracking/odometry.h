@@ -152,8 +152,18 @@ class Tracker {
   // The visit's frame. The first frame of a visit is placed at the origin looking along +x
   // (its forward direction made horizontal) with z up: against `gravity_camera` (unit, camera
   // frame) when the frame has it, else the camera is taken as level (world_x = camera z,
-  // world_y = -camera x, world_z = -camera y). Floor plans assume z up (docs/API.md).
+  // world_y = -camera x, world_z = -camera y). Floor plans assume z up (docs/API.md). Track
+  // places a visit's first frame by its gravity, else by FloorGravity, else level.
   static Pose FirstPose(const std::optional<Eigen::Vector3d>& gravity_camera = std::nullopt);
+
+  // Gravity (unit, camera frame) from the floor in a depth image (metres), for a visit's first
+  // frame sent without gravity (issue 35): the largest plane (core/planes) of at least
+  // `min_area_m2` below the camera whose normal is within `max_tilt_deg` of the camera's own
+  // down being vertical; nullopt when there is none (the camera is then taken as level).
+  static std::optional<Eigen::Vector3d> FloorGravity(const cv::Mat& depth_m,
+                                                     const CameraIntrinsics& k,
+                                                     double max_tilt_deg = 35.0,
+                                                     double min_area_m2 = 0.5);
 
   // Tracks a decoded frame (depth metres, colour BGR), prepared here unless `prepared` (from
   // PrepareForTracking for this frame) is given. With a `prior` (a client's pose to refine) that

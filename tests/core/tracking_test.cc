@@ -281,6 +281,37 @@ double Ate(const Tracked& t) {
   return errors.ok() ? errors->ate_rmse_m : 1e9;
 }
 
+// Gravity from the floor when a visit's first frame comes without any (issue 35): within a few
+// degrees of the simulated accelerometer's on the first frames of walks of both worlds; none
+// from a view with no floor in it.
+TEST(Tracker, GravityFromTheFloorAgreesWithTheAccelerometer) {
+  for (const auto& [seed, world] : std::vector<std::pair<uint64_t, std::string>>{
+           {3, "rooms"}, {7, "rooms"}, {11, "building"}, {13, "building"}}) {
+    testing::TempDir tmp;
+    RenderWalk(seed, world, 0, 1, tmp.File("visit"));
+    auto seq = io::ReadTumSequence(tmp.File("visit"));
+    ASSERT_TRUE(seq.ok()) << seq.status();
+    auto frame = io::DecodeTumFrame(*seq, seq->frames[0]);
+    ASSERT_TRUE(frame.ok()) << frame.status();
+    ASSERT_TRUE(seq->frames[0].gravity_camera.has_value()) << "sim writes accelerometer.txt";
+    const Eigen::Vector3d truth = seq->frames[0].gravity_camera->normalized();
+    const auto floor = tracking::Tracker::FloorGravity(frame->depth_m, frame->intrinsics);
+    ASSERT_TRUE(floor.has_value()) << world << " seed " << seed << ": no floor found";
+    const double off_deg = std::acos(std::clamp(floor->dot(truth), -1.0, 1.0)) * 180 / M_PI;
+    std::cerr << world << " seed " << seed << ": floor gravity " << off_deg
+              << " deg from the accelerometer's\n";
+    EXPECT_LT(off_deg, 3.0) << world << " seed " << seed;
+    // A wall filling the view (the depth's lower half cut away, no floor): none.
+    cv::Mat no_floor = frame->depth_m.clone();
+    no_floor.rowRange(no_floor.rows / 3, no_floor.rows).setTo(0);
+    const auto none = tracking::Tracker::FloorGravity(no_floor, frame->intrinsics);
+    if (none) {
+      // What is left may hold a table top: still horizontal.
+      EXPECT_LT(std::acos(std::clamp(none->dot(truth), -1.0, 1.0)) * 180 / M_PI, 3.0);
+    }
+  }
+}
+
 // A painted wall seen close up (sim seed 7's first two seconds): its soft texture is below
 // OpenCV's default gradient threshold, and without the photometric term the alignment slid
 // along the wall by up to 10 cm a frame.
