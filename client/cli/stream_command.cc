@@ -56,11 +56,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
                      seq->has_groundtruth ? "no frame lies within groundtruth.txt"
                                           : "there is no groundtruth.txt")));
   }
-  if (a.send_odometry && seq->frames_with_odometry == 0) {
-    return Fail(absl::FailedPreconditionError(absl::StrCat(
-        a.tum_dir, ": --odometry wheel given but ",
-        seq->has_odometry ? "no frame lies within odometry.txt" : "there is no odometry.txt")));
-  }
+  if (auto s = CheckOdometryWanted(*seq, a.send_odometry); !s.ok()) return Fail(s);
   size_t n = seq->frames.size();
   if (a.max_frames > 0) n = std::min(n, static_cast<size_t>(a.max_frames));
 

@@ -102,6 +102,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
         absl::StrCat(a.tum_dir, ": needs a groundtruth.txt covering the frames to score against (",
                      seq->frames_with_pose, " frames have a ground-truth pose)")));
   }
+  if (auto s = CheckOdometryWanted(*seq, a.send_odometry); !s.ok()) return Fail(s);
   std::error_code ec;
   fs::create_directories(a.out, ec);
   if (ec) {

@@ -67,9 +67,17 @@ void AddOdometryOption(CLI::App* cmd, bool* send_odometry) {
       ->check(CLI::IsMember({"wheel", "none"}));
 }
 
+absl::Status CheckOdometryWanted(const io::TumSequence& sequence, bool send_odometry) {
+  if (!send_odometry || sequence.frames_with_odometry > 0) return absl::OkStatus();
+  return absl::FailedPreconditionError(absl::StrCat(
+      sequence.dir, ": --odometry wheel given but ",
+      sequence.has_odometry ? "no frame lies within odometry.txt" : "there is no odometry.txt"));
+}
+
 absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
                                                  const io::TumSequence& sequence,
                                                  const UnposedStreamOptions& options) {
+  if (auto s = CheckOdometryWanted(sequence, options.send_odometry); !s.ok()) return s;
   size_t n = sequence.frames.size();
   if (options.max_frames > 0) n = std::min(n, static_cast<size_t>(options.max_frames));
   if (n == 0) return absl::InvalidArgumentError(absl::StrCat(sequence.dir, ": no frames"));

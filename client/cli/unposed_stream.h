@@ -65,10 +65,15 @@ struct StreamedVisit {
   std::map<std::string, int> free_directions;
 };
 
+// FailedPrecondition naming the folder when `--odometry wheel` was asked of a recording with no
+// usable odometry.txt (none, or no frame within it): never a silent run without odometry.
+absl::Status CheckOdometryWanted(const io::TumSequence& sequence, bool send_odometry);
+
 // Streams `sequence` into `map` (which must exist) without poses and collects every answer.
 // Returns once the server ended the stream, i.e. after the visit's loop closures, pose-graph
 // solves and anchoring have finished. A frame file that cannot be read: InvalidArgument naming
-// it; a stream the server broke: its status.
+// it; odometry asked of a recording without it: CheckOdometryWanted's error; a stream the
+// server broke: its status.
 absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const std::string& map,
                                                  const io::TumSequence& sequence,
                                                  const UnposedStreamOptions& options);

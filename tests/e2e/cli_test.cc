@@ -502,6 +502,13 @@ TEST_F(CliTest, StreamingWithWheelOdometryLosesNoFrameOfASparseWalk) {
   r = Run({"stream", "--map", "m", "--tum", no_odometry, "--odometry", "wheel"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("there is no odometry.txt"), std::string::npos) << r.err;
+  // So does an evaluation: never a silent run without the odometry asked for.
+  r = Run({"eval", "trajectory", "--tum", no_odometry, "--out", tmp_.File("eval_out"), "--odometry",
+           "wheel"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find(no_odometry + ": --odometry wheel given but there is no odometry.txt"),
+            std::string::npos)
+      << r.err;
 }
 
 // Issue 35: a visit tracked before the map had an appearance vocabulary is anchored later: each
