@@ -80,12 +80,9 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
   if (ticket != 0) pose_graph->Wait(ticket);
   if (dry) {
     out.verdicts = dry->verdicts;
-    const auto would = std::find_if(out.verdicts.begin(), out.verdicts.end(), [](const auto& v) {
-      return v.find("would anchor it") != std::string::npos;
-    });
     out.reason =
-        would != out.verdicts.end()
-            ? absl::StrCat("dry run: would anchor (", *would, ")")
+        dry->would_anchor
+            ? absl::StrCat("dry run: would anchor (", *dry->would_anchor, ")")
             : absl::StrCat("dry run: would not anchor: ", out.candidates,
                            " candidate matches from ", out.keyframes_queried, " keyframes queried",
                            last_error.empty() ? "" : absl::StrCat("; ", last_error));

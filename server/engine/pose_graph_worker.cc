@@ -128,6 +128,16 @@ std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRe
   return *std::move(plan);
 }
 
+// The map `map_name`'s first visit (its frame is the map's), if it can be read.
+std::optional<store::VisitRecord> FirstVisitOf(store::Store* store, const std::string& map_name) {
+  auto visits = store->ListVisits(map_name);
+  if (!visits.ok()) return std::nullopt;
+  for (auto& v : *visits) {
+    if (v.first_of_map) return std::move(v);
+  }
+  return std::nullopt;
+}
+
 // The floor plan a match to `to_visit` is checked against, and whose it is: `to_visit`'s own, or
 // where it has none (yet), its map's first visit's (every visit in the map's frame shares it).
 std::optional<std::pair<place::FloorPlan, int64_t>> PlanToCheck(
@@ -137,12 +147,9 @@ std::optional<std::pair<place::FloorPlan, int64_t>> PlanToCheck(
     if (auto plan = PlanOf(store, to_visit)) return std::make_pair(*std::move(plan), to_visit.id);
   }
   if (to_visit.first_of_map) return std::nullopt;
-  auto visits = store->ListVisits(to_visit.map_name);
-  if (!visits.ok()) return std::nullopt;
-  for (const auto& v : *visits) {
-    if (!v.first_of_map) continue;
-    if (auto plan = PlanOf(store, v)) return std::make_pair(*std::move(plan), v.id);
-  }
+  const std::optional<store::VisitRecord> first = FirstVisitOf(store, to_visit.map_name);
+  if (!first) return std::nullopt;
+  if (auto plan = PlanOf(store, *first)) return std::make_pair(*std::move(plan), first->id);
   return std::nullopt;
 }
 
@@ -643,6 +650,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
           estimate.edge.reason);
       if (dry) {
         verdict(c, placed + "would anchor it: " + estimate.edge.reason);
+        if (!job.dry_run->would_anchor) job.dry_run->would_anchor = job.dry_run->verdicts.back();
         state = AnchorState{};  // as anchored: later candidates are judged afresh
         return false;
       }
@@ -768,9 +776,11 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
   auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
   if (!to_visit.ok()) return false;
   std::string evidence;
+  int64_t plan_visit = 0;
   // The stored keyframes are in the map's frame already.
-  const std::optional<std::string> layout = CheckAnchorLayout(
-      job, *to_visit, Pose{}, visit_keyframes, &evidence, options_.anchor_drop_through_share);
+  const std::optional<std::string> layout =
+      CheckAnchorLayout(job, *to_visit, Pose{}, visit_keyframes, &evidence,
+                        options_.anchor_drop_through_share, &plan_visit);
   if (!layout) return false;
   const size_t checked_before = state.checked_keyframes;
   state.checked_keyframes = posed;
@@ -783,22 +793,17 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
   // first visit's. A wrong one (another place) disagrees with both. Building seed 9, 40-frame
   // visits: two right anchors (0.6 cm) were dropped at 6.7 % and 22.9 % against their anchor
   // visits' plans.
-  if (!to_visit->first_of_map) {
-    auto visits = store_->ListVisits(visit.map_name);
-    const store::VisitRecord* first = nullptr;
-    if (visits.ok()) {
-      for (const auto& v : *visits) {
-        if (v.first_of_map) first = &v;
-      }
-    }
+  // (When the plan checked was the first visit's already, it is not checked twice.)
+  if (const std::optional<store::VisitRecord> first = FirstVisitOf(store_, visit.map_name);
+      first && first->id != plan_visit) {
     std::string first_evidence;
+    int64_t first_plan_visit = 0;
     const std::optional<std::string> by_first =
-        first == nullptr ? std::nullopt
-                         : CheckAnchorLayout(job, *first, Pose{}, visit_keyframes, &first_evidence,
-                                             options_.anchor_drop_through_share);
-    if (by_first && by_first->empty() && first_evidence.find("floor plan:") != std::string::npos) {
+        CheckAnchorLayout(job, *first, Pose{}, visit_keyframes, &first_evidence,
+                          options_.anchor_drop_through_share, &first_plan_visit);
+    if (by_first && by_first->empty() && first_plan_visit != 0) {
       spdlog::info("visit {}: anchor kept: it disagrees with visit {}'s plan but agrees with {}",
-                   job.visit_id, to_visit->id, first_evidence);
+                   job.visit_id, plan_visit, first_evidence);
       return false;
     }
     if (by_first && !by_first->empty()) absl::StrAppend(&reason, "; and with ", first_evidence);
@@ -827,8 +832,9 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
 std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
     const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
     const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text,
-    std::optional<double> max_through_share) {
+    std::optional<double> max_through_share, int64_t* plan_visit) {
   const auto plan = PlanToCheck(store_, to_visit);
+  if (plan_visit != nullptr) *plan_visit = plan ? plan->second : 0;
   if (!plan) {
     *evidence_text = absl::StrCat("neither visit ", to_visit.id,
                                   " nor the map's first visit has a floor plan to check against");

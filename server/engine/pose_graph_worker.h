@@ -109,6 +109,8 @@ class PoseGraphWorker {
     // by the dry run's jobs; read only after Wait.
     struct DryRun {
       std::vector<std::string> verdicts;
+      // The first verdict that would have anchored the visit, when one would.
+      std::optional<std::string> would_anchor;
       std::shared_ptr<AnchorState> state;  // the worker's
     };
     std::shared_ptr<DryRun> dry_run;
@@ -169,12 +171,13 @@ class PoseGraphWorker {
   // The architecture check of an anchor: the visit's keyframes placed by `T_map_visit` against
   // `to_visit`'s floor plan. Why they disagree (empty when they do not, or when there is no plan
   // to check; nullopt while the visit has too few keyframes to tell); `evidence_text` says what
-  // was seen. The share of readings allowed beyond the walls is `max_through_share`, else
+  // was seen, and `plan_visit` (when given) whose plan it was (0: none). The share of readings
+  // allowed beyond the walls is `max_through_share`, else
   // PoseGraphOptions::layout_max_through_share.
   std::optional<std::string> CheckAnchorLayout(
       const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
       const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text,
-      std::optional<double> max_through_share = std::nullopt);
+      std::optional<double> max_through_share = std::nullopt, int64_t* plan_visit = nullptr);
 
   // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
   struct AnchorEstimate {

@@ -140,6 +140,14 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return k;
   }
 
+  // Keyframes `from` to `to` - 1 of visit `visit_id`, all at `pose` (SeeingKeyframe).
+  std::vector<store::KeyframeRecord> SeeingKeyframes(int64_t visit_id, int from, int to,
+                                                     const Pose& pose) const {
+    std::vector<store::KeyframeRecord> out;
+    for (int i = from; i < to; ++i) out.push_back(SeeingKeyframe(visit_id, i, pose));
+    return out;
+  }
+
   // A job for keyframe `query_id` of visit `visit_id` whose one anchor candidate is a match to
   // keyframe `i` of the first visit; an anchor is reported into `anchored`.
   PoseGraphWorker::Job AnchorJob(int64_t visit_id, int64_t query_id, int i,
@@ -402,8 +410,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorThatSeesThroughTheMatchedVisitsWallsIsReject
   auto second = store_->StartVisit("m", "", "", 2.0);
   ASSERT_TRUE(second.ok());
   const Pose looking_along_x = LookingAlongX();
-  std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 6; ++i) b.push_back(SeeingKeyframe(second->id, i, looking_along_x));
+  std::vector<store::KeyframeRecord> b = SeeingKeyframes(second->id, 0, 6, looking_along_x);
   // The first two keyframes now, the other four later.
   std::vector<store::KeyframeRecord> later(b.begin() + 2, b.end());
   b.resize(2);
@@ -465,9 +472,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorItsLaterKeyframesContradictIsDropped) {
   auto second = store_->StartVisit("m", "", "", 2.0);
   ASSERT_TRUE(second.ok());
   const Pose looking_along_x = LookingAlongX();
-  auto keyframe = [&](int i, const Pose& pose) { return SeeingKeyframe(second->id, i, pose); };
-  std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 6; ++i) b.push_back(keyframe(i, looking_along_x));
+  std::vector<store::KeyframeRecord> b = SeeingKeyframes(second->id, 0, 6, looking_along_x);
   ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
   const Eigen::Vector3d placed(0, 0.5, 0);  // where the matches put the visit's frame
   auto match = [&](int i) { return MatchPlacing(i, placed); };
@@ -491,8 +496,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorItsLaterKeyframesContradictIsDropped) {
   // 1.5 m, a metre beyond the wall. Five more (11 of 12) are not yet a doubling: kept.
   Pose further = looking_along_x;
   further.translation += placed + Eigen::Vector3d(1.5, 0, 0);
-  std::vector<store::KeyframeRecord> later;
-  for (int i = 6; i < 12; ++i) later.push_back(keyframe(i, further));
+  const std::vector<store::KeyframeRecord> later = SeeingKeyframes(second->id, 6, 12, further);
   std::vector<store::KeyframeRecord> five(later.begin(), later.begin() + 5);
   ASSERT_TRUE(store_->InsertKeyframes(&five, {}).ok());
   PoseGraphWorker::Job plain = job_for(five.back().id, 0);
@@ -554,8 +558,7 @@ TEST_F(PoseGraphWorkerTest, ADryRunJudgesTheCandidatesAndStoresNothing) {
   auto second = store_->StartVisit("m", "", "", 2.0);
   ASSERT_TRUE(second.ok());
   const Pose looking_along_x = LookingAlongX();
-  std::vector<store::KeyframeRecord> b;
-  for (int i = 0; i < 6; ++i) b.push_back(SeeingKeyframe(second->id, i, looking_along_x));
+  std::vector<store::KeyframeRecord> b = SeeingKeyframes(second->id, 0, 6, looking_along_x);
   ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
   std::optional<Pose> anchored;
@@ -588,6 +591,8 @@ TEST_F(PoseGraphWorkerTest, ADryRunJudgesTheCandidatesAndStoresNothing) {
   EXPECT_NE(dry->verdicts[3].find("12 PnP inliers"), std::string::npos) << dry->verdicts[3];
   EXPECT_NE(dry->verdicts[4].find("would anchor it: anchors visit"), std::string::npos)
       << dry->verdicts[4];
+  ASSERT_TRUE(dry->would_anchor.has_value());
+  EXPECT_EQ(*dry->would_anchor, dry->verdicts[4]);
   EXPECT_EQ(dry->verdicts[4].rfind("keyframe " + std::to_string(b[3].id) + " -> keyframe ", 0), 0u)
       << dry->verdicts[4];
   EXPECT_FALSE(anchored.has_value());
@@ -647,8 +652,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorIsKeptWhenOnlyAPartialPlanDisagrees) {
   ASSERT_TRUE(c.ok());
   Pose at = LookingAlongX();
   at.translation.y() = 0.5;  // reads 1.5 m along x: past B's wall at 1 m, short of the first's
-  std::vector<store::KeyframeRecord> c_keyframes;
-  for (int i = 0; i < 6; ++i) c_keyframes.push_back(SeeingKeyframe(c->id, i, at));
+  std::vector<store::KeyframeRecord> c_keyframes = SeeingKeyframes(c->id, 0, 6, at);
   ASSERT_TRUE(store_->InsertKeyframes(&c_keyframes, {}).ok());
   ASSERT_TRUE(anchor_to(c->id, b->id, b_keyframes[0].id, c_keyframes[0].id).ok());
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
@@ -659,8 +663,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorIsKeptWhenOnlyAPartialPlanDisagrees) {
   plain.committed = Committed(c_keyframes.back().id);
   plain.on_anchored = [&](const Pose&, const std::optional<Pose>&) { told = true; };
   worker.Wait(worker.Submit(plain));  // anchored before the worker knew it: counted from here
-  std::vector<store::KeyframeRecord> more;
-  for (int i = 6; i < 12; ++i) more.push_back(SeeingKeyframe(c->id, i, at));
+  std::vector<store::KeyframeRecord> more = SeeingKeyframes(c->id, 6, 12, at);
   ASSERT_TRUE(store_->InsertKeyframes(&more, {}).ok());
   plain.committed = Committed(more.back().id);
   worker.Wait(worker.Submit(plain));
