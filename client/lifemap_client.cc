@@ -277,6 +277,11 @@ class GrpcClient final : public Client {
     req.set_dry_run(dry_run);
     return Unary(&v1::VisitService::Stub::AnchorVisits, visits_.get(), req);
   }
+  absl::StatusOr<v1::AnchorHistory> GetAnchorHistory(uint64_t visit_id) override {
+    v1::GetAnchorHistoryRequest req;
+    req.set_visit_id(visit_id);
+    return Unary(&v1::VisitService::Stub::GetAnchorHistory, visits_.get(), req);
+  }
 
   absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) override {
     return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request);

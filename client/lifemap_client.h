@@ -125,6 +125,8 @@ class Client {
   virtual absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map,
                                                                 uint64_t visit_id,
                                                                 bool dry_run) = 0;
+  // The visit's anchor history, oldest first: anchored, revised, dropped, with why.
+  virtual absl::StatusOr<v1::AnchorHistory> GetAnchorHistory(uint64_t visit_id) = 0;
 
   // Models (random forests from `lifemap train`). UploadModel sends the file in 1 MiB chunks.
   virtual absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,

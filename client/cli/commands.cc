@@ -1,6 +1,7 @@
 #include "client/cli/commands.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -380,7 +381,8 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
 }
 
 void AddVisitCommands(CLI::App* app, CliContext* ctx) {
-  auto* visits = app->add_subcommand("visits", "List, end and anchor visits of a map");
+  auto* visits = app->add_subcommand(
+      "visits", "List, end and anchor visits of a map, and show anchor histories");
   visits->require_subcommand(1);
   auto* list = visits->add_subcommand("list", "List a map's visits");
   auto map = std::make_shared<std::string>();
@@ -421,6 +423,10 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
               }
               if (!v.anchor_dropped().empty()) {
                 std::cout << absl::StrFormat("%6s anchor dropped: %s\n", "", v.anchor_dropped());
+              }
+              if (v.frames_lost() > 0) {
+                std::cout << absl::StrFormat("%6s tracking lost %d of its %d frames\n", "",
+                                             v.frames_lost(), v.frame_count());
               }
             }
           });
@@ -471,6 +477,39 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                                : std::string("not anchored"),
                   a.keyframes_queried(), a.candidates(), a.reason());
               for (const auto& v : a.verdicts()) std::cout << "  " << v << "\n";
+            }
+          });
+    };
+  });
+
+  auto* history = visits->add_subcommand(
+      "history", "Show a visit's anchor history: each time it was anchored, revised or dropped");
+  auto history_visit = std::make_shared<uint64_t>(0);
+  history->add_option("VISIT_ID", *history_visit, "visit id")->required();
+  history->callback([ctx, history_visit] {
+    ctx->run = [ctx, history_visit] {
+      return RunCall<v1::AnchorHistory>(
+          *ctx, [&](client::Client& c) { return c.GetAnchorHistory(*history_visit); },
+          [](const v1::AnchorHistory& h) {
+            if (h.entries().empty()) {
+              std::cout << "visit " << h.visit_id() << " of map '" << h.map()
+                        << "' was never anchored\n";
+              return;
+            }
+            // POSITION/TURN: where the entry put the visit's own frame in the map's, and by how
+            // much it is rotated (for "dropped", the placement that was dropped).
+            std::cout << absl::StrFormat("%-23s  %-8s  %8s  %-28s %9s  %s\n", "TIME", "ACTION",
+                                         "TO", "POSITION (m)", "TURN(deg)", "WHY");
+            for (const auto& e : h.entries()) {
+              const auto& p = e.t_map_visit();
+              const double norm =
+                  std::sqrt(p.qx() * p.qx() + p.qy() * p.qy() + p.qz() * p.qz() + p.qw() * p.qw());
+              const double turn_deg =
+                  norm > 0 ? 2.0 * std::acos(std::min(1.0, std::abs(p.qw()) / norm)) * 180.0 / M_PI
+                           : 0.0;
+              std::cout << absl::StrFormat("%-23s  %-8s  %8d  %8.3f %8.3f %8.3f   %9.1f  %s\n",
+                                           HumanTime(e.time_s()), e.action(), e.to_visit(), p.tx(),
+                                           p.ty(), p.tz(), turn_deg, e.reason());
             }
           });
     };

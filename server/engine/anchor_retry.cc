@@ -35,6 +35,11 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
                     const store::VisitRecord& visit, bool dry_run, int max_keyframes) {
   AnchorAttempt out;
   out.visit_id = visit.id;
+  if (const std::string broken = BrokenTracking(visit, pose_graph->options().anchor_max_lost_share);
+      !broken.empty()) {
+    out.reason = absl::StrCat(dry_run ? "dry run: would not anchor: " : "", "held: ", broken);
+    return out;
+  }
   auto keyframes = store->ListKeyframes(visit.map_id, visit.id);
   if (!keyframes.ok()) {
     out.reason = absl::StrCat("its keyframes could not be read: ", keyframes.status().message());

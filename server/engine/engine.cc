@@ -150,7 +150,7 @@ absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
   }
   // A stream still writing the visit ends with FAILED_PRECONDITION; keyframes it had already
   // queued are committed before the visit is marked ended, nothing after.
-  const int64_t frames = p.visits->CloseVisit(
+  const store::VisitFrameCount counts = p.visits->CloseVisit(
       id, absl::FailedPreconditionError(absl::StrCat(
               "visit ", id, " was ended (EndVisit); start a new visit (visit_id 0) to go on")));
   // Its floor plan too: what was sent before the end is folded, stored and ranked.
@@ -168,9 +168,9 @@ absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
       RefreshMapSemanticOctree(store, map_name, options);
     });
   }
-  auto drained = p.committer->Submit(std::nullopt, {id, frames}).get();
+  auto drained = p.committer->Submit(std::nullopt, counts).get();
   if (!drained.ok()) return drained.status();
-  return p.store->EndVisit(id, NowSeconds(), frames);
+  return p.store->EndVisit(id, NowSeconds(), counts);
 }
 
 store::Store* Engine::store() const { return parts_->store.get(); }

@@ -462,6 +462,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       return p;
     }
     ++visit->frame_count;
+    if (p.tracking && !p.pose) ++visit->lost_frame_count;
     visit->selector.set_options(settings.keyframe);
     decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
     query_appearance = decision.selected;
@@ -527,8 +528,10 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       visit->tracker.PromoteLastToReference();
     }
     // Submitted under the visit's lock: a visit's keyframes are committed in frame order.
-    p.commit =
-        parts_.committer->Submit(*std::move(record), {visit->visit_id, visit->frame_count}).share();
+    p.commit = parts_.committer
+                   ->Submit(*std::move(record),
+                            {visit->visit_id, visit->frame_count, visit->lost_frame_count})
+                   .share();
     // An anchored visit's keyframes go to the worker even without candidates: its anchor is
     // re-checked as the visit grows (PoseGraphWorker::RecheckAnchor).
     bool anchored = false;

@@ -41,6 +41,10 @@ absl::Status PoseGraphOptions::Validate() const {
         absl::StrCat("pose_graph.anchor_drop_through_share must be within [0, 1], got ",
                      anchor_drop_through_share));
   }
+  if (!(anchor_max_lost_share >= 0 && anchor_max_lost_share <= 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "pose_graph.anchor_max_lost_share must be within [0, 1], got ", anchor_max_lost_share));
+  }
   if (anchor_revision_min_matches < 2 || anchor_revision_min_matches > 100) {
     return absl::InvalidArgumentError(
         absl::StrCat("pose_graph.anchor_revision_min_matches must be within [2, 100], got ",

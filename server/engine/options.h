@@ -70,6 +70,13 @@ struct PoseGraphOptions {
   // of sparse visits re-checked at 6.7 % (building seed 9, 40 frames) while a wrong one (another
   // place) was at 13.1 % (building seed 12): RESULTS.md "Issue 35 (session 22)".
   double anchor_drop_through_share = 0.10;
+  // A tracked visit that has lost more than this share of its frames (judged from 20 frames on)
+  // is neither anchored nor anchored to, and an anchored one that comes to lose more has its
+  // anchor dropped, [0, 1]: its keyframes are pieces, not one rigid body, and two of its
+  // matches agreeing prove little. Chosen on rooms seed 15 without odometry (RESULTS.md
+  // "Issue 35 (session 23)"): the L room's visits lost 36-61 % and were all anchored wrong; the
+  // rect room's lost 0-3 %. 1 switches the hold off.
+  double anchor_max_lost_share = 0.20;
 
   absl::Status Validate() const;
 };

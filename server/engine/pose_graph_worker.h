@@ -80,7 +80,15 @@ struct LoopClosureStats {
   int64_t ties_rejected = 0;
   int64_t anchors_revised = 0;  // anchors moved by later matches that outvoted them
   int64_t anchors_dropped = 0;  // anchors the visit's later keyframes contradicted (RecheckAnchor)
+  // Keyframes whose anchor candidates were not judged: their visit's own tracking lost more
+  // than PoseGraphOptions::anchor_max_lost_share of its frames.
+  int64_t anchors_held = 0;
 };
+
+// Why a visit's own tracking is too broken to anchor it or to anchor another visit to it
+// (issue 35): more than `max_lost_share` of its frames were lost (judged from 20 frames on),
+// so its keyframes are not one rigid body. Empty when it is not.
+std::string BrokenTracking(const store::VisitRecord& visit, double max_lost_share);
 
 // Thread-safe.
 class PoseGraphWorker {
@@ -153,12 +161,17 @@ class PoseGraphWorker {
   // anchor_revision_min_matches); how many matches the new anchor rests on (0: not revised).
   int ReviseAnchor(const Job& job, const store::VisitRecord& visit,
                    const std::vector<store::KeyframeRecord>& visit_keyframes);
-  // Re-checks an anchored visit's placement against the floor plan of the visit it is anchored
-  // to each time its posed keyframes have doubled since the last check, and drops the anchor
-  // (Store::DropAnchor) when they disagree: an anchor accepted on 7 keyframes can be
-  // contradicted by the next 10 (RESULTS.md, building seed 12). True when it was dropped.
+  // Re-checks an anchored visit and drops its anchor (Store::DropAnchor) when its own tracking
+  // has lost more than PoseGraphOptions::anchor_max_lost_share of its frames since, or when
+  // LayoutDisagreement says its keyframes disagree with the floor plan. True when dropped.
   bool RecheckAnchor(const Job& job, const store::VisitRecord& visit,
                      const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // Each time an anchored visit's posed keyframes have doubled since the last check: why they
+  // disagree with the floor plan of the visit it is anchored to (and with the map's first
+  // visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the next 10
+  // (RESULTS.md, building seed 12).
+  std::optional<std::string> RecheckPlan(const Job& job, const store::VisitRecord& visit,
+                                         const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
   // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
   // odometry, or the map's stored poses) up to the drift allowed over `path_m`; and, where

@@ -105,6 +105,7 @@ absl::StatusOr<std::shared_ptr<VisitState>> VisitRegistry::Get(int64_t visit_id)
     absl::MutexLock lock(&state->mu);
     state->map_name = visit->map_name;
     state->frame_count = visit->frame_count;
+    state->lost_frame_count = visit->lost_frame_count;
     if (*last) {
       state->selector.Accept((*last)->timestamp_s, (*last)->T_world_camera);
       state->last_frame_s = (*last)->timestamp_s;
@@ -147,18 +148,18 @@ std::vector<std::shared_ptr<VisitState>> VisitRegistry::AllLoaded() {
   return out;
 }
 
-int64_t VisitRegistry::CloseVisit(int64_t visit_id, const absl::Status& why) {
+store::VisitFrameCount VisitRegistry::CloseVisit(int64_t visit_id, const absl::Status& why) {
   std::shared_ptr<VisitState> state;
   {
     absl::MutexLock lock(&mu_);
     auto it = visits_.find(visit_id);
-    if (it == visits_.end()) return 0;
+    if (it == visits_.end()) return {visit_id, 0, 0};
     state = std::move(it->second);
     visits_.erase(it);
   }
   absl::MutexLock lock(&state->mu);
   state->closed = why;
-  return state->frame_count;
+  return {visit_id, state->frame_count, state->lost_frame_count};
 }
 
 void VisitRegistry::CloseMap(int64_t map_id, const absl::Status& why) {

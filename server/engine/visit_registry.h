@@ -61,6 +61,7 @@ struct VisitState {
   std::string writer_peer ABSL_GUARDED_BY(mu);
   tracking::KeyframeSelector selector ABSL_GUARDED_BY(mu);
   int64_t frame_count ABSL_GUARDED_BY(mu) = 0;
+  int64_t lost_frame_count ABSL_GUARDED_BY(mu) = 0;  // of frame_count, lost by the tracker
   // Timestamp of the visit's latest frame placed (or, resumed, of its last stored keyframe),
   // seconds; frames far after it are refused (ServerConfig::frame_max_gap_s).
   std::optional<double> last_frame_s ABSL_GUARDED_BY(mu);
@@ -149,8 +150,8 @@ class VisitRegistry {
                                           const std::string& peer);
 
   // Marks a visit closed with `why` (its stream ends with it) and forgets it. For EndVisit:
-  // returns the visit's frame count as of the close.
-  int64_t CloseVisit(int64_t visit_id, const absl::Status& why);
+  // returns the visit's frame counts as of the close (zero when it was not loaded).
+  store::VisitFrameCount CloseVisit(int64_t visit_id, const absl::Status& why);
   // Closes every loaded visit of a map (deleted) with `why` and forgets its settings.
   void CloseMap(int64_t map_id, const absl::Status& why);
   // A map renamed: its visits' states follow the new name.

@@ -58,6 +58,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"VisitService/StartVisit", Role::kRobot},
       {"VisitService/EndVisit", Role::kRobot},
       {"VisitService/ListVisits", Role::kRobot},
+      {"VisitService/GetAnchorHistory", Role::kRobot},
       {"PlaceService/QueryPlace", Role::kRobot},
       {"PlaceService/ListPlaces", Role::kRobot},
       {"MapService/ListMaps", Role::kRobot},

@@ -213,6 +213,7 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
   out->set_ended(v.ended);
   out->set_keyframe_count(static_cast<uint64_t>(v.keyframe_count));
   out->set_frame_count(static_cast<uint64_t>(v.frame_count));
+  out->set_frames_lost(static_cast<uint64_t>(v.lost_frame_count));
   out->set_loops_accepted(static_cast<uint64_t>(v.loops_accepted));
   out->set_loops_rejected(static_cast<uint64_t>(v.loops_rejected));
   out->set_pose_graph_solves(static_cast<uint64_t>(v.pose_graph_solves));

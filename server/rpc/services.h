@@ -77,6 +77,8 @@ class VisitServiceImpl final : public v1::VisitService::Service {
                           v1::ListVisitsResponse*) override;
   grpc::Status AnchorVisits(grpc::ServerContext*, const v1::AnchorVisitsRequest*,
                             v1::AnchorVisitsResponse*) override;
+  grpc::Status GetAnchorHistory(grpc::ServerContext*, const v1::GetAnchorHistoryRequest*,
+                                v1::AnchorHistory*) override;
 
  private:
   ServiceContext* ctx_;

@@ -100,4 +100,31 @@ grpc::Status VisitServiceImpl::AnchorVisits(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
+grpc::Status VisitServiceImpl::GetAnchorHistory(grpc::ServerContext* context,
+                                                const v1::GetAnchorHistoryRequest* req,
+                                                v1::AnchorHistory* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/GetAnchorHistory");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+  if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+  if (*visit_id == 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
+  }
+  auto visit = FindCallersVisit(ctx_->engine->store(), *caller, *visit_id);
+  if (!visit.ok()) return ToGrpcStatus(visit.status());
+  auto entries = ctx_->engine->store()->ListAnchorRevisions(*visit_id);
+  if (!entries.ok()) return ToGrpcStatus(entries.status());
+  resp->set_visit_id(static_cast<uint64_t>(visit->id));
+  resp->set_map(visit->map_name);
+  for (const store::AnchorRevision& r : *entries) {
+    v1::AnchorHistoryEntry* out = resp->add_entries();
+    out->set_time_s(r.time_s);
+    out->set_action(r.action);
+    out->set_to_visit(static_cast<uint64_t>(r.to_visit_id));
+    PoseToProto(r.T_map_visit, out->mutable_t_map_visit());
+    out->set_reason(ToValidUtf8(r.reason));
+  }
+  return grpc::Status::OK;
+}
+
 }  // namespace lifemap::server

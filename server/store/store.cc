@@ -387,6 +387,11 @@ INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, ma
     map_qx, map_qy, map_qz, map_qw, 'anchored before anchor revisions were recorded'
   FROM visits WHERE anchor_visit_id IS NOT NULL;
 )sql",
+    // 15 -> 16: frames the server's tracker lost, per visit (issue 35: a visit that lost a
+    // large share of its frames is not one rigid body and is neither anchored nor anchored to).
+    R"sql(
+ALTER TABLE visits ADD COLUMN lost_frame_count INTEGER NOT NULL DEFAULT 0;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -566,6 +571,7 @@ VisitRecord ReadVisit(const Statement& s) {
   v.tracked_keyframes = s.ColumnInt(25);
   v.first_of_map = s.ColumnInt(26) != 0;
   v.anchor_dropped = s.ColumnText(29);
+  v.lost_frame_count = s.ColumnInt(30);
   return v;
 }
 
@@ -586,7 +592,7 @@ constexpr char kVisitSelect[] =
     "COALESCE((SELECT e.reason FROM pose_edges e WHERE e.id = v.anchor_edge_id), ''), "
     "CASE WHEN v.anchor_visit_id IS NULL THEN COALESCE((SELECT r.reason FROM anchor_revisions r "
     "WHERE r.visit_id = v.id AND r.action = 'dropped' ORDER BY r.id DESC LIMIT 1), '') ELSE '' "
-    "END "
+    "END, v.lost_frame_count "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =
@@ -954,16 +960,19 @@ absl::StatusOr<VisitRecord> Store::GetVisit(int64_t visit_id) {
 }
 
 absl::StatusOr<VisitRecord> Store::EndVisit(int64_t visit_id, double end_time_s,
-                                            int64_t frame_count) {
+                                            VisitFrameCount counts) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
   auto stmt = db->Prepare(
-      "UPDATE visits SET ended = 1, end_time_s = ?2, frame_count = MAX(frame_count, ?3) "
-      "WHERE id = ?1");
+      "UPDATE visits SET ended = 1, end_time_s = ?2, frame_count = MAX(frame_count, ?3), "
+      "lost_frame_count = MAX(lost_frame_count, ?4) WHERE id = ?1");
   if (!stmt.ok()) return stmt.status();
   {
     StatementScope s(*stmt);
-    s->Bind(1, visit_id).Bind(2, end_time_s).Bind(3, frame_count);
+    s->Bind(1, visit_id)
+        .Bind(2, end_time_s)
+        .Bind(3, counts.frame_count)
+        .Bind(4, counts.lost_frame_count);
     if (auto st = s->Run(); !st.ok()) return st;
   }
   if (db->Changes() == 0)
@@ -1124,12 +1133,13 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       if (auto st = s->Run(); !st.ok()) return st;
     }
   }
-  auto update_count =
-      db->Prepare("UPDATE visits SET frame_count = MAX(frame_count, ?2) WHERE id = ?1");
+  auto update_count = db->Prepare(
+      "UPDATE visits SET frame_count = MAX(frame_count, ?2), "
+      "lost_frame_count = MAX(lost_frame_count, ?3) WHERE id = ?1");
   if (!update_count.ok()) return update_count.status();
   for (const auto& c : frame_counts) {
     StatementScope s(*update_count);
-    s->Bind(1, c.visit_id).Bind(2, c.frame_count);
+    s->Bind(1, c.visit_id).Bind(2, c.frame_count).Bind(3, c.lost_frame_count);
     if (auto st = s->Run(); !st.ok()) return st;
   }
   auto committed = tx.Commit();

@@ -94,6 +94,7 @@ struct VisitRecord {
   bool ended = false;
   int64_t keyframe_count = 0;
   int64_t frame_count = 0;
+  int64_t lost_frame_count = 0;  // of frame_count, lost by the server's tracker (issue 35)
   // Loop closure within the visit (issue 15): loop edges accepted into its pose graph (and
   // not outvoted since), rejected ones, and pose-graph solves.
   int64_t loops_accepted = 0;
@@ -163,9 +164,11 @@ EncodedColor StoredColor(const KeyframeRecord& k);
 EncodedRgbdFrame StoredFrame(const KeyframeRecord& k);
 
 // A visit's frame counter, written in the same transaction as its keyframes.
+// A visit's frames processed so far, and how many of them the server's tracker lost (no pose).
 struct VisitFrameCount {
   int64_t visit_id = 0;
   int64_t frame_count = 0;
+  int64_t lost_frame_count = 0;
 };
 
 struct StoreStats {
@@ -333,7 +336,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 15;
+  static constexpr int kSchemaVersion = 16;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -357,7 +360,8 @@ class Store {
   absl::StatusOr<VisitRecord> StartVisit(const std::string& map_name, const std::string& robot,
                                          const std::string& label, double start_time_s);
   absl::StatusOr<VisitRecord> GetVisit(int64_t visit_id);
-  absl::StatusOr<VisitRecord> EndVisit(int64_t visit_id, double end_time_s, int64_t frame_count);
+  // Marks the visit ended; its frame counts only grow (MAX with what was committed).
+  absl::StatusOr<VisitRecord> EndVisit(int64_t visit_id, double end_time_s, VisitFrameCount counts);
   absl::StatusOr<std::vector<VisitRecord>> ListVisits(const std::string& map_name);
   // The map's most recently started visit that is still open, if any.
   absl::StatusOr<std::optional<VisitRecord>> LatestOpenVisit(const std::string& map_name);

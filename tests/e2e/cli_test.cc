@@ -559,6 +559,13 @@ TEST_F(CliTest, AVisitTrackedBeforeTheVocabularyIsAnchoredWhenRetried) {
   r = Run({"visits", "anchor", "m", tracked_id, "--dry-run"});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("dry run: would not anchor"), std::string::npos) << r.out;
+  r = Run({"visits", "history", tracked_id});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("visit " + tracked_id + " of map 'm' was never anchored"), std::string::npos)
+      << r.out;
+  r = Run({"visits", "history", "999"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("999"), std::string::npos) << r.err;
   // A new vocabulary retries every unanchored visit by itself; an operator's retry waits
   // behind it and finds the visit anchored.
   ASSERT_EQ(Run({"places", "index", "rebuild", "--retrain"}).code, 0);
@@ -569,6 +576,20 @@ TEST_F(CliTest, AVisitTrackedBeforeTheVocabularyIsAnchoredWhenRetried) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("anchored->1"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("anchor evidence: anchors visit " + tracked_id), std::string::npos) << r.out;
+  // Its history holds the one anchoring, with where it put the visit and why.
+  r = Run({"--json", "visits", "history", tracked_id});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json history = json::parse(r.out);
+  ASSERT_EQ(history["entries"].size(), 1u) << history;
+  EXPECT_EQ(history["entries"][0]["action"], "anchored") << history;
+  EXPECT_EQ(history["entries"][0]["to_visit"], "1") << history;
+  EXPECT_NE(history["entries"][0]["reason"].get<std::string>().find("anchors visit " + tracked_id),
+            std::string::npos)
+      << history;
+  r = Run({"visits", "history", tracked_id});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("anchored"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("TURN(deg)"), std::string::npos) << r.out;
   // Anchored now: nothing left to retry.
   r = Run({"visits", "anchor", "m"});
   ASSERT_EQ(r.code, 0) << r.err;

@@ -158,7 +158,7 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
              "loop_max_reprojection_px": 1.5, "loop_max_disagreement_m": 0.3,
              "loop_max_disagreement_per_m": 0, "loop_max_disagreement_deg": 8,
              "loop_max_disagreement_deg_per_m": 2, "layout_max_through_share": 0.1,
-             "anchor_drop_through_share": 0.2}})";
+             "anchor_drop_through_share": 0.2, "anchor_max_lost_share": 0.3}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_FALSE(c->pose_graph.enabled);
@@ -170,12 +170,15 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
   EXPECT_DOUBLE_EQ(c->pose_graph.loop_max_disagreement_deg_per_m, 2.0);
   EXPECT_DOUBLE_EQ(c->pose_graph.layout_max_through_share, 0.1);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_drop_through_share, 0.2);
+  EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_lost_share, 0.3);
   ExpectRefused(
       tmp,
       {
           {"layout.json", R"({"pose_graph": {"layout_max_through_share": 1.5}})", "pose_graph"},
           {"drop.json", R"({"pose_graph": {"anchor_drop_through_share": -0.1}})",
            "anchor_drop_through_share"},
+          {"lost.json", R"({"pose_graph": {"anchor_max_lost_share": 1.5}})",
+           "anchor_max_lost_share"},
           {"inliers.json", R"({"pose_graph": {"loop_min_inliers": 5}})", "pose_graph"},
           {"reprojection.json", R"({"pose_graph": {"loop_max_reprojection_px": 0}})", "pose_graph"},
           {"metres.json", R"({"pose_graph": {"loop_max_disagreement_m": -0.1}})", "pose_graph"},

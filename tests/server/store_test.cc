@@ -122,7 +122,7 @@ TEST_F(StoreTest, KeyframeOfDeletedVisitIsNotFoundAndWritesNothing) {
 TEST_F(StoreTest, EndedVisitTakesNoMoreKeyframes) {
   ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
   auto visit = store_->StartVisit("m", "", "", 1.0);
-  ASSERT_TRUE(store_->EndVisit(visit->id, 2.0, 0).ok());
+  ASSERT_TRUE(store_->EndVisit(visit->id, 2.0, {visit->id, 0, 0}).ok());
   std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 3.0)};
   EXPECT_TRUE(absl::IsFailedPrecondition(store_->InsertKeyframes(&batch, {})));
 }
@@ -188,7 +188,7 @@ TEST_F(StoreTest, EndedVisitIsNotTheLatestOpenOne) {
   auto open = store_->LatestOpenVisit("m");
   ASSERT_TRUE(open.ok() && open->has_value());
   EXPECT_EQ((*open)->id, v2->id);
-  ASSERT_TRUE(store_->EndVisit(v2->id, 3.0, 5).ok());
+  ASSERT_TRUE(store_->EndVisit(v2->id, 3.0, {v2->id, 5, 0}).ok());
   open = store_->LatestOpenVisit("m");
   EXPECT_EQ((*open)->id, v1->id);
 }

@@ -550,6 +550,96 @@ TEST_F(PoseGraphWorkerTest, AnAnchorItsLaterKeyframesContradictIsDropped) {
   EXPECT_FALSE(v->anchor.has_value());
 }
 
+// A visit whose own track is broken (issue 35: rooms seed 15 without odometry, the L room's
+// visits lost 36-61 % of their frames and were all anchored wrong) is held unanchored whatever
+// its matches say, an anchored one that comes to lose too many frames has its anchor dropped,
+// and no visit is anchored to a visit whose track is broken.
+TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBrokenIsNeitherAnchoredNorAnchoredTo) {
+  Pose T;
+  T.translation = {2.0, 0.0, 0.0};
+  int64_t second_id = 0;
+  std::vector<store::KeyframeRecord> b = SecondVisit(T, 6, &second_id);
+  ASSERT_EQ(b.size(), 6u);
+  auto count_frames = [&](int64_t visit_id, int64_t frames, int64_t lost) {
+    std::vector<store::KeyframeRecord> none;
+    ASSERT_TRUE(store_->InsertKeyframes(&none, {{visit_id, frames, lost}}).ok());
+  };
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  bool told = false;
+  auto job_for = [&](int64_t visit_id, int64_t query_id, int i) {
+    PoseGraphWorker::Job job = AnchorJob(visit_id, query_id, i, Pose{}, &anchored);
+    job.on_anchored = [&](const Pose&, const std::optional<Pose>& t) {
+      told = true;
+      anchored = t;
+    };
+    return job;
+  };
+  // 30 of 100 frames lost (more than the default 20 %): two agreeing matches anchor nothing,
+  // and a dry run says why.
+  ASSERT_NO_FATAL_FAILURE(count_frames(second_id, 100, 30));
+  auto dry = std::make_shared<PoseGraphWorker::Job::DryRun>();
+  PoseGraphWorker::Job dry_job = job_for(second_id, b[0].id, 0);
+  dry_job.dry_run = dry;
+  worker.Wait(worker.Submit(std::move(dry_job)));
+  ASSERT_EQ(dry->verdicts.size(), 1u);
+  EXPECT_NE(dry->verdicts[0].find("held: visit " + std::to_string(second_id) +
+                                  "'s own tracking lost 30 of its 100 frames (30 %"),
+            std::string::npos)
+      << dry->verdicts[0];
+  worker.Wait(worker.Submit(job_for(second_id, b[0].id, 0)));
+  worker.Wait(worker.Submit(job_for(second_id, b[1].id, 1)));
+  EXPECT_FALSE(told);
+  EXPECT_EQ(worker.Stats().anchors_held, 2);
+  EXPECT_EQ(worker.Stats().anchors, 0);
+
+  // A third visit that lost 10 of 100 is anchored by two agreeing matches...
+  int64_t third_id = 0;
+  std::vector<store::KeyframeRecord> c = SecondVisit(T, 6, &third_id);
+  ASSERT_NO_FATAL_FAILURE(count_frames(third_id, 100, 10));
+  worker.Wait(worker.Submit(job_for(third_id, c[0].id, 0)));
+  worker.Wait(worker.Submit(job_for(third_id, c[1].id, 1)));
+  ASSERT_TRUE(told);
+  ASSERT_TRUE(anchored.has_value());
+  // ...and dropped once its own track breaks (60 of 200 lost), at its next keyframe.
+  ASSERT_NO_FATAL_FAILURE(count_frames(third_id, 200, 60));
+  told = false;
+  PoseGraphWorker::Job plain = job_for(third_id, c[2].id, 2);
+  plain.anchors.clear();
+  worker.Wait(worker.Submit(std::move(plain)));
+  ASSERT_TRUE(told);
+  EXPECT_FALSE(anchored.has_value());
+  auto v = store_->GetVisit(third_id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_EQ(v->lost_frame_count, 60);
+  EXPECT_EQ(v->frame_count, 200);
+  EXPECT_NE(v->anchor_dropped.find("re-checked: visit " + std::to_string(third_id) +
+                                   "'s own tracking lost 60 of its 200 frames"),
+            std::string::npos)
+      << v->anchor_dropped;
+
+  // A map whose first visit lost half its frames is no frame to anchor to: a healthy visit's
+  // agreeing matches to it are refused.
+  ASSERT_NO_FATAL_FAILURE(count_frames(visit_.id, 100, 50));
+  int64_t fourth_id = 0;
+  std::vector<store::KeyframeRecord> d = SecondVisit(T, 6, &fourth_id);
+  told = false;
+  auto dry_to = std::make_shared<PoseGraphWorker::Job::DryRun>();
+  PoseGraphWorker::Job refused = job_for(fourth_id, d[0].id, 0);
+  refused.dry_run = dry_to;
+  worker.Wait(worker.Submit(std::move(refused)));
+  ASSERT_EQ(dry_to->verdicts.size(), 1u);
+  EXPECT_NE(dry_to->verdicts[0].find("refused: visit " + std::to_string(visit_.id) +
+                                     "'s own tracking lost 50 of its 100 frames"),
+            std::string::npos)
+      << dry_to->verdicts[0];
+  worker.Wait(worker.Submit(job_for(fourth_id, d[0].id, 0)));
+  worker.Wait(worker.Submit(job_for(fourth_id, d[1].id, 1)));
+  EXPECT_FALSE(told);
+  EXPECT_EQ(worker.Stats().anchors, 1);
+}
+
 // `lifemap visits anchor --dry-run` (issue 35): the same candidates judged as a retry would,
 // each with its verdict (a placement the floor plan refuses, one that would anchor), and nothing
 // stored, anchored or counted; the visit's own anchoring state is untouched.
