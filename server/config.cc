@@ -342,6 +342,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             g.anchor_drop_through_share = v.get<double>();
           } else if (k == "anchor_max_lost_share") {
             g.anchor_max_lost_share = v.get<double>();
+          } else if (k == "anchor_min_spread_m") {
+            g.anchor_min_spread_m = v.get<double>();
           } else if (k == "anchor_revision_min_matches") {
             g.anchor_revision_min_matches = v.get<int>();
           } else {

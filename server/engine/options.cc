@@ -45,6 +45,11 @@ absl::Status PoseGraphOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "pose_graph.anchor_max_lost_share must be within [0, 1], got ", anchor_max_lost_share));
   }
+  if (!(anchor_min_spread_m >= 0 && anchor_min_spread_m <= 1000)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("pose_graph.anchor_min_spread_m must be within [0, 1000] metres, got ",
+                     anchor_min_spread_m));
+  }
   if (anchor_revision_min_matches < 2 || anchor_revision_min_matches > 100) {
     return absl::InvalidArgumentError(
         absl::StrCat("pose_graph.anchor_revision_min_matches must be within [2, 100], got ",

@@ -77,6 +77,10 @@ struct PoseGraphOptions {
   // "Issue 35 (session 23)"): the L room's visits lost 36-61 % and were all anchored wrong; the
   // rect room's lost 0-3 %. 1 switches the hold off.
   double anchor_max_lost_share = 0.20;
+  // The two agreeing matches that anchor a visit come from keyframes at least this far apart
+  // along its path (metres, >= 0; 0: any two keyframes): neighbouring keyframes agree even
+  // where the visit's own track is bent, and its anchor is then wrong away from them.
+  double anchor_min_spread_m = 0.0;
 
   absl::Status Validate() const;
 };

@@ -634,9 +634,18 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       continue;
     }
     // Two matches from different keyframes of the visit must agree: one match can be an alias.
-    bool agreed = false;  // with another keyframe's match: judged below, and said so
+    bool agreed = false;     // with another keyframe's match: judged below, and said so
+    bool too_close = false;  // agreed only with keyframes too near along the path
     for (const AnchorEstimate& other : pending) {
       if (other.query_keyframe == query.id) continue;
+      // Two keyframes close together agree even where the visit's track is bent: only
+      // keyframes far enough apart along it test that the visit is one rigid body.
+      if (options_.anchor_min_spread_m > 0 &&
+          PathM(visit_keyframes, std::min(other.query_keyframe, query.id),
+                std::max(other.query_keyframe, query.id)) < options_.anchor_min_spread_m) {
+        too_close = too_close || AnchorsAgree(other.T_map_visit, estimate.T_map_visit);
+        continue;
+      }
       const double off_m =
           (other.T_map_visit.translation - estimate.T_map_visit.translation).norm();
       const double off_deg = RotationAngleRad(other.T_map_visit, estimate.T_map_visit) * kRadToDeg;
@@ -705,7 +714,13 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
       if (job.on_anchored) job.on_anchored(anchor.T_map_visit, anchor.T_map_visit);
       return true;
     }
-    if (!agreed) verdict(c, placed + "no other keyframe's match agrees (yet)");
+    if (!agreed) {
+      verdict(c, placed + (too_close
+                               ? absl::StrFormat("agrees only with keyframes less than "
+                                                 "pose_graph.anchor_min_spread_m %.1f m away (yet)",
+                                                 options_.anchor_min_spread_m)
+                               : std::string("no other keyframe's match agrees (yet)")));
+    }
     if (pending.size() < kMaxPendingAnchors && estimate.edge.accepted) {
       pending.push_back(std::move(estimate));
     }

@@ -489,6 +489,21 @@ TEST_F(CliTest, StreamingWithWheelOdometryLosesNoFrameOfASparseWalk) {
   const auto with_odometry = json::parse(Lines(r.out).back())["summary"];
   EXPECT_GT(images_only["frames_lost_by_tracker"].get<int>(), 5) << images_only;
   EXPECT_EQ(with_odometry["frames_lost_by_tracker"].get<int>(), 0) << with_odometry;
+  // The server keeps each visit's count (Visit.frames_lost: too many hold its anchoring).
+  r = Run({"--json", "visits", "list", "m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json listed = json::parse(r.out)["visits"];
+  ASSERT_EQ(listed.size(), 2u) << listed;
+  EXPECT_EQ(std::stoi(listed[0]["frames_lost"].get<std::string>()),
+            images_only["frames_lost_by_tracker"].get<int>())
+      << listed;
+  EXPECT_EQ(listed[1].value("frames_lost", std::string("0")), "0") << listed;
+  r = Run({"visits", "list", "m"});
+  EXPECT_NE(r.out.find("tracking lost " +
+                       std::to_string(images_only["frames_lost_by_tracker"].get<int>()) +
+                       " of its 40 frames"),
+            std::string::npos)
+      << r.out;
   // The evaluation sends it too, and counts the frames placed by it (it once crashed on them).
   r = Run({"--json", "eval", "trajectory", "--tum", walk, "--odometry", "wheel", "--rate", "0",
            "--out", tmp_.File("trajectory")});

@@ -188,7 +188,13 @@ TEST_F(StoreTest, EndedVisitIsNotTheLatestOpenOne) {
   auto open = store_->LatestOpenVisit("m");
   ASSERT_TRUE(open.ok() && open->has_value());
   EXPECT_EQ((*open)->id, v2->id);
-  ASSERT_TRUE(store_->EndVisit(v2->id, 3.0, {v2->id, 5, 0}).ok());
+  // Frame counts only grow: the end's and the last commit's, whichever is larger.
+  std::vector<KeyframeRecord> none;
+  ASSERT_TRUE(store_->InsertKeyframes(&none, {{v2->id, 7, 3}}).ok());
+  auto ended = store_->EndVisit(v2->id, 3.0, {v2->id, 5, 4});
+  ASSERT_TRUE(ended.ok()) << ended.status();
+  EXPECT_EQ(ended->frame_count, 7);
+  EXPECT_EQ(ended->lost_frame_count, 4);
   open = store_->LatestOpenVisit("m");
   EXPECT_EQ((*open)->id, v1->id);
 }
