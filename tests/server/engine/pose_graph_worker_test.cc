@@ -640,6 +640,45 @@ TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBrokenIsNeitherAnchoredNorAnchored
   EXPECT_EQ(worker.Stats().anchors, 1);
 }
 
+// With pose_graph.anchor_min_spread_m, the two agreeing matches must come from keyframes that
+// far apart along the visit's path: neighbours agree even where the track is bent.
+TEST_F(PoseGraphWorkerTest, AnAnchorNeedsAgreeingMatchesFromKeyframesFarEnoughApart) {
+  Pose T;
+  T.translation = {2.0, 0.0, 0.0};
+  int64_t second_id = 0;
+  const std::vector<store::KeyframeRecord> b = SecondVisit(T, 6, &second_id);  // 0.3 m apart
+  ASSERT_EQ(b.size(), 6u);
+  PoseGraphOptions options;
+  options.anchor_min_spread_m = 1.0;
+  PoseGraphWorker worker(store_.get(), options);
+  std::optional<Pose> anchored;
+  auto job_for = [&](int i) { return AnchorJob(second_id, b[i].id, i, Pose{}, &anchored); };
+  // A dry run says why keyframe 2's match does not anchor with keyframe 0's.
+  auto dry = std::make_shared<PoseGraphWorker::Job::DryRun>();
+  for (int i : {0, 2}) {
+    PoseGraphWorker::Job dry_job = job_for(i);
+    dry_job.dry_run = dry;
+    worker.Wait(worker.Submit(std::move(dry_job)));
+  }
+  ASSERT_EQ(dry->verdicts.size(), 2u);
+  EXPECT_NE(dry->verdicts[1].find("agrees only with keyframes less than "
+                                  "pose_graph.anchor_min_spread_m 1.0 m away"),
+            std::string::npos)
+      << dry->verdicts[1];
+  worker.Wait(worker.Submit(job_for(0)));
+  worker.Wait(worker.Submit(job_for(2)));
+  EXPECT_FALSE(anchored.has_value()) << "keyframes 0 and 2 are 0.6 m apart";
+  worker.Wait(worker.Submit(job_for(4)));
+  ASSERT_TRUE(anchored.has_value()) << "keyframes 0 and 4 are 1.2 m apart";
+  EXPECT_LT((anchored->translation - T.translation).norm(), 1e-6);
+  auto v = store_->GetVisit(second_id);
+  ASSERT_TRUE(v.ok());
+  ASSERT_TRUE(v->anchor.has_value());
+  EXPECT_NE(v->anchor->evidence.find("agrees with keyframe " + std::to_string(b[0].id)),
+            std::string::npos)
+      << v->anchor->evidence;
+}
+
 // `lifemap visits anchor --dry-run` (issue 35): the same candidates judged as a retry would,
 // each with its verdict (a placement the floor plan refuses, one that would anchor), and nothing
 // stored, anchored or counted; the visit's own anchoring state is untouched.
