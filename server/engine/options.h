@@ -79,7 +79,10 @@ struct PoseGraphOptions {
   double anchor_max_lost_share = 0.20;
   // The two agreeing matches that anchor a visit come from keyframes at least this far apart
   // along its path (metres, >= 0; 0: any two keyframes): neighbouring keyframes agree even
-  // where the visit's own track is bent, and its anchor is then wrong away from them.
+  // where the visit's own track is bent, and its anchor is then wrong away from them. Off by
+  // default: a short handheld recording (TUM fr1_xyz's desk) never travels 1.5 m, the figure
+  // that took rooms seed 11's wrong anchors without odometry from 4 to 0 (RESULTS.md "Issue 35
+  // (session 23)").
   double anchor_min_spread_m = 0.0;
 
   absl::Status Validate() const;
