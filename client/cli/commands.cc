@@ -559,6 +559,7 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
     uint64_t visit = 0;
     double voxel_m = 0.0;
     uint32_t stride = 0;
+    bool visit_column = false;
   };
   auto a = std::make_shared<Args>();
   exp->add_option("--map", a->map, "map name")->required();
@@ -569,6 +570,8 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
   exp->add_option("--visit", a->visit, "only this visit");
   exp->add_option("--voxel", a->voxel_m, "cloud voxel size in metres (default 0.02)");
   exp->add_option("--stride", a->stride, "cloud: use every N-th pixel (default 4)");
+  exp->add_flag("--visit-column", a->visit_column,
+                "poses: a ninth column with each keyframe's visit id");
   exp->add_option("--format", a->format,
                   "octree: ot (ColorOcTree, class colours) or bt (OcTree, occupancy); default "
                   "from --out's extension, else ot")
@@ -586,6 +589,9 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
       }
       if ((a->voxel_m != 0.0 || a->stride != 0) && a->what != "cloud") {
         return UsageError("--voxel and --stride apply to --what cloud only");
+      }
+      if (a->visit_column && a->what != "poses") {
+        return UsageError("--visit-column applies to --what poses only");
       }
       v1::ExportMapRequest req;
       req.set_map(a->map);
@@ -606,6 +612,7 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
       req.set_voxel_size_m(a->voxel_m);
       req.set_pixel_stride(a->stride);
       req.set_class_name(a->class_name);
+      req.set_visit_column(a->visit_column);
       auto c = ctx->Connect();
       if (!c.ok()) return Fail(c.status());
       uint64_t items = 0;

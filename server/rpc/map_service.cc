@@ -261,6 +261,10 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
   const int64_t visit_id = *id;
   if (auto s = CheckVisitOfMap(ctx_->engine->store(), *map, visit_id); !s.ok())
     return ToGrpcStatus(s);
+  if (req->visit_column() && req->format() != v1::EXPORT_POSES_TUM) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "visit_column applies to poses (EXPORT_POSES_TUM) only");
+  }
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
       auto keyframes = ctx_->engine->store()->ListKeyframes(map->id, visit_id);
@@ -281,7 +285,11 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
           "# lifemap keyframe poses (T_world_camera) of map '", map->name, "', ",
           visit_id == 0 ? std::string("in the map's frame")
                         : absl::StrCat("visit ", visit_id, " in its own frame"),
-          "\n# timestamp tx ty tz qx qy qz qw (TUM); '# visit N' starts each visit's poses\n");
+          req->visit_column()
+              ? "\n# timestamp tx ty tz qx qy qz qw visit (TUM, then the keyframe's visit id); '# "
+                "visit N' starts each visit's poses\n"
+              : "\n# timestamp tx ty tz qx qy qz qw (TUM); '# visit N' starts each visit's "
+                "poses\n");
       if (frame) {
         for (const auto& l : frame->left_out) absl::StrAppend(&body, "# left out: ", l, "\n");
       }
@@ -295,6 +303,7 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
           absl::StrAppend(&body, "# visit ", current_visit, "\n");
         }
         body += io::FormatTumPoseLine(k.timestamp_s, *k.T_world_camera);
+        if (req->visit_column()) absl::StrAppend(&body, " ", k.visit_id);
         body += '\n';
         ++n;
       }

@@ -24,6 +24,7 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "absl/strings/str_split.h"
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
 #include "server/store/store.h"
@@ -451,6 +452,27 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
   EXPECT_EQ(pose_lines, posed["keyframes_stored"].get<int>()) << "the posed visit's only";
   EXPECT_NE(poses.find("# left out: visit " + tracked_id), std::string::npos) << poses;
   EXPECT_EQ(poses.find("# visit " + tracked_id + "\n"), std::string::npos) << poses;
+  // With --visit-column each pose line carries its visit id as a ninth column.
+  r = Run(
+      {"export", "--map", "m", "--what", "poses", "--visit-column", "--out", tmp_.File("pv.txt")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string with_visits = Slurp(tmp_.File("pv.txt"));
+  EXPECT_NE(with_visits.find("# timestamp tx ty tz qx qy qz qw visit"), std::string::npos)
+      << with_visits;
+  const std::string posed_id = std::to_string(posed["visit_id"].get<uint64_t>());
+  int with_visit_lines = 0;
+  for (const auto& l : Lines(with_visits)) {
+    if (l[0] == '#') continue;
+    const std::vector<std::string> columns = absl::StrSplit(l, ' ', absl::SkipEmpty());
+    ASSERT_EQ(columns.size(), 9u) << l;
+    EXPECT_EQ(columns[8], posed_id) << l;
+    ++with_visit_lines;
+  }
+  EXPECT_EQ(with_visit_lines, pose_lines);
+  r = Run(
+      {"export", "--map", "m", "--what", "cloud", "--visit-column", "--out", tmp_.File("x.ply")});
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--visit-column applies to --what poses only"), std::string::npos) << r.err;
 
   // maps show names it too.
   r = Run({"maps", "show", "m"});
