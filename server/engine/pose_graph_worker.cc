@@ -253,6 +253,15 @@ constexpr int64_t kMinFramesToJudgeTracking = 20;
 
 }  // namespace
 
+// Why an anchor to `to_visit`, which is no longer in the map's frame, is dropped.
+std::string AnchorGoneReason(const store::VisitRecord& to_visit) {
+  return absl::StrCat(
+      "the visit it was anchored to (", to_visit.id, ") is no longer in the map's frame",
+      to_visit.anchor_dropped.empty()
+          ? std::string()
+          : absl::StrCat(": its anchor was dropped (", to_visit.anchor_dropped, ")"));
+}
+
 // Its keyframes are pieces joined by relocalisation or guesswork, and two of its matches
 // agreeing prove little: rooms seed 15 without odometry, every visit of the L room lost 36-61 %
 // of its frames and all eight were anchored 1.4-2.6 m wrong.
@@ -819,8 +828,12 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
   if (!visit.anchor) return false;
   AnchorState& state = anchoring_[job.visit_id];
   std::string reason = BrokenTracking(visit, options_.anchor_max_lost_share);
+  auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
   if (!reason.empty()) {
     reason = "re-checked: " + reason;
+  } else if (to_visit.ok() && !MapFromVisit(*to_visit)) {
+    // Anchored to a visit whose own anchor was dropped since: this placement rests on it.
+    reason = AnchorGoneReason(*to_visit);
   } else if (std::optional<std::string> layout = RecheckPlan(job, visit, visit_keyframes)) {
     reason = *std::move(layout);
   } else {
@@ -845,7 +858,33 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
   if (job.on_anchored) {
     job.on_anchored(Pose::FromIsometry(dropped->ToIsometry().inverse()), std::nullopt);
   }
+  DropDependents(visit);
   return true;
+}
+
+void PoseGraphWorker::DropDependents(const store::VisitRecord& dropped) {
+  auto visits = store_->ListVisits(dropped.map_name);
+  if (!visits.ok()) return;
+  for (const store::VisitRecord& v : *visits) {
+    if (!v.anchor || v.anchor->to_visit_id != dropped.id) continue;
+    // An open visit is dropped at its next keyframe, where the frame path that answers its
+    // frames is told (RecheckAnchor); an ended one has no frame path left: dropped here.
+    if (!v.ended) continue;
+    auto after = store_->GetVisit(dropped.id);
+    if (!after.ok()) return;
+    const std::string reason = AnchorGoneReason(*after);
+    if (auto s = store_->DropAnchor(v.id, reason, NowSeconds()); !s.ok()) {
+      spdlog::warn("visit {}: anchor not dropped: {}", v.id, s.status().ToString());
+      continue;
+    }
+    spdlog::info("visit {}: anchor to visit {} dropped: {}", v.id, dropped.id, reason);
+    anchoring_.erase(v.id);
+    {
+      absl::MutexLock lock(&mu_);
+      ++stats_.anchors_dropped;
+    }
+    DropDependents(v);
+  }
 }
 
 std::optional<std::string> PoseGraphWorker::RecheckPlan(

@@ -162,10 +162,15 @@ class PoseGraphWorker {
   int ReviseAnchor(const Job& job, const store::VisitRecord& visit,
                    const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Re-checks an anchored visit and drops its anchor (Store::DropAnchor) when its own tracking
-  // has lost more than PoseGraphOptions::anchor_max_lost_share of its frames since, or when
-  // LayoutDisagreement says its keyframes disagree with the floor plan. True when dropped.
+  // has lost more than PoseGraphOptions::anchor_max_lost_share of its frames since, when the
+  // visit it is anchored to is no longer in the map's frame (its anchor was dropped), or when
+  // RecheckPlan says its keyframes disagree with the floor plan. True when dropped.
   bool RecheckAnchor(const Job& job, const store::VisitRecord& visit,
                      const std::vector<store::KeyframeRecord>& visit_keyframes);
+  // After `dropped`'s anchor was dropped: the ended visits anchored to it lose theirs too (and
+  // theirs, in turn), since their placement rested on its poses. Open ones are dropped at their
+  // next keyframe (RecheckAnchor), where their frame path is told.
+  void DropDependents(const store::VisitRecord& dropped);
   // Each time an anchored visit's posed keyframes have doubled since the last check: why they
   // disagree with the floor plan of the visit it is anchored to (and with the map's first
   // visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the next 10

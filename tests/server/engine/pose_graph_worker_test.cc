@@ -640,6 +640,88 @@ TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBrokenIsNeitherAnchoredNorAnchored
   EXPECT_EQ(worker.Stats().anchors, 1);
 }
 
+// A visit anchored to a visit whose anchor is dropped loses its own (issue 35): an ended one at
+// once, an open one at its next keyframe (where its frame path is told), with why.
+TEST_F(PoseGraphWorkerTest, VisitsAnchoredToAVisitWhoseAnchorIsDroppedLoseTheirs) {
+  Pose T;
+  T.translation = {2.0, 0.0, 0.0};
+  int64_t middle_id = 0;
+  const std::vector<store::KeyframeRecord> middle = SecondVisit(T, 6, &middle_id);
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  bool told = false;
+  auto job = [&](int64_t visit_id, int64_t query_id, int64_t to_visit, int64_t match_id) {
+    PoseGraphWorker::Job j;
+    j.map_id = visit_.map_id;
+    j.visit_id = visit_id;
+    j.committed = Committed(query_id);
+    j.anchors = {{to_visit, {match_id, Pose{}, 60, 1.0}}};
+    j.on_anchored = [&](const Pose&, const std::optional<Pose>& t) {
+      told = true;
+      anchored = t;
+    };
+    return j;
+  };
+  for (int i : {0, 1}) {
+    worker.Wait(worker.Submit(job(middle_id, middle[i].id, visit_.id, keyframes_[i].id)));
+  }
+  ASSERT_TRUE(anchored.has_value()) << "the middle visit, anchored to the map's first";
+  // Two visits anchored to the middle one (its keyframes are in the map's frame now); one ends.
+  auto middle_posed = store_->ListKeyframes(visit_.map_id, middle_id);
+  ASSERT_TRUE(middle_posed.ok());
+  int64_t ended_id = 0, open_id = 0;
+  const std::vector<store::KeyframeRecord> ended = SecondVisit(T, 6, &ended_id);
+  const std::vector<store::KeyframeRecord> open = SecondVisit(T, 6, &open_id);
+  for (const auto* dependent : {&ended, &open}) {
+    anchored.reset();
+    for (int i : {0, 1}) {
+      worker.Wait(worker.Submit(
+          job((*dependent)[0].visit_id, (*dependent)[i].id, middle_id, (*middle_posed)[i].id)));
+    }
+    ASSERT_TRUE(anchored.has_value());
+  }
+  for (int64_t id : {ended_id, open_id}) {
+    auto v = store_->GetVisit(id);
+    ASSERT_TRUE(v.ok() && v->anchor.has_value());
+    EXPECT_EQ(v->anchor->to_visit_id, middle_id);
+  }
+  ASSERT_TRUE(store_->EndVisit(ended_id, 5.0, {ended_id, 0, 0}).ok());
+  // The middle visit's track breaks: its anchor is dropped at its next keyframe, and the ended
+  // visit anchored to it loses its anchor at once.
+  std::vector<store::KeyframeRecord> none;
+  ASSERT_TRUE(store_->InsertKeyframes(&none, {{middle_id, 100, 50}}).ok());
+  PoseGraphWorker::Job plain = job(middle_id, middle[2].id, visit_.id, keyframes_[2].id);
+  plain.anchors.clear();
+  told = false;
+  worker.Wait(worker.Submit(std::move(plain)));
+  ASSERT_TRUE(told);
+  auto v = store_->GetVisit(ended_id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_NE(v->anchor_dropped.find("the visit it was anchored to (" + std::to_string(middle_id) +
+                                   ") is no longer in the map's frame: its anchor was dropped "
+                                   "(re-checked: visit " +
+                                   std::to_string(middle_id) + "'s own tracking lost 50"),
+            std::string::npos)
+      << v->anchor_dropped;
+  // The open one keeps its anchor until its next keyframe, where its frame path is told.
+  v = store_->GetVisit(open_id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_TRUE(v->anchor.has_value());
+  plain = job(open_id, open[2].id, middle_id, (*middle_posed)[2].id);
+  plain.anchors.clear();
+  told = false;
+  worker.Wait(worker.Submit(std::move(plain)));
+  EXPECT_TRUE(told);
+  EXPECT_FALSE(anchored.has_value());
+  v = store_->GetVisit(open_id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_NE(v->anchor_dropped.find("is no longer in the map's frame"), std::string::npos)
+      << v->anchor_dropped;
+  EXPECT_EQ(worker.Stats().anchors_dropped, 3);
+}
+
 // With pose_graph.anchor_min_spread_m, the two agreeing matches must come from keyframes that
 // far apart along the visit's path: neighbours agree even where the track is bent.
 TEST_F(PoseGraphWorkerTest, AnAnchorNeedsAgreeingMatchesFromKeyframesFarEnoughApart) {
