@@ -251,8 +251,6 @@ LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
 // not a broken track.
 constexpr int64_t kMinFramesToJudgeTracking = 20;
 
-}  // namespace
-
 // Why an anchor to `to_visit`, which is no longer in the map's frame, is dropped.
 std::string AnchorGoneReason(const store::VisitRecord& to_visit) {
   return absl::StrCat(
@@ -261,6 +259,8 @@ std::string AnchorGoneReason(const store::VisitRecord& to_visit) {
           ? std::string()
           : absl::StrCat(": its anchor was dropped (", to_visit.anchor_dropped, ")"));
 }
+
+}  // namespace
 
 // Its keyframes are pieces joined by relocalisation or guesswork, and two of its matches
 // agreeing prove little: rooms seed 15 without odometry, every visit of the L room lost 36-61 %
