@@ -831,10 +831,13 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
   auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
   if (!reason.empty()) {
     reason = "re-checked: " + reason;
-  } else if (to_visit.ok() && !MapFromVisit(*to_visit)) {
+  } else if (!to_visit.ok()) {
+    return false;
+  } else if (!MapFromVisit(*to_visit)) {
     // Anchored to a visit whose own anchor was dropped since: this placement rests on it.
     reason = AnchorGoneReason(*to_visit);
-  } else if (std::optional<std::string> layout = RecheckPlan(job, visit, visit_keyframes)) {
+  } else if (std::optional<std::string> layout =
+                 RecheckPlan(job, visit, *to_visit, visit_keyframes)) {
     reason = *std::move(layout);
   } else {
     return false;
@@ -865,14 +868,16 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
 void PoseGraphWorker::DropDependents(const store::VisitRecord& dropped) {
   auto visits = store_->ListVisits(dropped.map_name);
   if (!visits.ok()) return;
+  // The dropped visit as stored now (read after its drop): its reason is quoted.
+  const auto after = std::find_if(visits->begin(), visits->end(),
+                                  [&](const store::VisitRecord& v) { return v.id == dropped.id; });
+  if (after == visits->end()) return;
+  const std::string reason = AnchorGoneReason(*after);
   for (const store::VisitRecord& v : *visits) {
     if (!v.anchor || v.anchor->to_visit_id != dropped.id) continue;
     // An open visit is dropped at its next keyframe, where the frame path that answers its
     // frames is told (RecheckAnchor); an ended one has no frame path left: dropped here.
     if (!v.ended) continue;
-    auto after = store_->GetVisit(dropped.id);
-    if (!after.ok()) return;
-    const std::string reason = AnchorGoneReason(*after);
     if (auto s = store_->DropAnchor(v.id, reason, NowSeconds()); !s.ok()) {
       spdlog::warn("visit {}: anchor not dropped: {}", v.id, s.status().ToString());
       continue;
@@ -888,7 +893,7 @@ void PoseGraphWorker::DropDependents(const store::VisitRecord& dropped) {
 }
 
 std::optional<std::string> PoseGraphWorker::RecheckPlan(
-    const Job& job, const store::VisitRecord& visit,
+    const Job& job, const store::VisitRecord& visit, const store::VisitRecord& to_visit,
     const std::vector<store::KeyframeRecord>& visit_keyframes) {
   AnchorState& state = anchoring_[job.visit_id];
   const size_t posed = PosedCount(visit_keyframes);
@@ -897,13 +902,11 @@ std::optional<std::string> PoseGraphWorker::RecheckPlan(
     return std::nullopt;
   }
   if (posed < 2 * state.checked_keyframes) return std::nullopt;
-  auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
-  if (!to_visit.ok()) return std::nullopt;
   std::string evidence;
   int64_t plan_visit = 0;
   // The stored keyframes are in the map's frame already.
   const std::optional<std::string> layout =
-      CheckAnchorLayout(job, *to_visit, Pose{}, visit_keyframes, &evidence,
+      CheckAnchorLayout(job, to_visit, Pose{}, visit_keyframes, &evidence,
                         options_.anchor_drop_through_share, &plan_visit);
   if (!layout) return std::nullopt;
   const size_t checked_before = state.checked_keyframes;

@@ -172,10 +172,11 @@ class PoseGraphWorker {
   // next keyframe (RecheckAnchor), where their frame path is told.
   void DropDependents(const store::VisitRecord& dropped);
   // Each time an anchored visit's posed keyframes have doubled since the last check: why they
-  // disagree with the floor plan of the visit it is anchored to (and with the map's first
-  // visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the next 10
-  // (RESULTS.md, building seed 12).
+  // disagree with the floor plan of `to_visit`, the visit it is anchored to (and with the map's
+  // first visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the
+  // next 10 (RESULTS.md, building seed 12).
   std::optional<std::string> RecheckPlan(const Job& job, const store::VisitRecord& visit,
+                                         const store::VisitRecord& to_visit,
                                          const std::vector<store::KeyframeRecord>& visit_keyframes);
   // Judges a verified match of the query to `match` into `edge` (accepted, or the reason not):
   // its PnP figures; agreement with `predicted` (the query in the match's frame by `poses`: the
