@@ -502,11 +502,9 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                                          "TO", "POSITION (m)", "TURN(deg)", "WHY");
             for (const auto& e : h.entries()) {
               const auto& p = e.t_map_visit();
-              const double norm =
-                  std::sqrt(p.qx() * p.qx() + p.qy() * p.qy() + p.qz() * p.qz() + p.qw() * p.qw());
-              const double turn_deg =
-                  norm > 0 ? 2.0 * std::acos(std::min(1.0, std::abs(p.qw()) / norm)) * 180.0 / M_PI
-                           : 0.0;
+              Pose placed;  // the angle alone: scale-free, so the quaternion is taken as sent
+              placed.rotation = Eigen::Quaterniond(p.qw(), p.qx(), p.qy(), p.qz());
+              const double turn_deg = RotationAngleRad(Pose{}, placed) * 180.0 / M_PI;
               std::cout << absl::StrFormat("%-23s  %-8s  %8d  %8.3f %8.3f %8.3f   %9.1f  %s\n",
                                            HumanTime(e.time_s()), e.action(), e.to_visit(), p.tx(),
                                            p.ty(), p.tz(), turn_deg, e.reason());

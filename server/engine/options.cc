@@ -31,19 +31,15 @@ absl::Status PoseGraphOptions::Validate() const {
           absl::StrCat("pose_graph.", name, " must be a number >= 0, got ", v));
     }
   }
-  if (!(layout_max_through_share >= 0 && layout_max_through_share <= 1)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("pose_graph.layout_max_through_share must be within [0, 1], got ",
-                     layout_max_through_share));
-  }
-  if (!(anchor_drop_through_share >= 0 && anchor_drop_through_share <= 1)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("pose_graph.anchor_drop_through_share must be within [0, 1], got ",
-                     anchor_drop_through_share));
-  }
-  if (!(anchor_max_lost_share >= 0 && anchor_max_lost_share <= 1)) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "pose_graph.anchor_max_lost_share must be within [0, 1], got ", anchor_max_lost_share));
+  const std::pair<const char*, double> shares[] = {
+      {"layout_max_through_share", layout_max_through_share},
+      {"anchor_drop_through_share", anchor_drop_through_share},
+      {"anchor_max_lost_share", anchor_max_lost_share}};
+  for (const auto& [name, v] : shares) {
+    if (!(v >= 0 && v <= 1)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("pose_graph.", name, " must be within [0, 1], got ", v));
+    }
   }
   if (!(anchor_min_spread_m >= 0 && anchor_min_spread_m <= 1000)) {
     return absl::InvalidArgumentError(
