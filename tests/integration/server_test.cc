@@ -143,6 +143,18 @@ TEST_F(ServerTest, StreamsRealTumSequenceAndStoresPosedKeyframes) {
   ASSERT_TRUE(points.ok()) << points.status();
   EXPECT_GT(*points, 5000u);
   EXPECT_EQ(cloud.str().rfind("ply\n", 0), 0u);
+  // A visit column is for poses only.
+  req.set_visit_column(true);
+  std::ostringstream refused;
+  const absl::Status column = client_->ExportMap(req, &refused).status();
+  EXPECT_TRUE(absl::IsInvalidArgument(column)) << column;
+  EXPECT_NE(column.message().find("visit_column applies to poses"), std::string::npos) << column;
+  // A visit posed by its client was never anchored: its history is empty; visit 0 is refused.
+  auto history = client_->GetAnchorHistory(visits->visits(0).id());
+  ASSERT_TRUE(history.ok()) << history.status();
+  EXPECT_EQ(history->map(), "office");
+  EXPECT_EQ(history->entries_size(), 0);
+  EXPECT_TRUE(absl::IsInvalidArgument(client_->GetAnchorHistory(0).status()));
 }
 
 TEST_F(ServerTest, AMapThatKeepsOriginalColourStoresThePngAsItCame) {
