@@ -282,6 +282,14 @@ class GrpcClient final : public Client {
     req.set_visit_id(visit_id);
     return Unary(&v1::VisitService::Stub::GetAnchorHistory, visits_.get(), req);
   }
+  absl::StatusOr<v1::VisitChanges> GetChanges(const std::string& map, uint64_t from_visit,
+                                              uint64_t to_visit) override {
+    v1::GetChangesRequest req;
+    req.set_map(map);
+    req.set_from_visit(from_visit);
+    req.set_to_visit(to_visit);
+    return Unary(&v1::VisitService::Stub::GetChanges, visits_.get(), req);
+  }
 
   absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) override {
     return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request);

@@ -127,6 +127,10 @@ class Client {
                                                                 bool dry_run) = 0;
   // The visit's anchor history, oldest first: anchored, revised, dropped, with why.
   virtual absl::StatusOr<v1::AnchorHistory> GetAnchorHistory(uint64_t visit_id) = 0;
+  // What changed between two visits of the map (both in its frame): objects appeared,
+  // vanished, moved; doors opened, closed. Seconds per thousand keyframes.
+  virtual absl::StatusOr<v1::VisitChanges> GetChanges(const std::string& map, uint64_t from_visit,
+                                                      uint64_t to_visit) = 0;
 
   // Models (random forests from `lifemap train`). UploadModel sends the file in 1 MiB chunks.
   virtual absl::StatusOr<v1::ModelInfo> UploadModel(const std::string& name,

@@ -65,6 +65,7 @@ int RunCall(const CliContext& ctx,
 void AddServerCommands(CLI::App* app, CliContext* ctx);
 void AddMapCommands(CLI::App* app, CliContext* ctx);
 void AddVisitCommands(CLI::App* app, CliContext* ctx);
+void AddChangesCommand(CLI::App* app, CliContext* ctx);  // changes_command.cc
 void AddKeyframeCommands(CLI::App* app, CliContext* ctx);
 void AddExportCommand(CLI::App* app, CliContext* ctx);
 void AddProcessCommand(CLI::App* app, CliContext* ctx);
@@ -86,5 +87,6 @@ void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx);
 // `lifemap eval alignment` (issue 15: visits months apart anchored into one map frame).
 void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx);
+void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx);  // changes_eval_command.cc
 
 }  // namespace lifemap::cli

@@ -535,6 +535,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   AddAppearanceEvalCommand(ev, ctx);
   AddTrajectoryEvalCommand(ev, ctx);
   AddAlignmentEvalCommand(ev, ctx);
+  AddChangesEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -33,6 +33,7 @@ int main(int argc, char** argv) {
   lifemap::cli::AddServerCommands(&app, &ctx);
   lifemap::cli::AddMapCommands(&app, &ctx);
   lifemap::cli::AddVisitCommands(&app, &ctx);
+  lifemap::cli::AddChangesCommand(&app, &ctx);
   lifemap::cli::AddKeyframeCommands(&app, &ctx);
   lifemap::cli::AddStreamCommand(&app, &ctx);
   lifemap::cli::AddExportCommand(&app, &ctx);

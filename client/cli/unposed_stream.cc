@@ -125,7 +125,10 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
         *f->mutable_odometry()->mutable_pose() = PoseProto(*e.T_odom_camera);
         ++visit.frames_with_odometry;
       }
-      if (!(*stream)->Send(*f)) break;  // no pose: the server tracks the camera
+      if (options.send_truth_poses && e.T_world_camera) {
+        *f->mutable_pose() = PoseProto(*e.T_world_camera);
+      }
+      if (!(*stream)->Send(*f)) break;  // without a pose the server tracks the camera
     }
     (*stream)->CloseSend();
   });

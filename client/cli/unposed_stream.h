@@ -41,6 +41,9 @@ struct UnposedStreamOptions {
   bool send_gravity = true;
   // Frame.odometry from the recording's odometry.txt where it has one (a robot's wheels).
   bool send_odometry = false;
+  // Frame.pose from the recording's ground truth, as a robot with its own localisation sends
+  // it (`lifemap eval changes --poses truth`: changes judged apart from the server's alignment).
+  bool send_truth_poses = false;
 };
 
 // Adds `--gravity accelerometer|none` to an evaluation command, setting `*send_gravity`

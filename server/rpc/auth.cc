@@ -59,6 +59,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"VisitService/EndVisit", Role::kRobot},
       {"VisitService/ListVisits", Role::kRobot},
       {"VisitService/GetAnchorHistory", Role::kRobot},
+      {"VisitService/GetChanges", Role::kRobot},
       {"PlaceService/QueryPlace", Role::kRobot},
       {"PlaceService/ListPlaces", Role::kRobot},
       {"MapService/ListMaps", Role::kRobot},

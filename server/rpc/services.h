@@ -79,6 +79,8 @@ class VisitServiceImpl final : public v1::VisitService::Service {
                             v1::AnchorVisitsResponse*) override;
   grpc::Status GetAnchorHistory(grpc::ServerContext*, const v1::GetAnchorHistoryRequest*,
                                 v1::AnchorHistory*) override;
+  grpc::Status GetChanges(grpc::ServerContext*, const v1::GetChangesRequest*,
+                          v1::VisitChanges*) override;
 
  private:
   ServiceContext* ctx_;

@@ -5,6 +5,7 @@
 #include "server/engine/anchor_retry.h"
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/semantic_export.h"
+#include "server/engine/visit_changes.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
 
@@ -124,6 +125,65 @@ grpc::Status VisitServiceImpl::GetAnchorHistory(grpc::ServerContext* context,
     PoseToProto(r.T_map_visit, out->mutable_t_map_visit());
     out->set_reason(ToValidUtf8(r.reason));
   }
+  return grpc::Status::OK;
+}
+
+}  // namespace lifemap::server
+
+namespace lifemap::server {
+namespace {
+
+void ToProto(const Eigen::Vector3d& v, v1::Vector3* out) {
+  out->set_x(v.x());
+  out->set_y(v.y());
+  out->set_z(v.z());
+}
+
+}  // namespace
+
+grpc::Status VisitServiceImpl::GetChanges(grpc::ServerContext* context,
+                                          const v1::GetChangesRequest* req,
+                                          v1::VisitChanges* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/GetChanges");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  const auto from = IdFromProto(req->from_visit(), "from_visit");
+  if (!from.ok()) return ToGrpcStatus(from.status());
+  const auto to = IdFromProto(req->to_visit(), "to_visit");
+  if (!to.ok()) return ToGrpcStatus(to.status());
+  if (*from == 0 || *to == 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "from_visit and to_visit are both required (lifemap visits list MAP)");
+  }
+  VisitChangeOptions options;
+  auto changes = CompareVisits(ctx_->engine->store(), ctx_->engine->visits(),
+                               ctx_->engine->semantic_worker(), *map, *from, *to, options,
+                               ctx_->config.semantic, [context] { return context->IsCancelled(); });
+  if (!changes.ok()) return ToGrpcStatus(changes.status());
+  resp->set_map(map->name);
+  resp->set_from_visit(static_cast<uint64_t>(changes->from_visit));
+  resp->set_to_visit(static_cast<uint64_t>(changes->to_visit));
+  for (const ChangedObject& c : changes->objects) {
+    v1::ObjectChange* out = resp->add_changes();
+    out->set_kind(change::ChangeKindName(c.change.kind));
+    ToProto(c.change.center, out->mutable_center());
+    ToProto(c.change.from_center, out->mutable_from_center());
+    ToProto(c.change.extent, out->mutable_extent());
+    out->set_voxels(static_cast<uint32_t>(c.change.voxels));
+    out->set_evidence_views(static_cast<uint32_t>(c.change.evidence_views));
+    out->set_class_name(ToValidUtf8(c.class_name));
+    out->set_displacement_m((c.change.center - c.change.from_center).norm());
+  }
+  resp->set_from_keyframes(static_cast<uint32_t>(changes->from_keyframes));
+  resp->set_to_keyframes(static_cast<uint32_t>(changes->to_keyframes));
+  resp->set_voxel_m(options.change.voxel_m);
+  resp->set_candidate_voxels(static_cast<uint64_t>(changes->tallies.candidate_voxels));
+  resp->set_changed_voxels(static_cast<uint64_t>(changes->tallies.changed_voxels));
+  resp->set_transient_voxels(static_cast<uint64_t>(changes->tallies.transient_voxels));
+  resp->set_unobserved_voxels(static_cast<uint64_t>(changes->tallies.unobserved_voxels));
+  resp->set_classes(ToValidUtf8(changes->classes));
+  resp->set_seconds(changes->seconds);
   return grpc::Status::OK;
 }
 

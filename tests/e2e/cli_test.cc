@@ -491,6 +491,76 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
   for (const auto& l : Lines(Slurp(tmp_.File("v.txt")))) pose_lines += l[0] != '#';
   EXPECT_EQ(pose_lines, tracked["keyframes_stored"].get<int>());
   EXPECT_NE(Slurp(tmp_.File("v.txt")).find("in its own frame"), std::string::npos);
+  // Changes need both visits in the map's frame: the unanchored one is named, with what to do.
+  r = Run({"changes", "m", "--from", posed_id, "--to", tracked_id});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("FAILED_PRECONDITION"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("visit " + tracked_id + " of map 'm' is not anchored"), std::string::npos)
+      << r.err;
+  EXPECT_NE(r.err.find("lifemap visits anchor m " + tracked_id), std::string::npos) << r.err;
+}
+
+// Issue 36: what changed between two visits of a synthetic room (props moved, gone, new; a door
+// toggled), as a table, JSON and a plot; the same visit twice and unknown visits are refused.
+TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) {
+  auto r = Run({"sim", "--seed", "5", "--place-shape", "rect", "--visits", "2", "--frames", "60",
+                "--conditions", "scenery", "--out", tmp_.File("home")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  ASSERT_EQ(Run({"maps", "create", "home"}).code, 0);
+  for (const char* v : {"visit_00", "visit_01"}) {
+    r = Run({"stream", "--map", "home", "--tum", tmp_.File(std::string("home/") + v),
+             "--use-groundtruth", "--rate", "0", "--end-visit"});
+    ASSERT_EQ(r.code, 0) << r.err;
+  }
+  r = Run({"--json", "changes", "home", "--from", "1", "--to", "2", "--svg", tmp_.File("c.svg"),
+           "--png", tmp_.File("c.png")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json c = json::parse(r.out);
+  EXPECT_GT(c["from_keyframes"].get<int>(), 5);
+  EXPECT_NE(c.value("changed_voxels", std::string("0")), "0") << "uint64: a string in JSON";
+  ASSERT_FALSE(c["changes"].empty()) << r.out;
+  // Each reported object lies where scene.json says something of its kind changed.
+  const json scene = json::parse(Slurp(tmp_.File("home/visit_01/scene.json")));
+  const json before = json::parse(Slurp(tmp_.File("home/visit_00/scene.json")));
+  auto where = [](const json& objects, int instance) -> std::optional<Eigen::Vector2d> {
+    for (const auto& o : objects) {
+      if (o["instance"] == instance) return Eigen::Vector2d(o["center"][0], o["center"][1]);
+    }
+    return std::nullopt;
+  };
+  int located = 0;
+  for (const auto& ch : c["changes"]) {
+    const std::string kind = ch["kind"];
+    const Eigen::Vector2d at(ch["center"]["x"].get<double>(), ch["center"]["y"].get<double>());
+    for (const auto& t : scene["changes"]) {
+      if (t["kind"] != kind) continue;
+      if (kind.rfind("door", 0) == 0) {  // the record does not say which door: its kind must do
+        ++located;
+        continue;
+      }
+      auto p = where(kind == "vanished" ? before["objects"] : scene["objects"], t["instance"]);
+      if (p && (*p - at).norm() < 0.4) ++located;
+    }
+  }
+  EXPECT_GT(located, 0) << r.out;
+  EXPECT_NE(Slurp(tmp_.File("c.svg")).find("<svg"), std::string::npos);
+  EXPECT_FALSE(cv::imread(tmp_.File("c.png")).empty());
+  r = Run({"changes", "home", "--from", "1", "--to", "2"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("KIND"), std::string::npos) << r.out;
+
+  r = Run({"changes", "home", "--from", "2", "--to", "2"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("INVALID_ARGUMENT"), std::string::npos) << r.err;
+  r = Run({"changes", "home", "--from", "1", "--to", "99"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("NOT_FOUND"), std::string::npos) << r.err;
+  ASSERT_EQ(Run({"maps", "create", "elsewhere"}).code, 0);
+  r = Run({"changes", "elsewhere", "--from", "1", "--to", "2"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("is not a visit of map 'elsewhere'"), std::string::npos) << r.err;
+  r = Run({"changes", "home", "--from", "1"});
+  EXPECT_EQ(r.code, 2) << "--to is required";
 }
 
 // Issue 35: a sparse walk (40 frames for a room's loop) loses frames on images alone; with the

@@ -1,0 +1,409 @@
+// `lifemap eval changes --suite DIR --out OUT` (issue 36): each place's reference and query
+// visits streamed into one map, GetChanges asked of (reference, query), and the answer scored
+// against the synthetic world's change records (scene.json) per kind of change and condition
+// subset. The none, lighting and dynamic subsets hold no change of the place: whatever is
+// reported there is a false change.
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <map>
+#include <set>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/cli/commands.h"
+#include "client/cli/study.h"
+#include "client/cli/unposed_stream.h"
+#include "core/eval/place_study.h"
+#include "core/io/tum_dataset.h"
+
+namespace lifemap::cli {
+namespace {
+
+namespace fs = std::filesystem;
+using json = nlohmann::json;
+
+struct ChangesEvalArgs {
+  std::string suite, out;
+  bool compact = false;
+  bool truth_poses = true;  // --poses truth|server
+  bool keep_maps = false;
+  double min_size_m = 0.2;     // props this large (largest side) count for recall
+  double tolerance_m = 0.3;    // a report this close (ground plane) to a true change matches it
+  int min_seen_pixels = 2000;  // a prop seen in fewer pixels over a visit is not observable
+};
+
+const char* const kKinds[] = {"appeared", "vanished", "moved", "door_opened", "door_closed"};
+
+// One change of the place, as scene.json records it.
+struct TrueChange {
+  std::string kind, detail;
+  int instance = 0;
+  Eigen::Vector2d at{0, 0};    // where it is (appeared, moved) or was (vanished); doors: centre
+  Eigen::Vector2d from{0, 0};  // moved: where it was
+  double size_m = 0;           // largest side (doors: their width)
+  bool counted = false;        // large enough and seen: counts for recall
+  bool found = false;
+};
+
+struct Reported {
+  std::string kind, class_name;
+  Eigen::Vector2d at{0, 0}, from{0, 0};
+  double size_m = 0;
+  std::string matched;  // "" or the true change's "kind instance"
+};
+
+struct Trial {
+  std::string path, conditions;
+  int subset = 0;
+  uint64_t visit = 0;
+  std::vector<TrueChange> truth;
+  std::vector<Reported> reported;
+  double seconds = 0;
+};
+
+absl::StatusOr<json> ReadJson(const fs::path& path) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path.string()));
+  json j = json::parse(in, nullptr, false);
+  if (j.is_discarded())
+    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": not JSON"));
+  return j;
+}
+
+// Pixels per instance id over every frame of a visit (labels/instance/*.png).
+std::map<int, int64_t> SeenPixels(const fs::path& visit) {
+  std::map<int, int64_t> out;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(visit / "labels" / "instance", ec)) {
+    const cv::Mat ids = cv::imread(e.path().string(), cv::IMREAD_UNCHANGED);
+    if (ids.type() != CV_16UC1) continue;
+    for (int r = 0; r < ids.rows; ++r) {
+      const uint16_t* p = ids.ptr<uint16_t>(r);
+      for (int c = 0; c < ids.cols; ++c) {
+        if (p[c] != 0) ++out[p[c]];
+      }
+    }
+  }
+  return out;
+}
+
+// Where a door of a scene's floor plan is: the middle of its gap on its wall.
+std::optional<Eigen::Vector2d> DoorCentre(const json& plan, const json& opening) {
+  for (const auto& room : plan.at("rooms")) {
+    if (room.at("room").get<int>() != opening.at("room").get<int>()) continue;
+    for (const auto& w : room.at("walls")) {
+      if (w.at("index").get<int>() != opening.at("wall").get<int>()) continue;
+      const Eigen::Vector2d a(w.at("start")[0].get<double>(), w.at("start")[1].get<double>());
+      const Eigen::Vector2d b(w.at("end")[0].get<double>(), w.at("end")[1].get<double>());
+      const double along =
+          opening.at("offset_m").get<double>() + 0.5 * opening.at("width_m").get<double>();
+      return a + (b - a).normalized() * along;
+    }
+  }
+  return std::nullopt;
+}
+
+// The true changes between a query visit and its place's reference.
+absl::StatusOr<std::vector<TrueChange>> TrueChanges(const fs::path& reference,
+                                                    const fs::path& query,
+                                                    const ChangesEvalArgs& a) {
+  auto ref = ReadJson(reference / "scene.json");
+  if (!ref.ok()) return ref.status();
+  auto q = ReadJson(query / "scene.json");
+  if (!q.ok()) return q.status();
+  std::map<int, json> before, after;
+  for (const auto& o : ref->at("objects")) before[o.at("instance").get<int>()] = o;
+  for (const auto& o : q->at("objects")) after[o.at("instance").get<int>()] = o;
+  std::map<int, int64_t> seen_before, seen_after;
+  std::vector<TrueChange> out;
+  auto centre = [](const json& o) {
+    return Eigen::Vector2d(o.at("center")[0].get<double>(), o.at("center")[1].get<double>());
+  };
+  auto largest = [](const json& o) {
+    const auto& s = o.at("size_m");
+    return std::max({s[0].get<double>(), s[1].get<double>(), s[2].get<double>()});
+  };
+  bool doors = false;
+  for (const auto& c : q->at("changes")) {
+    TrueChange t;
+    t.kind = c.at("kind").get<std::string>();
+    t.detail = c.at("detail").get<std::string>();
+    t.instance = c.at("instance").get<int>();
+    if (t.kind == "door_opened" || t.kind == "door_closed") {
+      doors = true;
+      continue;  // located below, from the two floor plans
+    }
+    if (t.kind != "appeared" && t.kind != "vanished" && t.kind != "moved") continue;
+    if (seen_before.empty()) seen_before = SeenPixels(reference);
+    if (seen_after.empty()) seen_after = SeenPixels(query);
+    const bool was = before.count(t.instance) != 0, is = after.count(t.instance) != 0;
+    const json& o = is ? after[t.instance] : before[t.instance];
+    if (!was && !is) continue;
+    t.size_m = largest(o);
+    t.at = centre(o);
+    t.from = was ? centre(before[t.instance]) : t.at;
+    if (t.kind == "vanished") t.at = t.from;
+    const bool seen_then = seen_before[t.instance] >= a.min_seen_pixels;
+    const bool seen_now = seen_after[t.instance] >= a.min_seen_pixels;
+    const bool seen = t.kind == "appeared"   ? seen_now
+                      : t.kind == "vanished" ? seen_then
+                                             : seen_then && seen_now;
+    t.counted = seen && t.size_m >= a.min_size_m;
+    out.push_back(t);
+  }
+  if (doors) {
+    const auto& ro = ref->at("floor_plan").at("openings");
+    const auto& qo = q->at("floor_plan").at("openings");
+    for (size_t i = 0; i < std::min(ro.size(), qo.size()); ++i) {
+      if (qo[i].at("type").get<std::string>() != "door") continue;
+      const bool was_open = ro[i].at("open").get<bool>(), is_open = qo[i].at("open").get<bool>();
+      if (was_open == is_open) continue;
+      auto at = DoorCentre(q->at("floor_plan"), qo[i]);
+      if (!at) continue;
+      TrueChange t;
+      t.kind = is_open ? "door_opened" : "door_closed";
+      t.detail = qo[i].at("connects").get<bool>() ? "door to the next room" : "outer door";
+      t.at = t.from = *at;
+      t.size_m = qo[i].at("width_m").get<double>();
+      t.counted = true;
+      out.push_back(t);
+    }
+  }
+  return out;
+}
+
+// Each report matches the nearest unmatched true change of its kind within the tolerance (a
+// move by where it is now or where it was).
+void Match(Trial* t, const ChangesEvalArgs& a) {
+  for (auto& r : t->reported) {
+    TrueChange* best = nullptr;
+    double best_d = 1e9;
+    for (auto& c : t->truth) {
+      if (c.found || c.kind != r.kind) continue;
+      const double tol = std::max(a.tolerance_m, 0.5 * c.size_m);
+      double d = (c.at - r.at).norm();
+      if (r.kind == "moved") d = std::min(d, (c.from - r.from).norm());
+      if (d <= tol && d < best_d) best = &c, best_d = d;
+    }
+    if (best != nullptr) {
+      best->found = true;
+      r.matched = absl::StrCat(best->kind, " ", best->instance);
+    }
+  }
+}
+
+struct Score {
+  std::map<std::string, int> reported, correct, counted, found;
+  int false_changes = 0;  // reports on a visit whose place did not change
+  void Add(const Trial& t, bool place_changed) {
+    for (const auto& r : t.reported) {
+      ++reported[r.kind];
+      if (!r.matched.empty()) ++correct[r.kind];
+      if (!place_changed) ++false_changes;
+    }
+    for (const auto& c : t.truth) {
+      if (!c.counted) continue;
+      ++counted[c.kind];
+      if (c.found) ++found[c.kind];
+    }
+  }
+  json Json() const {
+    json precision = json::object(), recall = json::object(), counts = json::object();
+    for (const char* k : kKinds) {
+      auto get = [](const std::map<std::string, int>& m, const char* key) {
+        auto it = m.find(key);
+        return it == m.end() ? 0 : it->second;
+      };
+      const int rep = get(reported, k), ok = get(correct, k), n = get(counted, k),
+                f = get(found, k);
+      precision[k] = rep > 0 ? json(static_cast<double>(ok) / rep) : json(nullptr);
+      recall[k] = n > 0 ? json(static_cast<double>(f) / n) : json(nullptr);
+      counts[k] = {{"reported", rep}, {"correct", ok}, {"true", n}, {"found", f}};
+    }
+    return {{"precision", precision},
+            {"recall", recall},
+            {"counts", counts},
+            {"false_changes", false_changes}};
+  }
+};
+
+bool PlaceChanges(const std::string& conditions) {
+  return conditions.find("scenery") != std::string::npos;
+}
+
+int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
+  if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
+  auto manifest = eval::ReadSuiteManifest(a.suite);
+  if (!manifest.ok()) return Fail(manifest.status());
+  auto client = ctx.Connect();
+  if (!client.ok()) return Fail(client.status());
+  const fs::path root(a.suite);
+  const std::time_t started = std::time(nullptr);
+  std::vector<Trial> trials;
+  std::map<std::string, std::string> reference_of;
+  for (const auto& v : *manifest) {
+    if (v.role == "reference") reference_of[v.place_id] = v.path;
+  }
+  UnposedStreamOptions stream;
+  stream.robot = "lifemap eval changes";
+  stream.compact = a.compact;
+  stream.send_truth_poses = a.truth_poses;
+  std::vector<std::string> maps;
+  for (const auto& [place, ref_path] : reference_of) {
+    const std::string map = absl::StrCat("eval-changes-", started, "-", place);
+    if (auto m = (*client)->CreateMap(map, "lifemap eval changes"); !m.ok())
+      return Fail(m.status());
+    maps.push_back(map);
+    auto ref_seq = io::ReadTumSequence((root / ref_path).string());
+    if (!ref_seq.ok()) return Fail(ref_seq.status());
+    stream.visit_label = ref_path;
+    auto ref = StreamWithoutPoses(**client, map, *ref_seq, stream);
+    if (!ref.ok()) return Fail(ref.status());
+    for (const auto& v : *manifest) {
+      if (v.place_id != place || v.role == "reference") continue;
+      Trial t;
+      t.path = v.path;
+      t.conditions = v.conditions;
+      t.subset = v.subset;
+      auto truth = TrueChanges(root / ref_path, root / v.path, a);
+      if (!truth.ok()) return Fail(truth.status());
+      t.truth = *std::move(truth);
+      auto seq = io::ReadTumSequence((root / v.path).string());
+      if (!seq.ok()) return Fail(seq.status());
+      stream.visit_label = v.path;
+      auto q = StreamWithoutPoses(**client, map, *seq, stream);
+      if (!q.ok()) return Fail(q.status());
+      t.visit = q->visit_id;
+      auto r = (*client)->GetChanges(map, ref->visit_id, q->visit_id);
+      if (!r.ok()) return Fail(r.status());
+      t.seconds = r->seconds();
+      for (const auto& c : r->changes()) {
+        Reported rep;
+        rep.kind = c.kind();
+        rep.class_name = c.class_name();
+        rep.at = {c.center().x(), c.center().y()};
+        rep.from = {c.from_center().x(), c.from_center().y()};
+        rep.size_m = std::max({c.extent().x(), c.extent().y(), c.extent().z()});
+        t.reported.push_back(rep);
+      }
+      Match(&t, a);
+      if (!ctx.json) {
+        int counted = 0, found = 0, correct = 0;
+        for (const auto& c : t.truth) counted += c.counted, found += c.counted && c.found;
+        for (const auto& rr : t.reported) correct += !rr.matched.empty();
+        std::cerr << absl::StrFormat(
+            "  %-34s %2d reported (%d right), %d of %d true changes found\n", t.path,
+            t.reported.size(), correct, found, counted);
+      }
+      trials.push_back(std::move(t));
+    }
+  }
+  if (!a.keep_maps) {
+    for (const auto& m : maps) {
+      if (auto d = (*client)->DeleteMap(m); !d.ok()) {
+        std::cerr << "lifemap: the scratch map '" << m << "' was not deleted: " << d.status()
+                  << "\n";
+      }
+    }
+  }
+  Score all;
+  std::map<std::string, Score> by_subset;
+  std::string csv =
+      "path,subset,conditions,visit,what,kind,instance_or_class,x,y,from_x,from_y,size_m,counted,"
+      "matched\n";
+  std::vector<double> seconds;
+  for (const auto& t : trials) {
+    all.Add(t, PlaceChanges(t.conditions));
+    by_subset[t.conditions].Add(t, PlaceChanges(t.conditions));
+    seconds.push_back(t.seconds);
+    for (const auto& c : t.truth) {
+      csv +=
+          absl::StrFormat("%s,%d,\"%s\",%d,true,%s,%d %s,%.3f,%.3f,%.3f,%.3f,%.3f,%d,%d\n", t.path,
+                          t.subset, t.conditions, t.visit, c.kind, c.instance, c.detail, c.at.x(),
+                          c.at.y(), c.from.x(), c.from.y(), c.size_m, c.counted, c.found);
+    }
+    for (const auto& r : t.reported) {
+      csv += absl::StrFormat("%s,%d,\"%s\",%d,reported,%s,%s,%.3f,%.3f,%.3f,%.3f,%.3f,,%s\n",
+                             t.path, t.subset, t.conditions, t.visit, r.kind, r.class_name,
+                             r.at.x(), r.at.y(), r.from.x(), r.from.y(), r.size_m, r.matched);
+    }
+  }
+  json summary = all.Json();
+  summary["suite"] = a.suite;
+  summary["poses"] = a.truth_poses ? "truth" : "server";
+  summary["min_size_m"] = a.min_size_m;
+  summary["tolerance_m"] = a.tolerance_m;
+  summary["false_changes"] = json::object();
+  summary["subsets"] = json::object();
+  for (const auto& [name, s] : by_subset) {
+    summary["subsets"][name] = s.Json();
+    if (!PlaceChanges(name)) summary["false_changes"][name] = s.false_changes;
+  }
+  std::sort(seconds.begin(), seconds.end());
+  summary["get_changes_s_median"] = seconds.empty() ? 0.0 : seconds[seconds.size() / 2];
+  std::string report = absl::StrFormat(
+      "# Changes between visits: %s\n\nEach place's reference, then its query visits, streamed "
+      "into one map (poses: %s); GetChanges(reference, query) scored against scene.json. Recall "
+      "counts props of at least %.2f m seen in %d pixels or more (doors: every toggled one); a "
+      "report within %.2f m (or half the prop's size) of a true change of its kind is right.\n\n"
+      "| kind | reported | right | precision | true | found | recall "
+      "|\n|---|---|---|---|---|---|---|\n",
+      a.suite, a.truth_poses ? "the ground truth's" : "the server's own", a.min_size_m,
+      a.min_seen_pixels, a.tolerance_m);
+  const json counts = summary["counts"];
+  for (const char* k : kKinds) {
+    const auto& c = counts[k];
+    auto ratio = [](int x, int n) {
+      return n > 0 ? absl::StrFormat("%.2f", double(x) / n) : std::string("-");
+    };
+    report += absl::StrFormat("| %s | %d | %d | %s | %d | %d | %s |\n", k, c["reported"].get<int>(),
+                              c["correct"].get<int>(),
+                              ratio(c["correct"].get<int>(), c["reported"].get<int>()),
+                              c["true"].get<int>(), c["found"].get<int>(),
+                              ratio(c["found"].get<int>(), c["true"].get<int>()));
+  }
+  report += "\nReports on visits whose place did not change (false changes): ";
+  for (const auto& [name, n] : summary["false_changes"].items()) {
+    report += absl::StrFormat("%s %d; ", name, n.get<int>());
+  }
+  report += "\n";
+  return FinishStudy(ctx, a.out, {{"changes.csv", csv}}, {}, summary, report);
+}
+
+}  // namespace
+
+void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
+  auto* cmd = eval->add_subcommand(
+      "changes",
+      "Stream a synthetic suite, one map per place, and score GetChanges(reference, query) "
+      "against the world's change records per kind and condition subset");
+  auto a = std::make_shared<ChangesEvalArgs>();
+  cmd->add_option("--suite", a->suite, "a lifemap sim suite folder (manifest.json)")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  cmd->add_option("--out", a->out, "folder for summary.json, changes.csv, report.md")->required();
+  cmd->add_option_function<std::string>(
+         "--send", [a](const std::string& how) { a->compact = how == "compact"; },
+         "as-recorded (default) or compact (JPEG colour, paletted depth)")
+      ->check(CLI::IsMember({"as-recorded", "compact"}));
+  cmd->add_option_function<std::string>(
+         "--poses", [a](const std::string& how) { a->truth_poses = how == "truth"; },
+         "truth (default: the recording's ground truth, as a localised robot sends) or server "
+         "(the server tracks and anchors each visit)")
+      ->check(CLI::IsMember({"truth", "server"}));
+  cmd->add_flag("--keep-maps", a->keep_maps, "keep the per-place maps (default: deleted after)");
+  cmd->add_option("--min-size", a->min_size_m,
+                  "props at least this large (largest side, m) count for recall (default 0.2)")
+      ->check(CLI::Range(0.0, 10.0));
+  cmd->add_option("--tolerance", a->tolerance_m,
+                  "a report this close (m, ground plane) to a true change matches it (default 0.3)")
+      ->check(CLI::Range(0.01, 5.0));
+  cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunChangesEval(*ctx, *a); }; });
+}
+
+}  // namespace lifemap::cli
