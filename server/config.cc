@@ -113,6 +113,13 @@ absl::Status ServerConfig::Validate() const {
   // The map engine's own settings (frames, storage, entropy, labels, appearance, pose graph,
   // semantic): server/engine/options.h.
   if (auto s = engine_options().Validate(); !s.ok()) return s;
+  if (changes.pixel_stride < 1 || changes.pixel_stride > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("changes.pixel_stride must lie in [1, 16], not ", changes.pixel_stride));
+  }
+  if (auto s = changes.change.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("changes.", s.message()));
+  }
   return keyframe.Validate();
 }
 
@@ -349,6 +356,40 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key pose_graph.", k));
+          }
+        }
+      } else if (key == "changes") {
+        for (const auto& [k, v] : value.items()) {
+          auto& o = c.changes.change;
+          if (k == "pixel_stride") {
+            c.changes.pixel_stride = v.get<int>();
+          } else if (k == "voxel_m") {
+            o.voxel_m = v.get<double>();
+          } else if (k == "max_range_m") {
+            o.max_range_m = v.get<double>();
+          } else if (k == "seen_through_m") {
+            o.seen_through_m = v.get<double>();
+          } else if (k == "min_views") {
+            o.min_views = v.get<int>();
+          } else if (k == "min_free_views") {
+            o.min_free_views = v.get<int>();
+          } else if (k == "min_object_voxels") {
+            o.min_object_voxels = v.get<int>();
+          } else if (k == "min_object_m") {
+            o.min_object_m = v.get<double>();
+          } else if (k == "transient_min_views") {
+            o.transient_min_views = v.get<int>();
+          } else if (k == "cluster_gap_voxels") {
+            o.cluster_gap_voxels = v.get<int>();
+          } else if (k == "transient_share") {
+            o.transient_share = v.get<double>();
+          } else if (k == "max_move_m") {
+            o.max_move_m = v.get<double>();
+          } else if (k == "max_volume_ratio") {
+            o.max_volume_ratio = v.get<double>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key changes.", k));
           }
         }
       } else if (key == "security") {

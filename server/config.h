@@ -14,6 +14,7 @@
 #include "core/semantic/semantic_map.h"
 #include "core/tracking/keyframe_selector.h"
 #include "server/engine/options.h"
+#include "server/engine/visit_changes.h"
 
 namespace lifemap::server {
 
@@ -54,6 +55,8 @@ struct ServerConfig {
   // every posed frame of the visit (FrameResult.fused_labels).
   bool semantic_enabled = true;
   semantic::SemanticMapOptions semantic;
+  // GetChanges (config key `changes`, issue 36): how two visits' depth is compared.
+  VisitChangeOptions changes;
   // Fused labels are looked up every n-th pixel (copied to the cell). 8: a 5 cm voxel spans 8
   // pixels or more of a 640-pixel-wide Kinect view up to 3.3 m away.
   int semantic_render_stride = 8;

@@ -191,9 +191,10 @@ std::vector<Cluster> ClusterVoxels(const absl::flat_hash_map<int64_t, int>& chan
       open.pop_front();
       c.keys.push_back(key);
       const VoxelIndex i = Unpack(key);
-      for (int64_t dx = -1; dx <= 1; ++dx) {
-        for (int64_t dy = -1; dy <= 1; ++dy) {
-          for (int64_t dz = -1; dz <= 1; ++dz) {
+      const int64_t g = o.cluster_gap_voxels;
+      for (int64_t dx = -g; dx <= g; ++dx) {
+        for (int64_t dy = -g; dy <= g; ++dy) {
+          for (int64_t dz = -g; dz <= g; ++dz) {
             const int64_t n = Pack({i.x + dx, i.y + dy, i.z + dz});
             if (changed.contains(n) && done.insert(n).second) open.push_back(n);
           }
@@ -328,9 +329,11 @@ absl::Status ChangeOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("depth_noise_ratio must be >= 0, not ", depth_noise_ratio));
   }
-  if (min_views < 1 || min_free_views < 1 || min_object_voxels < 1) {
+  if (min_views < 1 || min_free_views < 1 || transient_min_views < 1 || min_object_voxels < 1 ||
+      cluster_gap_voxels < 1 || cluster_gap_voxels > 3) {
     return absl::InvalidArgumentError(
-        "min_views, min_free_views and min_object_voxels must be at least 1");
+        "min_views, min_free_views, transient_min_views and min_object_voxels must be at least "
+        "1, cluster_gap_voxels within [1, 3]");
   }
   if (!std::isfinite(min_object_m) || min_object_m < 0.0 || !std::isfinite(max_move_m) ||
       max_move_m < 0.0) {
@@ -403,7 +406,8 @@ absl::StatusOr<ObjectChanges> DetectObjectChanges(const std::vector<PosedDepth>&
         const int saw = std::max(here.seen, mine.at(candidates[i]).views);
         // A surface that stays is seen through by its own visit only at its edges; one that
         // passed by is seen through wherever the visit looked again after it had gone.
-        const bool transient = here.through >= options.min_free_views && 2 * here.through >= saw;
+        const bool transient =
+            here.through >= options.transient_min_views && 2 * here.through >= saw;
         verdict[i] = transient ? -1 : there.through;
       }
     });

@@ -52,12 +52,19 @@ struct ChangeOptions {
   // Objects smaller than this are not reported (sensor noise, pose error at edges).
   int min_object_voxels = 10;
   double min_object_m = 0.15;  // largest side of its box
+  // A candidate its own visit saw through from this many keyframes (and at least half as many
+  // as saw it) is transient.
+  int transient_min_views = 2;
+  // Changed voxels at most this many voxels apart (per axis) are one object: 1 joins touching
+  // voxels (26-connected); 2 bridges a one-voxel gap (a chair's legs and seat seen in parts).
+  int cluster_gap_voxels = 1;
   // An object whose candidate voxels are transient in at least this share passed by as a whole.
   double transient_share = 0.25;
   // A vanished and an appeared object pair as a move when their centres are at most this far
-  // apart and their volumes within this ratio.
+  // apart and their volumes within this ratio (5: one side of a chair seen before, its seat and
+  // legs after; chosen on building seed 12, where 3 split two moved chairs).
   double max_move_m = 1.5;
-  double max_volume_ratio = 3.0;
+  double max_volume_ratio = 5.0;
   // Doors: `up` is the map frame's up (unit); a panel at least this tall, this wide and at most
   // this thick (across its face) is a door leaf.
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();

@@ -194,6 +194,38 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
       });
 }
 
+TEST(ConfigFile, ReadsAndChecksTheChangesSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json")) << R"({"changes": {"pixel_stride": 2, "voxel_m": 0.04,
+             "max_range_m": 3.5, "seen_through_m": 0.08, "min_views": 3, "min_free_views": 1,
+             "transient_min_views": 1, "cluster_gap_voxels": 2, "min_object_voxels": 20,
+             "min_object_m": 0.2, "transient_share": 0.3, "max_move_m": 2, "max_volume_ratio": 4}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->changes.pixel_stride, 2);
+  EXPECT_DOUBLE_EQ(c->changes.change.voxel_m, 0.04);
+  EXPECT_DOUBLE_EQ(c->changes.change.max_range_m, 3.5);
+  EXPECT_DOUBLE_EQ(c->changes.change.seen_through_m, 0.08);
+  EXPECT_EQ(c->changes.change.min_views, 3);
+  EXPECT_EQ(c->changes.change.min_free_views, 1);
+  EXPECT_EQ(c->changes.change.transient_min_views, 1);
+  EXPECT_EQ(c->changes.change.cluster_gap_voxels, 2);
+  EXPECT_EQ(c->changes.change.min_object_voxels, 20);
+  EXPECT_DOUBLE_EQ(c->changes.change.min_object_m, 0.2);
+  EXPECT_DOUBLE_EQ(c->changes.change.transient_share, 0.3);
+  EXPECT_DOUBLE_EQ(c->changes.change.max_move_m, 2.0);
+  EXPECT_DOUBLE_EQ(c->changes.change.max_volume_ratio, 4.0);
+  ExpectRefused(tmp,
+                {
+                    {"stride.json", R"({"changes": {"pixel_stride": 0}})", "pixel_stride"},
+                    {"voxel.json", R"({"changes": {"voxel_m": 0}})", "changes.voxel_m"},
+                    {"share.json", R"({"changes": {"transient_share": 1.5}})", "transient_share"},
+                    {"ratio.json", R"({"changes": {"max_volume_ratio": 0.5}})", "max_volume_ratio"},
+                    {"gap.json", R"({"changes": {"cluster_gap_voxels": 9}})", "cluster_gap_voxels"},
+                    {"key.json", R"({"changes": {"voxels": 1}})", "changes.voxels"},
+                });
+}
+
 TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))
