@@ -12,6 +12,7 @@
 #include "client/cli/commands.h"
 #include "client/cli/output.h"
 #include "client/cli/study.h"
+#include "core/change/moved_zones.h"
 #include "core/common/image_codec.h"
 #include "core/eval/entropy_study.h"
 #include "core/eval/metrics.h"
@@ -134,7 +135,7 @@ absl::StatusOr<std::vector<eval::LabeledScene>> ReadTumScenes(const std::string&
         }
         cv::Mat previous_m;
         previous.convertTo(previous_m, CV_32FC1, 1.0 / 5000.0);
-        s.moved = eval::MovedZones(s.frame.depth_m, {previous_m});
+        s.moved = change::MovedZones(s.frame.depth_m, {previous_m});
         const cv::Mat exact =
             cv::imread((fs::path(dir) / "moved" / file).string(), cv::IMREAD_GRAYSCALE);
         if (agreement && !exact.empty()) {

@@ -29,41 +29,6 @@ double RocAuc(const std::vector<double>& positives, const std::vector<double>& n
   return (rank_sum - np * (np + 1) / 2.0) / (np * nn);
 }
 
-cv::Mat MovedZones(const cv::Mat& depth_i, const std::vector<cv::Mat>& others, int window,
-                   float threshold_m) {
-  cv::Mat moved(depth_i.size(), CV_8UC1, cv::Scalar(0));
-  const int lo = window / 2, hi = window - lo;  // 10: offsets -5 .. +4
-  std::vector<float> values;
-  values.reserve(static_cast<size_t>(window) * window);
-  for (const cv::Mat& depth_j : others) {
-    cv::Mat diff(depth_i.size(), CV_32FC1, cv::Scalar(0.0f));
-    for (int r = 0; r < diff.rows; ++r) {
-      const float* a = depth_i.ptr<float>(r);
-      const float* b = depth_j.ptr<float>(r);
-      float* d = diff.ptr<float>(r);
-      for (int c = 0; c < diff.cols; ++c) d[c] = (a[c] > 0 && b[c] > 0) ? b[c] - a[c] : 0.0f;
-    }
-    // Median over the window (clipped at the image border); an even window as in the paper.
-    for (int r = 0; r < diff.rows; ++r) {
-      unsigned char* out = moved.ptr<unsigned char>(r);
-      for (int c = 0; c < diff.cols; ++c) {
-        if (out[c]) continue;
-        values.clear();
-        for (int rr = std::max(0, r - lo); rr < std::min(diff.rows, r + hi); ++rr) {
-          const float* d = diff.ptr<float>(rr);
-          for (int cc = std::max(0, c - lo); cc < std::min(diff.cols, c + hi); ++cc) {
-            values.push_back(d[cc]);
-          }
-        }
-        auto mid = values.begin() + static_cast<std::ptrdiff_t>(values.size() / 2);
-        std::nth_element(values.begin(), mid, values.end());
-        if (*mid > threshold_m) out[c] = 255;
-      }
-    }
-  }
-  return moved;
-}
-
 cv::Mat PlotCurves(const std::vector<Series>& series, const std::string& title,
                    const std::string& x_label, const std::string& y_label) {
   constexpr int kW = 640, kH = 480, kLeft = 70, kRight = 20, kTop = 40, kBottom = 60;

@@ -12,13 +12,6 @@ namespace lifemap::eval {
 // negative (ties count half), by the Mann–Whitney U statistic. 0.5 when either set is empty.
 double RocAuc(const std::vector<double>& positives, const std::vector<double>& negatives);
 
-// Eq. 3 of paper 000: the zones of depth map `depth_i` that moved, against every other aligned
-// depth map of the same place: median-filtered (window x window) differences D_j - D_i above
-// `threshold_m` in any j. Pixels where either map has no reading count as no difference.
-// Returns CV_8UC1, 255 = moved.
-cv::Mat MovedZones(const cv::Mat& depth_i, const std::vector<cv::Mat>& others, int window = 10,
-                   float threshold_m = 0.05f);
-
 struct Series {
   std::string name;
   std::vector<double> x, y;

@@ -16,37 +16,6 @@ TEST(RocAuc, PerfectChanceAndTies) {
   EXPECT_DOUBLE_EQ(RocAuc({}, {1}), 0.5);
 }
 
-// Eq. 3: a box on a table in view i, gone in view j. Its pixels are the zone of i that moved
-// (D_j - D_i = the box's height > 50 mm); the table around it did not.
-TEST(MovedZones, FindsExactlyTheMovedObject) {
-  cv::Mat table(240, 320, CV_32FC1, cv::Scalar(1.50f));
-  cv::Mat with_box = table.clone();
-  const cv::Rect box(100, 70, 120, 90);
-  with_box(box).setTo(1.30f);  // 20 cm closer
-  const cv::Mat moved = MovedZones(with_box, {table});
-  // The 10x10 median rounds the box's corners and, being even, shifts an edge by a pixel; the
-  // mask is the box up to that.
-  cv::Mat truth(moved.size(), CV_8UC1, cv::Scalar(0));
-  truth(box).setTo(255);
-  const int overlap = cv::countNonZero(moved & truth);
-  const int either = cv::countNonZero(moved | truth);
-  EXPECT_GT(static_cast<double>(overlap) / either, 0.95) << "intersection over union";
-  cv::Mat near_box(moved.size(), CV_8UC1, cv::Scalar(0));
-  near_box(cv::Rect(box.x - 1, box.y - 1, box.width + 2, box.height + 2)).setTo(255);
-  EXPECT_EQ(cv::countNonZero(moved & ~near_box), 0) << "nothing away from the box";
-  // The view without the box has nothing that moved in it (the box left, it did not arrive).
-  EXPECT_EQ(cv::countNonZero(MovedZones(table, {with_box})), 0);
-  // Differences below 50 mm (alignment noise) do not count.
-  cv::Mat shifted = table + 0.03f;
-  EXPECT_EQ(cv::countNonZero(MovedZones(table, {shifted})), 0);
-}
-
-TEST(MovedZones, MissingDepthIsNoDifference) {
-  cv::Mat a(60, 80, CV_32FC1, cv::Scalar(1.0f));
-  cv::Mat b(60, 80, CV_32FC1, cv::Scalar(0.0f));  // no readings
-  EXPECT_EQ(cv::countNonZero(MovedZones(a, {b})), 0);
-}
-
 std::vector<LabeledScene> Mosd(const std::string& dir, int limit) {
   std::vector<LabeledScene> scenes;
   for (const char* name : {"learn0", "learn4", "learn8", "learn12", "learn33", "learn38"}) {

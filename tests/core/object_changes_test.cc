@@ -1,6 +1,7 @@
 // Objects that appeared, vanished and moved between two renders of a synthetic room, doors, and
 // what is not a change of the place (a person walking through; what was not seen).
 #include "core/change/object_changes.h"
+#include "core/change/moved_zones.h"
 
 #include <cmath>
 #include <vector>
@@ -178,6 +179,70 @@ TEST(ObjectChanges, SubsamplePicksPixelsAndScalesTheIntrinsics) {
   EXPECT_DOUBLE_EQ(s.intrinsics.fx, kCamera.fx / 4);
   EXPECT_DOUBLE_EQ(s.intrinsics.cx, kCamera.cx / 4);
   EXPECT_EQ(s.intrinsics.width, 40);
+}
+
+// Eq. 3: a box on a table in view i, gone in view j. Its pixels are the zone of i that moved
+// (D_j - D_i = the box's height > 50 mm); the table around it did not.
+TEST(MovedZones, FindsExactlyTheMovedObject) {
+  cv::Mat table(240, 320, CV_32FC1, cv::Scalar(1.50f));
+  cv::Mat with_box = table.clone();
+  const cv::Rect box(100, 70, 120, 90);
+  with_box(box).setTo(1.30f);  // 20 cm closer
+  const cv::Mat moved = MovedZones(with_box, {table});
+  // The 10x10 median rounds the box's corners and, being even, shifts an edge by a pixel; the
+  // mask is the box up to that.
+  cv::Mat truth(moved.size(), CV_8UC1, cv::Scalar(0));
+  truth(box).setTo(255);
+  const int overlap = cv::countNonZero(moved & truth);
+  const int either = cv::countNonZero(moved | truth);
+  EXPECT_GT(static_cast<double>(overlap) / either, 0.95) << "intersection over union";
+  cv::Mat near_box(moved.size(), CV_8UC1, cv::Scalar(0));
+  near_box(cv::Rect(box.x - 1, box.y - 1, box.width + 2, box.height + 2)).setTo(255);
+  EXPECT_EQ(cv::countNonZero(moved & ~near_box), 0) << "nothing away from the box";
+  // The view without the box has nothing that moved in it (the box left, it did not arrive).
+  EXPECT_EQ(cv::countNonZero(MovedZones(table, {with_box})), 0);
+  // Differences below 50 mm (alignment noise) do not count.
+  cv::Mat shifted = table + 0.03f;
+  EXPECT_EQ(cv::countNonZero(MovedZones(table, {shifted})), 0);
+}
+
+TEST(MovedZones, MissingDepthIsNoDifference) {
+  cv::Mat a(60, 80, CV_32FC1, cv::Scalar(1.0f));
+  cv::Mat b(60, 80, CV_32FC1, cv::Scalar(0.0f));  // no readings
+  EXPECT_EQ(cv::countNonZero(MovedZones(a, {b})), 0);
+}
+
+// A box that arrived since the earlier visit is the moved zone of a frame looking at it: the
+// earlier visit's surfaces rendered at the frame's pose are the room without the box.
+TEST(MovedAgainst, TheZoneOfANewBoxIsMovedAndTheRestIsNot) {
+  const std::vector<sim::Solid> after = {kBefore[0], kBefore[1], kBefore[2],
+                                         Box(4, 1.0, 4.6, 0.45, 0.7)};
+  const SurfacePoints earlier = SurfaceOf(Visit([](int) { return kBefore; }), 0.05, 4.0);
+  ASSERT_GT(earlier.points.size(), 1000u);
+  // Looking at the new box from 1.2 m away.
+  const Pose pose = Camera({1.0, 3.4, 1.3}, M_PI / 2, 0.5);
+  sim::SensorOptions sensor;
+  const sim::RenderedFrame f = sim::Render(Room(), after, {}, kCamera, pose, sensor, 77);
+  const MovedMask m = MovedAgainst(f.depth_m, kCamera, pose, earlier, {2, 3, 0.10f, 4.0});
+  ASSERT_GT(m.compared_pixels, 1000);
+  int on_box = 0, box_pixels = 0, off_box = 0;
+  for (int v = 0; v < m.mask.rows; ++v) {
+    for (int u = 0; u < m.mask.cols; ++u) {
+      const bool box = f.instance_id.at<uint16_t>(v * 2, u * 2) == 4;
+      const bool moved = m.mask.at<uint8_t>(v, u) != 0;
+      box_pixels += box;
+      on_box += box && moved;
+      off_box += !box && moved;
+    }
+  }
+  ASSERT_GT(box_pixels, 100);
+  EXPECT_GT(on_box, box_pixels * 8 / 10) << "most of the box is moved";
+  EXPECT_LT(off_box, box_pixels / 10) << "little else is";
+  // Against itself nothing moved.
+  const Pose same = Camera({2.0, 3.0, 1.3}, 0.3, 0.25);
+  const sim::RenderedFrame g = sim::Render(Room(), kBefore, {}, kCamera, same, sensor, 78);
+  const MovedMask none = MovedAgainst(g.depth_m, kCamera, same, earlier, {2, 3, 0.10f, 4.0});
+  EXPECT_LT(none.share(), 0.01);
 }
 
 }  // namespace
