@@ -113,13 +113,6 @@ absl::Status ServerConfig::Validate() const {
   // The map engine's own settings (frames, storage, entropy, labels, appearance, pose graph,
   // semantic): server/engine/options.h.
   if (auto s = engine_options().Validate(); !s.ok()) return s;
-  if (changes.pixel_stride < 1 || changes.pixel_stride > 16) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("changes.pixel_stride must lie in [1, 16], not ", changes.pixel_stride));
-  }
-  if (auto s = changes.change.Validate(); !s.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat("changes.", s.message()));
-  }
   return keyframe.Validate();
 }
 
@@ -139,6 +132,8 @@ EngineOptions ServerConfig::engine_options() const {
   o.color_jpeg_quality = keyframe_color_jpeg_quality;
   o.max_future_s = frame_max_future_s;
   o.max_gap_s = frame_max_gap_s;
+  o.changes = changes;
+  o.changes.moved.max_range_m = changes.change.max_range_m;
   return o;
 }
 
@@ -387,6 +382,14 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             o.max_move_m = v.get<double>();
           } else if (k == "max_volume_ratio") {
             o.max_volume_ratio = v.get<double>();
+          } else if (k == "moved_enabled") {
+            c.changes.moved_enabled = v.get<bool>();
+          } else if (k == "moved_stride") {
+            c.changes.moved.stride = v.get<int>();
+          } else if (k == "moved_window") {
+            c.changes.moved.window = v.get<int>();
+          } else if (k == "moved_threshold_m") {
+            c.changes.moved.threshold_m = v.get<float>();
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key changes.", k));

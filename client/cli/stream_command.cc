@@ -33,6 +33,7 @@ struct StreamArgs {
   std::string visit_label;
   std::string robot;
   uint64_t visit_id = 0;
+  uint64_t moved_against = 0;  // --moved-against: FrameOptions.moved_against_visit
   std::string intrinsics;
   double depth_scale = 5000.0;
   int max_frames = 0;
@@ -100,6 +101,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   start.set_map(a.map);
   start.set_visit_id(a.visit_id);
   start.set_visit_label(a.visit_label);
+  if (a.moved_against != 0) start.mutable_options()->set_moved_against_visit(a.moved_against);
   if (a.robot.empty()) {
     char host[256] = {0};
     gethostname(host, sizeof(host) - 1);
@@ -343,6 +345,9 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
                    "send poses from groundtruth.txt (interpolated to each frame)");
   stream->add_option("--visit-label", a->visit_label, "label of the new visit");
   stream->add_option("--visit", a->visit_id, "resume this open visit instead of starting one");
+  stream->add_option("--moved-against", a->moved_against,
+                     "each frame's moved mask compares against this ended visit of the map "
+                     "(default: the map's latest earlier one in its frame)");
   stream->add_option("--robot", a->robot, "robot name (default lifemap-cli@HOST)");
   stream->add_option("--intrinsics", a->intrinsics,
                      "FX,FY,CX,CY (default: DIR/intrinsics.txt or the TUM camera's)");

@@ -113,6 +113,19 @@ cv::Mat RenderSurface(const SurfacePoints& surface, const CameraIntrinsics& k, i
   return depth;
 }
 
+cv::Mat FullSizeMask(const MovedMask& m, int width, int height) {
+  cv::Mat full(height, width, CV_8UC1, cv::Scalar(0));
+  const int stride = std::max(m.stride, 1);
+  for (int v = 0; v < height; ++v) {
+    const int sv = std::min(v / stride, m.mask.rows - 1);
+    if (sv < 0) break;
+    const uint8_t* in = m.mask.ptr<uint8_t>(sv);
+    uint8_t* out = full.ptr<uint8_t>(v);
+    for (int u = 0; u < width; ++u) out[u] = in[std::min(u / stride, m.mask.cols - 1)];
+  }
+  return full;
+}
+
 MovedMask MovedAgainst(const cv::Mat& depth_m, const CameraIntrinsics& k,
                        const Pose& T_world_camera, const SurfacePoints& previous,
                        const MovedOptions& options) {

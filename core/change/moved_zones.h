@@ -54,6 +54,10 @@ struct MovedMask {
   }
 };
 
+// The mask at the frame's size (`width` x `height`): each compared pixel's verdict copied to
+// its stride cell.
+cv::Mat FullSizeMask(const MovedMask& m, int width, int height);
+
 // The frame's depth (CV_32FC1 metres, of `k`'s size) against `previous` rendered at its pose.
 MovedMask MovedAgainst(const cv::Mat& depth_m, const CameraIntrinsics& k,
                        const Pose& T_world_camera, const SurfacePoints& previous,

@@ -38,6 +38,8 @@ struct Engine::Parts {
   // Retries unanchored visits after each new vocabulary (anchor_retry.h): uses the appearance
   // index and the pose-graph worker, so it goes before them.
   std::unique_ptr<SerialWorker> anchor_retries;
+  // Loads the previous visit's surfaces for moved masks (reads the store: before it goes).
+  std::unique_ptr<SerialWorker> previous_loader;
 };
 
 absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& options) {
@@ -75,6 +77,8 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& option
   parts.architecture = p->architecture.get();
   parts.pose_graph = p->pose_graph.get();
   parts.semantic_worker = p->semantic_worker.get();
+  p->previous_loader = std::make_unique<SerialWorker>();
+  parts.previous_loader = p->previous_loader.get();
   p->frames = std::make_unique<FramePath>(parts, options);
   p->place_queries =
       std::make_unique<PlaceQueries>(p->store.get(), p->places.get(), p->visits.get(),
@@ -110,6 +114,7 @@ Engine::~Engine() {
   // Anchor retries before the pose-graph worker and the index they use.
   p.appearance->SetOnTrained(nullptr);
   p.anchor_retries.reset();
+  p.previous_loader.reset();
   // The pose-graph worker first: an anchor queues a rebuild on the architecture worker.
   p.pose_graph.reset();
   // Every open visit's octree into the store once its queued keyframes are fused (the periodic

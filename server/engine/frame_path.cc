@@ -322,6 +322,35 @@ absl::Status FramePath::RenderFusedLabels(const AnalysedFrame& a, const FrameSet
   return absl::OkStatus();
 }
 
+absl::Status FramePath::CompareWithPrevious(const AnalysedFrame& a, const FrameSettings& settings,
+                                            VisitState* visit, bool in_map_frame,
+                                            FramePlacement* out) const {
+  if (settings.skip_moved) return absl::FailedPreconditionError(pipeline::kNotRequested);
+  if (!options_.changes.moved_enabled || parts_.previous_loader == nullptr) {
+    return absl::FailedPreconditionError(
+        "disabled in this server's config (changes.moved_enabled)");
+  }
+  const RgbdFrame& f = a.analysis->frame;
+  if (!f.T_world_camera) {
+    return absl::FailedPreconditionError(
+        "the frame has no pose (send Frame.pose, or frames the server can track)");
+  }
+  if (!in_map_frame) {
+    return absl::FailedPreconditionError(
+        "the visit is tracked and not anchored in the map's frame yet: no earlier visit lines up");
+  }
+  auto previous = visit->previous.Get(parts_.store, parts_.previous_loader, visit->map_id,
+                                      visit->visit_id, settings.moved_against_visit,
+                                      options_.changes);
+  if (!previous.ok()) return previous.status();
+  FrameMoved& moved = out->moved.emplace();
+  moved.previous_visit = (*previous)->visit_id;
+  moved.threshold_m = options_.changes.moved.threshold_m;
+  moved.mask = change::MovedAgainst(f.depth_m, f.intrinsics, *f.T_world_camera,
+                                    (*previous)->surface, options_.changes.moved);
+  return absl::OkStatus();
+}
+
 // Queues a posed, labelled keyframe for fusion into its visit's octree (off the reply path, in
 // keyframe order). The probabilities move to the job.
 void FramePath::SubmitForFusion(AnalysedFrame& a, const std::shared_ptr<VisitState>& visit) const {
@@ -574,6 +603,15 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
   // class distributions then go to the fusion worker.
   facts.fusion = RenderFusedLabels(a, settings, visit, &p);
   if (!facts.fusion.ok()) p.fused_labels.reset();
+  {
+    bool in_map_frame = p.pose_source != store::StoredPoseSource::kEstimated;
+    if (!in_map_frame) {
+      absl::MutexLock correction(&visit_state->correction_mu);
+      in_map_frame = visit_state->T_map_visit.has_value();
+    }
+    facts.moved = CompareWithPrevious(a, settings, visit, in_map_frame, &p);
+    if (!facts.moved.ok()) p.moved.reset();
+  }
   if (decision.selected && p.commit) SubmitForFusion(a, visit_state);
   // Every result carries the visit's ranking by architecture (paper 004) as known now.
   facts.architecture = visit->architecture.Ranking();

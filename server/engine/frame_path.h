@@ -50,6 +50,8 @@ struct FrameSettings {
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
   bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
   bool skip_fusion = false;  // no fused labels rendered (the visit's keyframes still fuse)
+  bool skip_moved = false;   // no moved mask against the previous visit
+  int64_t moved_against_visit = 0;  // 0: the map's latest earlier ended visit in its frame
   bool refine_pose = false;  // client poses refined by the tracker
   // The caller's key: a keyframe is not stored once its map holds this many (0: no limit).
   std::string key_name;
@@ -81,6 +83,16 @@ struct OutputFacts {
   // Fused labels (the visit's semantic octree rendered into the frame): OK, or why not.
   absl::Status fusion =
       absl::FailedPreconditionError("frames of a visit only: send the frame into a visit");
+  // The moved mask against the map's previous visit (issue 36): OK, or why not.
+  absl::Status moved =
+      absl::FailedPreconditionError("frames of a visit only: send the frame into a visit");
+};
+
+// What moved since the map's previous visit, in one frame (paper 000's eq. 3).
+struct FrameMoved {
+  change::MovedMask mask;
+  int64_t previous_visit = 0;
+  float threshold_m = 0.0f;  // eq. 3's threshold used
 };
 
 // Stage 1's result: a frame analysed, not yet placed in its visit.
@@ -139,6 +151,7 @@ struct FramePlacement {
   // ranking by architecture (paper 004) as known now.
   std::vector<PlaceMatch> place_matches;
   std::optional<pipeline::FrameLabels> fused_labels;  // the visit's octree rendered
+  std::optional<FrameMoved> moved;                    // against the map's previous visit
   OutputFacts facts;
   // The keyframe's commit, when one was submitted: its id once the store has it.
   std::optional<std::shared_future<absl::StatusOr<int64_t>>> commit;
@@ -158,6 +171,7 @@ struct FramePathParts {
   ArchitectureWorker* architecture = nullptr;
   PoseGraphWorker* pose_graph = nullptr;
   SerialWorker* semantic_worker = nullptr;
+  SerialWorker* previous_loader = nullptr;  // loads the previous visit for moved masks
 };
 
 class FramePath {
@@ -202,6 +216,10 @@ class FramePath {
   absl::Status RenderFusedLabels(const AnalysedFrame& a, const FrameSettings& settings,
                                  VisitState* visit, FramePlacement* out) const;
   void SubmitForFusion(AnalysedFrame& a, const std::shared_ptr<VisitState>& visit) const;
+  // The frame against the map's previous visit, into `out->moved`; OK when compared, else why
+  // not. `in_map_frame`: the frame's pose is in the map's frame.
+  absl::Status CompareWithPrevious(const AnalysedFrame& a, const FrameSettings& settings,
+                                   VisitState* visit, bool in_map_frame, FramePlacement* out) const;
   // Takes the frame's sent colour bytes (color_as_sent is empty afterwards).
   absl::StatusOr<store::KeyframeRecord> MakeKeyframeRecord(AnalysedFrame& a,
                                                            int64_t visit_id) const;

@@ -54,8 +54,32 @@ absl::Status PoseGraphOptions::Validate() const {
   return absl::OkStatus();
 }
 
+absl::Status VisitChangeOptions::Validate() const {
+  if (pixel_stride < 1 || pixel_stride > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("changes.pixel_stride must lie in [1, 16], not ", pixel_stride));
+  }
+  if (auto s = change.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("changes.", s.message()));
+  }
+  if (moved.stride < 1 || moved.stride > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("changes.moved_stride must lie in [1, 16], not ", moved.stride));
+  }
+  if (moved.window < 1 || moved.window > 15) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("changes.moved_window must lie in [1, 15], not ", moved.window));
+  }
+  if (!(moved.threshold_m > 0.0f && moved.threshold_m < 10.0f)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("changes.moved_threshold_m must lie in (0, 10) m, not ", moved.threshold_m));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status EngineOptions::Validate() const {
   if (db_path.empty()) return absl::InvalidArgumentError("db path must not be empty");
+  if (auto s = changes.Validate(); !s.ok()) return s;
   if (keyframe_batch_max < 1 || keyframe_batch_max > 1024) {
     return absl::InvalidArgumentError(
         absl::StrCat("keyframe_batch_max must be within [1, 1024], got ", keyframe_batch_max));

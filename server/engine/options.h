@@ -7,6 +7,8 @@
 
 #include "absl/status/status.h"
 #include "core/appearance/recognizer.h"
+#include "core/change/moved_zones.h"
+#include "core/change/object_changes.h"
 #include "core/pipeline/frame_pipeline.h"
 #include "core/pipeline/keyframe.h"
 #include "core/semantic/semantic_map.h"
@@ -90,6 +92,18 @@ struct PoseGraphOptions {
 
 // The engine's options (server/engine/engine.h), filled from lifemapd's configuration; the
 // names in comments are its keys.
+// GetChanges and the per-frame moved mask (issue 36; config key `changes`).
+struct VisitChangeOptions {
+  change::ChangeOptions change;
+  int pixel_stride = 4;  // every n-th pixel of each keyframe's depth is read
+  // The per-frame moved mask (FrameResult.moved) against the map's previous visit.
+  bool moved_enabled = true;
+  change::MovedOptions moved;  // its max_range_m is change.max_range_m's
+
+  // InvalidArgument naming the `changes.` key out of range.
+  absl::Status Validate() const;
+};
+
 struct EngineOptions {
   std::string db_path = "lifemap.db";  // db: the SQLite database, created if missing
   bool synchronous_full = true;        // synchronous: SQLite FULL (power-loss safe) or NORMAL
@@ -113,6 +127,7 @@ struct EngineOptions {
   // refused before anything is stored.
   double max_future_s = 86400.0;
   double max_gap_s = 7 * 86400.0;
+  VisitChangeOptions changes;
 
   // InvalidArgument naming the configuration key and its range.
   absl::Status Validate() const;

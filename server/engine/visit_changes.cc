@@ -17,8 +17,42 @@ namespace {
 // Keyframes decoded in batches: bounded memory on long visits, both cores busy.
 constexpr size_t kDecodeBatch = 32;
 
-// The posed keyframes of one visit, each its depth subsampled, in the pose stored (the map's
-// frame for the visits CompareVisits accepts).
+// The visit's octree in the map's frame, if a model labelled it; else why not.
+struct Classes {
+  SemanticExport octree;
+  std::string why_not;
+};
+Classes ClassesOf(store::Store* store, VisitRegistry* visits, SerialWorker* worker,
+                  const store::MapRecord& map, int64_t visit_id,
+                  const semantic::SemanticMapOptions& options) {
+  Classes out;
+  auto e = CollectSemanticExport(store, visits, worker, map, visit_id, options);
+  if (!e.ok()) {
+    out.why_not = absl::StrCat("visit ", visit_id, ": ", e.status().message());
+  } else {
+    out.octree = *std::move(e);
+  }
+  return out;
+}
+
+// The class most of the voxels' beliefs put first ("" where none has one).
+std::string VotedClass(const Classes& c, const std::vector<Eigen::Vector3d>& voxels) {
+  if (c.octree.map == nullptr) return "";
+  std::map<size_t, int> votes;
+  for (const auto& p : voxels) {
+    const std::vector<float> belief = c.octree.map->BeliefAt(p.x(), p.y(), p.z());
+    if (belief.empty()) continue;
+    ++votes[static_cast<size_t>(std::max_element(belief.begin(), belief.end()) - belief.begin())];
+  }
+  if (votes.empty()) return "";
+  const auto best = std::max_element(
+      votes.begin(), votes.end(), [](const auto& a, const auto& b) { return a.second < b.second; });
+  return best->first < c.octree.class_names.size() ? c.octree.class_names[best->first]
+                                                   : absl::StrCat("class ", best->first);
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<change::PosedDepth>> LoadVisitDepth(
     store::Store* store, int64_t map_id, int64_t visit_id, int pixel_stride,
     const std::function<bool()>& cancelled) {
@@ -58,42 +92,6 @@ absl::StatusOr<std::vector<change::PosedDepth>> LoadVisitDepth(
   if (!st.ok()) return st;
   return out;
 }
-
-// The visit's octree in the map's frame, if a model labelled it; else why not.
-struct Classes {
-  SemanticExport octree;
-  std::string why_not;
-};
-Classes ClassesOf(store::Store* store, VisitRegistry* visits, SerialWorker* worker,
-                  const store::MapRecord& map, int64_t visit_id,
-                  const semantic::SemanticMapOptions& options) {
-  Classes out;
-  auto e = CollectSemanticExport(store, visits, worker, map, visit_id, options);
-  if (!e.ok()) {
-    out.why_not = absl::StrCat("visit ", visit_id, ": ", e.status().message());
-  } else {
-    out.octree = *std::move(e);
-  }
-  return out;
-}
-
-// The class most of the voxels' beliefs put first ("" where none has one).
-std::string VotedClass(const Classes& c, const std::vector<Eigen::Vector3d>& voxels) {
-  if (c.octree.map == nullptr) return "";
-  std::map<size_t, int> votes;
-  for (const auto& p : voxels) {
-    const std::vector<float> belief = c.octree.map->BeliefAt(p.x(), p.y(), p.z());
-    if (belief.empty()) continue;
-    ++votes[static_cast<size_t>(std::max_element(belief.begin(), belief.end()) - belief.begin())];
-  }
-  if (votes.empty()) return "";
-  const auto best = std::max_element(
-      votes.begin(), votes.end(), [](const auto& a, const auto& b) { return a.second < b.second; });
-  return best->first < c.octree.class_names.size() ? c.octree.class_names[best->first]
-                                                   : absl::StrCat("class ", best->first);
-}
-
-}  // namespace
 
 absl::StatusOr<VisitChanges> CompareVisits(store::Store* store, VisitRegistry* visits,
                                            SerialWorker* worker, const store::MapRecord& map,

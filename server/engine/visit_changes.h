@@ -11,6 +11,7 @@
 #include "absl/status/statusor.h"
 #include "core/change/object_changes.h"
 #include "core/semantic/semantic_map.h"
+#include "server/engine/options.h"
 #include "server/engine/serial_worker.h"
 #include "server/engine/visit_registry.h"
 #include "server/store/store.h"
@@ -31,11 +32,6 @@ struct VisitChanges {
   double seconds = 0;
 };
 
-struct VisitChangeOptions {
-  change::ChangeOptions change;
-  int pixel_stride = 4;  // every n-th pixel of each keyframe's depth is read
-};
-
 // Compares visit `from_visit` (the earlier) with `to_visit` of `map`. NOT_FOUND for a visit that
 // does not exist or is of another map; INVALID_ARGUMENT for the same visit twice;
 // FAILED_PRECONDITION naming a visit not in the map's frame (and why) or without a posed
@@ -48,5 +44,12 @@ absl::StatusOr<VisitChanges> CompareVisits(store::Store* store, VisitRegistry* v
                                            const VisitChangeOptions& options,
                                            const semantic::SemanticMapOptions& semantic_options,
                                            const std::function<bool()>& cancelled);
+
+// The posed keyframes of a visit, each its depth every `pixel_stride`-th pixel, at the pose
+// stored. DATA_LOSS for a stored keyframe whose depth does not decode; CANCELLED when
+// `cancelled` says so between keyframes.
+absl::StatusOr<std::vector<change::PosedDepth>> LoadVisitDepth(
+    store::Store* store, int64_t map_id, int64_t visit_id, int pixel_stride,
+    const std::function<bool()>& cancelled);
 
 }  // namespace lifemap::server

@@ -18,6 +18,7 @@
 #include "core/tracking/keyframe_selector.h"
 #include "core/tracking/odometry.h"
 #include "server/engine/architecture.h"
+#include "server/engine/previous_visit.h"
 #include "server/engine/semantics.h"
 #include "server/engine/serial_worker.h"
 #include "server/store/store.h"
@@ -92,6 +93,8 @@ struct VisitState {
   // Paper 002's semantic octree of the visit; it guards itself (see VisitSemantics): the
   // semantic worker fuses keyframes into it, frames render from it.
   VisitSemantics semantics;
+  // The map's previous visit, for each frame's moved mask (issue 36); it guards itself.
+  PreviousVisit previous;
 
   // OK if a frame from `writer` (0: a unary ProcessFrame) may be added now; else the status
   // to answer: `closed`, or FAILED_PRECONDITION naming the stream that writes the visit.

@@ -48,6 +48,11 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   } else {
     facts.fusion = absl::OkStatus();
   }
+  // Moved masks: for posed frames in the map's frame once the map has an earlier ended visit.
+  facts.moved = ctx_->config.changes.moved_enabled
+                    ? absl::OkStatus()
+                    : absl::FailedPreconditionError(
+                          "disabled in this server's config (changes.moved_enabled)");
   FillOutputStatuses(ctx_->config.pipeline, facts, resp->mutable_outputs());
   resp->set_max_message_bytes(static_cast<uint64_t>(ctx_->config.max_message_bytes));
   resp->set_max_streams(static_cast<uint32_t>(ctx_->config.max_streams));

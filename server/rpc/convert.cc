@@ -447,6 +447,7 @@ void FillOutputStatuses(const pipeline::PipelineOptions& options, const OutputFa
                            "asks for other frames)"));
   }
   add(v1::FRAME_OUTPUT_SEMANTIC_FUSION, facts.fusion.ok(), facts.fusion.message());
+  add(v1::FRAME_OUTPUT_MOVED_ZONES, facts.moved.ok(), facts.moved.message());
 }
 
 void ResultImageToProto(const cv::Mat& image, v1::ResultImages how, std::string* png,
@@ -545,6 +546,18 @@ void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
   }
   for (const auto& m : p.place_matches) PlaceMatchToProto(m, r->add_place_matches());
   if (p.fused_labels) LabelsToProto(*p.fused_labels, *a.model, images, r->mutable_fused_labels());
+  if (p.moved) {
+    v1::MovedOutput* m = r->mutable_moved();
+    const change::MovedMask& mask = p.moved->mask;
+    m->set_stride(static_cast<uint32_t>(mask.stride));
+    m->set_moved_share(static_cast<float>(mask.share()));
+    m->set_compared_pixels(static_cast<uint32_t>(mask.compared_pixels));
+    m->set_previous_visit(static_cast<uint64_t>(p.moved->previous_visit));
+    m->set_threshold_m(p.moved->threshold_m);
+    const RgbdFrame& f = a.analysis->frame;
+    ResultImageToProto(change::FullSizeMask(mask, f.depth_m.cols, f.depth_m.rows), images,
+                       m->mutable_mask_png(), m->mutable_mask_raw());
+  }
   FillOutputStatuses(options, p.facts, r->mutable_outputs());
 }
 

@@ -146,15 +146,20 @@ absl::StatusOr<CallSettings> FrameSettingsFromProto(const v1::FrameOptions& o,
       settings.skip_labels = true;
     } else if (output == v1::FRAME_OUTPUT_SEMANTIC_FUSION) {
       settings.skip_fusion = true;
+    } else if (output == v1::FRAME_OUTPUT_MOVED_ZONES) {
+      settings.skip_moved = true;
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "options.skip_outputs: ",
           v1::FrameOutput_IsValid(output) ? v1::FrameOutput_Name(output) : std::to_string(output),
-          " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK, FRAME_OUTPUT_CLASS_LABELS and "
-          "FRAME_OUTPUT_SEMANTIC_FUSION can"));
+          " cannot be skipped; only FRAME_OUTPUT_ENTROPY_MASK, FRAME_OUTPUT_CLASS_LABELS, "
+          "FRAME_OUTPUT_SEMANTIC_FUSION and FRAME_OUTPUT_MOVED_ZONES can"));
     }
   }
   settings.refine_pose = o.refine_pose();
+  const auto against = IdFromProto(o.moved_against_visit(), "options.moved_against_visit");
+  if (!against.ok()) return against.status();
+  settings.moved_against_visit = *against;
   switch (o.result_images()) {
     case v1::RESULT_IMAGES_DEFAULT:
       break;

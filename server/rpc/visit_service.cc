@@ -156,7 +156,7 @@ grpc::Status VisitServiceImpl::GetChanges(grpc::ServerContext* context,
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "from_visit and to_visit are both required (lifemap visits list MAP)");
   }
-  const VisitChangeOptions& options = ctx_->config.changes;
+  const VisitChangeOptions& options = ctx_->engine->options().changes;
   auto changes = CompareVisits(ctx_->engine->store(), ctx_->engine->visits(),
                                ctx_->engine->semantic_worker(), *map, *from, *to, options,
                                ctx_->config.semantic, [context] { return context->IsCancelled(); });

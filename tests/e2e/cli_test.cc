@@ -549,6 +549,37 @@ TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) 
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("KIND"), std::string::npos) << r.out;
 
+  // Each frame of a third visit says what moved since the visit it compares against: the
+  // second (the latest, by default), where nothing moved since, or the first, asked for.
+  for (const char* against : {"0", "1"}) {
+    r = Run({"--json", "stream", "--map", "home", "--tum", tmp_.File("home/visit_01"),
+             "--use-groundtruth", "--rate", "10", "--end-visit", "--max-frames", "30",
+             "--moved-against", against});
+    ASSERT_EQ(r.code, 0) << r.err;
+    int compared = 0;
+    double most = 0;
+    for (const auto& line : Lines(r.out)) {
+      const json f = json::parse(line);
+      if (!f.contains("moved")) continue;
+      ++compared;
+      EXPECT_EQ(f["moved"]["previous_visit"], std::string(against) == "0" ? "2" : "1") << line;
+      most = std::max(most, f["moved"].value("moved_share", 0.0));
+    }
+    EXPECT_GT(compared, 20) << "all but the first frames, while the visit loads";
+    if (std::string(against) == "0") {
+      EXPECT_LT(most, 0.02) << "the same arrangement as visit 2";
+    } else {
+      EXPECT_GT(most, 0.02) << "the props that arrived since visit 1";
+    }
+  }
+  r = Run({"--json", "stream", "--map", "home", "--tum", tmp_.File("home/visit_01"),
+           "--use-groundtruth", "--rate", "10", "--end-visit", "--max-frames", "10",
+           "--moved-against", "99"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("moved_against_visit 99 is not another visit of map 'home'"),
+            std::string::npos)
+      << r.out.substr(0, 3000);
+
   r = Run({"changes", "home", "--from", "2", "--to", "2"});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("INVALID_ARGUMENT"), std::string::npos) << r.err;
