@@ -35,6 +35,7 @@ struct ChangesEvalArgs {
   double min_size_m = 0.2;     // props this large (largest side) count for recall
   double tolerance_m = 0.3;    // a report this close (ground plane) to a true change matches it
   int min_seen_pixels = 2000;  // a prop seen in fewer pixels over a visit is not observable
+  bool masks = true;           // --masks: score each frame's moved mask too
 };
 
 const char* const kKinds[] = {"appeared", "vanished", "moved", "door_opened", "door_closed"};
@@ -64,7 +65,48 @@ struct Trial {
   std::vector<TrueChange> truth;
   std::vector<Reported> reported;
   double seconds = 0;
+  // The per-frame moved masks against the reference (FrameResult.moved), in pixels of the
+  // frames compared: marked and truly arrived, marked elsewhere, arrived and not marked.
+  int64_t mask_tp = 0, mask_fp = 0, mask_fn = 0;
+  int frames_with_mask = 0;
 };
+
+// Scores each frame's moved mask against the world's truth: a pixel truly arrived where the
+// truth marks it changed (moved/) and the frame's surface is nearer than the reference's there
+// (previous_depth/) by more than 2 cm: what eq. 3 can see. Pixels without a depth reading or
+// beyond `max_range_m` are not scored.
+void ScoreMasks(const io::TumSequence& seq, const StreamedVisit& streamed, double max_range_m,
+                Trial* t) {
+  for (const TrackedFrame& f : streamed.frames) {
+    if (f.moved_png.empty() || f.index >= seq.frames.size()) continue;
+    const fs::path depth_path(seq.frames[f.index].depth_path);
+    const fs::path dir = depth_path.parent_path().parent_path();
+    const std::vector<uint8_t> bytes(f.moved_png.begin(), f.moved_png.end());
+    const cv::Mat mask = cv::imdecode(bytes, cv::IMREAD_UNCHANGED);
+    const cv::Mat truth =
+        cv::imread((dir / "moved" / depth_path.filename()).string(), cv::IMREAD_UNCHANGED);
+    const cv::Mat now = cv::imread(depth_path.string(), cv::IMREAD_UNCHANGED);
+    const cv::Mat then =
+        cv::imread((dir / "previous_depth" / depth_path.filename()).string(), cv::IMREAD_UNCHANGED);
+    if (mask.empty() || truth.empty() || now.empty() || then.empty() ||
+        mask.size() != truth.size() || now.size() != truth.size() || then.size() != now.size()) {
+      continue;
+    }
+    ++t->frames_with_mask;
+    constexpr double kScale = 5000.0;  // the sim's depth PNGs, units per metre
+    for (int r = 0; r < mask.rows; ++r) {
+      for (int c = 0; c < mask.cols; ++c) {
+        const double d = now.at<uint16_t>(r, c) / kScale, p = then.at<uint16_t>(r, c) / kScale;
+        if (d <= 0 || d > max_range_m) continue;
+        const bool arrived = truth.at<uint8_t>(r, c) != 0 && p > 0 && p - d > 0.02;
+        const bool marked = mask.at<uint8_t>(r, c) != 0;
+        t->mask_tp += marked && arrived;
+        t->mask_fp += marked && !arrived;
+        t->mask_fn += !marked && arrived;
+      }
+    }
+  }
+}
 
 absl::StatusOr<json> ReadJson(const fs::path& path) {
   std::ifstream in(path);
@@ -200,7 +242,13 @@ void Match(Trial* t, const ChangesEvalArgs& a) {
 struct Score {
   std::map<std::string, int> reported, correct, counted, found;
   int false_changes = 0;  // reports on a visit whose place did not change
+  int64_t mask_tp = 0, mask_fp = 0, mask_fn = 0;
+  int frames_with_mask = 0;
   void Add(const Trial& t, bool place_changed) {
+    mask_tp += t.mask_tp;
+    mask_fp += t.mask_fp;
+    mask_fn += t.mask_fn;
+    frames_with_mask += t.frames_with_mask;
     for (const auto& r : t.reported) {
       ++reported[r.kind];
       if (!r.matched.empty()) ++correct[r.kind];
@@ -225,10 +273,19 @@ struct Score {
       recall[k] = n > 0 ? json(static_cast<double>(f) / n) : json(nullptr);
       counts[k] = {{"reported", rep}, {"correct", ok}, {"true", n}, {"found", f}};
     }
+    auto ratio = [](int64_t x, int64_t n) {
+      return n > 0 ? json(static_cast<double>(x) / static_cast<double>(n)) : json(nullptr);
+    };
     return {{"precision", precision},
             {"recall", recall},
             {"counts", counts},
-            {"false_changes", false_changes}};
+            {"false_changes", false_changes},
+            {"moved_mask",
+             {{"frames", frames_with_mask},
+              {"precision", ratio(mask_tp, mask_tp + mask_fp)},
+              {"recall", ratio(mask_tp, mask_tp + mask_fn)},
+              {"marked_pixels", mask_tp + mask_fp},
+              {"arrived_pixels", mask_tp + mask_fn}}}};
   }
 };
 
@@ -276,8 +333,11 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       auto seq = io::ReadTumSequence((root / v.path).string());
       if (!seq.ok()) return Fail(seq.status());
       stream.visit_label = v.path;
+      stream.moved_against_visit = a.masks ? ref->visit_id : 0;
       auto q = StreamWithoutPoses(**client, map, *seq, stream);
+      stream.moved_against_visit = 0;
       if (!q.ok()) return Fail(q.status());
+      ScoreMasks(*seq, *q, 4.0, &t);
       t.visit = q->visit_id;
       auto r = (*client)->GetChanges(map, ref->visit_id, q->visit_id);
       if (!r.ok()) return Fail(r.status());
@@ -367,6 +427,18 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
                               c["true"].get<int>(), c["found"].get<int>(),
                               ratio(c["found"].get<int>(), c["true"].get<int>()));
   }
+  report += absl::StrFormat(
+      "\nPer-frame moved masks against the reference (eq. 3): %d frames; pixel precision %s, "
+      "recall %s of the pixels where something truly arrived.\n\n| subset | frames | mask "
+      "precision | mask recall | marked pixels |\n|---|---|---|---|---|\n",
+      all.frames_with_mask, summary["moved_mask"]["precision"].dump(),
+      summary["moved_mask"]["recall"].dump());
+  for (const auto& [name, sc] : by_subset) {
+    const json m = sc.Json()["moved_mask"];
+    report += absl::StrFormat("| %s | %d | %s | %s | %d |\n", name, m["frames"].get<int>(),
+                              m["precision"].dump(), m["recall"].dump(),
+                              m["marked_pixels"].get<int64_t>());
+  }
   report += "\nReports on visits whose place did not change (false changes): ";
   for (const auto& [name, n] : summary["false_changes"].items()) {
     report += absl::StrFormat("%s %d; ", name, n.get<int>());
@@ -397,6 +469,8 @@ void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
          "(the server tracks and anchors each visit)")
       ->check(CLI::IsMember({"truth", "server"}));
   cmd->add_flag("--keep-maps", a->keep_maps, "keep the per-place maps (default: deleted after)");
+  cmd->add_flag("--masks,!--no-masks", a->masks,
+                "score each query frame's moved mask against the reference (default on)");
   cmd->add_option("--min-size", a->min_size_m,
                   "props at least this large (largest side, m) count for recall (default 0.2)")
       ->check(CLI::Range(0.0, 10.0));

@@ -93,7 +93,17 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
   start.set_map(map);
   start.set_robot(options.robot);
   start.set_visit_label(options.visit_label.empty() ? sequence.dir : options.visit_label);
-  start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  if (options.moved_against_visit != 0) {
+    // The moved masks as PNG; the outputs not looked at are not computed.
+    auto* o = start.mutable_options();
+    o->set_moved_against_visit(options.moved_against_visit);
+    o->set_result_images(v1::RESULT_IMAGES_PNG);
+    o->add_skip_outputs(v1::FRAME_OUTPUT_ENTROPY_MASK);
+    o->add_skip_outputs(v1::FRAME_OUTPUT_CLASS_LABELS);
+    o->add_skip_outputs(v1::FRAME_OUTPUT_SEMANTIC_FUSION);
+  } else {
+    start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  }
   auto stream = client.OpenStream(start);
   if (!stream.ok()) return stream.status();
 
@@ -138,7 +148,9 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
     o.timestamp_s = r.timestamp_s();
     if (r.sequence() < sequence.frames.size()) {
       o.truth = sequence.frames[r.sequence()].T_world_camera;
+      o.index = static_cast<size_t>(r.sequence());
     }
+    if (r.has_moved()) o.moved_png = r.moved().mask_png();
     if (r.has_error()) {
       ++visit.rejected;
       o.state = "error";

@@ -28,6 +28,8 @@ struct TrackedFrame {
   // dense | refit | features | relocalised | odometry, or "" (lost, started, error)
   std::string method;
   std::optional<Pose> truth;  // the recording's ground truth for the frame, if it has one
+  size_t index = 0;           // in the recording
+  std::string moved_png;      // FrameResult.moved's mask, when asked for and computed
 };
 
 struct UnposedStreamOptions {
@@ -44,6 +46,9 @@ struct UnposedStreamOptions {
   // Frame.pose from the recording's ground truth, as a robot with its own localisation sends
   // it (`lifemap eval changes --poses truth`: changes judged apart from the server's alignment).
   bool send_truth_poses = false;
+  // Each frame's moved mask against this visit (FrameOptions.moved_against_visit), kept in
+  // TrackedFrame::moved_png; 0: none asked for (results carry no images).
+  uint64_t moved_against_visit = 0;
 };
 
 // Adds `--gravity accelerometer|none` to an evaluation command, setting `*send_gravity`
