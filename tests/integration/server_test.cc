@@ -902,7 +902,7 @@ TEST_F(ServerTest, ServerInfoListsOutputsAndLimits) {
   auto info = client_->GetServerInfo();
   ASSERT_TRUE(info.ok());
   EXPECT_EQ(info->api_version(), "lifemap.v1");
-  EXPECT_EQ(info->outputs_size(), 6);
+  EXPECT_EQ(info->outputs_size(), 7);
   EXPECT_EQ(info->schema_version(), static_cast<uint32_t>(store::Store::kSchemaVersion));
   EXPECT_GT(info->max_message_bytes(), 0u);
 }

@@ -199,7 +199,9 @@ TEST(ConfigFile, ReadsAndChecksTheChangesSection) {
   std::ofstream(tmp.File("ok.json")) << R"({"changes": {"pixel_stride": 2, "voxel_m": 0.04,
              "max_range_m": 3.5, "seen_through_m": 0.08, "min_views": 3, "min_free_views": 1,
              "transient_min_views": 1, "cluster_gap_voxels": 2, "min_object_voxels": 20,
-             "min_object_m": 0.2, "transient_share": 0.3, "max_move_m": 2, "max_volume_ratio": 4}})";
+             "min_object_m": 0.2, "transient_share": 0.3, "max_move_m": 2, "max_volume_ratio": 4,
+             "moved_enabled": false, "moved_stride": 2, "moved_window": 5,
+             "moved_threshold_m": 0.05}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->changes.pixel_stride, 2);
@@ -215,15 +217,21 @@ TEST(ConfigFile, ReadsAndChecksTheChangesSection) {
   EXPECT_DOUBLE_EQ(c->changes.change.transient_share, 0.3);
   EXPECT_DOUBLE_EQ(c->changes.change.max_move_m, 2.0);
   EXPECT_DOUBLE_EQ(c->changes.change.max_volume_ratio, 4.0);
-  ExpectRefused(tmp,
-                {
-                    {"stride.json", R"({"changes": {"pixel_stride": 0}})", "pixel_stride"},
-                    {"voxel.json", R"({"changes": {"voxel_m": 0}})", "changes.voxel_m"},
-                    {"share.json", R"({"changes": {"transient_share": 1.5}})", "transient_share"},
-                    {"ratio.json", R"({"changes": {"max_volume_ratio": 0.5}})", "max_volume_ratio"},
-                    {"gap.json", R"({"changes": {"cluster_gap_voxels": 9}})", "cluster_gap_voxels"},
-                    {"key.json", R"({"changes": {"voxels": 1}})", "changes.voxels"},
-                });
+  EXPECT_FALSE(c->changes.moved_enabled);
+  EXPECT_EQ(c->changes.moved.stride, 2);
+  EXPECT_EQ(c->changes.moved.window, 5);
+  EXPECT_FLOAT_EQ(c->changes.moved.threshold_m, 0.05f);
+  ExpectRefused(
+      tmp, {
+               {"stride.json", R"({"changes": {"pixel_stride": 0}})", "pixel_stride"},
+               {"voxel.json", R"({"changes": {"voxel_m": 0}})", "changes.voxel_m"},
+               {"share.json", R"({"changes": {"transient_share": 1.5}})", "transient_share"},
+               {"ratio.json", R"({"changes": {"max_volume_ratio": 0.5}})", "max_volume_ratio"},
+               {"gap.json", R"({"changes": {"cluster_gap_voxels": 9}})", "cluster_gap_voxels"},
+               {"key.json", R"({"changes": {"voxels": 1}})", "changes.voxels"},
+               {"window.json", R"({"changes": {"moved_window": 0}})", "moved_window"},
+               {"threshold.json", R"({"changes": {"moved_threshold_m": -1}})", "moved_threshold_m"},
+           });
 }
 
 TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
