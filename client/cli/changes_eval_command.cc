@@ -321,6 +321,8 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
     stream.visit_label = ref_path;
     auto ref = StreamWithoutPoses(**client, map, *ref_seq, stream);
     if (!ref.ok()) return Fail(ref.status());
+    // Ended, as a robot's visit is: the query frames' moved masks compare against it.
+    if (auto e = (*client)->EndVisit(ref->visit_id); !e.ok()) return Fail(e.status());
     for (const auto& v : *manifest) {
       if (v.place_id != place || v.role == "reference") continue;
       Trial t;
@@ -338,6 +340,7 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       stream.moved_against_visit = 0;
       if (!q.ok()) return Fail(q.status());
       ScoreMasks(*seq, *q, 4.0, &t);
+      if (auto e = (*client)->EndVisit(q->visit_id); !e.ok()) return Fail(e.status());
       t.visit = q->visit_id;
       auto r = (*client)->GetChanges(map, ref->visit_id, q->visit_id);
       if (!r.ok()) return Fail(r.status());
