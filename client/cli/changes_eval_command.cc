@@ -19,6 +19,7 @@
 #include "client/cli/study.h"
 #include "client/cli/unposed_stream.h"
 #include "core/eval/place_study.h"
+#include "core/eval/trajectory.h"
 #include "core/io/tum_dataset.h"
 
 namespace lifemap::cli {
@@ -326,6 +327,25 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
     if (!ref.ok()) return Fail(ref.status());
     // Ended, as a robot's visit is: the query frames' moved masks compare against it.
     if (auto e = (*client)->EndVisit(ref->visit_id); !e.ok()) return Fail(e.status());
+    // The map's frame in the world's: the server's (the reference's tracked frame) aligned to
+    // the truth by the reference's stored keyframes, as `eval alignment` does; the world's own
+    // with truth poses.
+    Eigen::Isometry3d T_world_map = Eigen::Isometry3d::Identity();
+    if (!a.truth_poses) {
+      auto stored = StoredEstimatedKeyframes(**client, map, ref->visit_id);
+      if (!stored.ok()) return Fail(stored.status());
+      auto aligned = eval::CompareTrajectories(*stored, eval::GroundTruth(*ref_seq));
+      if (!aligned.ok()) {
+        return Fail(absl::FailedPreconditionError(
+            absl::StrCat(ref_path, ": the reference's track cannot be aligned to its truth: ",
+                         aligned.status().message())));
+      }
+      T_world_map = aligned->T_truth_estimate;
+    }
+    auto to_world = [&](const v1::Vector3& p) {
+      const Eigen::Vector3d w = T_world_map * Eigen::Vector3d(p.x(), p.y(), p.z());
+      return Eigen::Vector2d(w.x(), w.y());
+    };
     for (const auto& v : *manifest) {
       if (v.place_id != place || v.role == "reference") continue;
       Trial t;
@@ -360,8 +380,8 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
         Reported rep;
         rep.kind = c.kind();
         rep.class_name = c.class_name();
-        rep.at = {c.center().x(), c.center().y()};
-        rep.from = {c.from_center().x(), c.from_center().y()};
+        rep.at = to_world(c.center());
+        rep.from = to_world(c.from_center());
         rep.size_m = std::max({c.extent().x(), c.extent().y(), c.extent().z()});
         t.reported.push_back(rep);
       }
