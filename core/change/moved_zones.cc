@@ -6,6 +6,7 @@
 #include <Eigen/Geometry>
 
 #include "absl/container/flat_hash_map.h"
+#include "core/change/voxels.h"
 
 namespace lifemap::change {
 
@@ -49,30 +50,13 @@ SurfacePoints SurfaceOf(const std::vector<PosedDepth>& views, double voxel_m, do
     Eigen::Vector3d sum = Eigen::Vector3d::Zero();
     int n = 0;
   };
-  // Voxel coordinates packed 21 bits per axis (as object_changes.cc does), ±52 km at 5 cm.
-  auto key = [inv = 1.0 / voxel_m](const Eigen::Vector3d& p) {
-    constexpr int64_t kOffset = int64_t{1} << 20;
-    return ((static_cast<int64_t>(std::floor(p.x() * inv)) + kOffset) << 42) |
-           ((static_cast<int64_t>(std::floor(p.y() * inv)) + kOffset) << 21) |
-           (static_cast<int64_t>(std::floor(p.z() * inv)) + kOffset);
-  };
   absl::flat_hash_map<int64_t, Sum> voxels;
-  for (const PosedDepth& w : views) {
-    const Eigen::Isometry3d T = w.T_world_camera.ToIsometry();
-    const auto& k = w.intrinsics;
-    for (int v = 0; v < w.depth_m.rows; ++v) {
-      const float* row = w.depth_m.ptr<float>(v);
-      for (int u = 0; u < w.depth_m.cols; ++u) {
-        const double d = row[u];
-        if (!(d > 0.0) || d > max_range_m) continue;
-        const Eigen::Vector3d p =
-            T * Eigen::Vector3d((u - k.cx) / k.fx * d, (v - k.cy) / k.fy * d, d);
-        Sum& s = voxels[key(p)];
-        s.sum += p;
-        ++s.n;
-      }
-    }
-  }
+  const double inv = 1.0 / voxel_m;
+  internal::ForEachReading(views, max_range_m, [&](size_t, const Eigen::Vector3d& p) {
+    Sum& s = voxels[internal::VoxelKey(p, inv)];
+    s.sum += p;
+    ++s.n;
+  });
   SurfacePoints out;
   out.voxel_m = voxel_m;
   out.points.reserve(voxels.size());

@@ -12,26 +12,14 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/str_cat.h"
+#include "core/change/voxels.h"
 
 namespace lifemap::change {
 namespace {
 
-// Voxel coordinates packed into one key: 21 bits per axis, offset so that negative indices
-// pack (±2^20 voxels: ±52 km at 5 cm).
-constexpr int64_t kOffset = int64_t{1} << 20;
-constexpr int64_t kMask = (int64_t{1} << 21) - 1;
-
-struct VoxelIndex {
-  int64_t x = 0, y = 0, z = 0;
-};
-
-int64_t Pack(const VoxelIndex& i) {
-  return ((i.x + kOffset) << 42) | ((i.y + kOffset) << 21) | (i.z + kOffset);
-}
-VoxelIndex Unpack(int64_t key) {
-  return {((key >> 42) & kMask) - kOffset, ((key >> 21) & kMask) - kOffset,
-          (key & kMask) - kOffset};
-}
+using internal::Pack;
+using internal::Unpack;
+using internal::VoxelIndex;
 
 // What one visit's readings say of a voxel: how many readings fell in it, from how many of the
 // visit's keyframes.
@@ -45,29 +33,14 @@ using Grid = absl::flat_hash_map<int64_t, Cell>;
 Grid BinReadings(const std::vector<PosedDepth>& views, const ChangeOptions& o) {
   Grid grid;
   const double inv = 1.0 / o.voxel_m;
-  for (size_t i = 0; i < views.size(); ++i) {
-    const PosedDepth& w = views[i];
-    const Eigen::Isometry3d T = w.T_world_camera.ToIsometry();
-    const auto& k = w.intrinsics;
-    for (int v = 0; v < w.depth_m.rows; ++v) {
-      const float* row = w.depth_m.ptr<float>(v);
-      for (int u = 0; u < w.depth_m.cols; ++u) {
-        const double d = row[u];
-        if (!(d > 0.0) || d > o.max_range_m) continue;
-        const Eigen::Vector3d p =
-            T * Eigen::Vector3d((u - k.cx) / k.fx * d, (v - k.cy) / k.fy * d, d);
-        const int64_t key = Pack({static_cast<int64_t>(std::floor(p.x() * inv)),
-                                  static_cast<int64_t>(std::floor(p.y() * inv)),
-                                  static_cast<int64_t>(std::floor(p.z() * inv))});
-        Cell& c = grid[key];
-        ++c.hits;
-        if (c.last_view != static_cast<int>(i)) {
-          ++c.views;
-          c.last_view = static_cast<int>(i);
-        }
-      }
+  internal::ForEachReading(views, o.max_range_m, [&](size_t view, const Eigen::Vector3d& p) {
+    Cell& c = grid[internal::VoxelKey(p, inv)];
+    ++c.hits;
+    if (c.last_view != static_cast<int>(view)) {
+      ++c.views;
+      c.last_view = static_cast<int>(view);
     }
-  }
+  });
   return grid;
 }
 
