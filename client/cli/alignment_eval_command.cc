@@ -246,14 +246,7 @@ int RunAlignmentEval(const CliContext& ctx, const AlignmentArgs& a) {
       trials.push_back(std::move(t));
     }
   }
-  if (!a.keep_maps) {
-    for (const auto& m : maps) {
-      if (auto d = (*client)->DeleteMap(m); !d.ok()) {
-        std::cerr << "lifemap: the scratch map '" << m << "' was not deleted: " << d.status()
-                  << "\n";
-      }
-    }
-  }
+  if (!a.keep_maps) DeleteScratchMaps(**client, maps);
 
   Tally same_place, cross_place;
   std::map<int, Tally> by_subset;
@@ -315,10 +308,7 @@ void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->required()
       ->check(CLI::ExistingDirectory);
   cmd->add_option("--out", a->out, "folder for summary.json, visits.csv, report.md")->required();
-  cmd->add_option_function<std::string>(
-         "--send", [a](const std::string& how) { a->compact = how == "compact"; },
-         "as-recorded (default) or compact (JPEG colour, paletted depth)")
-      ->check(CLI::IsMember({"as-recorded", "compact"}));
+  AddSendOption(cmd, &a->compact);
   AddGravityOption(cmd, &a->send_gravity);
   AddOdometryOption(cmd, &a->send_odometry);
   cmd->add_option("--rate", a->rate_hz, "frames per second (default 0: as fast as served)")

@@ -397,14 +397,7 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       trials.push_back(std::move(t));
     }
   }
-  if (!a.keep_maps) {
-    for (const auto& m : maps) {
-      if (auto d = (*client)->DeleteMap(m); !d.ok()) {
-        std::cerr << "lifemap: the scratch map '" << m << "' was not deleted: " << d.status()
-                  << "\n";
-      }
-    }
-  }
+  if (!a.keep_maps) DeleteScratchMaps(**client, maps);
   Score all;
   std::map<std::string, Score> by_subset;
   std::string csv =
@@ -508,10 +501,7 @@ void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->required()
       ->check(CLI::ExistingDirectory);
   cmd->add_option("--out", a->out, "folder for summary.json, changes.csv, report.md")->required();
-  cmd->add_option_function<std::string>(
-         "--send", [a](const std::string& how) { a->compact = how == "compact"; },
-         "as-recorded (default) or compact (JPEG colour, paletted depth)")
-      ->check(CLI::IsMember({"as-recorded", "compact"}));
+  AddSendOption(cmd, &a->compact);
   cmd->add_option_function<std::string>(
          "--poses", [a](const std::string& how) { a->truth_poses = how == "truth"; },
          "truth (default: the recording's ground truth, as a localised robot sends) or server "

@@ -212,12 +212,7 @@ int RunTrajectoryEval(const CliContext& ctx, const TrajectoryArgs& a) {
           stored_errors.ok() ? stored_errors->T_truth_estimate : all_errors->T_truth_estimate);
     }
   }
-  if (a.map.empty() && !a.keep_map) {
-    if (auto d = (*client)->DeleteMap(map); !d.ok()) {
-      std::cerr << "lifemap: the scratch map '" << map << "' was not deleted: " << d.status()
-                << "\n";
-    }
-  }
+  if (a.map.empty() && !a.keep_map) DeleteScratchMaps(**client, {map});
   if (ctx.json) {
     std::cout << summary.dump() << "\n";
   } else {
@@ -261,10 +256,7 @@ void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->check(CLI::Range(0.0, 1000.0));
   cmd->add_option("--max-frames", a->max_frames, "stop after N frames")
       ->check(CLI::Range(1, 10000000));
-  cmd->add_option_function<std::string>(
-         "--send", [a](const std::string& how) { a->compact = how == "compact"; },
-         "as-recorded (default) or compact (JPEG colour, paletted depth)")
-      ->check(CLI::IsMember({"as-recorded", "compact"}));
+  AddSendOption(cmd, &a->compact);
   AddGravityOption(cmd, &a->send_gravity);
   AddOdometryOption(cmd, &a->send_odometry);
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunTrajectoryEval(*ctx, *a); }; });

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <iostream>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -65,6 +66,21 @@ void AddOdometryOption(CLI::App* cmd, bool* send_odometry) {
          "wheel (each frame's Frame.odometry from the recording's odometry.txt, where it has "
          "one: a robot's wheel odometry) or none (default)")
       ->check(CLI::IsMember({"wheel", "none"}));
+}
+
+void AddSendOption(CLI::App* cmd, bool* compact) {
+  cmd->add_option_function<std::string>(
+         "--send", [compact](const std::string& how) { *compact = how == "compact"; },
+         "as-recorded (default) or compact (JPEG colour, paletted depth)")
+      ->check(CLI::IsMember({"as-recorded", "compact"}));
+}
+
+void DeleteScratchMaps(client::Client& client, const std::vector<std::string>& maps) {
+  for (const auto& m : maps) {
+    if (auto d = client.DeleteMap(m); !d.ok()) {
+      std::cerr << "lifemap: the scratch map '" << m << "' was not deleted: " << d.status() << "\n";
+    }
+  }
 }
 
 absl::Status CheckOdometryWanted(const io::TumSequence& sequence, bool send_odometry) {

@@ -56,6 +56,11 @@ struct UnposedStreamOptions {
 void AddGravityOption(CLI::App* cmd, bool* send_gravity);
 // Adds `--odometry wheel|none` (UnposedStreamOptions::send_odometry; default none).
 void AddOdometryOption(CLI::App* cmd, bool* send_odometry);
+// Adds `--send as-recorded|compact` (UnposedStreamOptions::compact; default as-recorded).
+void AddSendOption(CLI::App* cmd, bool* compact);
+
+// Deletes an evaluation's scratch maps; one that cannot be deleted is named on stderr, with why.
+void DeleteScratchMaps(client::Client& client, const std::vector<std::string>& maps);
 
 struct StreamedVisit {
   uint64_t visit_id = 0;
