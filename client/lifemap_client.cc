@@ -165,6 +165,10 @@ class GrpcClient final : public Client {
     req.set_retrain(retrain);
     return Unary(&v1::AdminService::Stub::RebuildAppearanceIndex, admin_.get(), req);
   }
+  absl::StatusOr<v1::RetentionReport> ApplyRetention(
+      const v1::ApplyRetentionRequest& request) override {
+    return Unary(&v1::AdminService::Stub::ApplyRetention, admin_.get(), request);
+  }
   absl::StatusOr<v1::CreateApiKeyResponse> CreateApiKey(
       const v1::CreateApiKeyRequest& request) override {
     return Unary(&v1::AdminService::Stub::CreateApiKey, admin_.get(), request);

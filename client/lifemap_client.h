@@ -86,6 +86,8 @@ class Client {
   virtual absl::StatusOr<v1::CheckIntegrityResponse> CheckIntegrity() = 0;
   virtual absl::StatusOr<v1::VacuumResponse> Vacuum() = 0;
   virtual absl::StatusOr<v1::AppearanceIndexInfo> RebuildAppearanceIndex(bool retrain) = 0;
+  virtual absl::StatusOr<v1::RetentionReport> ApplyRetention(
+      const v1::ApplyRetentionRequest& request) = 0;
   virtual absl::StatusOr<v1::CreateApiKeyResponse> CreateApiKey(
       const v1::CreateApiKeyRequest& request) = 0;
   virtual absl::StatusOr<v1::ListApiKeysResponse> ListApiKeys() = 0;

@@ -134,6 +134,7 @@ EngineOptions ServerConfig::engine_options() const {
   o.max_gap_s = frame_max_gap_s;
   o.changes = changes;
   o.changes.moved.max_range_m = changes.change.max_range_m;
+  o.retention = retention;
   return o;
 }
 
@@ -393,6 +394,28 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
           } else {
             return absl::InvalidArgumentError(
                 absl::StrCat("config file ", path, ": unknown key changes.", k));
+          }
+        }
+      } else if (key == "retention") {
+        for (const auto& [k, v] : value.items()) {
+          auto& o = c.retention;
+          if (k == "cover_m") {
+            o.cover_m = v.get<double>();
+          } else if (k == "cover_deg") {
+            o.cover_deg = v.get<double>();
+          } else if (k == "keep_recent_visits") {
+            o.keep_recent_visits = v.get<int>();
+          } else if (k == "compact_after_visits") {
+            o.compact_after_visits = v.get<int>();
+          } else if (k == "compact_cover_m") {
+            o.compact_cover_m = v.get<double>();
+          } else if (k == "compact_cover_deg") {
+            o.compact_cover_deg = v.get<double>();
+          } else if (k == "after_visit_end") {
+            o.after_visit_end = v.get<bool>();
+          } else {
+            return absl::InvalidArgumentError(
+                absl::StrCat("config file ", path, ": unknown key retention.", k));
           }
         }
       } else if (key == "security") {

@@ -57,6 +57,8 @@ struct ServerConfig {
   semantic::SemanticMapOptions semantic;
   // GetChanges (config key `changes`, issue 36): how two visits' depth is compared.
   VisitChangeOptions changes;
+  // Retention (config key `retention`, issue 36): keyframes of older visits thinned.
+  RetentionOptions retention;
   // Fused labels are looked up every n-th pixel (copied to the cell). 8: a 5 cm voxel spans 8
   // pixels or more of a 640-pixel-wide Kinect view up to 3.3 m away.
   int semantic_render_stride = 8;

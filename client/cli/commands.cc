@@ -976,6 +976,84 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
           });
     };
   });
+  auto retention_req = std::make_shared<v1::ApplyRetentionRequest>();
+  CLI::App* retention = admin->add_subcommand(
+      "retention",
+      "Thin the keyframes of a map's older visits that add no view (docs/OPERATIONS.md "
+      "\"Retention\"); --dry-run says what would be removed and why");
+  retention->add_option("map", *retention_req->mutable_map(), "map")->required();
+  retention->add_flag_function(
+      "--dry-run", [retention_req](int64_t) { retention_req->set_dry_run(true); },
+      "remove nothing: say what would be removed and why");
+  auto list_thinned = std::make_shared<bool>(false);
+  retention->add_flag("--list", *list_thinned,
+                      "list every keyframe thinned and the keyframe that covers it");
+  v1::RetentionPolicy* policy = retention_req->mutable_policy();
+  retention->add_option_function<double>(
+      "--cover-m", [policy](double v) { policy->set_cover_m(v); },
+      "a keyframe within this many metres ... (default: config retention.cover_m)");
+  retention->add_option_function<double>(
+      "--cover-deg", [policy](double v) { policy->set_cover_deg(v); },
+      "... and degrees of a kept one covers its view (retention.cover_deg)");
+  retention->add_option_function<uint32_t>(
+      "--keep-recent", [policy](uint32_t v) { policy->set_keep_recent_visits(v); },
+      "newest visits in the map's frame kept whole (retention.keep_recent_visits)");
+  retention->add_option_function<uint32_t>(
+      "--compact-after", [policy](uint32_t v) { policy->set_compact_after_visits(v); },
+      "visits with this many later ones are compacted (retention.compact_after_visits)");
+  retention->add_option_function<double>(
+      "--compact-cover-m", [policy](double v) { policy->set_compact_cover_m(v); },
+      "cover distance for compacted visits (retention.compact_cover_m)");
+  retention->add_option_function<double>(
+      "--compact-cover-deg", [policy](double v) { policy->set_compact_cover_deg(v); },
+      "cover rotation for compacted visits (retention.compact_cover_deg)");
+  retention->callback([ctx, retention_req, list_thinned] {
+    ctx->run = [ctx, retention_req, list_thinned] {
+      return RunCall<v1::RetentionReport>(
+          *ctx, [&](client::Client& c) { return c.ApplyRetention(*retention_req); },
+          [list_thinned](const v1::RetentionReport& r) {
+            const auto& p = r.policy();
+            std::cout << absl::StrFormat(
+                "map '%s'%s: covered within %.2f m / %.0f°, %u newest visits kept whole, "
+                "visits with %u later ones compacted (%.2f m / %.0f°)\n",
+                r.map(), r.dry_run() ? " (dry run: nothing removed)" : "", p.cover_m(),
+                p.cover_deg(), p.keep_recent_visits(), p.compact_after_visits(),
+                p.compact_cover_m(), p.compact_cover_deg());
+            std::cout << absl::StrFormat("%-8s %9s %9s %11s  %s\n", "visit", "keyframes",
+                                         r.dry_run() ? "would go" : "thinned", "bytes", "why kept");
+            for (const auto& v : r.visits()) {
+              std::string why = v.kept_whole();
+              if (why.empty()) {
+                std::map<std::string, uint64_t> sorted(v.kept_because().begin(),
+                                                       v.kept_because().end());
+                for (const auto& [reason, n] : sorted) {
+                  why += absl::StrCat(why.empty() ? "" : "; ", n, " ", reason);
+                }
+                if (v.compacted()) why = "compacted; " + why;
+              }
+              std::cout << absl::StrFormat("%-8d %9d %9d %11s  %s\n", v.visit_id(), v.keyframes(),
+                                           v.thinned(), HumanBytes(v.bytes_freed()), why);
+            }
+            if (*list_thinned) {
+              for (const auto& t : r.thinned()) {
+                std::cout << absl::StrFormat(
+                    "  keyframe %d (visit %d): covered by keyframe %d (visit %d), %.2f m, "
+                    "%.1f°\n",
+                    t.keyframe_id(), t.visit_id(), t.covered_by(), t.covered_by_visit(),
+                    t.distance_m(), t.angle_deg());
+              }
+            }
+            std::cout << absl::StrFormat(
+                "%d keyframes %s; map %s -> %s (%d -> %d keyframes) in %.2f s%s\n",
+                r.thinned_size(), r.dry_run() ? "would be thinned" : "thinned",
+                HumanBytes(r.before().total_bytes()), HumanBytes(r.after().total_bytes()),
+                r.before().keyframes(), r.after().keyframes(), r.seconds(),
+                r.dry_run() || r.thinned_size() == 0
+                    ? ""
+                    : "; `lifemap admin vacuum` returns the freed pages to the file system");
+          });
+    };
+  });
   admin->add_subcommand("vacuum", "Compact the database file")->callback([ctx] {
     ctx->run = [ctx] {
       return RunCall<v1::VacuumResponse>(

@@ -99,13 +99,9 @@ void AppearanceIndex::Run() {
         }
         break;
       }
-      case Job::Kind::kRemoveMap: {
+      case Job::Kind::kRemove: {
         absl::MutexLock lock(&mu_);
-        if (index_) {
-          const auto map = job.keyframe.map_id;
-          stored_with_features_ -= static_cast<int64_t>(index_->RemoveIf(
-              [map](const appearance::KeyframeRef& k) { return k.map_id == map; }));
-        }
+        if (index_) stored_with_features_ -= static_cast<int64_t>(index_->RemoveIf(job.drop));
         break;
       }
       case Job::Kind::kRebuild: {
@@ -183,8 +179,18 @@ void AppearanceIndex::OnCommitted(const store::KeyframeRecord& k) {
 void AppearanceIndex::RemoveMap(int64_t map_id) {
   if (!options_.enabled) return;
   Job job;
-  job.kind = Job::Kind::kRemoveMap;
-  job.keyframe.map_id = map_id;
+  job.kind = Job::Kind::kRemove;
+  job.drop = [map_id](const appearance::KeyframeRef& k) { return k.map_id == map_id; };
+  Push(std::move(job));
+}
+
+void AppearanceIndex::RemoveKeyframes(const std::vector<int64_t>& keyframe_ids) {
+  if (!options_.enabled || keyframe_ids.empty()) return;
+  auto ids =
+      std::make_shared<const std::unordered_set<int64_t>>(keyframe_ids.begin(), keyframe_ids.end());
+  Job job;
+  job.kind = Job::Kind::kRemove;
+  job.drop = [ids](const appearance::KeyframeRef& k) { return ids->count(k.keyframe_id) != 0; };
   Push(std::move(job));
 }
 

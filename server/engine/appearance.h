@@ -21,6 +21,8 @@
 #include <string>
 #include <thread>
 #include <unordered_map>
+#include <unordered_set>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
@@ -57,6 +59,8 @@ class AppearanceIndex {
   void OnCommitted(const store::KeyframeRecord& keyframe);
   // Drops a deleted map's keyframes.
   void RemoveMap(int64_t map_id);
+  // Drops keyframes deleted by retention (server/engine/retention.h).
+  void RemoveKeyframes(const std::vector<int64_t>& keyframe_ids);
 
   // Appearance matches of a view (its features pruned already), verified, best first.
   // FailedPrecondition saying why there can be none: appearance disabled, no vocabulary yet (and
@@ -78,7 +82,8 @@ class AppearanceIndex {
 
  private:
   struct Job {
-    enum class Kind { kAdd, kRemoveMap, kRebuild } kind = Kind::kAdd;
+    enum class Kind { kAdd, kRemove, kRebuild } kind = Kind::kAdd;
+    std::function<bool(const appearance::KeyframeRef&)> drop;  // kRemove: which entries
     appearance::KeyframeRef keyframe;
     cv::Mat descriptors;
     bool retrain = false;

@@ -11,6 +11,7 @@
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/model_registry.h"
 #include "server/engine/pose_graph_worker.h"
+#include "server/engine/retention.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/semantics.h"
 #include "server/engine/serial_worker.h"
@@ -35,8 +36,9 @@ struct Engine::Parts {
   std::unique_ptr<pipeline::FramePipeline> pipeline;
   std::unique_ptr<FramePath> frames;            // uses the parts above
   std::unique_ptr<PlaceQueries> place_queries;  // likewise
-  // Retries unanchored visits after each new vocabulary (anchor_retry.h): uses the appearance
-  // index and the pose-graph worker, so it goes before them.
+  // Retries unanchored visits after each new vocabulary (anchor_retry.h), and runs retention
+  // after a visit ends when the config asks (retention.h): uses the appearance index and the
+  // pose-graph worker, so it goes before them.
   std::unique_ptr<SerialWorker> anchor_retries;
   // Loads the previous visit's surfaces for moved masks (reads the store: before it goes).
   std::unique_ptr<SerialWorker> previous_loader;
@@ -175,7 +177,23 @@ absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
   }
   auto drained = p.committer->Submit(std::nullopt, counts).get();
   if (!drained.ok()) return drained.status();
-  return p.store->EndVisit(id, NowSeconds(), counts);
+  auto ended = p.store->EndVisit(id, NowSeconds(), counts);
+  if (ended.ok() && options_.retention.after_visit_end) {
+    p.anchor_retries->Submit([store = p.store.get(), appearance = p.appearance.get(),
+                              map_id = ended->map_id, options = options_.retention] {
+      auto map = store->GetMapById(map_id);
+      if (!map.ok()) return;  // deleted meanwhile
+      auto report = ApplyRetention(store, appearance, *map, options, /*dry_run=*/false);
+      if (!report.ok()) {
+        spdlog::warn("retention of map '{}': {}", map->name, report.status().ToString());
+      } else if (!report->thinned.empty()) {
+        spdlog::info(
+            "retention of map '{}' after a visit ended: {} keyframes thinned, {} -> {} bytes",
+            map->name, report->thinned.size(), report->before.total(), report->after.total());
+      }
+    });
+  }
+  return ended;
 }
 
 store::Store* Engine::store() const { return parts_->store.get(); }

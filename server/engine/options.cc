@@ -77,9 +77,38 @@ absl::Status VisitChangeOptions::Validate() const {
   return absl::OkStatus();
 }
 
+absl::Status RetentionOptions::Validate() const {
+  const std::pair<const char*, double> metres[] = {{"cover_m", cover_m},
+                                                   {"compact_cover_m", compact_cover_m}};
+  for (const auto& [name, v] : metres) {
+    if (!(v >= 0 && v <= 100)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("retention.", name, " must lie in [0, 100] metres, not ", v));
+    }
+  }
+  const std::pair<const char*, double> degrees[] = {{"cover_deg", cover_deg},
+                                                    {"compact_cover_deg", compact_cover_deg}};
+  for (const auto& [name, v] : degrees) {
+    if (!(v >= 0 && v <= 180)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("retention.", name, " must lie in [0, 180] degrees, not ", v));
+    }
+  }
+  if (keep_recent_visits < 1 || keep_recent_visits > 1000) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "retention.keep_recent_visits must lie in [1, 1000], not ", keep_recent_visits));
+  }
+  if (compact_after_visits < 1 || compact_after_visits > 100000) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "retention.compact_after_visits must lie in [1, 100000], not ", compact_after_visits));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status EngineOptions::Validate() const {
   if (db_path.empty()) return absl::InvalidArgumentError("db path must not be empty");
   if (auto s = changes.Validate(); !s.ok()) return s;
+  if (auto s = retention.Validate(); !s.ok()) return s;
   if (keyframe_batch_max < 1 || keyframe_batch_max > 1024) {
     return absl::InvalidArgumentError(
         absl::StrCat("keyframe_batch_max must be within [1, 1024], got ", keyframe_batch_max));

@@ -104,6 +104,31 @@ struct VisitChangeOptions {
   absl::Status Validate() const;
 };
 
+// Retention (issue 36; config key `retention`, AdminService.ApplyRetention, `lifemap admin
+// retention`): which keyframes of a map's older visits are thinned so that the store stays
+// bounded over years of visits (server/engine/retention.h says the rule).
+struct RetentionOptions {
+  // A keyframe is covered by another (of its own visit or a later one) within this distance
+  // (metres) and rotation (degrees) of its pose.
+  double cover_m = 0.3;
+  double cover_deg = 15.0;
+  // The newest visits in the map's frame are never thinned (changes between the two latest
+  // and the moved masks against the latest compare whole visits), [1, 1000].
+  int keep_recent_visits = 2;
+  // A visit with at least this many later visits in the map's frame is compacted: covered at
+  // compact_cover_m / compact_cover_deg instead, by its own keyframes too, leaving a sparse set
+  // beside its octree and floor plan. [1, 100000].
+  int compact_after_visits = 5;
+  double compact_cover_m = 1.0;
+  double compact_cover_deg = 45.0;
+  // Retention runs for a visit's map after each visit ends (off the reply path); else only
+  // when an operator runs it.
+  bool after_visit_end = false;
+
+  // InvalidArgument naming the `retention.` key out of range.
+  absl::Status Validate() const;
+};
+
 struct EngineOptions {
   std::string db_path = "lifemap.db";  // db: the SQLite database, created if missing
   bool synchronous_full = true;        // synchronous: SQLite FULL (power-loss safe) or NORMAL
@@ -128,6 +153,7 @@ struct EngineOptions {
   double max_future_s = 86400.0;
   double max_gap_s = 7 * 86400.0;
   VisitChangeOptions changes;
+  RetentionOptions retention;  // retention: keyframes of older visits thinned
 
   // InvalidArgument naming the configuration key and its range.
   absl::Status Validate() const;

@@ -10,6 +10,8 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
 #include "server/engine/keyframe_committer.h"
+#include "server/engine/retention.h"
+#include "server/rpc/auth.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
 
@@ -156,6 +158,89 @@ grpc::Status AdminServiceImpl::RebuildAppearanceIndex(grpc::ServerContext* conte
   spdlog::info("appearance index rebuilt{}: {} keyframes", req->retrain() ? " (retrained)" : "",
                stats->keyframes);
   AppearanceInfoToProto(*stats, resp);
+  return grpc::Status::OK;
+}
+
+namespace {
+
+// The config's policy with the request's fields over it; INVALID_ARGUMENT naming a value out of
+// range.
+absl::StatusOr<RetentionOptions> RetentionPolicy(const RetentionOptions& config,
+                                                 const v1::RetentionPolicy& p) {
+  RetentionOptions o = config;
+  if (p.has_cover_m()) o.cover_m = p.cover_m();
+  if (p.has_cover_deg()) o.cover_deg = p.cover_deg();
+  if (p.has_keep_recent_visits())
+    o.keep_recent_visits = static_cast<int>(std::min<uint32_t>(p.keep_recent_visits(), 1u << 30));
+  if (p.has_compact_after_visits())
+    o.compact_after_visits =
+        static_cast<int>(std::min<uint32_t>(p.compact_after_visits(), 1u << 30));
+  if (p.has_compact_cover_m()) o.compact_cover_m = p.compact_cover_m();
+  if (p.has_compact_cover_deg()) o.compact_cover_deg = p.compact_cover_deg();
+  if (auto s = o.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("policy: ", s.message()));
+  }
+  return o;
+}
+
+void ToProto(const store::MapStorage& m, v1::MapStorage* out) {
+  out->set_keyframes(static_cast<uint64_t>(m.keyframes));
+  out->set_image_bytes(static_cast<uint64_t>(m.image_bytes));
+  out->set_feature_bytes(static_cast<uint64_t>(m.feature_bytes));
+  out->set_octree_bytes(static_cast<uint64_t>(m.octree_bytes));
+  out->set_plan_bytes(static_cast<uint64_t>(m.plan_bytes));
+  out->set_total_bytes(static_cast<uint64_t>(m.total()));
+}
+
+}  // namespace
+
+grpc::Status AdminServiceImpl::ApplyRetention(grpc::ServerContext* context,
+                                              const v1::ApplyRetentionRequest* req,
+                                              v1::RetentionReport* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/ApplyRetention");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  auto map = FindCallersMap(ctx_->engine->store(), *caller, req->map());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  auto options = RetentionPolicy(ctx_->engine->options().retention, req->policy());
+  if (!options.ok()) return ToGrpcStatus(options.status());
+  auto report = server::ApplyRetention(ctx_->engine->store(), ctx_->engine->appearance(), *map,
+                                       *options, req->dry_run());
+  if (!report.ok()) return ToGrpcStatus(report.status());
+  resp->set_map(map->name);
+  resp->set_dry_run(report->dry_run);
+  v1::RetentionPolicy* p = resp->mutable_policy();
+  p->set_cover_m(options->cover_m);
+  p->set_cover_deg(options->cover_deg);
+  p->set_keep_recent_visits(static_cast<uint32_t>(options->keep_recent_visits));
+  p->set_compact_after_visits(static_cast<uint32_t>(options->compact_after_visits));
+  p->set_compact_cover_m(options->compact_cover_m);
+  p->set_compact_cover_deg(options->compact_cover_deg);
+  for (const auto& v : report->visits) {
+    v1::VisitRetention* out = resp->add_visits();
+    out->set_visit_id(static_cast<uint64_t>(v.visit_id));
+    out->set_keyframes(static_cast<uint64_t>(v.keyframes));
+    out->set_thinned(static_cast<uint64_t>(v.thinned));
+    out->set_bytes_freed(static_cast<uint64_t>(v.bytes_freed));
+    out->set_compacted(v.compacted);
+    out->set_kept_whole(v.kept_whole);
+    for (const auto& [why, n] : v.kept_because)
+      (*out->mutable_kept_because())[why] = static_cast<uint64_t>(n);
+  }
+  for (const auto& t : report->thinned) {
+    v1::ThinnedKeyframe* out = resp->add_thinned();
+    out->set_keyframe_id(static_cast<uint64_t>(t.keyframe.keyframe_id));
+    out->set_visit_id(static_cast<uint64_t>(t.visit_id));
+    out->set_covered_by(static_cast<uint64_t>(t.keyframe.covered_by));
+    out->set_covered_by_visit(static_cast<uint64_t>(t.covered_by_visit));
+    out->set_distance_m(t.keyframe.distance_m);
+    out->set_angle_deg(t.keyframe.angle_deg);
+  }
+  ToProto(report->before, resp->mutable_before());
+  ToProto(report->after, resp->mutable_after());
+  resp->set_seconds(report->seconds);
+  spdlog::info("retention{} of map '{}': {} keyframes thinned, {} -> {} bytes in {:.2f} s",
+               report->dry_run ? " (dry run)" : "", map->name, report->thinned.size(),
+               report->before.total(), report->after.total(), report->seconds);
   return grpc::Status::OK;
 }
 

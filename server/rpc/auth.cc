@@ -87,6 +87,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"AdminService/Backup", Role::kAdmin},
       {"AdminService/Vacuum", Role::kAdmin},
       {"AdminService/RebuildAppearanceIndex", Role::kAdmin},
+      {"AdminService/ApplyRetention", Role::kAdmin},
       {"AdminService/CreateApiKey", Role::kAdmin},
       {"AdminService/ListApiKeys", Role::kAdmin},
       {"AdminService/RevokeApiKey", Role::kAdmin},

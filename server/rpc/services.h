@@ -152,6 +152,8 @@ class AdminServiceImpl final : public v1::AdminService::Service {
   grpc::Status RebuildAppearanceIndex(grpc::ServerContext*,
                                       const v1::RebuildAppearanceIndexRequest*,
                                       v1::AppearanceIndexInfo*) override;
+  grpc::Status ApplyRetention(grpc::ServerContext*, const v1::ApplyRetentionRequest*,
+                              v1::RetentionReport*) override;
 
  private:
   void AppearanceInfoToProto(const AppearanceIndexStats& s, v1::AppearanceIndexInfo* out) const;

@@ -1314,6 +1314,90 @@ absl::StatusOr<std::optional<KeyframeRecord>> Store::LastKeyframe(int64_t visit_
   return std::optional<KeyframeRecord>(ReadKeyframe(*s));
 }
 
+absl::StatusOr<int64_t> Store::DeleteKeyframes(int64_t visit_id, const std::vector<int64_t>& ids) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto ended = db->Prepare("SELECT ended FROM visits WHERE id = ?1");
+  if (!ended.ok()) return ended.status();
+  {
+    StatementScope s(*ended);
+    s->Bind(1, visit_id);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::NotFoundError(absl::StrCat("visit ", visit_id, " does not exist"));
+    if (s->ColumnInt(0) == 0) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "visit ", visit_id, " is still open: only ended visits' keyframes are thinned"));
+    }
+  }
+  auto bytes = db->Prepare(
+      "SELECT k.visit_id, COALESCE(length(i.depth), 0) + COALESCE(length(i.color), 0) + "
+      "COALESCE(length(f.superjuts), 0) + COALESCE(length(f.keypoints), 0) + "
+      "COALESCE(length(f.descriptors), 0) + COALESCE(length(f.points), 0) FROM keyframes k "
+      "LEFT JOIN keyframe_images i ON i.keyframe_id = k.id "
+      "LEFT JOIN keyframe_features f ON f.keyframe_id = k.id WHERE k.id = ?1");
+  auto erase = db->Prepare("DELETE FROM keyframes WHERE id = ?1");
+  if (!bytes.ok()) return bytes.status();
+  if (!erase.ok()) return erase.status();
+  int64_t freed = 0;
+  for (const int64_t id : ids) {
+    {
+      StatementScope s(*bytes);
+      s->Bind(1, id);
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row || s->ColumnInt(0) != visit_id) {
+        return absl::NotFoundError(
+            absl::StrCat("keyframe ", id, " is not a keyframe of visit ", visit_id));
+      }
+      freed += s->ColumnInt(1);
+    }
+    StatementScope s(*erase);
+    s->Bind(1, id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return freed;
+}
+
+absl::StatusOr<MapStorage> Store::GetMapStorage(int64_t map_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  Database* db = impl_->read_db.get();
+  const std::string visits = absl::StrCat("(SELECT id FROM visits WHERE map_id = ", map_id, ")");
+  const std::string keyframes =
+      absl::StrCat("(SELECT id FROM keyframes WHERE visit_id IN ", visits, ")");
+  MapStorage m;
+  const std::pair<int64_t*, std::string> queries[] = {
+      {&m.keyframes, absl::StrCat("SELECT COUNT(*) FROM keyframes WHERE visit_id IN ", visits)},
+      {&m.image_bytes, absl::StrCat("SELECT COALESCE(SUM(length(depth) + length(color)), 0) FROM "
+                                    "keyframe_images WHERE keyframe_id IN ",
+                                    keyframes)},
+      {&m.feature_bytes, absl::StrCat("SELECT COALESCE(SUM(length(superjuts) + length(keypoints) + "
+                                      "length(descriptors) + COALESCE(length(points), 0)), 0) FROM "
+                                      "keyframe_features WHERE keyframe_id IN ",
+                                      keyframes)},
+      {&m.octree_bytes,
+       absl::StrCat("SELECT COALESCE((SELECT SUM(length(data)) FROM semantic_octree_chunks "
+                    "WHERE visit_id IN ",
+                    visits,
+                    "), 0) + COALESCE((SELECT SUM(length(data)) FROM "
+                    "semantic_map_octree_chunks WHERE map_id = ",
+                    map_id, "), 0)")},
+      {&m.plan_bytes,
+       absl::StrCat("SELECT COALESCE(SUM(length(floor_plan) + length(descriptor)), 0) FROM "
+                    "visit_places WHERE visit_id IN ",
+                    visits)},
+  };
+  for (const auto& [out, sql] : queries) {
+    auto v = db->QueryInt(sql);
+    if (!v.ok()) return v.status();
+    *out = *v;
+  }
+  return m;
+}
+
 absl::StatusOr<StoreStats> Store::Stats() {
   StoreStats st;
   {

@@ -171,6 +171,19 @@ struct VisitFrameCount {
   int64_t lost_frame_count = 0;
 };
 
+// What one map holds, in bytes of the values stored (its keyframes' images and features, its
+// visits' octrees and floor plans, its own octree): about what the map would take in a file of
+// its own. SQLite's pages add their overhead, and deleted rows' pages stay in the file as free
+// pages until a vacuum.
+struct MapStorage {
+  int64_t keyframes = 0;
+  int64_t image_bytes = 0;    // depth and colour
+  int64_t feature_bytes = 0;  // superjuts, keypoints, descriptors, points
+  int64_t octree_bytes = 0;   // visits' and the map's semantic octrees
+  int64_t plan_bytes = 0;     // visits' floor plans and architecture descriptors
+  int64_t total() const { return image_bytes + feature_bytes + octree_bytes + plan_bytes; }
+};
+
 struct StoreStats {
   int64_t maps = 0;
   int64_t visits = 0;
@@ -371,6 +384,15 @@ class Store {
   // FAILED_PRECONDITION when it has ended.
   absl::Status InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
                                const std::vector<VisitFrameCount>& frame_counts);
+
+  // Deletes keyframes `ids` of ended visit `visit_id` with their images, features and the pose
+  // edges that name them, in one transaction (retention, issue 36): a kill leaves all of them
+  // or none. NOT_FOUND for an unknown visit or an id that is not one of its keyframes (then
+  // nothing is deleted); FAILED_PRECONDITION for a visit still open. Returns the bytes of
+  // images and features deleted.
+  absl::StatusOr<int64_t> DeleteKeyframes(int64_t visit_id, const std::vector<int64_t>& ids);
+  // What map `map_id` holds (MapStorage); zeros for an unknown map.
+  absl::StatusOr<MapStorage> GetMapStorage(int64_t map_id);
 
   // Keyframes of a map (all visits, or one when visit_id != 0) in time order, without images.
   absl::StatusOr<std::vector<KeyframeRecord>> ListKeyframes(int64_t map_id, int64_t visit_id);

@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <iostream>
 #include <limits>
 
 #include <fstream>
@@ -142,6 +143,109 @@ TEST_F(StoreTest, DeletingAMapCascadesToVisitsAndKeyframes) {
   auto problems = store_->CheckIntegrity();
   ASSERT_TRUE(problems.ok());
   EXPECT_TRUE(problems->empty());
+}
+
+TEST_F(StoreTest, KeyframesAreThinnedOnlyFromEndedVisitsAndOnlyTheirOwn) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  auto other = store_->StartVisit("m", "", "", 1.5);
+  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 1.0), Keyframe(visit->id, 2.0),
+                                       Keyframe(visit->id, 3.0), Keyframe(other->id, 4.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  auto map = store_->GetMap("m");
+  auto before = store_->GetMapStorage(map->id);
+  ASSERT_TRUE(before.ok()) << before.status();
+  EXPECT_EQ(before->keyframes, 4);
+  EXPECT_EQ(before->image_bytes, 4 * (11 + 11));  // "depth-bytes", "color-bytes"
+
+  // Open: refused, saying so.
+  auto open = store_->DeleteKeyframes(visit->id, {batch[1].id});
+  EXPECT_TRUE(absl::IsFailedPrecondition(open.status())) << open.status();
+  EXPECT_NE(open.status().message().find("still open"), std::string::npos);
+  ASSERT_TRUE(store_->EndVisit(visit->id, 5.0, {visit->id, 3, 0}).ok());
+  // A keyframe of another visit among them: nothing is deleted.
+  auto mixed = store_->DeleteKeyframes(visit->id, {batch[1].id, batch[3].id});
+  EXPECT_TRUE(absl::IsNotFound(mixed.status())) << mixed.status();
+  EXPECT_EQ(store_->ListKeyframes(map->id, visit->id)->size(), 3u);
+  EXPECT_TRUE(absl::IsNotFound(store_->DeleteKeyframes(999, {batch[1].id}).status()));
+
+  auto freed = store_->DeleteKeyframes(visit->id, {batch[1].id, batch[2].id});
+  ASSERT_TRUE(freed.ok()) << freed.status();
+  EXPECT_EQ(*freed, 2 * (11 + 11));
+  auto left = store_->ListKeyframes(map->id, visit->id);
+  ASSERT_EQ(left->size(), 1u);
+  EXPECT_EQ((*left)[0].id, batch[0].id);
+  EXPECT_TRUE(absl::IsNotFound(store_->GetKeyframe(map->id, batch[1].id).status()));
+  auto after = store_->GetMapStorage(map->id);
+  EXPECT_EQ(after->keyframes, 2);
+  EXPECT_EQ(after->image_bytes, before->image_bytes - *freed);
+  EXPECT_TRUE(store_->CheckIntegrity()->empty());
+}
+
+// Retention deletes each visit's keyframes in one transaction: a kill at any moment leaves every
+// visit whole or thinned, the file passes its integrity check and every kept keyframe reads.
+TEST_F(StoreTest, AKillDuringThinningLeavesEachVisitWholeOrThinned) {
+  const std::string path = tmp_.File("kill.db");
+  std::vector<int64_t> visits;
+  {
+    auto store = Store::Open(path);
+    ASSERT_TRUE(store.ok());
+    ASSERT_TRUE((*store)->CreateMap("m", "", 1.0).ok());
+    for (int v = 0; v < 40; ++v) {
+      auto visit = (*store)->StartVisit("m", "", "", 1.0 + v);
+      std::vector<KeyframeRecord> batch;
+      for (int k = 0; k < 50; ++k) {
+        batch.push_back(Keyframe(visit->id, 100.0 * v + k));
+        batch.back().depth = std::string(20000, static_cast<char>('a' + k % 26));
+      }
+      ASSERT_TRUE((*store)->InsertKeyframes(&batch, {}).ok());
+      ASSERT_TRUE((*store)->EndVisit(visit->id, 2.0 + v, {visit->id, 50, 0}).ok());
+      visits.push_back(visit->id);
+    }
+  }
+  // Killed at growing delays; each child resumes where the last was killed.
+  for (const int delay_ms : {10, 25, 50, 100, 200}) {
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      auto store = Store::Open(path);
+      if (!store.ok()) _exit(2);
+      auto map = (*store)->GetMap("m");
+      for (const int64_t v : visits) {
+        auto keyframes = (*store)->ListKeyframes(map->id, v);
+        std::vector<int64_t> ids;
+        for (size_t k = 1; k < keyframes->size(); ++k) ids.push_back((*keyframes)[k].id);
+        if (!(*store)->DeleteKeyframes(v, ids).ok()) _exit(3);
+      }
+      _exit(0);
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms));
+    kill(child, SIGKILL);
+    int status = 0;
+    waitpid(child, &status, 0);
+    ASSERT_FALSE(WIFEXITED(status) && WEXITSTATUS(status) != 0) << WEXITSTATUS(status);
+    auto store = Store::Open(path);
+    ASSERT_TRUE(store.ok()) << store.status();
+    auto problems = (*store)->CheckIntegrity();
+    ASSERT_TRUE(problems.ok());
+    EXPECT_TRUE(problems->empty()) << problems->front();
+    auto map = (*store)->GetMap("m");
+    int thinned = 0;
+    for (const int64_t v : visits) {
+      auto keyframes = (*store)->ListKeyframes(map->id, v);
+      ASSERT_TRUE(keyframes.ok());
+      ASSERT_TRUE(keyframes->size() == 50 || keyframes->size() == 1)
+          << "visit " << v << " was left with " << keyframes->size() << " keyframes";
+      thinned += keyframes->size() == 1 ? 1 : 0;
+      for (const auto& k : *keyframes) {
+        auto read = (*store)->GetKeyframe(map->id, k.id);
+        ASSERT_TRUE(read.ok()) << read.status();
+        EXPECT_EQ(read->depth.size(), 20000u);
+      }
+    }
+    std::cout << "killed after " << delay_ms << " ms: " << thinned << " of " << visits.size()
+              << " visits thinned\n";
+  }
 }
 
 TEST_F(StoreTest, IdsOfDeletedRowsAreNeverReused) {
