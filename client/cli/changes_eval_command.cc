@@ -489,6 +489,207 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
   return FinishStudy(ctx, a.out, {{"changes.csv", csv}}, {}, summary, report);
 }
 
+struct RetentionEvalArgs {
+  std::string visits, out;
+  bool retention = true;  // --retention on|off
+  bool keep_map = false;
+  bool compact = false;
+  double right_m = 0.5, right_deg = 15.0;  // an appearance match this near the truth is right
+  ChangesEvalArgs scoring;                 // what counts as a change found
+};
+
+// Percentile `q` in [0, 1] of `v` (sorted here); 0 for none.
+double Percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())))];
+}
+
+// `lifemap eval retention`: the visits of one place (a `lifemap sim --visits N` folder) streamed
+// one after another into one map with their true poses, retention applied after each (or only
+// dry-run: the baseline), and after each visit: the map's bytes, how many of the visit's
+// keyframes appearance recognised right among the earlier visits, the keyframes' reply times,
+// and GetChanges(previous, this) scored against the visit's change records.
+int RunRetentionEval(const CliContext& ctx, const RetentionEvalArgs& a) {
+  if (auto s = PrepareOut(a.out); !s.ok()) return Fail(s);
+  std::vector<fs::path> dirs;
+  for (const auto& e : fs::directory_iterator(a.visits)) {
+    if (e.is_directory() && e.path().filename().string().rfind("visit_", 0) == 0) {
+      dirs.push_back(e.path());
+    }
+  }
+  std::sort(dirs.begin(), dirs.end());
+  if (dirs.size() < 2) {
+    return Fail(absl::InvalidArgumentError(
+        absl::StrCat(a.visits, " holds ", dirs.size(),
+                     " visit_* folders; make one with `lifemap sim --visits 20 --out DIR`")));
+  }
+  auto client = ctx.Connect();
+  if (!client.ok()) return Fail(client.status());
+  const std::string map = absl::StrCat("eval-retention-", std::time(nullptr));
+  if (auto m = (*client)->CreateMap(map, "lifemap eval retention"); !m.ok()) {
+    return Fail(m.status());
+  }
+  UnposedStreamOptions stream;
+  stream.robot = "lifemap eval retention";
+  stream.compact = a.compact;
+  stream.send_truth_poses = true;
+  std::map<uint64_t, Pose> keyframe_truth;  // every keyframe stored so far, thinned or not
+  std::vector<uint64_t> visit_ids;
+  json per_visit = json::array();
+  Score changes;
+  int queried = 0, right = 0;
+  std::vector<double> keyframe_ms;
+  std::string csv =
+      "visit,keyframes_stored,map_keyframes,map_bytes,thinned,queried,recognised,right,"
+      "keyframe_ms_p50,keyframe_ms_p95,changes_reported,changes_right,changes_true,"
+      "changes_found\n";
+  for (size_t i = 0; i < dirs.size(); ++i) {
+    auto seq = io::ReadTumSequence(dirs[i].string());
+    if (!seq.ok()) return Fail(seq.status());
+    stream.visit_label = dirs[i].filename().string();
+    auto streamed = StreamWithoutPoses(**client, map, *seq, stream);
+    if (!streamed.ok()) return Fail(streamed.status());
+    if (auto e = (*client)->EndVisit(streamed->visit_id); !e.ok()) return Fail(e.status());
+    const uint64_t visit = streamed->visit_id;
+    // Appearance: each keyframe's best match of an earlier visit, right when the pose it gives
+    // (the matched keyframe's true pose and the verified relative pose) is near the truth.
+    int v_queried = 0, v_recognised = 0, v_right = 0, stored = 0;
+    std::vector<double> ms;
+    for (const auto& f : streamed->frames) {
+      if (f.keyframe_id == 0 || !f.truth) continue;
+      ++stored;
+      ms.push_back(f.total_ms);
+      if (i == 0) continue;
+      ++v_queried;
+      for (const auto& hit : f.appearance) {
+        if (hit.visit_id == visit) continue;
+        ++v_recognised;
+        auto k = keyframe_truth.find(hit.keyframe_id);
+        if (k != keyframe_truth.end()) {
+          const Pose estimate =
+              Pose::FromIsometry(k->second.ToIsometry() * hit.T_match_query.ToIsometry());
+          v_right += TranslationDistanceM(estimate, *f.truth) <= a.right_m &&
+                     RotationAngleRad(estimate, *f.truth) * 180 / M_PI <= a.right_deg;
+        }
+        break;
+      }
+    }
+    for (const auto& f : streamed->frames) {
+      if (f.keyframe_id != 0 && f.truth) keyframe_truth[f.keyframe_id] = *f.truth;
+    }
+    queried += v_queried;
+    right += v_right;
+    keyframe_ms.insert(keyframe_ms.end(), ms.begin(), ms.end());
+    // Changes since the previous visit (both kept whole by the default policy).
+    Trial t;
+    if (i > 0) {
+      auto truth = TrueChanges(dirs[i - 1], dirs[i], a.scoring);
+      if (!truth.ok()) return Fail(truth.status());
+      t.truth = *std::move(truth);
+      auto r = (*client)->GetChanges(map, visit_ids.back(), visit);
+      if (!r.ok()) return Fail(r.status());
+      for (const auto& c : r->changes()) {
+        Reported rep;
+        rep.kind = c.kind();
+        rep.at = {c.center().x(), c.center().y()};
+        rep.from = {c.from_center().x(), c.from_center().y()};
+        t.reported.push_back(rep);
+      }
+      Match(&t, a.scoring);
+      changes.Add(t, true);
+    }
+    visit_ids.push_back(visit);
+    v1::ApplyRetentionRequest req;
+    req.set_map(map);
+    req.set_dry_run(!a.retention);
+    auto report = (*client)->ApplyRetention(req);
+    if (!report.ok()) return Fail(report.status());
+    int c_right = 0, c_true = 0, c_found = 0;
+    for (const auto& r : t.reported) c_right += !r.matched.empty();
+    for (const auto& c : t.truth) c_true += c.counted, c_found += c.counted && c.found;
+    const double p50 = Percentile(ms, 0.5), p95 = Percentile(ms, 0.95);
+    per_visit.push_back(
+        {{"visit", visit},
+         {"folder", dirs[i].filename().string()},
+         {"keyframes_stored", stored},
+         {"map_keyframes", report->after().keyframes()},
+         {"map_bytes", report->after().total_bytes()},
+         {"image_bytes", report->after().image_bytes()},
+         {"feature_bytes", report->after().feature_bytes()},
+         {"octree_bytes", report->after().octree_bytes()},
+         {"plan_bytes", report->after().plan_bytes()},
+         {"thinned", a.retention ? report->thinned_size() : 0},
+         {"would_thin", report->thinned_size()},
+         {"appearance", {{"queried", v_queried}, {"recognised", v_recognised}, {"right", v_right}}},
+         {"keyframe_ms_p50", p50},
+         {"keyframe_ms_p95", p95},
+         {"changes",
+          {{"reported", t.reported.size()},
+           {"right", c_right},
+           {"true", c_true},
+           {"found", c_found}}}});
+    csv += absl::StrFormat("%d,%d,%d,%d,%d,%d,%d,%d,%.1f,%.1f,%d,%d,%d,%d\n", visit, stored,
+                           report->after().keyframes(), report->after().total_bytes(),
+                           a.retention ? report->thinned_size() : 0, v_queried, v_recognised,
+                           v_right, p50, p95, t.reported.size(), c_right, c_true, c_found);
+    if (!ctx.json) {
+      std::cerr << absl::StrFormat(
+          "  %s: %d keyframes; map %d keyframes, %s; appearance %d/%d right; changes %d "
+          "reported (%d right), %d of %d found\n",
+          dirs[i].filename().string(), stored, report->after().keyframes(),
+          HumanBytes(report->after().total_bytes()), v_right, v_queried, t.reported.size(), c_right,
+          c_found, c_true);
+    }
+  }
+  // The first and the last visit compared (months apart; a thinned first visit against a whole
+  // last one): what is reported, by kind (the world records changes visit to visit only).
+  json first_last = json::object();
+  auto fl = (*client)->GetChanges(map, visit_ids.front(), visit_ids.back());
+  if (!fl.ok()) return Fail(fl.status());
+  for (const auto& c : fl->changes()) first_last[c.kind()] = first_last.value(c.kind(), 0) + 1;
+  if (!a.keep_map) DeleteScratchMaps(**client, {map});
+
+  const double first_bytes = per_visit.front()["map_bytes"].get<double>();
+  const double last_bytes = per_visit.back()["map_bytes"].get<double>();
+  json summary = {{"visits_folder", a.visits},
+                  {"retention", a.retention},
+                  {"visits", dirs.size()},
+                  {"bytes_first_visit", first_bytes},
+                  {"bytes_last_visit", last_bytes},
+                  {"bytes_ratio", first_bytes > 0 ? last_bytes / first_bytes : 0.0},
+                  {"appearance",
+                   {{"queried", queried},
+                    {"right", right},
+                    {"recall", queried > 0 ? static_cast<double>(right) / queried : 0.0},
+                    {"right_within_m", a.right_m},
+                    {"right_within_deg", a.right_deg}}},
+                  {"keyframe_ms_p50", Percentile(keyframe_ms, 0.5)},
+                  {"keyframe_ms_p95", Percentile(keyframe_ms, 0.95)},
+                  {"changes", changes.Json()},
+                  {"first_last_changes", first_last},
+                  {"per_visit", per_visit}};
+  std::string report = absl::StrFormat(
+      "# Retention over %d visits: %s\n\nRetention %s. The map's bytes (images, features, "
+      "octrees, plans) after the first visit %s, after the last %s: %.2f×. Appearance: %d of %d "
+      "keyframes of visits 2-%d recognised right among the earlier visits (within %.2f m and "
+      "%.0f°): %.3f. Keyframe replies p50 %.1f ms, p95 %.1f ms.\n\n",
+      dirs.size(), a.visits, a.retention ? "applied after each visit" : "off (dry runs only)",
+      HumanBytes(static_cast<uint64_t>(first_bytes)), HumanBytes(static_cast<uint64_t>(last_bytes)),
+      summary["bytes_ratio"].get<double>(), right, queried, dirs.size(), a.right_m, a.right_deg,
+      summary["appearance"]["recall"].get<double>(), summary["keyframe_ms_p50"].get<double>(),
+      summary["keyframe_ms_p95"].get<double>());
+  report += "| kind | reported | right | true | found |\n|---|---|---|---|---|\n";
+  const json counts = summary["changes"]["counts"];
+  for (const char* k : kKinds) {
+    const auto& c = counts[k];
+    report += absl::StrFormat("| %s | %d | %d | %d | %d |\n", k, c["reported"].get<int>(),
+                              c["correct"].get<int>(), c["true"].get<int>(), c["found"].get<int>());
+  }
+  report += absl::StrFormat("\nFirst against last visit: %s\n", first_last.dump());
+  return FinishStudy(ctx, a.out, {{"visits.csv", csv}}, {}, summary, report);
+}
+
 }  // namespace
 
 void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
@@ -518,6 +719,29 @@ void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
                   "a report this close (m, ground plane) to a true change matches it (default 0.3)")
       ->check(CLI::Range(0.01, 5.0));
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunChangesEval(*ctx, *a); }; });
+}
+
+}  // namespace lifemap::cli
+
+namespace lifemap::cli {
+
+void AddRetentionEvalCommand(CLI::App* eval, CliContext* ctx) {
+  auto* cmd = eval->add_subcommand(
+      "retention",
+      "Stream a place's visits (lifemap sim --visits N) into one map with retention after each "
+      "(or dry runs: the baseline) and measure bytes, appearance recall, reply times and changes");
+  auto a = std::make_shared<RetentionEvalArgs>();
+  cmd->add_option("--visits", a->visits, "a `lifemap sim --visits N` folder (visit_* folders)")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  cmd->add_option("--out", a->out, "folder for summary.json, visits.csv, report.md")->required();
+  cmd->add_option_function<std::string>(
+         "--retention", [a](const std::string& v) { a->retention = v == "on"; },
+         "on (default: applied after each visit) or off (dry runs only: the baseline)")
+      ->check(CLI::IsMember({"on", "off"}));
+  AddSendOption(cmd, &a->compact);
+  cmd->add_flag("--keep-map", a->keep_map, "keep the map (default: deleted after)");
+  cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunRetentionEval(*ctx, *a); }; });
 }
 
 }  // namespace lifemap::cli

@@ -87,6 +87,7 @@ void AddAppearanceEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx);
 // `lifemap eval alignment` (issue 15: visits months apart anchored into one map frame).
 void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx);
-void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx);  // changes_eval_command.cc
+void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx);    // changes_eval_command.cc
+void AddRetentionEvalCommand(CLI::App* eval, CliContext* ctx);  // changes_eval_command.cc
 
 }  // namespace lifemap::cli

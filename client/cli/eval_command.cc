@@ -537,6 +537,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   AddTrajectoryEvalCommand(ev, ctx);
   AddAlignmentEvalCommand(ev, ctx);
   AddChangesEvalCommand(ev, ctx);
+  AddRetentionEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -187,6 +187,14 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
         }
       }
       o.keyframe = r.keyframe().committed();
+      if (o.keyframe) o.keyframe_id = r.keyframe().keyframe_id();
+      o.total_ms = r.timing().total_ms();
+      for (const auto& m : r.place_matches()) {
+        if (m.method() != v1::MATCH_METHOD_APPEARANCE) continue;
+        auto T = PoseOf(m.t_match_query());
+        if (!T.ok()) continue;
+        o.appearance.push_back({m.visit_id(), m.keyframe_id(), m.score(), *T});
+      }
     }
     visit.frames.push_back(o);
   }

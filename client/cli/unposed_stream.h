@@ -30,6 +30,15 @@ struct TrackedFrame {
   std::optional<Pose> truth;  // the recording's ground truth for the frame, if it has one
   size_t index = 0;           // in the recording
   std::string moved_png;      // FrameResult.moved's mask, when asked for and computed
+  uint64_t keyframe_id = 0;   // when the frame became a stored keyframe
+  double total_ms = 0;        // the server's time from receipt to reply
+  // Its appearance matches (keyframes, best first), each with the relative pose verified.
+  struct AppearanceHit {
+    uint64_t visit_id = 0, keyframe_id = 0;
+    double score = 0;
+    Pose T_match_query;
+  };
+  std::vector<AppearanceHit> appearance;
 };
 
 struct UnposedStreamOptions {
