@@ -411,6 +411,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             o.compact_cover_m = v.get<double>();
           } else if (k == "compact_cover_deg") {
             o.compact_cover_deg = v.get<double>();
+          } else if (k == "recognised_within_visits") {
+            o.recognised_within_visits = v.get<int>();
           } else if (k == "after_visit_end") {
             o.after_visit_end = v.get<bool>();
           } else {

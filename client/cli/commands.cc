@@ -1001,6 +1001,9 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
   retention->add_option_function<uint32_t>(
       "--compact-after", [policy](uint32_t v) { policy->set_compact_after_visits(v); },
       "visits with this many later ones are compacted (retention.compact_after_visits)");
+  retention->add_option_function<uint32_t>(
+      "--recognised-within", [policy](uint32_t v) { policy->set_recognised_within_visits(v); },
+      "keep keyframes one of the N newest visits recognised (retention.recognised_within_visits)");
   retention->add_option_function<double>(
       "--compact-cover-m", [policy](double v) { policy->set_compact_cover_m(v); },
       "cover distance for compacted visits (retention.compact_cover_m)");

@@ -208,11 +208,13 @@ absl::Status FramePath::CheckKeyframeLimit(const FrameSettings& settings, int64_
 // `exclude_recent_s` in time and `exclude_recent_m` along the visit's path). OK with no match
 // (nothing recognised); otherwise why it could not be asked. With `loops`, the verified matches
 // to earlier keyframes of the same visit are added there too (loop candidates); with `anchors`,
-// those to other visits of the visit's map (anchor candidates).
+// those to other visits of the visit's map (anchor candidates); with `sighted`, the keyframes of
+// another visit of the map that it verified best (its landmarks survived into this visit:
+// retention.h).
 absl::Status FramePath::AppearanceMatches(
     const absl::StatusOr<pipeline::KeyframeFeatures>& features, const RgbdFrame& f,
     const VisitState& visit, FramePlacement* out, std::vector<LoopCandidate>* loops,
-    std::vector<AnchorCandidate>* anchors) const {
+    std::vector<AnchorCandidate>* anchors, std::vector<int64_t>* sighted) const {
   if (!features.ok()) return features.status();
   AppearanceIndex* index = parts_.appearance;
   const double recent_s = index->options().exclude_recent_s;
@@ -240,6 +242,15 @@ absl::Status FramePath::AppearanceMatches(
     }
   }
   if (anchors != nullptr) *anchors = AnchorCandidatesOf(*recognition, visit.map_id, visit_id);
+  if (sighted != nullptr) {
+    for (const auto& m : recognition->matches) {  // the best verified one
+      if (m.verification.verified && m.keyframe.map_id == visit.map_id &&
+          m.keyframe.visit_id != visit_id) {
+        sighted->push_back(m.keyframe.keyframe_id);
+        break;
+      }
+    }
+  }
   return absl::OkStatus();
 }
 
@@ -339,9 +350,9 @@ absl::Status FramePath::CompareWithPrevious(const AnalysedFrame& a, const FrameS
     return absl::FailedPreconditionError(
         "the visit is tracked and not anchored in the map's frame yet: no earlier visit lines up");
   }
-  auto previous = visit->previous.Get(parts_.store, parts_.previous_loader, visit->map_id,
-                                      visit->visit_id, settings.moved_against_visit,
-                                      options_.changes);
+  auto previous =
+      visit->previous.Get(parts_.store, parts_.previous_loader, visit->map_id, visit->visit_id,
+                          settings.moved_against_visit, options_.changes);
   if (!previous.ok()) return previous.status();
   FrameMoved& moved = out->moved.emplace();
   moved.previous_visit = (*previous)->visit_id;
@@ -540,8 +551,9 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
   const bool close_loops =
       decision.selected && record.ok() && odometry_pose && options_.pose_graph.enabled;
   if (query_appearance) {
-    facts.appearance = AppearanceMatches(features, f, *visit, &p, close_loops ? &loops : nullptr,
-                                         close_loops ? &anchors : nullptr);
+    facts.appearance = AppearanceMatches(
+        features, f, *visit, &p, close_loops ? &loops : nullptr, close_loops ? &anchors : nullptr,
+        decision.selected && record.ok() ? &record->sighted_keyframes : nullptr);
   }
   absl::MutexLock lock(&visit->mu);
   if (auto s = visit->CheckWritable(writer); !s.ok()) {

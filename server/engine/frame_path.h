@@ -48,11 +48,11 @@ struct FrameSettings {
   tracking::KeyframeOptions keyframe;
   pipeline::FrameRequest request;
   std::optional<double> appearance_interval_s;  // nullopt: keyframes only
-  bool skip_labels = false;  // FrameOptions.skip_outputs; the masks' switch is in `request`
-  bool skip_fusion = false;  // no fused labels rendered (the visit's keyframes still fuse)
-  bool skip_moved = false;   // no moved mask against the previous visit
+  bool skip_labels = false;         // FrameOptions.skip_outputs; the masks' switch is in `request`
+  bool skip_fusion = false;         // no fused labels rendered (the visit's keyframes still fuse)
+  bool skip_moved = false;          // no moved mask against the previous visit
   int64_t moved_against_visit = 0;  // 0: the map's latest earlier ended visit in its frame
-  bool refine_pose = false;  // client poses refined by the tracker
+  bool refine_pose = false;         // client poses refined by the tracker
   // The caller's key: a keyframe is not stored once its map holds this many (0: no limit).
   std::string key_name;
   int64_t max_keyframes_per_map = 0;
@@ -212,7 +212,8 @@ class FramePath {
   absl::Status AppearanceMatches(const absl::StatusOr<pipeline::KeyframeFeatures>& features,
                                  const RgbdFrame& f, const VisitState& visit, FramePlacement* out,
                                  std::vector<LoopCandidate>* loops,
-                                 std::vector<AnchorCandidate>* anchors) const;
+                                 std::vector<AnchorCandidate>* anchors,
+                                 std::vector<int64_t>* sighted) const;
   absl::Status RenderFusedLabels(const AnalysedFrame& a, const FrameSettings& settings,
                                  VisitState* visit, FramePlacement* out) const;
   void SubmitForFusion(AnalysedFrame& a, const std::shared_ptr<VisitState>& visit) const;

@@ -98,6 +98,11 @@ absl::Status RetentionOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "retention.keep_recent_visits must lie in [1, 1000], not ", keep_recent_visits));
   }
+  if (recognised_within_visits < 0 || recognised_within_visits > 1000) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("retention.recognised_within_visits must lie in [0, 1000], not ",
+                     recognised_within_visits));
+  }
   if (compact_after_visits < 1 || compact_after_visits > 100000) {
     return absl::InvalidArgumentError(absl::StrCat(
         "retention.compact_after_visits must lie in [1, 100000], not ", compact_after_visits));

@@ -121,6 +121,12 @@ struct RetentionOptions {
   int compact_after_visits = 5;
   double compact_cover_m = 1.0;
   double compact_cover_deg = 45.0;
+  // A keyframe that one of the map's this many newest visits recognised (its best verified
+  // appearance match: its landmarks survived into that visit) is kept; 0: recognition keeps
+  // nothing. [0, 1000]. Chosen on building seed 7's 20 visits (RESULTS.md "Issue 36:
+  // retention"): 0, 1, 2, 3 gave 2.35, 2.75, 3.20, 3.69x the first visit's bytes and appearance
+  // recall 0.805, 0.809, 0.817, 0.826 (0.852 without retention); 1 is the most within 3x.
+  int recognised_within_visits = 1;
   // Retention runs for a visit's map after each visit ends (off the reply path); else only
   // when an operator runs it.
   bool after_visit_end = false;

@@ -159,6 +159,21 @@ absl::StatusOr<RetentionReport> ApplyRetention(store::Store* store, AppearanceIn
     matched_with[e.to_keyframe] = visit_of[e.from_keyframe];
   }
 
+  // Keyframes one of the newest visits recognised (their landmarks survived into it).
+  std::set<int64_t> recent_visits;
+  for (auto v = visits->rbegin(); v != visits->rend(); ++v) {
+    if (static_cast<int>(recent_visits.size()) >= options.recognised_within_visits) break;
+    if (v->keyframe_count > 0) recent_visits.insert(v->id);
+  }
+  auto sightings = store->ListSightings(map.id);
+  if (!sightings.ok()) return sightings.status();
+  std::set<int64_t> recognised;
+  for (const auto& [keyframe, by] : *sightings) {
+    for (const int64_t v : by) {
+      if (recent_visits.count(v) != 0) recognised.insert(keyframe);
+    }
+  }
+
   // Candidates in rank, then time order; why protected ones are kept.
   std::map<int64_t, std::vector<const store::KeyframeRecord*>> by_visit;
   for (const auto& k : *keyframes) by_visit[k.visit_id].push_back(&k);
@@ -177,6 +192,9 @@ absl::StatusOr<RetentionReport> ApplyRetention(store::Store* store, AppearanceIn
         protected_because[k.id] = "first keyframe of its visit";
       } else if (auto m = matched_with.find(k.id); m != matched_with.end()) {
         protected_because[k.id] = "landmarks matched by a later or earlier view (accepted edge)";
+      } else if (recognised.count(k.id) != 0) {
+        protected_because[k.id] = absl::StrCat("recognised by one of the ",
+                                               options.recognised_within_visits, " newest visits");
       }
       c.protect = protected_because.count(k.id) != 0;
       candidates.push_back(c);

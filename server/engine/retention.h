@@ -11,7 +11,8 @@
 //  - Kept whatever covers them: a keyframe without a pose, the first keyframe of each visit (its
 //    start, and the root of its odometry), and a keyframe that an accepted pose edge names
 //    (an anchor, tie or loop: its landmarks were matched — survived — by a later view, and its
-//    edges stay in the graph).
+//    edges stay in the graph), and a keyframe that one of the `recognised_within_visits` newest
+//    visits recognised (a verified appearance match: the views of it that still work).
 //  - Any other keyframe is thinned when a kept keyframe of its own visit or a later one covers
 //    it: within cover_m and cover_deg of its pose (compact_cover_m / compact_cover_deg for a
 //    visit with at least compact_after_visits later visits). A keyframe that covers thinned ones

@@ -175,6 +175,10 @@ absl::StatusOr<RetentionOptions> RetentionPolicy(const RetentionOptions& config,
   if (p.has_compact_after_visits())
     o.compact_after_visits =
         static_cast<int>(std::min<uint32_t>(p.compact_after_visits(), 1u << 30));
+  if (p.has_recognised_within_visits()) {
+    o.recognised_within_visits =
+        static_cast<int>(std::min<uint32_t>(p.recognised_within_visits(), 1u << 30));
+  }
   if (p.has_compact_cover_m()) o.compact_cover_m = p.compact_cover_m();
   if (p.has_compact_cover_deg()) o.compact_cover_deg = p.compact_cover_deg();
   if (auto s = o.Validate(); !s.ok()) {
@@ -215,6 +219,7 @@ grpc::Status AdminServiceImpl::ApplyRetention(grpc::ServerContext* context,
   p->set_compact_after_visits(static_cast<uint32_t>(options->compact_after_visits));
   p->set_compact_cover_m(options->compact_cover_m);
   p->set_compact_cover_deg(options->compact_cover_deg);
+  p->set_recognised_within_visits(static_cast<uint32_t>(options->recognised_within_visits));
   for (const auto& v : report->visits) {
     v1::VisitRetention* out = resp->add_visits();
     out->set_visit_id(static_cast<uint64_t>(v.visit_id));

@@ -392,6 +392,18 @@ INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, ma
     R"sql(
 ALTER TABLE visits ADD COLUMN lost_frame_count INTEGER NOT NULL DEFAULT 0;
 )sql",
+    // 16 -> 17: which other visits recognised a keyframe (issue 36): a keyframe of a later (or
+    // earlier) visit verified an appearance match to it, so its landmarks survived into that
+    // visit. Retention keeps keyframes that recent visits recognised; they weigh more in the
+    // appearance ranking.
+    R"sql(
+CREATE TABLE keyframe_sightings (
+  keyframe_id INTEGER NOT NULL REFERENCES keyframes(id) ON DELETE CASCADE,
+  visit_id INTEGER NOT NULL,
+  time_s REAL NOT NULL,
+  PRIMARY KEY (keyframe_id, visit_id)
+) WITHOUT ROWID;
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -1104,6 +1116,16 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       s->Bind(1, k.id).BindBlob(2, k.depth).BindBlob(3, k.color);
       if (auto st = s->Run(); !st.ok()) return st;
     }
+    for (const int64_t seen : k.sighted_keyframes) {
+      // A keyframe deleted meanwhile (its map, or retention) is skipped, not an error.
+      auto sight = db->Prepare(
+          "INSERT OR IGNORE INTO keyframe_sightings (keyframe_id, visit_id, time_s) SELECT ?1, "
+          "?2, ?3 WHERE EXISTS (SELECT 1 FROM keyframes WHERE id = ?1)");
+      if (!sight.ok()) return sight.status();
+      StatementScope s(*sight);
+      s->Bind(1, seen).Bind(2, k.visit_id).Bind(3, k.timestamp_s);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
     if (k.features) {
       const auto& f = *k.features;
       const std::string superjuts = EncodeSuperjuts(f.superjuts);
@@ -1360,6 +1382,25 @@ absl::StatusOr<int64_t> Store::DeleteKeyframes(int64_t visit_id, const std::vect
   }
   if (auto s = tx.Commit(); !s.ok()) return s;
   return freed;
+}
+
+absl::StatusOr<std::map<int64_t, std::vector<int64_t>>> Store::ListSightings(int64_t map_id) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT s.keyframe_id, s.visit_id FROM keyframe_sightings s JOIN keyframes k ON k.id = "
+      "s.keyframe_id JOIN visits v ON v.id = k.visit_id WHERE (?1 = 0 OR v.map_id = ?1) ORDER "
+      "BY s.keyframe_id, s.visit_id");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, map_id);
+  std::map<int64_t, std::vector<int64_t>> out;
+  while (true) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out[s->ColumnInt(0)].push_back(s->ColumnInt(1));
+  }
+  return out;
 }
 
 absl::StatusOr<MapStorage> Store::GetMapStorage(int64_t map_id) {

@@ -155,6 +155,9 @@ struct KeyframeRecord {
   // superjuts (keypoints: GetKeyframeFeatures); listings return only the counts.
   std::optional<KeyframeFeatures> features;
   std::optional<KeyframeFeatureCounts> feature_counts;
+  // Written with it (schema 17): keyframes of other visits this keyframe's appearance query
+  // verified, each then recognised by this keyframe's visit (ListSightings). Not read back.
+  std::vector<int64_t> sighted_keyframes;
 };
 
 // A stored keyframe's images as the codecs take them (views into `k`, which must outlive them).
@@ -349,7 +352,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 16;
+  static constexpr int kSchemaVersion = 17;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -391,6 +394,9 @@ class Store {
   // nothing is deleted); FAILED_PRECONDITION for a visit still open. Returns the bytes of
   // images and features deleted.
   absl::StatusOr<int64_t> DeleteKeyframes(int64_t visit_id, const std::vector<int64_t>& ids);
+  // Which other visits recognised each keyframe of map `map_id` (every map for 0): keyframe id
+  // -> visit ids, for keyframes recognised at least once (KeyframeRecord::sighted_keyframes).
+  absl::StatusOr<std::map<int64_t, std::vector<int64_t>>> ListSightings(int64_t map_id);
   // What map `map_id` holds (MapStorage); zeros for an unknown map.
   absl::StatusOr<MapStorage> GetMapStorage(int64_t map_id);
 

@@ -502,6 +502,68 @@ TEST_F(CliTest, MapExportsHoldOnlyVisitsInTheMapsFrameAndNameTheOthers) {
 
 // Issue 36: what changed between two visits of a synthetic room (props moved, gone, new; a door
 // toggled), as a table, JSON and a plot; the same visit twice and unknown visits are refused.
+// Retention (issue 36): a dry run says what would go and why and removes nothing; the run removes
+// exactly that, keeps the newest visits whole, and leaves a store that checks clean and whose
+// kept keyframes still decode (the oldest visit is compared with the newest).
+TEST_F(CliTest, RetentionThinsOlderVisitsAfterADryRunSaysWhatAndWhy) {
+  auto r = Run({"sim", "--seed", "6", "--place-shape", "rect", "--visits", "4", "--frames", "30",
+                "--conditions", "scenery", "--out", tmp_.File("home")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  ASSERT_EQ(Run({"maps", "create", "home"}).code, 0);
+  for (const char* v : {"visit_00", "visit_01", "visit_02", "visit_03"}) {
+    r = Run({"stream", "--map", "home", "--tum", tmp_.File(std::string("home/") + v),
+             "--use-groundtruth", "--rate", "0", "--end-visit", "--send", "compact"});
+    ASSERT_EQ(r.code, 0) << r.err;
+  }
+  r = Run({"--json", "admin", "retention", "home", "--dry-run"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json dry = json::parse(r.out);
+  EXPECT_TRUE(dry["dry_run"].get<bool>());
+  ASSERT_EQ(dry["visits"].size(), 4u) << r.out;
+  const size_t would = dry["thinned"].size();
+  EXPECT_GT(would, 10u) << "visits of one path: the older ones' views are covered" << r.out;
+  EXPECT_EQ(dry["before"]["keyframes"], dry["after"]["keyframes"]);
+  for (int v : {2, 3}) {
+    EXPECT_NE(dry["visits"][v].value("kept_whole", "").find("newest"), std::string::npos)
+        << dry["visits"][v].dump();
+  }
+  for (const auto& t : dry["thinned"]) {
+    EXPECT_LE(t.value("distance_m", 0.0), 0.3 + 1e-9) << t.dump();
+    EXPECT_GE(std::stoll(t["covered_by_visit"].get<std::string>()),
+              std::stoll(t["visit_id"].get<std::string>()));
+  }
+  r = Run({"admin", "retention", "home", "--dry-run"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("would be thinned"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("first keyframe of its visit"), std::string::npos) << r.out;
+
+  r = Run({"admin", "retention", "home", "--keep-recent", "0"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("keep_recent_visits"), std::string::npos) << r.err;
+  r = Run({"admin", "retention", "nowhere"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("NOT_FOUND"), std::string::npos) << r.err;
+
+  r = Run({"--json", "admin", "retention", "home"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json done = json::parse(r.out);
+  EXPECT_EQ(done["thinned"].size(), would);
+  const int64_t before = std::stoll(done["before"]["keyframes"].get<std::string>());
+  const int64_t after = std::stoll(done["after"]["keyframes"].get<std::string>());
+  EXPECT_EQ(before - after, static_cast<int64_t>(would));
+  EXPECT_LT(std::stoll(done["after"]["total_bytes"].get<std::string>()),
+            std::stoll(done["before"]["total_bytes"].get<std::string>()));
+  r = Run({"--json", "admin", "retention", "home", "--dry-run"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(json::parse(r.out)["thinned"].empty()) << "nothing more to thin: " << r.out;
+  r = Run({"admin", "check"});
+  ASSERT_EQ(r.code, 0) << r.err << r.out;
+  // The thinned oldest visit still decodes and compares with the newest.
+  r = Run({"--json", "changes", "home", "--from", "1", "--to", "4"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_GT(json::parse(r.out)["from_keyframes"].get<int>(), 0);
+}
+
 TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) {
   auto r = Run({"sim", "--seed", "5", "--place-shape", "rect", "--visits", "2", "--frames", "60",
                 "--conditions", "scenery", "--out", tmp_.File("home")});

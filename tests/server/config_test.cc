@@ -234,6 +234,33 @@ TEST(ConfigFile, ReadsAndChecksTheChangesSection) {
            });
 }
 
+TEST(ConfigFile, ReadsAndChecksTheRetentionSection) {
+  testing::TempDir tmp;
+  std::ofstream(tmp.File("ok.json")) << R"({"retention": {"cover_m": 0.2, "cover_deg": 10,
+             "keep_recent_visits": 3, "compact_after_visits": 8, "compact_cover_m": 1.5,
+             "compact_cover_deg": 60, "recognised_within_visits": 2,
+             "after_visit_end": true}})";
+  auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
+  ASSERT_TRUE(c.ok()) << c.status();
+  const RetentionOptions& r = c->engine_options().retention;
+  EXPECT_DOUBLE_EQ(r.cover_m, 0.2);
+  EXPECT_DOUBLE_EQ(r.cover_deg, 10);
+  EXPECT_EQ(r.keep_recent_visits, 3);
+  EXPECT_EQ(r.compact_after_visits, 8);
+  EXPECT_DOUBLE_EQ(r.compact_cover_m, 1.5);
+  EXPECT_DOUBLE_EQ(r.compact_cover_deg, 60);
+  EXPECT_EQ(r.recognised_within_visits, 2);
+  EXPECT_TRUE(r.after_visit_end);
+  ExpectRefused(tmp,
+                {
+                    {"recent.json", R"({"retention": {"keep_recent_visits": 0}})",
+                     "retention.keep_recent_visits"},
+                    {"deg.json", R"({"retention": {"cover_deg": 200}})", "retention.cover_deg"},
+                    {"m.json", R"({"retention": {"compact_cover_m": -1}})", "compact_cover_m"},
+                    {"key.json", R"({"retention": {"keep": 1}})", "retention.keep"},
+                });
+}
+
 TEST(ConfigFile, ReadsAndChecksTheLabelsSection) {
   testing::TempDir tmp;
   std::ofstream(tmp.File("ok.json"))

@@ -182,6 +182,26 @@ TEST_F(StoreTest, KeyframesAreThinnedOnlyFromEndedVisitsAndOnlyTheirOwn) {
   EXPECT_TRUE(store_->CheckIntegrity()->empty());
 }
 
+TEST_F(StoreTest, SightingsSayWhichVisitsRecognisedAKeyframeAndGoWithIt) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto first = store_->StartVisit("m", "", "", 1.0);
+  std::vector<KeyframeRecord> old = {Keyframe(first->id, 1.0), Keyframe(first->id, 2.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&old, {}).ok());
+  ASSERT_TRUE(store_->EndVisit(first->id, 3.0, {first->id, 2, 0}).ok());
+  auto later = store_->StartVisit("m", "", "", 4.0);
+  std::vector<KeyframeRecord> batch = {Keyframe(later->id, 5.0), Keyframe(later->id, 6.0)};
+  batch[0].sighted_keyframes = {old[0].id, 999999};  // one that does not exist: skipped
+  batch[1].sighted_keyframes = {old[0].id};          // the same visit twice: once
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  auto map = store_->GetMap("m");
+  auto seen = store_->ListSightings(map->id);
+  ASSERT_TRUE(seen.ok()) << seen.status();
+  ASSERT_EQ(seen->size(), 1u);
+  EXPECT_EQ(seen->at(old[0].id), std::vector<int64_t>{later->id});
+  ASSERT_TRUE(store_->DeleteKeyframes(first->id, {old[0].id}).ok());
+  EXPECT_TRUE(store_->ListSightings(map->id)->empty());
+}
+
 // Retention deletes each visit's keyframes in one transaction: a kill at any moment leaves every
 // visit whole or thinned, the file passes its integrity check and every kept keyframe reads.
 TEST_F(StoreTest, AKillDuringThinningLeavesEachVisitWholeOrThinned) {
