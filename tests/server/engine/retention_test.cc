@@ -3,7 +3,14 @@
 #include <cmath>
 #include <set>
 
+#include <chrono>
+#include <thread>
+
 #include <gtest/gtest.h>
+
+#include "server/engine/clock.h"
+#include "server/engine/engine.h"
+#include "tests/testing/test_util.h"
 
 namespace lifemap::server {
 namespace {
@@ -102,6 +109,52 @@ TEST(PlanThinning, CompactsOldVisitsToASparseSetOfTheirOwn) {
   EXPECT_GE(kept, 3u);
   EXPECT_LE(kept, 6u);
   for (const auto& t : plan) EXPECT_LE(t.distance_m, 1.0 + 1e-9);
+}
+
+// `retention.after_visit_end`: ending a visit thins the older visits of its map off the reply path.
+TEST(RetentionAfterVisitEnd, EndingAVisitThinsTheOlderOnes) {
+  testing::TempDir tmp;
+  EngineOptions options;
+  options.db_path = tmp.File("lifemap.db");
+  options.retention.after_visit_end = true;
+  options.retention.keep_recent_visits = 1;
+  auto engine = Engine::Open(options);
+  ASSERT_TRUE(engine.ok()) << engine.status();
+  store::Store* store = (*engine)->store();
+  auto map = store->CreateMap("hall", "", NowSeconds());
+  ASSERT_TRUE(map.ok());
+  // Two visits walking the same 2 m with client poses, 10 keyframes each.
+  std::vector<int64_t> visits;
+  for (int v = 0; v < 2; ++v) {
+    auto visit = store->StartVisit("hall", "robot", "", NowSeconds() - 100 + v);
+    ASSERT_TRUE(visit.ok());
+    std::vector<store::KeyframeRecord> batch;
+    for (int k = 0; k < 10; ++k) {
+      store::KeyframeRecord r;
+      r.visit_id = visit->id;
+      r.sequence = static_cast<uint64_t>(k);
+      r.timestamp_s = NowSeconds() - 100 + v + 0.01 * k;
+      Pose pose;
+      pose.translation = {0.2 * k + 0.02 * v, 0, 0};
+      r.T_world_camera = pose;
+      r.intrinsics = {525, 525, 319.5, 239.5, 640, 480};
+      r.depth_scale = 5000;
+      r.depth = "depth";
+      r.color = "color";
+      batch.push_back(r);
+    }
+    ASSERT_TRUE(store->InsertKeyframes(&batch, {}).ok());
+    visits.push_back(visit->id);
+  }
+  ASSERT_TRUE(store->EndVisit(visits[0], NowSeconds(), {visits[0], 10, 0}).ok());
+  ASSERT_TRUE((*engine)->EndVisit(visits[1]).ok());
+  size_t left = 10;
+  for (int i = 0; i < 100 && left == 10; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    left = store->ListKeyframes(map->id, visits[0])->size();
+  }
+  EXPECT_EQ(left, 1u) << "all but the first keyframe of the older visit are covered";
+  EXPECT_EQ(store->ListKeyframes(map->id, visits[1])->size(), 10u) << "the newest is kept whole";
 }
 
 }  // namespace
