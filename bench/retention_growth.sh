@@ -5,18 +5,18 @@
 # scored by `lifemap eval retention` (bytes, appearance recall, keyframe reply times, changes).
 # The simulated visits span years into the future: frames.max_future_s lets their timestamps in.
 #
-#   bench/retention_growth.sh VISITS_DIR OUT_DIR [RETENTION_JSON [MODES]]
-#   (RETENTION_JSON: the config's `retention` section, default {}; MODES default "off on")
+#   bench/retention_growth.sh VISITS_DIR OUT_DIR [CONFIG_MEMBERS [MODES]]
+#   (CONFIG_MEMBERS: more sections of the server's config, e.g.
+#   '"retention": {"recognised_within_visits": 2}'; MODES default "off on")
 #   e.g. lifemap sim --seed 8 --visits 20 --frames 90 --conditions scenery,lighting,dynamic \
 #          --world building --out /tmp/ret8 && bench/retention_growth.sh /tmp/ret8 /tmp/ret8-out
 set -eu
-visits=$1 out=$2 retention=${3:-"{}"} modes=${4:-"off on"}
+visits=$1 out=$2 members=${3:-} modes=${4:-"off on"}
 bin=$(cd "$(dirname "$0")/.." && pwd)/build/bin
 mkdir -p "$out"
 scratch=$(mktemp -d)
 trap 'rm -rf "$scratch"' EXIT
-echo "{\"frames\": {\"max_future_s\": 400000000}, \"retention\": $retention}" \
-  > "$scratch/config.json"
+echo "{\"frames\": {\"max_future_s\": 400000000}${members:+, $members}}" > "$scratch/config.json"
 for mode in $modes; do
   "$bin/lifemapd" --listen 127.0.0.1:50976 --db "$scratch/db-$mode" --log-level warn \
     --config "$scratch/config.json" > "$out/server-$mode.log" 2>&1 &

@@ -296,6 +296,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             a.exclude_recent_s = v.get<double>();
           } else if (k == "exclude_recent_m") {
             a.exclude_recent_m = v.get<double>();
+          } else if (k == "recognised_weight") {
+            a.recognised_weight = v.get<double>();
           } else if (k == "max_frame_matches") {
             a.max_frame_matches = v.get<int>();
           } else if (k == "frame_interval_s") {

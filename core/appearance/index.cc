@@ -13,6 +13,17 @@ void InvertedIndex::Add(const KeyframeRef& keyframe, const BowVector& bow) {
   }
 }
 
+bool InvertedIndex::SetWeight(int64_t keyframe_id, float weight) {
+  absl::MutexLock lock(&mu_);
+  for (auto& e : entries_) {
+    if (e.keyframe_id == keyframe_id) {
+      e.weight = weight;
+      return true;
+    }
+  }
+  return false;
+}
+
 size_t InvertedIndex::RemoveIf(const std::function<bool(const KeyframeRef&)>& drop) {
   absl::MutexLock lock(&mu_);
   // Entries are renumbered densely so that query scratch stays proportional to what is kept.
@@ -54,15 +65,16 @@ std::vector<Candidate> InvertedIndex::Query(
   }
   // The best top_k by a bounded min-heap (the worst kept on top).
   const auto better = [](const Candidate& a, const Candidate& b) {
-    return a.score != b.score ? a.score > b.score : a.keyframe.keyframe_id < b.keyframe.keyframe_id;
+    return a.rank != b.rank ? a.rank > b.rank : a.keyframe.keyframe_id < b.keyframe.keyframe_id;
   };
   std::vector<Candidate> heap;
   heap.reserve(top_k + 1);
   for (size_t i = 0; i < n; ++i) {
     if (score[i] <= 0) continue;
-    if (heap.size() == top_k && !(score[i] > heap.front().score)) continue;
+    const float rank = score[i] * entries_[i].weight;
+    if (heap.size() == top_k && !(rank > heap.front().rank)) continue;
     if (exclude && exclude(entries_[i])) continue;
-    heap.push_back({entries_[i], score[i]});
+    heap.push_back({entries_[i], score[i], rank});
     std::push_heap(heap.begin(), heap.end(), better);
     if (heap.size() > top_k) {
       std::pop_heap(heap.begin(), heap.end(), better);

@@ -19,11 +19,15 @@ struct KeyframeRef {
   int64_t visit_id = 0;
   int64_t keyframe_id = 0;
   double timestamp_s = 0;  // the frame's capture time, seconds
+  // Candidates are ranked by their L1 score times this (1: the score alone). lifemapd weighs
+  // keyframes that other visits recognised (appearance.recognised_weight).
+  float weight = 1.0f;
 };
 
 struct Candidate {
   KeyframeRef keyframe;
   float score = 0;  // L1 score in [0, 1]
+  float rank = 0;   // score × keyframe.weight: what the candidates are ordered by
 };
 
 struct IndexStats {
@@ -41,12 +45,15 @@ class InvertedIndex {
 
   // Words outside the vocabulary's size are ignored.
   void Add(const KeyframeRef& keyframe, const BowVector& bow);
+  // Sets the ranking weight of the entry of keyframe `keyframe_id` (> 0); false when it is not
+  // indexed. Linear in the entries.
+  bool SetWeight(int64_t keyframe_id, float weight);
   // Removes the entries `drop` selects; returns how many. Linear in the postings.
   size_t RemoveIf(const std::function<bool(const KeyframeRef&)>& drop);
 
-  // The `top_k` best-scoring entries with score > 0 that `exclude` (may be empty) does not
-  // reject, best first. Once the index holds kStopWordMinKeyframes keyframes, words found in
-  // more than stop_word_share of them are not scored (a stop list).
+  // The `top_k` best-ranked entries (score × weight) with score > 0 that `exclude` (may be
+  // empty) does not reject, best first. Once the index holds kStopWordMinKeyframes keyframes, words
+  // found in more than stop_word_share of them are not scored (a stop list).
   std::vector<Candidate> Query(const BowVector& query, size_t top_k,
                                const std::function<bool(const KeyframeRef&)>& exclude = {}) const;
 

@@ -18,6 +18,10 @@ absl::Status AppearanceOptions::Validate() const {
     return absl::InvalidArgumentError(
         "appearance.max_training_keyframes must be at least min_training_keyframes");
   }
+  if (!(recognised_weight >= 0 && recognised_weight <= 10)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("appearance.recognised_weight must be in [0, 10], got ", recognised_weight));
+  }
   if (!(exclude_recent_s >= 0 && exclude_recent_s <= 86400)) {
     return absl::InvalidArgumentError("appearance.exclude_recent_s must be in [0, 86400]");
   }
@@ -92,8 +96,17 @@ void AppearanceIndex::Run() {
         } else if (vocabulary) {
           job.keyframe.map_id = *map;
           auto bow = vocabulary->Transform(job.descriptors);
-          if (bow.ok()) index->Add(job.keyframe, *bow);
+          if (bow.ok()) {
+            job.keyframe.weight = RecognisedWeight(job.keyframe.keyframe_id);
+            index->Add(job.keyframe, *bow);
+          }
           status = bow.status();
+          // The keyframes it recognised weigh more from now on.
+          for (const int64_t seen : job.sighted) {
+            if (options_.recognised_weight <= 0) break;
+            recognised_by_[seen].insert(job.keyframe.visit_id);
+            index->SetWeight(seen, RecognisedWeight(seen));
+          }
         } else if (stored >= options_.min_training_keyframes) {
           status = TrainLocked(/*asked=*/false);
         }
@@ -173,6 +186,7 @@ void AppearanceIndex::OnCommitted(const store::KeyframeRecord& k) {
   job.kind = Job::Kind::kAdd;
   job.keyframe = {0, k.visit_id, k.id, k.timestamp_s};
   job.descriptors = k.features->keypoints.descriptors;
+  job.sighted = k.sighted_keyframes;
   Push(std::move(job));
 }
 
@@ -265,6 +279,13 @@ void AppearanceIndex::SetOnTrained(std::function<void()> on_trained) {
   on_trained_ = std::move(on_trained);
 }
 
+float AppearanceIndex::RecognisedWeight(int64_t keyframe_id) const {
+  if (options_.recognised_weight <= 0) return 1.0f;
+  const auto it = recognised_by_.find(keyframe_id);
+  const size_t n = it == recognised_by_.end() ? 0 : std::min<size_t>(it->second.size(), 3);
+  return static_cast<float>(1.0 + options_.recognised_weight * static_cast<double>(n));
+}
+
 absl::Status AppearanceIndex::IndexStored(int64_t map_id) {
   std::shared_ptr<const appearance::Vocabulary> vocabulary;
   {
@@ -281,13 +302,23 @@ absl::Status AppearanceIndex::IndexStored(int64_t map_id) {
       index = index_;
     }
   }
+  if (options_.recognised_weight > 0) {
+    auto sightings = store_->ListSightings(map_id);
+    if (!sightings.ok()) return sightings.status();
+    if (map_id == 0) recognised_by_.clear();
+    for (const auto& [keyframe, visits] : *sightings) {
+      recognised_by_[keyframe].insert(visits.begin(), visits.end());
+    }
+  }
   int64_t counted = 0;
   auto s = store_->ForEachKeyframeDescriptors(map_id, [&](const store::KeyframeDescriptors& k) {
     ++counted;
     if (!index || k.descriptors.empty()) return absl::OkStatus();
     auto bow = vocabulary->Transform(k.descriptors);
     if (!bow.ok()) return bow.status();
-    index->Add({k.map_id, k.visit_id, k.keyframe_id, k.timestamp_s}, *bow);
+    index->Add(
+        {k.map_id, k.visit_id, k.keyframe_id, k.timestamp_s, RecognisedWeight(k.keyframe_id)},
+        *bow);
     return absl::OkStatus();
   });
   if (!s.ok()) return s;

@@ -18,6 +18,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <thread>
 #include <unordered_map>
@@ -84,6 +85,7 @@ class AppearanceIndex {
   struct Job {
     enum class Kind { kAdd, kRemove, kRebuild } kind = Kind::kAdd;
     std::function<bool(const appearance::KeyframeRef&)> drop;  // kRemove: which entries
+    std::vector<int64_t> sighted;  // kAdd: keyframes of other visits it recognised
     appearance::KeyframeRef keyframe;
     cv::Mat descriptors;
     bool retrain = false;
@@ -103,6 +105,8 @@ class AppearanceIndex {
   absl::Status TrainLocked(bool asked);
   absl::Status IndexStored(int64_t map_id);
   absl::StatusOr<int64_t> MapOfVisit(int64_t visit_id);
+  // Worker thread only: the ranking weight of a keyframe (AppearanceOptions::recognised_weight).
+  float RecognisedWeight(int64_t keyframe_id) const;
 
   store::Store* const store_;
   const AppearanceOptions options_;
@@ -119,6 +123,8 @@ class AppearanceIndex {
   std::function<void()> on_trained_ ABSL_GUARDED_BY(on_trained_mu_);
   bool stopping_ ABSL_GUARDED_BY(queue_mu_) = false;
   std::unordered_map<int64_t, int64_t> visit_maps_;  // worker thread only
+  // Worker thread only (with recognised_weight > 0): the visits that recognised each keyframe.
+  std::unordered_map<int64_t, std::set<int64_t>> recognised_by_;
   std::thread thread_;
 };
 

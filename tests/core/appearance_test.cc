@@ -106,6 +106,26 @@ TEST(InvertedIndexTest, ExcludedAndRemovedKeyframesAreNeverCandidates) {
   EXPECT_EQ(index.Stats().postings, 2u);
 }
 
+TEST(InvertedIndexTest, WeightsOrderCandidatesAndScoresStayTheIndexs) {
+  InvertedIndex index(10);
+  const BowVector q{{{1, 0.5f}, {2, 0.5f}}};
+  index.Add({1, 10, 100, 1.0}, q);                                  // score 1
+  index.Add({1, 11, 101, 2.0}, BowVector{{{1, 0.4f}, {3, 0.6f}}});  // score 0.4
+  EXPECT_EQ(index.Query(q, 1)[0].keyframe.keyframe_id, 100);
+  ASSERT_TRUE(index.SetWeight(101, 3.0f));
+  EXPECT_FALSE(index.SetWeight(999, 2.0f));
+  const auto ranked = index.Query(q, 2);
+  ASSERT_EQ(ranked.size(), 2u);
+  EXPECT_EQ(ranked[0].keyframe.keyframe_id, 101) << "0.4 x 3 ranks above 1 x 1";
+  EXPECT_FLOAT_EQ(ranked[0].score, 0.4f);
+  EXPECT_FLOAT_EQ(ranked[0].rank, 1.2f);
+  EXPECT_EQ(index.Query(q, 1)[0].keyframe.keyframe_id, 101) << "and takes the only place";
+  // Weights survive the renumbering of a removal.
+  index.Add({1, 12, 102, 3.0}, q);
+  EXPECT_EQ(index.RemoveIf([](const KeyframeRef& k) { return k.keyframe_id == 100; }), 1u);
+  EXPECT_EQ(index.Query(q, 1)[0].keyframe.keyframe_id, 101);
+}
+
 // Points in front of a camera, their descriptors, and their projection into a second camera.
 struct SyntheticPair {
   features::KeypointSet match, query;

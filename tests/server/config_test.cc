@@ -123,7 +123,7 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   std::ofstream(tmp.File("ok.json"))
       << R"({"appearance": {"min_training_keyframes": 5, "frame_interval_s": 2.5,
              "candidates": 4, "min_inliers": 20, "max_keypoints": 800, "detect_scale": 0.75, "pyramid_levels": 4,
-             "pyramid_scale": 1.4, "exclude_recent_m": 5}})";
+             "pyramid_scale": 1.4, "exclude_recent_m": 5, "recognised_weight": 0.5}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->appearance.min_training_keyframes, 5);
@@ -136,11 +136,13 @@ TEST(ConfigFile, ReadsAndChecksTheAppearanceSection) {
   EXPECT_EQ(c->appearance.features.orb.pyramid_levels, 4);
   EXPECT_DOUBLE_EQ(c->appearance.features.orb.pyramid_scale, 1.4);
   EXPECT_DOUBLE_EQ(c->appearance.exclude_recent_m, 5);
+  EXPECT_DOUBLE_EQ(c->appearance.recognised_weight, 0.5);
   ExpectRefused(
       tmp, {
                {"train.json", R"({"appearance": {"min_training_keyframes": 1}})", "appearance"},
                {"interval.json", R"({"appearance": {"frame_interval_s": -1}})", "appearance"},
                {"candidates.json", R"({"appearance": {"candidates": 0}})", "appearance"},
+               {"weight.json", R"({"appearance": {"recognised_weight": -1}})", "recognised_weight"},
                {"inliers.json", R"({"appearance": {"min_inliers": 3}})", "appearance"},
                {"levels.json", R"({"appearance": {"vocabulary_levels": 9}})", "appearance"},
                {"keypoints.json", R"({"appearance": {"max_keypoints": 5}})", "appearance"},
