@@ -29,6 +29,7 @@ uint32_t KindColor(const std::string& kind) {
   if (kind == "appeared") return 0x2ca02c;
   if (kind == "vanished") return 0xd62728;
   if (kind == "moved") return 0x1f77b4;
+  if (kind == "wall_new" || kind == "wall_gone") return 0x7f7f7f;
   return 0x8c564b;  // doors
 }
 

@@ -40,7 +40,9 @@ struct ChangesEvalArgs {
   bool send_odometry = false;  // --odometry wheel|none (with --poses server)
 };
 
-const char* const kKinds[] = {"appeared", "vanished", "moved", "door_opened", "door_closed"};
+// The synthetic world never moves a wall: every wall reported is a false change.
+const char* const kKinds[] = {"appeared",    "vanished", "moved",    "door_opened",
+                              "door_closed", "wall_new", "wall_gone"};
 
 // One change of the place, as scene.json records it.
 struct TrueChange {

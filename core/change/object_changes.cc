@@ -218,9 +218,12 @@ absl::Status CheckViews(const std::vector<PosedDepth>& views, const char* which)
   return absl::OkStatus();
 }
 
-// Whether a cluster is a door leaf: tall, door-wide and thin across its face, measured in the
-// plane perpendicular to `up` along the principal axes of its voxels.
-bool DoorLeaf(const Cluster& c, const ChangeOptions& o) {
+// A cluster's shape as a panel: its seen height along `up`, and its length and thickness on
+// the ground plane along the principal axes of its voxels (metres, a voxel's edge included).
+struct PanelShape {
+  double height = 0, length = 0, thickness = 0;
+};
+PanelShape ShapeOf(const Cluster& c, const ChangeOptions& o) {
   const Eigen::Vector3d up = o.up.normalized();
   const Eigen::Vector3d e1 = up.unitOrthogonal(), e2 = up.cross(e1);
   double lo = 1e18, hi = -1e18;
@@ -232,7 +235,6 @@ bool DoorLeaf(const Cluster& c, const ChangeOptions& o) {
     ground.emplace_back(p.dot(e1), p.dot(e2));
     mean += ground.back();
   }
-  if (hi - lo + o.voxel_m < o.door_min_height_m) return false;
   mean /= static_cast<double>(ground.size());
   Eigen::Matrix2d cov = Eigen::Matrix2d::Zero();
   for (const auto& g : ground) cov += (g - mean) * (g - mean).transpose();
@@ -245,9 +247,19 @@ bool DoorLeaf(const Cluster& c, const ChangeOptions& o) {
     t_lo = std::min(t_lo, g.dot(across));
     t_hi = std::max(t_hi, g.dot(across));
   }
-  const double width = a_hi - a_lo + o.voxel_m, thickness = t_hi - t_lo + o.voxel_m;
-  return width >= o.door_min_width_m && width <= o.door_max_width_m &&
-         thickness <= o.door_max_thickness_m;
+  return {hi - lo + o.voxel_m, a_hi - a_lo + o.voxel_m, t_hi - t_lo + o.voxel_m};
+}
+
+// A door leaf: tall, door-wide and thin across its face.
+bool DoorLeaf(const PanelShape& s, const ChangeOptions& o) {
+  return s.height >= o.door_min_height_m && s.length >= o.door_min_width_m &&
+         s.length <= o.door_max_width_m && s.thickness <= o.door_max_thickness_m;
+}
+
+// A wall: tall, longer than any door and thin (a partition put up or taken down).
+bool WallPanel(const PanelShape& s, const ChangeOptions& o) {
+  return s.height >= o.wall_min_height_m && s.length >= o.wall_min_length_m &&
+         s.thickness <= o.wall_max_thickness_m;
 }
 
 ObjectChange FromCluster(ChangeKind kind, Cluster&& c) {
@@ -328,6 +340,11 @@ absl::Status ChangeOptions::Validate() const {
     return absl::InvalidArgumentError(
         "door sizes must be > 0, with door_max_width_m >= door_min_width_m");
   }
+  if (!(wall_min_height_m > 0.0 && wall_min_length_m > door_max_width_m &&
+        wall_max_thickness_m > 0.0)) {
+    return absl::InvalidArgumentError(
+        "wall sizes must be > 0, with wall_min_length_m > door_max_width_m (a door is no wall)");
+  }
   return absl::OkStatus();
 }
 
@@ -343,6 +360,10 @@ const char* ChangeKindName(ChangeKind kind) {
       return "door_opened";
     case ChangeKind::kDoorClosed:
       return "door_closed";
+    case ChangeKind::kWallNew:
+      return "wall_new";
+    case ChangeKind::kWallGone:
+      return "wall_gone";
   }
   return "unknown";
 }
@@ -400,20 +421,24 @@ absl::StatusOr<ObjectChanges> DetectObjectChanges(const std::vector<PosedDepth>&
   std::vector<Cluster> vanished =
       judge(grid_from, grid_to, cameras_from, cameras_to, &out.from_voxels);
 
-  // Door leaves are doors opened or closed, never half of a move.
-  auto take_doors = [&](std::vector<Cluster>* clusters, ChangeKind kind) {
+  // Walls and door leaves are walls gone or new and doors opened or closed, never half of a
+  // move.
+  auto take_panels = [&](std::vector<Cluster>* clusters, ChangeKind wall, ChangeKind door) {
     std::vector<Cluster> rest;
     for (auto& c : *clusters) {
-      if (DoorLeaf(c, options)) {
-        out.objects.push_back(FromCluster(kind, std::move(c)));
+      const PanelShape shape = ShapeOf(c, options);
+      if (WallPanel(shape, options)) {
+        out.objects.push_back(FromCluster(wall, std::move(c)));
+      } else if (DoorLeaf(shape, options)) {
+        out.objects.push_back(FromCluster(door, std::move(c)));
       } else {
         rest.push_back(std::move(c));
       }
     }
     *clusters = std::move(rest);
   };
-  take_doors(&vanished, ChangeKind::kDoorOpened);
-  take_doors(&appeared, ChangeKind::kDoorClosed);
+  take_panels(&vanished, ChangeKind::kWallGone, ChangeKind::kDoorOpened);
+  take_panels(&appeared, ChangeKind::kWallNew, ChangeKind::kDoorClosed);
 
   // Moves: the closest vanished/appeared pairs of similar volume, greedily.
   struct Pair {

@@ -12,8 +12,9 @@
 // from afar). A passer-by last seen where its visit never looks again is reported as appeared:
 // nothing says it left. Lighting changes nothing here: only depth is read. Changed voxels are
 // clustered into objects (26-connected). A door leaf that vanished is a door opened, one that
-// appeared a door closed (a tall, thin, door-wide object); otherwise a vanished and an appeared
-// object of similar volume close together are one object that moved.
+// appeared a door closed (a tall, thin, door-wide object); a tall, thin panel longer than any
+// door is a wall gone or new; otherwise a vanished and an appeared object of similar volume
+// close together are one object that moved.
 #pragma once
 
 #include <cstdint>
@@ -71,13 +72,28 @@ struct ChangeOptions {
   double door_min_height_m = 1.2;  // of it seen: a camera at robot height sees few tops
   double door_min_width_m = 0.55, door_max_width_m = 1.3;
   double door_max_thickness_m = 0.25;
+  // Walls: a panel at least this tall (of it seen) and long, and at most this thick, that
+  // appeared is a wall new, that vanished a wall gone (longer than door_max_width_m: a door
+  // is never a wall).
+  double wall_min_height_m = 1.5;
+  double wall_min_length_m = 1.5;
+  double wall_max_thickness_m = 0.3;
 
   // InvalidArgument naming the first setting outside its range.
   absl::Status Validate() const;
 };
 
-enum class ChangeKind { kAppeared, kVanished, kMoved, kDoorOpened, kDoorClosed };
-// "appeared", "vanished", "moved", "door_opened", "door_closed" (the names of sim's scene.json)
+enum class ChangeKind {
+  kAppeared,
+  kVanished,
+  kMoved,
+  kDoorOpened,
+  kDoorClosed,
+  kWallNew,
+  kWallGone
+};
+// "appeared", "vanished", "moved", "door_opened", "door_closed" (the names of sim's scene.json),
+// "wall_new", "wall_gone"
 const char* ChangeKindName(ChangeKind kind);
 
 struct ObjectChange {

@@ -115,6 +115,32 @@ TEST(ObjectChanges, ADoorLeafThatGoesIsADoorOpenedNotAVanishedObject) {
   EXPECT_LT((changes->objects[0].center.head<2>() - Eigen::Vector2d(1.0, 4.4)).norm(), 0.15);
 }
 
+TEST(ObjectChanges, APartitionPutUpIsAWallNewAndTakenDownAWallGone) {
+  // A partition 2.4 m long, 10 cm thick, 2.2 m tall across the room at y = 3.8 (the camera's
+  // third place, at y = 4.5, sees it from the far side; the others from the near side).
+  sim::Solid wall = Box(6, 2.0, 3.8, 2.4, 2.2);
+  wall.size.y() = 0.10;
+  wall.movable = false;
+  std::vector<sim::Solid> with = kBefore;
+  with.push_back(wall);
+  for (const bool put_up : {true, false}) {
+    auto changes = put_up ? DetectObjectChanges(Visit([&](int) { return kBefore; }),
+                                                Visit([&](int) { return with; }))
+                          : DetectObjectChanges(Visit([&](int) { return with; }),
+                                                Visit([&](int) { return kBefore; }));
+    ASSERT_TRUE(changes.ok()) << changes.status();
+    const ChangeKind kind = put_up ? ChangeKind::kWallNew : ChangeKind::kWallGone;
+    const ObjectChange* w = Find(*changes, kind);
+    ASSERT_NE(w, nullptr) << ChangeKindName(kind) << ": " << changes->objects.size() << " objects";
+    EXPECT_LT(std::abs(w->center.y() - 3.8), 0.15);
+    EXPECT_GT(std::max(w->extent.x(), w->extent.y()), 1.5);
+    for (const auto& o : changes->objects) {
+      EXPECT_NE(o.kind, ChangeKind::kDoorOpened);
+      EXPECT_NE(o.kind, ChangeKind::kDoorClosed);
+    }
+  }
+}
+
 TEST(ObjectChanges, APersonWalkingThroughIsNoChangeOfThePlace) {
   // Walking across while the camera turns at its first two places, gone by the third (which
   // looks at the whole room again). A passer-by last seen where its visit never looks again is
