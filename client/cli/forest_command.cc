@@ -465,7 +465,10 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
   auto* train = app->add_subcommand(
       "train", "Train the random-forest labeller (paper 002) on labelled data, locally");
   auto t = std::make_shared<TrainArgs>();
-  train->add_option("--data", t->data, "mOSD .pcd folders or lifemap sim visit folders")
+  train
+      ->add_option("--data", t->data,
+                   "mOSD .pcd folders, lifemap sim visit folders, or TUM folders with "
+                   "labels/classes.txt and labels/NAME.png (8-bit class per pixel, 255 none)")
       ->required()
       ->check(CLI::ExistingDirectory);
   train->add_option("--out", t->out, "model file to write")->required();
@@ -505,7 +508,9 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
   seg->add_option("--model", e->model, "model file (lifemap train)")
       ->required()
       ->check(CLI::ExistingFile);
-  seg->add_option("--data", e->data, "mOSD .pcd folders or lifemap sim visit folders")
+  seg->add_option("--data", e->data,
+                  "mOSD .pcd folders, lifemap sim visit folders, or TUM folders with "
+                  "labels/classes.txt and labels/NAME.png")
       ->required()
       ->check(CLI::ExistingDirectory);
   seg->add_option("--out", e->out, "folder for summary.json");
