@@ -74,7 +74,33 @@ struct Trial {
   // frames compared: marked and truly arrived, marked elsewhere, arrived and not marked.
   int64_t mask_tp = 0, mask_fp = 0, mask_fn = 0;
   int frames_with_mask = 0;
+
+  // Reports matched to a true change; true changes that count for recall, and of those found.
+  struct Tally {
+    int right = 0, counted = 0, found = 0;
+  };
+  Tally Count() const {
+    Tally n;
+    for (const auto& r : reported) n.right += !r.matched.empty();
+    for (const auto& c : truth) n.counted += c.counted, n.found += c.counted && c.found;
+    return n;
+  }
 };
+
+// A GetChanges report on the ground plane of the world, whose frame is T_world_map * the map's.
+Reported ReportOf(const v1::ObjectChange& c, const Eigen::Isometry3d& T_world_map) {
+  auto to_world = [&](const v1::Vector3& p) {
+    const Eigen::Vector3d w = T_world_map * Eigen::Vector3d(p.x(), p.y(), p.z());
+    return Eigen::Vector2d(w.x(), w.y());
+  };
+  Reported rep;
+  rep.kind = c.kind();
+  rep.class_name = c.class_name();
+  rep.at = to_world(c.center());
+  rep.from = to_world(c.from_center());
+  rep.size_m = std::max({c.extent().x(), c.extent().y(), c.extent().z()});
+  return rep;
+}
 
 // Scores each frame's moved mask against the world's truth: a pixel truly arrived where the
 // truth marks it changed (moved/) and the frame's surface is nearer than the reference's there
@@ -344,10 +370,6 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       }
       T_world_map = aligned->T_truth_estimate;
     }
-    auto to_world = [&](const v1::Vector3& p) {
-      const Eigen::Vector3d w = T_world_map * Eigen::Vector3d(p.x(), p.y(), p.z());
-      return Eigen::Vector2d(w.x(), w.y());
-    };
     for (const auto& v : *manifest) {
       if (v.place_id != place || v.role == "reference") continue;
       Trial t;
@@ -378,23 +400,13 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       }
       if (!r.ok()) return Fail(r.status());
       t.seconds = r->seconds();
-      for (const auto& c : r->changes()) {
-        Reported rep;
-        rep.kind = c.kind();
-        rep.class_name = c.class_name();
-        rep.at = to_world(c.center());
-        rep.from = to_world(c.from_center());
-        rep.size_m = std::max({c.extent().x(), c.extent().y(), c.extent().z()});
-        t.reported.push_back(rep);
-      }
+      for (const auto& c : r->changes()) t.reported.push_back(ReportOf(c, T_world_map));
       Match(&t, a);
       if (!ctx.json) {
-        int counted = 0, found = 0, correct = 0;
-        for (const auto& c : t.truth) counted += c.counted, found += c.counted && c.found;
-        for (const auto& rr : t.reported) correct += !rr.matched.empty();
+        const Trial::Tally n = t.Count();
         std::cerr << absl::StrFormat(
             "  %-34s %2d reported (%d right), %d of %d true changes found\n", t.path,
-            t.reported.size(), correct, found, counted);
+            t.reported.size(), n.right, n.found, n.counted);
       }
       trials.push_back(std::move(t));
     }
@@ -592,11 +604,7 @@ int RunRetentionEval(const CliContext& ctx, const RetentionEvalArgs& a) {
       auto r = (*client)->GetChanges(map, visit_ids.back(), visit);
       if (!r.ok()) return Fail(r.status());
       for (const auto& c : r->changes()) {
-        Reported rep;
-        rep.kind = c.kind();
-        rep.at = {c.center().x(), c.center().y()};
-        rep.from = {c.from_center().x(), c.from_center().y()};
-        t.reported.push_back(rep);
+        t.reported.push_back(ReportOf(c, Eigen::Isometry3d::Identity()));  // truth poses
       }
       Match(&t, a.scoring);
       changes.Add(t, true);
@@ -607,9 +615,7 @@ int RunRetentionEval(const CliContext& ctx, const RetentionEvalArgs& a) {
     req.set_dry_run(!a.retention);
     auto report = (*client)->ApplyRetention(req);
     if (!report.ok()) return Fail(report.status());
-    int c_right = 0, c_true = 0, c_found = 0;
-    for (const auto& r : t.reported) c_right += !r.matched.empty();
-    for (const auto& c : t.truth) c_true += c.counted, c_found += c.counted && c.found;
+    const Trial::Tally n = t.Count();
     const double p50 = Percentile(ms, 0.5), p95 = Percentile(ms, 0.95);
     per_visit.push_back(
         {{"visit", visit},
@@ -628,20 +634,20 @@ int RunRetentionEval(const CliContext& ctx, const RetentionEvalArgs& a) {
          {"keyframe_ms_p95", p95},
          {"changes",
           {{"reported", t.reported.size()},
-           {"right", c_right},
-           {"true", c_true},
-           {"found", c_found}}}});
+           {"right", n.right},
+           {"true", n.counted},
+           {"found", n.found}}}});
     csv += absl::StrFormat("%d,%d,%d,%d,%d,%d,%d,%d,%.1f,%.1f,%d,%d,%d,%d\n", visit, stored,
                            report->after().keyframes(), report->after().total_bytes(),
                            a.retention ? report->thinned_size() : 0, v_queried, v_recognised,
-                           v_right, p50, p95, t.reported.size(), c_right, c_true, c_found);
+                           v_right, p50, p95, t.reported.size(), n.right, n.counted, n.found);
     if (!ctx.json) {
       std::cerr << absl::StrFormat(
           "  %s: %d keyframes; map %d keyframes, %s; appearance %d/%d right; changes %d "
           "reported (%d right), %d of %d found\n",
           dirs[i].filename().string(), stored, report->after().keyframes(),
-          HumanBytes(report->after().total_bytes()), v_right, v_queried, t.reported.size(), c_right,
-          c_found, c_true);
+          HumanBytes(report->after().total_bytes()), v_right, v_queried, t.reported.size(), n.right,
+          n.found, n.counted);
     }
   }
   // The first and the last visit compared (months apart; a thinned first visit against a whole
@@ -722,10 +728,6 @@ void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
       ->check(CLI::Range(0.01, 5.0));
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunChangesEval(*ctx, *a); }; });
 }
-
-}  // namespace lifemap::cli
-
-namespace lifemap::cli {
 
 void AddRetentionEvalCommand(CLI::App* eval, CliContext* ctx) {
   auto* cmd = eval->add_subcommand(

@@ -102,10 +102,11 @@ void AppearanceIndex::Run() {
           }
           status = bow.status();
           // The keyframes it recognised weigh more from now on.
-          for (const int64_t seen : job.sighted) {
-            if (options_.recognised_weight <= 0) break;
-            recognised_by_[seen].insert(job.keyframe.visit_id);
-            index->SetWeight(seen, RecognisedWeight(seen));
+          if (options_.recognised_weight > 0) {
+            for (const int64_t seen : job.sighted) {
+              recognised_by_[seen].insert(job.keyframe.visit_id);
+              index->SetWeight(seen, RecognisedWeight(seen));
+            }
           }
         } else if (stored >= options_.min_training_keyframes) {
           status = TrainLocked(/*asked=*/false);

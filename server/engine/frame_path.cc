@@ -241,16 +241,11 @@ absl::Status FramePath::AppearanceMatches(
       }
     }
   }
-  if (anchors != nullptr) *anchors = AnchorCandidatesOf(*recognition, visit.map_id, visit_id);
-  if (sighted != nullptr) {
-    for (const auto& m : recognition->matches) {  // the best verified one
-      if (m.verification.verified && m.keyframe.map_id == visit.map_id &&
-          m.keyframe.visit_id != visit_id) {
-        sighted->push_back(m.keyframe.keyframe_id);
-        break;
-      }
-    }
-  }
+  if (anchors == nullptr && sighted == nullptr) return absl::OkStatus();
+  std::vector<AnchorCandidate> others = AnchorCandidatesOf(*recognition, visit.map_id, visit_id);
+  // The best verified one (matches come best first).
+  if (sighted != nullptr && !others.empty()) sighted->push_back(others.front().match.keyframe_id);
+  if (anchors != nullptr) *anchors = std::move(others);
   return absl::OkStatus();
 }
 

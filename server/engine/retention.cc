@@ -149,14 +149,14 @@ absl::StatusOr<RetentionReport> ApplyRetention(store::Store* store, AppearanceIn
   if (!keyframes.ok()) return keyframes.status();
   std::unordered_map<int64_t, int64_t> visit_of;
   for (const auto& k : *keyframes) visit_of[k.id] = k.visit_id;
-  // Keyframes an accepted edge names, and the other end's visit (their landmarks survived).
+  // Keyframes an accepted edge names (their landmarks survived into another view).
   auto edges = store->ListPoseEdges(map.id, 0);
   if (!edges.ok()) return edges.status();
-  std::unordered_map<int64_t, int64_t> matched_with;
+  std::set<int64_t> matched;
   for (const auto& e : *edges) {
     if (!e.accepted) continue;
-    matched_with[e.from_keyframe] = visit_of[e.to_keyframe];
-    matched_with[e.to_keyframe] = visit_of[e.from_keyframe];
+    matched.insert(e.from_keyframe);
+    matched.insert(e.to_keyframe);
   }
 
   // Keyframes one of the newest visits recognised (their landmarks survived into it).
@@ -190,7 +190,7 @@ absl::StatusOr<RetentionReport> ApplyRetention(store::Store* store, AppearanceIn
       RetentionCandidate c{k.id, r, *k.T_world_camera, false};
       if (n == 0) {
         protected_because[k.id] = "first keyframe of its visit";
-      } else if (auto m = matched_with.find(k.id); m != matched_with.end()) {
+      } else if (matched.count(k.id) != 0) {
         protected_because[k.id] = "landmarks matched by a later or earlier view (accepted edge)";
       } else if (recognised.count(k.id) != 0) {
         protected_because[k.id] = absl::StrCat("recognised by one of the ",
