@@ -562,6 +562,24 @@ TEST_F(CliTest, RetentionThinsOlderVisitsAfterADryRunSaysWhatAndWhy) {
   r = Run({"--json", "changes", "home", "--from", "1", "--to", "4"});
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_GT(json::parse(r.out)["from_keyframes"].get<int>(), 0);
+
+  // `eval retention` over the same visits: a map of its own, thinned after each visit and
+  // scored; a folder without visits is refused saying how to make one.
+  r = Run({"eval", "retention", "--visits", tmp_.File("home"), "--out", tmp_.File("ret"), "--send",
+           "compact"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json summary = json::parse(Slurp(tmp_.File("ret/summary.json")));
+  EXPECT_EQ(summary["visits"], 4);
+  ASSERT_EQ(summary["per_visit"].size(), 4u);
+  EXPECT_GT(summary["bytes_first_visit"].get<double>(), 0);
+  EXPECT_GT(summary["per_visit"][3]["thinned"].get<int>(), 0) << summary.dump();
+  EXPECT_GT(summary["appearance"]["queried"].get<int>(), 0) << summary.dump();
+  EXPECT_TRUE(summary["changes"].contains("precision"));
+  EXPECT_FALSE(Slurp(tmp_.File("ret/visits.csv")).empty());
+  std::filesystem::create_directories(tmp_.File("none"));
+  r = Run({"eval", "retention", "--visits", tmp_.File("none"), "--out", tmp_.File("ret2")});
+  EXPECT_NE(r.code, 0);
+  EXPECT_NE(r.err.find("lifemap sim --visits"), std::string::npos) << r.err;
 }
 
 TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) {
@@ -1249,6 +1267,26 @@ TEST_F(CliTest, EvalAlignmentStreamsASuiteWithoutPosesOneMapPerPlace) {
   r = Run({"--json", "maps", "list"});
   EXPECT_EQ(r.out.find("eval-alignment"), std::string::npos) << "the scratch maps are deleted";
   r = Run({"eval", "alignment", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
+
+  // Issue 36: the same suite's changes, scored per kind and subset (12 frames say little of
+  // accuracy: this checks what is written and that the scratch maps go).
+  r = Run({"--json", "eval", "changes", "--suite", tmp_.File("suite"), "--out",
+           tmp_.File("changes"), "--send", "compact"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json ch = json::parse(Slurp(tmp_.File("changes/summary.json")));
+  for (const char* kind :
+       {"appeared", "vanished", "moved", "door_opened", "door_closed", "wall_new", "wall_gone"}) {
+    EXPECT_TRUE(ch["precision"].contains(kind) && ch["recall"].contains(kind)) << kind;
+  }
+  EXPECT_EQ(ch["subsets"].size(), 8u);
+  EXPECT_EQ(ch["false_changes"].size(), 4u) << "none, lighting, dynamic, lighting + dynamic";
+  EXPECT_GT(ch["moved_mask"]["frames"].get<int>(), 0);
+  EXPECT_FALSE(Slurp(tmp_.File("changes/changes.csv")).empty());
+  r = Run({"--json", "maps", "list"});
+  EXPECT_EQ(r.out.find("eval-changes"), std::string::npos) << "the scratch maps are deleted";
+  r = Run({"eval", "changes", "--suite", tmp_.File("suite/place_00"), "--out", tmp_.File("bad2")});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("lifemap sim suite"), std::string::npos) << r.err;
 }
