@@ -22,10 +22,10 @@ for r in $(seq 1 "$rounds"); do
     pid=$!
     sleep 1.5
     $L maps create m > /dev/null
-    $L stream --map m --tum "$ref" --use-groundtruth --end-visit --rate 0 --send compact \
+    $L stream m --tum "$ref" --use-groundtruth --end-visit --rate 0 --send compact \
       > /dev/null 2>&1
     for k in 1 2; do
-      $L --json stream --map m --tum "$later" --use-groundtruth --end-visit --rate 0 \
+      $L --json stream m --tum "$later" --use-groundtruth --end-visit --rate 0 \
         --send compact 2> /dev/null | tail -1 > "$out/$cfg-$r-$k.json"
     done
     kill "$pid"

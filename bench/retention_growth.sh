@@ -1,6 +1,6 @@
 #!/bin/bash
 # The 20-visit growth figure of retention (issue 36), same run: a place's visits months apart
-# (`lifemap sim --visits 20`) streamed with their true poses into a fresh lifemapd twice, once
+# (`lifemap sim --world rooms --visits 20`) streamed with their true poses into a fresh lifemapd twice, once
 # with retention applied after each visit and once with dry runs only (the baseline), each
 # scored by `lifemap eval retention` (bytes, appearance recall, keyframe reply times, changes).
 # The simulated visits span years into the future: frames.max_future_s lets their timestamps in.
@@ -8,7 +8,7 @@
 #   bench/retention_growth.sh VISITS_DIR OUT_DIR [CONFIG_MEMBERS [MODES]]
 #   (CONFIG_MEMBERS: more sections of the server's config, e.g.
 #   '"retention": {"recognised_within_visits": 2}'; MODES default "off on")
-#   e.g. lifemap sim --seed 8 --visits 20 --frames 90 --conditions scenery,lighting,dynamic \
+#   e.g. lifemap sim --world rooms --seed 8 --visits 20 --frames 90 --conditions scenery,lighting,dynamic \
 #          --world building --out /tmp/ret8 && bench/retention_growth.sh /tmp/ret8 /tmp/ret8-out
 set -eu
 visits=$1 out=$2 members=${3:-} modes=${4:-"off on"}

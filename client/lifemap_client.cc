@@ -1,5 +1,9 @@
 #include "client/lifemap_client.h"
 
+#include <netdb.h>
+#include <sys/socket.h>
+#include <sys/types.h>
+
 #include <chrono>
 #include <cstdlib>
 
@@ -229,7 +233,8 @@ class GrpcClient final : public Client {
     return Unary(&v1::MapService::Stub::GetKeyframe, maps_.get(), req);
   }
   absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request, std::ostream* out,
-                                     std::vector<std::string>* left_out) override {
+                                     std::vector<std::string>* left_out,
+                                     v1::OccupancyGridInfo* grid) override {
     grpc::ClientContext context;
     AddKey(&context);
     auto reader = maps_->ExportMap(&context, request);
@@ -242,12 +247,37 @@ class GrpcClient final : public Client {
         items = chunk.item_count();
         last = true;
         if (left_out != nullptr) left_out->assign(chunk.left_out().begin(), chunk.left_out().end());
+        if (grid != nullptr) *grid = chunk.grid();
       }
     }
     if (auto s = FromGrpc(reader->Finish()); !s.ok()) return s;
     if (!last) return absl::DataLossError("export ended without its last chunk");
     if (!*out) return absl::DataLossError("writing the export failed");
     return items;
+  }
+  absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name) override {
+    constexpr size_t kChunk = 1 << 20;
+    grpc::ClientContext context;
+    AddKey(&context);
+    v1::Map map;
+    auto writer = maps_->ImportMap(&context, &map);
+    std::string buffer(kChunk, '\0');
+    bool first = true;
+    while (*in) {
+      in->read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+      const auto n = static_cast<size_t>(in->gcount());
+      if (n == 0 && !first) break;
+      v1::ImportChunk chunk;
+      if (first) chunk.set_name(name);
+      first = false;
+      chunk.set_data(buffer.substr(0, n));
+      if (!writer->Write(chunk)) break;  // the server answered early; Finish() says why
+    }
+    const bool read_failed = in->bad();
+    writer->WritesDone();
+    if (auto s = FromGrpc(writer->Finish()); !s.ok()) return s;
+    if (read_failed) return absl::DataLossError("reading the archive failed");
+    return map;
   }
   absl::Status RebuildSemanticOctrees(
       const v1::RebuildSemanticOctreesRequest& request,
@@ -267,6 +297,11 @@ class GrpcClient final : public Client {
     v1::EndVisitRequest req;
     req.set_visit_id(visit_id);
     return Unary(&v1::VisitService::Stub::EndVisit, visits_.get(), req);
+  }
+  absl::StatusOr<v1::DeleteVisitResponse> DeleteVisit(uint64_t visit_id) override {
+    v1::DeleteVisitRequest req;
+    req.set_visit_id(visit_id);
+    return Unary(&v1::VisitService::Stub::DeleteVisit, visits_.get(), req);
   }
   absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) override {
     v1::ListVisitsRequest req;
@@ -367,12 +402,57 @@ absl::StatusOr<std::string> ResolveApiKey(const std::string& key, const std::str
   return std::string(env != nullptr ? env : "");
 }
 
-absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& options) {
-  const auto colon = options.target.rfind(':');
-  if (options.target.empty() || colon == std::string::npos || colon + 1 == options.target.size()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("server address '", options.target, "' must be HOST:PORT"));
+absl::Status ValidateTarget(const std::string& target) {
+  for (const char* scheme : {"unix:", "unix-abstract:", "dns:", "ipv4:", "ipv6:"}) {
+    if (target.rfind(scheme, 0) == 0) return absl::OkStatus();
   }
+  const auto bad = [&](const std::string& why) {
+    return absl::InvalidArgumentError(absl::StrCat("server address '", target, "' ", why,
+                                                   ": give HOST:PORT, e.g. 127.0.0.1:50051"));
+  };
+  const auto colon = target.rfind(':');
+  if (target.empty() || colon == std::string::npos) return bad("has no port");
+  const std::string host = target.substr(0, colon), port = target.substr(colon + 1);
+  if (host.empty()) return bad("has no host");
+  if (port.empty() || port.size() > 5 ||
+      port.find_first_not_of("0123456789") != std::string::npos || std::stoi(port) < 1 ||
+      std::stoi(port) > 65535) {
+    return bad("has no port number in 1-65535 after its last ':'");
+  }
+  if (host.front() == '[' ? host.back() != ']' : host.find(':') != std::string::npos) {
+    return bad("has an IPv6 address without brackets ([::1]:50051)");
+  }
+  for (const char c : host) {
+    if (!(absl::ascii_isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '-' || c == '_' ||
+          c == '[' || c == ']' || c == ':' || c == '%')) {
+      return bad(absl::StrCat("holds '", std::string(1, c), "', which no host name has"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// Empty when `target`'s host resolves (or is not a name); else why not, for the user.
+std::string ResolveFailure(const std::string& target) {
+  const auto colon = target.rfind(':');
+  if (colon == std::string::npos || target.find('/') != std::string::npos) return "";
+  std::string host = target.substr(0, colon);
+  if (host.rfind("dns:", 0) == 0 || host.rfind("unix", 0) == 0 || host.front() == '[') return "";
+  addrinfo hints{};
+  hints.ai_family = AF_UNSPEC;
+  addrinfo* found = nullptr;
+  const int rc = getaddrinfo(host.c_str(), nullptr, &hints, &found);
+  if (found != nullptr) freeaddrinfo(found);
+  if (rc == 0) return "";
+  return absl::StrCat("the host name '", host, "' does not resolve (", gai_strerror(rc),
+                      "): check --server or LIFEMAP_SERVER");
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& options) {
+  if (auto s = ValidateTarget(options.target); !s.ok()) return s;
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(options.max_message_bytes);
   args.SetMaxSendMessageSize(options.max_message_bytes);
@@ -400,6 +480,10 @@ absl::StatusOr<std::unique_ptr<Client>> Client::Connect(const ClientOptions& opt
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(options.connect_timeout_s * 1000));
   if (!channel->WaitForConnected(deadline)) {
+    if (const std::string why = ResolveFailure(options.target); !why.empty()) {
+      return absl::UnavailableError(
+          absl::StrCat("cannot reach lifemapd at ", options.target, ": ", why));
+    }
     return absl::UnavailableError(absl::StrCat(
         "cannot reach lifemapd at ", options.target, " within ", options.connect_timeout_s,
         " s: is it running? (set --server or LIFEMAP_SERVER)",

@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <istream>
 #include <memory>
 #include <ostream>
 #include <string>
@@ -72,10 +73,14 @@ class FrameStream {
   virtual void Cancel() = 0;
 };
 
+// OK for "HOST:PORT" (a name, an IPv4 address or a bracketed IPv6 one, and a port in 1-65535)
+// or a gRPC URI ("unix:PATH", "dns:..."); INVALID_ARGUMENT saying what is wrong otherwise.
+absl::Status ValidateTarget(const std::string& target);
+
 class Client {
  public:
-  // UNAVAILABLE with a hint when the server does not answer within connect_timeout_s;
-  // INVALID_ARGUMENT for a malformed target.
+  // UNAVAILABLE with a hint when the server does not answer within connect_timeout_s (saying
+  // so when the host name does not resolve); INVALID_ARGUMENT for a malformed target.
   static absl::StatusOr<std::unique_ptr<Client>> Connect(const ClientOptions& options);
   virtual ~Client() = default;
 
@@ -110,8 +115,14 @@ class Client {
   // Streams the export into `out`; returns the number of items (poses or points) written.
   // `left_out`, when given, receives the visits a map-level export left out (not in the map's
   // frame), each "visit N: why".
+  // `grid`, when given, receives a grid export's OccupancyGridInfo (its last chunk's).
   virtual absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request, std::ostream* out,
-                                             std::vector<std::string>* left_out = nullptr) = 0;
+                                             std::vector<std::string>* left_out = nullptr,
+                                             v1::OccupancyGridInfo* grid = nullptr) = 0;
+  // Adds a map from an archive (ExportMap EXPORT_MAP_ARCHIVE) read from `in`, sent in 1 MiB
+  // chunks, under `name` ("" = the name it was exported under). No deadline: a large map takes
+  // as long as its bytes take to send and store.
+  virtual absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name) = 0;
   // Rebuilds semantic octrees from stored keyframes; `on_visit` gets each visit's outcome as
   // the server decides it (no deadline: a large map takes minutes).
   virtual absl::Status RebuildSemanticOctrees(
@@ -120,6 +131,9 @@ class Client {
 
   virtual absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) = 0;
   virtual absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) = 0;
+  // Deletes an ended visit with its keyframes (operator role; VisitService.DeleteVisit says
+  // which visits are refused and why).
+  virtual absl::StatusOr<v1::DeleteVisitResponse> DeleteVisit(uint64_t visit_id) = 0;
   virtual absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) = 0;
   // Retries anchoring the map's tracked visits not in its frame (one, or every ended one for
   // visit_id 0) against the appearance index as it is now; blocks until judged. A dry run

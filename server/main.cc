@@ -1,8 +1,8 @@
 // lifemapd: the lifemap server.
 //
 //   lifemapd --listen 127.0.0.1:50051 --db /var/lib/lifemap/lifemap.db [--config FILE]
-//   lifemapd keys create --db FILE --name NAME --role admin   (the first key, on this machine)
-//   lifemapd keys list --db FILE | lifemapd keys revoke --db FILE --name NAME
+//   lifemapd keys create NAME --role admin --db FILE   (the first key, on this machine)
+//   lifemapd keys list --db FILE | lifemapd keys revoke NAME --db FILE
 //
 // SIGTERM / SIGINT: stop accepting calls, let streams drain, commit pending keyframes, exit 0.
 #include <malloc.h>
@@ -32,7 +32,7 @@ namespace {
 // only way to make the first admin key of a server that requires keys.
 int RunKeysCommand(const std::string& action, const std::string& db, const std::string& name,
                    const std::string& role_name, const std::vector<std::string>& maps,
-                   bool create_database) {
+                   const lifemap::store::KeyLimits& limits, bool create_database) {
   using lifemap::server::Role;
   // A mistyped --db must not become a new, empty database that no server reads (issue 33).
   std::error_code ec;
@@ -57,7 +57,7 @@ int RunKeysCommand(const std::string& action, const std::string& db, const std::
       std::cerr << "lifemapd keys create: --role must be robot, operator or admin\n";
       return 2;
     }
-    auto created = lifemap::server::CreateApiKey(store->get(), name, *role, maps, {},
+    auto created = lifemap::server::CreateApiKey(store->get(), name, *role, maps, limits,
                                                  lifemap::server::NowSeconds());
     if (!created.ok()) {
       std::cerr << "lifemapd keys create: " << created.status().message() << "\n";
@@ -143,14 +143,28 @@ int main(int argc, char** argv) {
 
   auto* keys = app.add_subcommand("keys", "API keys, straight in the database (no server needed)");
   keys->require_subcommand(1);
+  // The same arguments as `lifemap keys` (NAME first; --name is kept as an alias of it).
   std::string keys_db, key_name, key_role;
   std::vector<std::string> key_maps;
+  lifemap::store::KeyLimits key_limits;
   auto* keys_create = keys->add_subcommand("create", "create a key; prints its secret once");
+  keys_create->add_option("NAME,--name", key_name, "the key's name")->required();
   keys_create->add_option("--db", keys_db, "the server's database file")->required();
-  keys_create->add_option("--name", key_name, "the key's name")->required();
   keys_create->add_option("--role", key_role, "robot, operator or admin")->required();
-  keys_create->add_option("--maps", key_maps, "only these maps (not for admin keys)")
+  keys_create
+      ->add_option("--maps", key_maps, "only these maps (comma-separated; not for admin keys)")
       ->delimiter(',');
+  keys_create->add_option("--max-streams", key_limits.max_streams,
+                          "frame streams it may have open at once");
+  keys_create->add_option("--max-fps", key_limits.max_frames_per_s,
+                          "frames a second it may send (streams and single frames together)");
+  keys_create->add_option("--max-maps", key_limits.max_maps, "maps it may have created at once");
+  keys_create->add_option("--max-keyframes-per-map", key_limits.max_keyframes_per_map,
+                          "keyframes a map may hold for it to add another");
+  int64_t max_model_mb = 0;
+  keys_create->add_option("--max-model-mb", max_model_mb, "largest model it may upload, MiB");
+  keys_create->add_option("--max-visits-per-hour", key_limits.max_visits_per_hour,
+                          "visits it may start in any hour");
   bool create_database = false;
   keys_create->add_flag("--create", create_database,
                         "make the database if it does not exist (the first key of a new server)");
@@ -158,7 +172,7 @@ int main(int argc, char** argv) {
   keys_list->add_option("--db", keys_db, "the server's database file")->required();
   auto* keys_revoke = keys->add_subcommand("revoke", "revoke a key");
   keys_revoke->add_option("--db", keys_db, "the server's database file")->required();
-  keys_revoke->add_option("--name", key_name, "the key's name")->required();
+  keys_revoke->add_option("NAME,--name", key_name, "the key's name")->required();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -168,7 +182,8 @@ int main(int argc, char** argv) {
   }
   for (auto* action : {keys_create, keys_list, keys_revoke}) {
     if (action->parsed()) {
-      return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps,
+      key_limits.max_model_bytes = max_model_mb << 20;
+      return RunKeysCommand(action->get_name(), keys_db, key_name, key_role, key_maps, key_limits,
                             create_database);
     }
   }

@@ -79,9 +79,9 @@ absl::Status CheckAuthCanWork(const ServerConfig& config, store::Store* store) {
       config.require_auth ? " need API keys (security.require_auth)"
                           : " need API keys (it is beyond loopback)",
       " and the database has no live admin key: create one on this machine with `lifemapd keys "
-      "create --db ",
+      "create NAME --role admin --db ",
       config.db_path,
-      " --name NAME --role admin` (it prints the key once), or, on a trusted network only, "
+      "` (it prints the key once), or, on a trusted network only, "
       "start with --insecure-no-auth"));
 }
 

@@ -16,6 +16,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "client/cli/output.h"
+#include "core/common/depth_codec.h"
 #include "core/common/image_codec.h"
 #include "core/common/types.h"
 
@@ -228,8 +229,8 @@ void AddRebuildOctreeCommand(CLI::App* maps, CliContext* ctx) {
       const absl::Status s =
           (*c)->RebuildSemanticOctrees(*req, [&](const v1::SemanticOctreeRebuild& r) {
             ++counts[std::clamp(static_cast<int>(r.outcome()), 0, 3)];
-            if (ctx->json) {
-              std::cout << ToJson(r) << std::endl;
+            if (ctx->json) {  // JSON Lines: one object per visit, then the summary
+              std::cout << ToJson(r, false) << std::endl;
               return;
             }
             switch (r.outcome()) {
@@ -250,11 +251,82 @@ void AddRebuildOctreeCommand(CLI::App* maps, CliContext* ctx) {
             std::cout.flush();
           });
       if (!s.ok()) return Fail(s);
-      if (!ctx->json) {
+      if (ctx->json) {
+        std::cout << nlohmann::json{{"summary",
+                                     {{"rebuilt", counts[1]},
+                                      {"up_to_date", counts[2]},
+                                      {"left_out", counts[3]}}}}
+                         .dump()
+                  << "\n";
+      } else {
         std::cout << absl::StrFormat("%d rebuilt, %d up to date, %d left out\n", counts[1],
                                      counts[2], counts[3]);
       }
       return 0;
+    };
+  });
+}
+
+// `maps export` / `maps import`: a whole map moved as one archive (issue 37).
+void AddMapArchiveCommands(CLI::App* maps, CliContext* ctx) {
+  auto* exp = maps->add_subcommand(
+      "export",
+      "Write a whole map (visits, keyframes, poses, anchors, plans, octrees, its model) to one "
+      "checksummed archive for `lifemap maps import` on this or another server");
+  auto name = std::make_shared<std::string>();
+  auto out = std::make_shared<std::string>();
+  exp->add_option("NAME", *name, "map name")->required();
+  exp->add_option("--out", *out, "archive file to write (e.g. lab.lifemap)")->required();
+  exp->callback([ctx, name, out] {
+    ctx->run = [ctx, name, out]() -> int {
+      v1::ExportMapRequest req;
+      req.set_map(*name);
+      req.set_format(v1::EXPORT_MAP_ARCHIVE);
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      uint64_t keyframes = 0;
+      auto s = WriteFileAtomically(*out, [&](std::ostream* o) -> absl::Status {
+        auto n = (*c)->ExportMap(req, o);
+        if (!n.ok()) return n.status();
+        keyframes = *n;
+        return absl::OkStatus();
+      });
+      if (!s.ok()) return Fail(s);
+      const auto bytes = fs::file_size(*out);
+      if (ctx->json) {
+        std::cout << nlohmann::json{{"out", *out},
+                                    {"map", *name},
+                                    {"keyframes", keyframes},
+                                    {"bytes", bytes}}
+                         .dump()
+                  << "\n";
+      } else {
+        std::cout << "wrote map '" << *name << "' (" << keyframes << " keyframes, "
+                  << HumanBytes(bytes) << ") to " << *out
+                  << "\nimport it with: lifemap maps import " << *out << " [--rename NAME]\n";
+      }
+      return 0;
+    };
+  });
+
+  auto* imp = maps->add_subcommand(
+      "import", "Add a map from an archive `lifemap maps export` wrote (all of it, or nothing)");
+  auto file = std::make_shared<std::string>();
+  auto rename = std::make_shared<std::string>();
+  imp->add_option("FILE", *file, "the archive")->required()->check(CLI::ExistingFile);
+  imp->add_option("--rename", *rename,
+                  "import the map under this name (default: the name it was exported under)");
+  imp->callback([ctx, file, rename] {
+    ctx->run = [ctx, file, rename] {
+      std::ifstream in(*file, std::ios::binary);
+      if (!in) return Fail(absl::NotFoundError("cannot read " + *file));
+      return RunCall<v1::Map>(
+          *ctx, [&](client::Client& c) { return c.ImportMap(&in, *rename); },
+          [](const v1::Map& m) {
+            std::cout << "imported map '" << m.name() << "' (id " << m.id()
+                      << "): " << m.visit_count() << " visits, " << m.keyframe_count()
+                      << " keyframes\n";
+          });
     };
   });
 }
@@ -358,6 +430,7 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   });
 
   AddRebuildOctreeCommand(maps, ctx);
+  AddMapArchiveCommands(maps, ctx);
 
   auto* del = maps->add_subcommand("delete", "Delete a map with all its visits and keyframes");
   auto del_name = std::make_shared<std::string>();
@@ -446,6 +519,28 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
     };
   });
 
+  auto* del = visits->add_subcommand(
+      "delete", "Delete an ended visit with its keyframes, floor plan, octree and history");
+  auto del_id = std::make_shared<uint64_t>(0);
+  auto yes = std::make_shared<bool>(false);
+  del->add_option("VISIT_ID", *del_id, "visit id")->required();
+  del->add_flag("--yes", *yes,
+                "confirm: the visit's data cannot be recovered (except from backup)");
+  del->callback([ctx, del_id, yes] {
+    ctx->run = [ctx, del_id, yes] {
+      if (!*yes) {
+        return UsageError("refusing to delete visit " + std::to_string(*del_id) +
+                          " without --yes (its keyframes are deleted for good)");
+      }
+      return RunCall<v1::DeleteVisitResponse>(
+          *ctx, [&](client::Client& c) { return c.DeleteVisit(*del_id); },
+          [&](const v1::DeleteVisitResponse& r) {
+            std::cout << "deleted visit " << *del_id << " of map '" << r.map()
+                      << "': " << r.deleted_keyframes() << " keyframes\n";
+          });
+    };
+  });
+
   // Issue 35: visits tracked before the appearance index could anchor them are retried.
   auto* anchor = visits->add_subcommand(
       "anchor",
@@ -520,7 +615,7 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
   auto* list = keyframes->add_subcommand("list", "List a map's keyframes");
   auto map = std::make_shared<std::string>();
   auto visit = std::make_shared<uint64_t>(0);
-  list->add_option("--map", *map, "map name")->required();
+  list->add_option("MAP,--map", *map, "map name (--map MAP: deprecated, as before)")->required();
   list->add_option("--visit", *visit, "only this visit");
   list->callback([ctx, map, visit] {
     ctx->run = [ctx, map, visit] {
@@ -545,29 +640,148 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx) {
           });
     };
   });
+
+  auto* get = keyframes->add_subcommand(
+      "get", "Write one stored keyframe as files: colour, depth, its entropy mask and score");
+  struct GetArgs {
+    std::string map, out;
+    uint64_t id = 0;
+  };
+  auto g = std::make_shared<GetArgs>();
+  get->add_option("MAP", g->map, "map name")->required();
+  get->add_option("ID", g->id, "keyframe id (lifemap keyframes list)")->required();
+  get->add_option("--out", g->out, "folder to write into (made if absent)")->required();
+  get->footer(
+      "Writes OUT/color.jpg or color.png (the stored bytes), OUT/depth.png (16-bit PNG, value / "
+      "depth_scale = metres, 0 = no reading), OUT/entropy_mask.png (255 = masked) and "
+      "OUT/entropy_score.png (neg-entropy x 255), computed again by the server from the stored "
+      "images at the keyframe's threshold, and OUT/keyframe.json (pose, intrinsics, depth_scale, "
+      "superjuts as stored).");
+  get->callback([ctx, g] {
+    ctx->run = [ctx, g]() -> int {
+      auto c = ctx->Connect();
+      if (!c.ok()) return Fail(c.status());
+      auto k = (*c)->GetKeyframe(g->map, g->id);
+      if (!k.ok()) return Fail(k.status());
+      std::error_code ec;
+      fs::create_directories(g->out, ec);
+      if (ec) return Fail(absl::UnavailableError("cannot make " + g->out + ": " + ec.message()));
+      const auto file = [&](const std::string& name) { return (fs::path(g->out) / name).string(); };
+      const auto write = [&](const std::string& name, const std::string& bytes) {
+        return WriteFileAtomically(file(name), [&](std::ostream* o) -> absl::Status {
+          o->write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+          return absl::OkStatus();
+        });
+      };
+      std::vector<std::string> written;
+      const std::string color = k->color().encoding() == v1::COLOR_JPEG ? "color.jpg" : "color.png";
+      if (auto s = write(color, k->color().data()); !s.ok()) return Fail(s);
+      written.push_back(file(color));
+      // Depth as a 16-bit PNG every tool reads (the store keeps it paletted or as PNG-16).
+      std::string depth_png = k->depth().data();
+      if (k->depth().encoding() == v1::DEPTH_PALETTED) {
+        auto depth = DecodePalettedDepth(k->depth().data());
+        if (!depth.ok()) return Fail(depth.status());
+        std::vector<uchar> png;
+        if (!cv::imencode(".png", *depth, png)) {
+          return Fail(absl::InternalError("could not encode the depth as PNG"));
+        }
+        depth_png.assign(png.begin(), png.end());
+      }
+      if (auto s = write("depth.png", depth_png); !s.ok()) return Fail(s);
+      written.push_back(file("depth.png"));
+      // The masks, computed again from the stored images (nothing is stored: no map given).
+      v1::ProcessFrameRequest req;
+      v1::Frame* frame = req.mutable_frame();
+      frame->set_sequence(k->summary().sequence());
+      frame->set_timestamp_s(k->summary().timestamp_s());
+      *frame->mutable_intrinsics() = k->summary().intrinsics();
+      *frame->mutable_color() = k->color();
+      *frame->mutable_depth() = k->depth();
+      if (k->summary().has_pose()) *frame->mutable_pose() = k->summary().pose();
+      req.mutable_options()->set_entropy_threshold(k->summary().entropy_threshold());
+      req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_CLASS_LABELS);
+      req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_SEMANTIC_FUSION);
+      req.mutable_options()->add_skip_outputs(v1::FRAME_OUTPUT_MOVED_ZONES);
+      auto result = (*c)->ProcessFrame(req);
+      if (!result.ok()) return Fail(result.status());
+      for (const auto& [name, bytes] :
+           {std::pair<std::string, std::string>{"entropy_mask.png", result->entropy().mask_png()},
+            {"entropy_score.png", result->entropy().score_png()}}) {
+        if (bytes.empty()) continue;
+        if (auto s = write(name, bytes); !s.ok()) return Fail(s);
+        written.push_back(file(name));
+      }
+      v1::Keyframe described = *k;
+      described.mutable_color()->clear_data();
+      described.mutable_depth()->clear_data();
+      if (auto s = write("keyframe.json", ToJson(described) + "\n"); !s.ok()) return Fail(s);
+      written.push_back(file("keyframe.json"));
+      if (ctx->json) {
+        std::cout
+            << nlohmann::json{{"keyframe_id", std::to_string(g->id)}, {"files", written}}.dump()
+            << "\n";
+      } else {
+        std::cout << "wrote keyframe " << g->id << " of map '" << g->map << "':";
+        for (const auto& w : written) std::cout << " " << w;
+        std::cout << "\n";
+      }
+      return 0;
+    };
+  });
+}
+
+// map_server's YAML for a grid export (image beside it; trinary: 0 occupied, 254 free, 205
+// unknown exactly as written).
+std::string MapServerYaml(const v1::OccupancyGridInfo& g, const std::string& image) {
+  return absl::StrFormat(
+      "image: %s\nmode: trinary\nresolution: %.6f\norigin: [%.6f, %.6f, 0.0]\nnegate: 0\n"
+      "occupied_thresh: 0.65\nfree_thresh: 0.196\n# lifemap: floor z %.3f m (%s), obstacles "
+      "%.2f-%.2f m above it\n",
+      image, g.resolution_m(), g.origin_x(), g.origin_y(), g.floor_z(),
+      g.floor_estimated() ? "estimated" : "given", g.min_height_m(), g.max_height_m());
 }
 
 void AddExportCommand(CLI::App* app, CliContext* ctx) {
   auto* exp = app->add_subcommand(
       "export",
-      "Export a map's poses (TUM format), cloud (PLY) or semantic octree (OctoMap .ot/.bt, a "
-      "labelled voxel PLY, a JSON summary)");
+      "Export a map's poses (TUM format), cloud (PLY), occupancy (OctoMap .bt, a ROS map_server "
+      "grid), semantic octree (OctoMap .ot/.bt, a labelled voxel PLY, a JSON summary) or the "
+      "whole map (an archive)");
   struct Args {
     std::string map, what, out, format, class_name;
     uint64_t visit = 0;
     double voxel_m = 0.0;
     uint32_t stride = 0;
     bool visit_column = false;
+    double floor_z = 0, min_height_m = 0, max_height_m = 0;
   };
   auto a = std::make_shared<Args>();
-  exp->add_option("--map", a->map, "map name")->required();
-  exp->add_option("--what", a->what, "poses | cloud | octree | semantic-cloud | semantic-summary")
+  exp->add_option("MAP,--map", a->map, "map name (--map MAP: deprecated, as before)")->required();
+  exp->add_option("--what", a->what,
+                  "poses | cloud | occupancy (OctoMap .bt from the depth, no model needed) | "
+                  "grid (a ROS map_server .pgm + .yaml in the --out folder) | octree (semantic) | "
+                  "semantic-cloud | semantic-summary | map (the whole map as an archive for "
+                  "`lifemap maps import`)")
       ->required()
-      ->check(CLI::IsMember({"poses", "cloud", "octree", "semantic-cloud", "semantic-summary"}));
-  exp->add_option("--out", a->out, "output file")->required();
+      ->check(CLI::IsMember({"poses", "cloud", "occupancy", "grid", "octree", "semantic-cloud",
+                             "semantic-summary", "map"}));
+  exp->add_option("--out", a->out, "output file (grid: a folder, made if absent)")->required();
   exp->add_option("--visit", a->visit, "only this visit");
-  exp->add_option("--voxel", a->voxel_m, "cloud voxel size in metres (default 0.02)");
-  exp->add_option("--stride", a->stride, "cloud: use every N-th pixel (default 4)");
+  exp->add_option("--voxel", a->voxel_m,
+                  "cloud voxel size in metres (default 0.02); occupancy and grid resolution "
+                  "(default 0.05)");
+  exp->add_option("--stride", a->stride,
+                  "cloud, occupancy, grid: use every N-th pixel (default 4)");
+  auto* floor_flag = exp->add_option(
+      "--floor-z", a->floor_z,
+      "grid: the floor's height in the map's frame (m; default: estimated from the depth)");
+  auto* min_flag =
+      exp->add_option("--min-height", a->min_height_m,
+                      "grid: obstacles reach above the floor + this (m, default 0.10)");
+  auto* max_flag =
+      exp->add_option("--max-height", a->max_height_m,
+                      "grid: ... and below the floor + this: the robot's height (m, default 1.50)");
   exp->add_flag("--visit-column", a->visit_column,
                 "poses: a ninth column with each keyframe's visit id");
   exp->add_option("--format", a->format,
@@ -576,17 +790,22 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
       ->check(CLI::IsMember({"ot", "bt"}));
   exp->add_option("--class", a->class_name,
                   "octree, semantic-cloud: only voxels of this class (a name of the map's model)");
-  exp->callback([ctx, a] {
-    ctx->run = [ctx, a]() -> int {
+  exp->callback([ctx, a, floor_flag, min_flag, max_flag] {
+    ctx->run = [ctx, a, floor_flag, min_flag, max_flag]() -> int {
       const bool semantic = a->what == "octree" || a->what == "semantic-cloud";
+      const bool grid_flags = floor_flag->count() + min_flag->count() + max_flag->count() > 0;
+      if (grid_flags && a->what != "grid") {
+        return UsageError("--floor-z, --min-height and --max-height apply to --what grid only");
+      }
       if (!a->format.empty() && a->what != "octree") {
         return UsageError("--format applies to --what octree only");
       }
       if (!a->class_name.empty() && !semantic) {
         return UsageError("--class applies to --what octree and semantic-cloud");
       }
-      if ((a->voxel_m != 0.0 || a->stride != 0) && a->what != "cloud") {
-        return UsageError("--voxel and --stride apply to --what cloud only");
+      if ((a->voxel_m != 0.0 || a->stride != 0) && a->what != "cloud" && a->what != "occupancy" &&
+          a->what != "grid") {
+        return UsageError("--voxel and --stride apply to --what cloud, occupancy and grid only");
       }
       if (a->visit_column && a->what != "poses") {
         return UsageError("--visit-column applies to --what poses only");
@@ -603,6 +822,15 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
         req.set_format(bt ? v1::EXPORT_OCTREE_BT : v1::EXPORT_OCTREE_OT);
       } else if (a->what == "semantic-cloud") {
         req.set_format(v1::EXPORT_SEMANTIC_CLOUD_PLY);
+      } else if (a->what == "map") {
+        req.set_format(v1::EXPORT_MAP_ARCHIVE);
+      } else if (a->what == "occupancy") {
+        req.set_format(v1::EXPORT_OCCUPANCY_OCTREE_BT);
+      } else if (a->what == "grid") {
+        req.set_format(v1::EXPORT_OCCUPANCY_GRID_PGM);
+        if (floor_flag->count() > 0) req.mutable_grid()->set_floor_z(a->floor_z);
+        req.mutable_grid()->set_min_height_m(a->min_height_m);
+        req.mutable_grid()->set_max_height_m(a->max_height_m);
       } else {
         req.set_format(v1::EXPORT_SEMANTIC_SUMMARY_JSON);
       }
@@ -615,24 +843,55 @@ void AddExportCommand(CLI::App* app, CliContext* ctx) {
       if (!c.ok()) return Fail(c.status());
       uint64_t items = 0;
       std::vector<std::string> left_out;
-      auto s = WriteFileAtomically(a->out, [&](std::ostream* out) -> absl::Status {
-        auto n = (*c)->ExportMap(req, out, &left_out);
+      v1::OccupancyGridInfo grid;
+      // A grid is two files in the --out folder, named after the map (map_server's pair).
+      std::string file = a->out;
+      if (a->what == "grid") {
+        std::error_code ec;
+        fs::create_directories(a->out, ec);
+        if (ec) return Fail(absl::UnavailableError("cannot make " + a->out + ": " + ec.message()));
+        file = (fs::path(a->out) / (a->map + ".pgm")).string();
+      }
+      auto s = WriteFileAtomically(file, [&](std::ostream* out) -> absl::Status {
+        auto n = (*c)->ExportMap(req, out, &left_out, &grid);
         if (!n.ok()) return n.status();
         items = *n;
         return absl::OkStatus();
       });
       if (!s.ok()) return Fail(s);
+      std::string yaml;
+      if (a->what == "grid") {
+        yaml = (fs::path(a->out) / (a->map + ".yaml")).string();
+        s = WriteFileAtomically(yaml, [&](std::ostream* out) -> absl::Status {
+          *out << MapServerYaml(grid, a->map + ".pgm");
+          return absl::OkStatus();
+        });
+        if (!s.ok()) return Fail(s);
+      }
       const char* unit = a->what == "poses"              ? "poses"
                          : a->what == "cloud"            ? "points"
                          : a->what == "semantic-summary" ? "visits"
+                         : a->what == "map"              ? "keyframes"
+                         : a->what == "grid"             ? "cells"
                                                          : "voxels";
       if (ctx->json) {
-        std::cout << nlohmann::json{{"out", a->out},
-                                    {"what", a->what},
-                                    {"items", items},
-                                    {"left_out", left_out}}
-                         .dump()
-                  << "\n";
+        nlohmann::json j{
+            {"out", a->out}, {"what", a->what}, {"items", items}, {"left_out", left_out}};
+        if (a->what == "grid") {
+          j["pgm"] = file;
+          j["yaml"] = yaml;
+          j["grid"] = nlohmann::json::parse(ToJson(grid));
+        }
+        std::cout << j.dump() << "\n";
+      } else if (a->what == "grid") {
+        std::cout << absl::StrFormat(
+            "wrote a %dx%d grid of %.3f m cells to %s and %s: %d occupied, %d free; floor at z = "
+            "%.3f m (%s), obstacles %.2f-%.2f m above it\n",
+            grid.width(), grid.height(), grid.resolution_m(), file, yaml, grid.occupied_cells(),
+            grid.free_cells(), grid.floor_z(),
+            grid.floor_estimated() ? "estimated; --floor-z to set it" : "given",
+            grid.min_height_m(), grid.max_height_m());
+        for (const auto& l : left_out) std::cout << "left out: " << l << "\n";
       } else {
         std::cout << "wrote " << items << " " << unit << " to " << a->out
                   << (a->visit == 0 && (a->what == "poses" || a->what == "cloud")
@@ -666,10 +925,10 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx) {
   process->add_option("--intrinsics", a->intrinsics,
                       "FX,FY,CX,CY in pixels (default: TUM ROS default 525,525,319.5,239.5)");
   process->add_option("--timestamp", a->timestamp_s, "capture time, s (default: now)");
-  process->add_option("--map", a->map,
+  process->add_option("MAP,--map", a->map,
                       "store into this map, as a visit of its own (started and ended for the "
-                      "frame) unless --visit names one");
-  process->add_option("--visit", a->visit, "add the frame to this open visit of --map")
+                      "frame) unless --visit names one (--map MAP: deprecated, as before)");
+  process->add_option("--visit", a->visit, "add the frame to this open visit of MAP")
       ->check(CLI::PositiveNumber);
   process->add_option("--out", a->out, "output folder (created)")->required();
   process->callback([ctx, a] {

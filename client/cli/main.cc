@@ -1,10 +1,13 @@
 // lifemap: the command-line client of lifemapd. `lifemap --help` lists the commands.
 #include <cstdlib>
 #include <iostream>
+#include <string>
 
 #include <CLI/CLI.hpp>
 
 #include "client/cli/commands.h"
+#include "client/cli/output.h"
+#include "client/lifemap_client.h"
 
 int main(int argc, char** argv) {
   lifemap::cli::CliContext ctx;
@@ -47,10 +50,34 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    const int code = app.exit(e);
-    return code == 0 ? 0 : 2;  // usage errors exit 2, like most Unix tools
+    if (e.get_exit_code() == 0) return app.exit(e);  // --help, --version
+    // With --json, scripts get the usage error as JSON too (the flag may follow the mistake).
+    bool json = false;
+    for (int i = 1; i < argc; ++i) json = json || std::string(argv[i]) == "--json";
+    if (json) {
+      lifemap::cli::SetJsonErrors(true);
+      return lifemap::cli::UsageError(e.what());
+    }
+    app.exit(e);
+    return 2;  // usage errors exit 2, like most Unix tools
   }
   lifemap::cli::SetJsonErrors(ctx.json);
+  // Issue 37: the map is the first argument everywhere; `--map MAP` still works for one
+  // release where it used to be the way (stream, export, keyframes list, process, models).
+  bool evaluating = false;  // eval commands name scratch maps with --map: not deprecated
+  for (int i = 1; i < argc; ++i) evaluating = evaluating || std::string(argv[i]) == "eval";
+  for (int i = 1; i < argc && !evaluating; ++i) {
+    const std::string arg = argv[i];
+    if (arg == "--map" || arg.rfind("--map=", 0) == 0) {
+      std::cerr << "lifemap: note: --map MAP is deprecated and goes in the next release: give "
+                   "the map as the first argument after the command (e.g. `lifemap stream MAP "
+                   "--tum DIR`)\n";
+      break;
+    }
+  }
+  if (auto s = lifemap::client::ValidateTarget(ctx.server); !s.ok()) {
+    return lifemap::cli::UsageError(std::string(s.message()));
+  }
   if (!ctx.run) {
     std::cerr << app.help();
     return 2;

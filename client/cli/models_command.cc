@@ -69,14 +69,19 @@ void AddModelCommands(CLI::App* app, CliContext* ctx) {
   auto act_name = std::make_shared<std::string>();
   auto act_map = std::make_shared<std::string>();
   auto none = std::make_shared<bool>(false);
-  auto* name_opt = activate->add_option("NAME", *act_name, "model name");
-  activate->add_option("--map", *act_map, "map (default: the server default)");
-  auto* none_flag = activate->add_flag("--none", *none, "deactivate instead");
-  name_opt->excludes(none_flag);
+  activate->add_option("NAME", *act_name, "model name");
+  activate->add_option("MAP,--map", *act_map,
+                       "map (default: the server default; --map MAP: deprecated, as before)");
+  activate->add_flag("--none", *none, "deactivate instead (`activate --none [MAP]`)");
   activate->callback([ctx, act_name, act_map, none] {
     ctx->run = [ctx, act_name, act_map, none] {
+      // `activate --none MAP`: with --none the one positional is the map.
+      if (*none && !act_name->empty()) {
+        if (!act_map->empty()) return UsageError("--none takes no model NAME: give only the MAP");
+        act_map->swap(*act_name);
+      }
       if (act_name->empty() && !*none) {
-        return Fail(absl::InvalidArgumentError("give a model NAME, or --none to deactivate"));
+        return UsageError("give a model NAME, or --none to deactivate");
       }
       return RunCall<v1::ActivateModelResponse>(
           *ctx, [&](client::Client& c) { return c.ActivateModel(*act_name, *act_map); },
@@ -106,7 +111,8 @@ void AddModelCommands(CLI::App* app, CliContext* ctx) {
   auto* classes =
       models->add_subcommand("classes", "The classes frames of a map are labelled with");
   auto cls_map = std::make_shared<std::string>();
-  classes->add_option("--map", *cls_map, "map (default: the server default)");
+  classes->add_option("MAP,--map", *cls_map,
+                      "map (default: the server default; --map MAP: deprecated, as before)");
   classes->callback([ctx, cls_map] {
     ctx->run = [ctx, cls_map] {
       return RunCall<v1::ListClassesResponse>(

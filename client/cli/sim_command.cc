@@ -32,7 +32,7 @@ struct SimArgs {
   bool no_noise = false;
   std::string intrinsics;  // FX,FY,CX,CY
   std::string size = "640x480";
-  std::string world = "rooms";
+  std::string world = "building";  // as `sim suite`
 };
 
 // The camera of --size WxH and --intrinsics FX,FY,CX,CY (default: Kinect v1's 525 px focal
@@ -226,9 +226,10 @@ void AddSimCommands(CLI::App* app, CliContext* ctx) {
   sim->add_option("--size", a->size, "image size WIDTHxHEIGHT (default 640x480)");
   sim->add_option("--intrinsics", a->intrinsics,
                   "FX,FY,CX,CY in pixels (default 525 px focal length, centred)");
-  sim->add_option("--world", a->world,
-                  "rooms (default: its own textures, boxes and cylinders) | building (shared "
-                  "materials and furniture, curved and crumpled props)");
+  sim->add_option(
+      "--world", a->world,
+      "building (default, as `sim suite`: shared materials and furniture, curved and "
+      "crumpled props) | rooms (its own textures, boxes and cylinders; renders faster)");
   sim->callback([ctx, a, sim] {
     if (sim->get_subcommands().empty()) {
       ctx->run = [ctx, a] {

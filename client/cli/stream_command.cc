@@ -4,6 +4,8 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <map>
 #include <mutex>
@@ -41,7 +43,37 @@ struct StreamArgs {
   std::string associations;
   bool end_visit = false;  // --end-visit: end the visit once the recording is sent
   bool compact = false;    // --send compact: JPEG colour, paletted depth (client::CompactFrame)
+  // --result-images: "png" (in the results, base64 in --json), "none", or a folder the PNGs
+  // are written into (the JSON then names the files).
+  std::string result_images = "png";
 };
+
+// Writes a result's PNGs into `dir` as SEQUENCE_<what>.png, clears them from `result`, and
+// returns the paths written.
+absl::StatusOr<std::vector<std::string>> WriteResultImages(const std::string& dir,
+                                                           v1::FrameResult* result) {
+  std::vector<std::string> written;
+  const std::string prefix = absl::StrFormat("%06d_", result->sequence());
+  const std::pair<const char*, std::string*> images[] = {
+      {"entropy_score", result->mutable_entropy()->mutable_score_png()},
+      {"entropy_mask", result->mutable_entropy()->mutable_mask_png()},
+      {"labels", result->mutable_labels()->mutable_label_png()},
+      {"label_confidence", result->mutable_labels()->mutable_confidence_png()},
+      {"fused_labels", result->mutable_fused_labels()->mutable_label_png()},
+      {"fused_confidence", result->mutable_fused_labels()->mutable_confidence_png()},
+      {"moved", result->mutable_moved()->mutable_mask_png()},
+  };
+  for (const auto& [what, bytes] : images) {
+    if (bytes->empty()) continue;
+    const std::string path = (std::filesystem::path(dir) / (prefix + what + ".png")).string();
+    std::ofstream out(path, std::ios::binary);
+    out.write(bytes->data(), static_cast<std::streamsize>(bytes->size()));
+    if (!out) return absl::UnavailableError("cannot write " + path);
+    written.push_back(path);
+    bytes->clear();
+  }
+  return written;
+}
 
 int RunStream(const CliContext& ctx, const StreamArgs& a) {
   if (a.rate_hz > 1000.0) {
@@ -102,6 +134,20 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   start.set_visit_id(a.visit_id);
   start.set_visit_label(a.visit_label);
   if (a.moved_against != 0) start.mutable_options()->set_moved_against_visit(a.moved_against);
+  const bool images_to_files = a.result_images != "png" && a.result_images != "none";
+  if (a.result_images == "none") {
+    start.mutable_options()->set_result_images(v1::RESULT_IMAGES_NONE);
+  } else {
+    start.mutable_options()->set_result_images(v1::RESULT_IMAGES_PNG);
+  }
+  if (images_to_files) {
+    std::error_code ec;
+    std::filesystem::create_directories(a.result_images, ec);
+    if (ec) {
+      return Fail(absl::UnavailableError(
+          absl::StrCat("cannot make --result-images ", a.result_images, ": ", ec.message())));
+    }
+  }
   if (a.robot.empty()) {
     char host[256] = {0};
     gethostname(host, sizeof(host) - 1);
@@ -206,9 +252,19 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
     } else if (result.keyframe().selected()) {
       ++keyframes_refused[result.keyframe().reason()];
     }
+    std::vector<std::string> image_files;
+    if (images_to_files) {
+      auto written = WriteResultImages(a.result_images, &result);
+      if (!written.ok()) {
+        (*stream)->Cancel();
+        return Fail(written.status());
+      }
+      image_files = *std::move(written);
+    }
     if (ctx.json) {
       nlohmann::json line = nlohmann::json::parse(ToJson(result, false));
       line["client_latency_ms"] = latency_ms;
+      if (images_to_files) line["image_files"] = image_files;
       std::cout << line.dump() << std::endl;
     } else if (progress) {
       const double elapsed = std::chrono::duration<double>(now - t0).count();
@@ -267,16 +323,19 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   const double fps = results / std::max(elapsed_s, 1e-9);
   const double p50 = Percentile(latencies_ms, 50), p99 = Percentile(latencies_ms, 99);
   if (ctx.json) {
+    // 64-bit ids as strings, as protobuf's JSON mapping writes them in the per-frame results.
+    std::vector<std::string> keyframe_id_strings;
+    for (const uint64_t id : keyframe_ids) keyframe_id_strings.push_back(std::to_string(id));
     nlohmann::json summary = {
         {"map", a.map},
-        {"visit_id", visit_id},
+        {"visit_id", std::to_string(visit_id)},
         {"pairs_found", seq->frames.size()},
         {"files_missing", seq->listed_but_missing},
         {"frames_sent", sent.load()},
         {"results", results},
         {"frames_rejected", rejected},
         {"keyframes_stored", keyframe_ids.size()},
-        {"keyframe_ids", keyframe_ids},
+        {"keyframe_ids", keyframe_id_strings},
         {"keyframes_refused", refused},
         {"keyframes_refused_by_reason", keyframes_refused},
         {"elapsed_s", elapsed_s},
@@ -334,7 +393,8 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
   auto* stream = app->add_subcommand(
       "stream", "Replay a TUM-format RGB-D recording into a map, as a robot would");
   auto a = std::make_shared<StreamArgs>();
-  stream->add_option("--map", a->map, "map to stream into")->required();
+  stream->add_option("MAP,--map", a->map, "map to stream into (--map MAP: deprecated, as before)")
+      ->required();
   stream->add_option("--tum", a->tum_dir, "TUM-format folder (rgb.txt, depth.txt, ...)")
       ->required()
       ->check(CLI::ExistingDirectory);
@@ -366,6 +426,13 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
           "(JPEG colour, lossless paletted depth: ~4x fewer bytes, ~6x cheaper for the server "
           "to decode)")
       ->check(CLI::IsMember({"as-recorded", "compact"}));
+  stream->add_option(
+      "--result-images", a->result_images,
+      "png (the default: the result images inside each result, base64 in --json), none (the "
+      "tables only: less server CPU, and --json lines without base64 images), or a "
+      "folder: each result's PNGs written there as SEQUENCE_<what>.png (entropy_score, "
+      "entropy_mask, labels, label_confidence, fused_labels, fused_confidence, moved) and "
+      "named in --json's image_files");
   stream->callback([ctx, a] { ctx->run = [ctx, a] { return RunStream(*ctx, *a); }; });
 }
 

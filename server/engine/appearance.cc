@@ -113,6 +113,14 @@ void AppearanceIndex::Run() {
         }
         break;
       }
+      case Job::Kind::kAddMap: {
+        status = IndexStored(job.map_id);
+        const auto [vocabulary, index, stored] = Current();
+        if (status.ok() && !vocabulary && stored >= options_.min_training_keyframes) {
+          status = TrainLocked(/*asked=*/false);
+        }
+        break;
+      }
       case Job::Kind::kRemove: {
         absl::MutexLock lock(&mu_);
         if (index_) stored_with_features_ -= static_cast<int64_t>(index_->RemoveIf(job.drop));
@@ -196,6 +204,14 @@ void AppearanceIndex::RemoveMap(int64_t map_id) {
   Job job;
   job.kind = Job::Kind::kRemove;
   job.drop = [map_id](const appearance::KeyframeRef& k) { return k.map_id == map_id; };
+  Push(std::move(job));
+}
+
+void AppearanceIndex::AddMap(int64_t map_id) {
+  if (!options_.enabled) return;
+  Job job;
+  job.kind = Job::Kind::kAddMap;
+  job.map_id = map_id;
   Push(std::move(job));
 }
 

@@ -60,6 +60,9 @@ class AppearanceIndex {
   void OnCommitted(const store::KeyframeRecord& keyframe);
   // Drops a deleted map's keyframes.
   void RemoveMap(int64_t map_id);
+  // Queues indexing a map's stored keyframes (an imported map); trains a vocabulary first when
+  // there is none and enough keyframes are stored now.
+  void AddMap(int64_t map_id);
   // Drops keyframes deleted by retention (server/engine/retention.h).
   void RemoveKeyframes(const std::vector<int64_t>& keyframe_ids);
 
@@ -83,7 +86,8 @@ class AppearanceIndex {
 
  private:
   struct Job {
-    enum class Kind { kAdd, kRemove, kRebuild } kind = Kind::kAdd;
+    enum class Kind { kAdd, kAddMap, kRemove, kRebuild } kind = Kind::kAdd;
+    int64_t map_id = 0;                                        // kAddMap
     std::function<bool(const appearance::KeyframeRef&)> drop;  // kRemove: which entries
     std::vector<int64_t> sighted;  // kAdd: keyframes of other visits it recognised
     appearance::KeyframeRef keyframe;

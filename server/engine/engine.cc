@@ -9,6 +9,7 @@
 #include "server/engine/appearance.h"
 #include "server/engine/clock.h"
 #include "server/engine/keyframe_committer.h"
+#include "server/engine/map_archive.h"
 #include "server/engine/model_registry.h"
 #include "server/engine/pose_graph_worker.h"
 #include "server/engine/retention.h"
@@ -53,6 +54,7 @@ absl::StatusOr<std::unique_ptr<Engine>> Engine::Open(const EngineOptions& option
   auto store = store::Store::Open(options.db_path, store_options);
   if (!store.ok()) return store.status();
   p->store = *std::move(store);
+  RemoveStaleArchiveFiles(*p->store);  // scratch files of map archives a killed server left
   p->appearance = std::make_unique<AppearanceIndex>(p->store.get(), options.appearance);
   if (auto s = p->appearance->Load(); !s.ok()) return s;
   p->committer = std::make_unique<KeyframeCommitter>(

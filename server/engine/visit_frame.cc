@@ -31,4 +31,44 @@ absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::
   return out;
 }
 
+absl::StatusOr<PosedKeyframes> ForEachPosedKeyframe(
+    store::Store* store, int64_t map_id, const std::string& map_name, int64_t visit_id,
+    const std::function<bool()>& cancelled,
+    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use) {
+  PosedKeyframes out;
+  std::optional<MapFrameVisits> frame;
+  if (visit_id == 0) {
+    auto visits = VisitsInMapFrame(store, map_name);
+    if (!visits.ok()) return visits.status();
+    frame = *std::move(visits);
+    out.left_out = frame->left_out;
+  }
+  const absl::Status st = store->ForEachKeyframeWithImages(
+      map_id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
+        if (cancelled && cancelled()) return absl::CancelledError("export cancelled");
+        if (!k.T_world_camera) return absl::OkStatus();
+        if (frame && frame->in_map_frame.count(k.visit_id) == 0) return absl::OkStatus();
+        auto decoded = DecodeRgbdFrame(store::StoredFrame(k));
+        if (!decoded.ok()) {
+          return absl::DataLossError(absl::StrCat(
+              "stored keyframe ", k.id, " cannot be decoded: ", decoded.status().message()));
+        }
+        ++out.used;
+        return use(k, *decoded);
+      });
+  if (!st.ok()) return st;
+  if (out.used == 0 && !out.left_out.empty()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("no posed keyframe of map '", map_name, "' is in the map's frame (",
+                     out.left_out.size(), " visits left out: ", out.left_out.front(),
+                     "); export one visit with --visit to get it in its own frame"));
+  }
+  if (out.used == 0) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "no keyframe of map '", map_name,
+        "' has a pose; stream with poses (lifemap stream --use-groundtruth) to export it"));
+  }
+  return out;
+}
+
 }  // namespace lifemap::server

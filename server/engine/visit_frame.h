@@ -4,12 +4,14 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <set>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/common/rgbd_frame.h"
 #include "core/common/types.h"
 #include "server/store/store.h"
 
@@ -24,5 +26,19 @@ struct MapFrameVisits {
   std::vector<std::string> left_out;  // "visit N: why", for the others
 };
 absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::string& map_name);
+
+// The posed keyframes a map-level export uses (visit_id 0: those of visits in the map's frame;
+// else that visit's, in its own frame), each decoded and handed to `use` in store order.
+// Returns the visits left out ("visit N: why"). FAILED_PRECONDITION naming `map_name` when no
+// keyframe is posed (there), DATA_LOSS for one that does not decode, CANCELLED when `cancelled`
+// says so between keyframes; `use`'s own error ends the walk.
+struct PosedKeyframes {
+  int64_t used = 0;
+  std::vector<std::string> left_out;
+};
+absl::StatusOr<PosedKeyframes> ForEachPosedKeyframe(
+    store::Store* store, int64_t map_id, const std::string& map_name, int64_t visit_id,
+    const std::function<bool()>& cancelled,
+    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use);
 
 }  // namespace lifemap::server

@@ -25,7 +25,7 @@ constexpr absl::string_view kSecretPrefix = "lmk_";
 std::string HowToSendAKey() {
   return "send the metadata 'authorization: Bearer KEY' (lifemap: --api-key-file FILE, "
          "LIFEMAP_API_KEY or --api-key KEY); an admin creates keys with `lifemap keys create` "
-         "(the first with `lifemapd keys create --db FILE --name NAME --role admin` on the "
+         "(the first with `lifemapd keys create NAME --role admin --db FILE` on the "
          "server's machine)";
 }
 
@@ -76,6 +76,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"MapService/UpdateMap", Role::kOperator},
       {"MapService/ExportMap", Role::kOperator},
       {"VisitService/AnchorVisits", Role::kOperator},
+      {"VisitService/DeleteVisit", Role::kOperator},
       {"MapService/ImportMap", Role::kOperator},
       {"MapService/RebuildSemanticOctrees", Role::kOperator},
       {"ModelService/UploadModel", Role::kOperator},

@@ -1,4 +1,5 @@
 #include <algorithm>
+#include <cmath>
 
 #include <spdlog/spdlog.h>
 
@@ -8,11 +9,14 @@
 #include "core/common/utf8.h"
 #include "core/io/tum_dataset.h"
 #include "server/engine/cloud_export.h"
+#include "server/engine/map_archive.h"
+#include "server/engine/occupancy_export.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/semantic_rebuild.h"
 #include "server/engine/visit_frame.h"
 #include "server/rpc/convert.h"
 #include "server/rpc/services.h"
+#include "server/rpc/stream_read.h"
 
 namespace lifemap::server {
 namespace {
@@ -47,7 +51,8 @@ v1::SemanticOctreeRebuild::Outcome OutcomeToProto(SemanticRebuild::Outcome o) {
 // Sends `body` in chunks of at most kExportChunkBytes; the last chunk carries the item count.
 grpc::Status SendChunks(const std::string& body, const std::string& content_type, uint64_t items,
                         grpc::ServerWriter<v1::ExportChunk>* writer,
-                        const std::vector<std::string>& left_out = {}) {
+                        const std::vector<std::string>& left_out = {},
+                        const v1::OccupancyGridInfo* grid = nullptr) {
   size_t offset = 0;
   do {
     v1::ExportChunk chunk;
@@ -59,6 +64,7 @@ grpc::Status SendChunks(const std::string& body, const std::string& content_type
       chunk.set_last(true);
       chunk.set_item_count(items);
       for (const auto& l : left_out) chunk.add_left_out(ToValidUtf8(l));
+      if (grid != nullptr) *chunk.mutable_grid() = *grid;
     }
     if (!writer->Write(chunk)) {
       return grpc::Status(grpc::StatusCode::CANCELLED, "client went away during export");
@@ -261,6 +267,29 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
   const int64_t visit_id = *id;
   if (auto s = CheckVisitOfMap(ctx_->engine->store(), *map, visit_id); !s.ok())
     return ToGrpcStatus(s);
+  if (req->format() == v1::EXPORT_MAP_ARCHIVE) {
+    if (visit_id != 0) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          "an archive holds the whole map: leave visit_id 0");
+    }
+    bool first = true;
+    auto manifest = ExportMapArchive(
+        ctx_->engine->store(), map->name, kExportChunkBytes, [&](std::string_view bytes) {
+          v1::ExportChunk chunk;
+          chunk.set_data(std::string(bytes));
+          if (first) chunk.set_content_type("application/x-lifemap-map-archive");
+          first = false;
+          return writer->Write(chunk);
+        });
+    if (!manifest.ok()) return ToGrpcStatus(manifest.status());
+    v1::ExportChunk last;
+    last.set_item_count(static_cast<uint64_t>(manifest->keyframes));
+    last.set_last(true);
+    if (!writer->Write(last)) {
+      return grpc::Status(grpc::StatusCode::CANCELLED, "client went away during export");
+    }
+    return grpc::Status::OK;
+  }
   if (req->visit_column() && req->format() != v1::EXPORT_POSES_TUM) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "visit_column applies to poses (EXPORT_POSES_TUM) only");
@@ -333,15 +362,83 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
     case v1::EXPORT_SEMANTIC_CLOUD_PLY:
     case v1::EXPORT_SEMANTIC_SUMMARY_JSON:
       return ExportSemantic(*map, *req, writer);
+    case v1::EXPORT_OCCUPANCY_OCTREE_BT:
+    case v1::EXPORT_OCCUPANCY_GRID_PGM:
+      return ExportOccupancyOf(*map, visit_id, *req, context, writer);
     default:
       return grpc::Status(
           grpc::StatusCode::INVALID_ARGUMENT,
           absl::StrCat(
               "format must be one of EXPORT_POSES_TUM, EXPORT_CLOUD_PLY, EXPORT_OCTREE_BT, "
-              "EXPORT_OCTREE_OT, EXPORT_SEMANTIC_CLOUD_PLY, EXPORT_SEMANTIC_SUMMARY_JSON; "
-              "got ",
+              "EXPORT_OCTREE_OT, EXPORT_SEMANTIC_CLOUD_PLY, EXPORT_SEMANTIC_SUMMARY_JSON, "
+              "EXPORT_MAP_ARCHIVE, EXPORT_OCCUPANCY_OCTREE_BT, EXPORT_OCCUPANCY_GRID_PGM; got ",
               static_cast<int>(req->format())));
   }
+}
+
+grpc::Status MapServiceImpl::ExportOccupancyOf(const store::MapRecord& map, int64_t visit_id,
+                                               const v1::ExportMapRequest& req,
+                                               grpc::ServerContext* context,
+                                               grpc::ServerWriter<v1::ExportChunk>* writer) {
+  OccupancyOptions options;
+  if (req.voxel_size_m() != 0.0) options.resolution_m = req.voxel_size_m();
+  if (req.pixel_stride() != 0) options.pixel_stride = static_cast<int>(req.pixel_stride());
+  if (!(options.resolution_m >= 0.01 && options.resolution_m <= 1.0)) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("voxel_size_m (the occupancy resolution) must be within "
+                                     "[0.01, 1], got ",
+                                     options.resolution_m));
+  }
+  if (req.pixel_stride() > 16) {
+    return grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("pixel_stride must be within [1, 16], got ", req.pixel_stride()));
+  }
+  const auto cancelled = [context] { return context->IsCancelled(); };
+  if (req.format() == v1::EXPORT_OCCUPANCY_OCTREE_BT) {
+    if (req.has_grid()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          "grid applies to EXPORT_OCCUPANCY_GRID_PGM only");
+    }
+    auto octree =
+        ExportOccupancy(ctx_->engine->store(), map.id, map.name, visit_id, options, cancelled);
+    if (!octree.ok()) return ToGrpcStatus(octree.status());
+    return SendChunks(octree->octree_bt, "application/octet-stream", octree->occupied_voxels,
+                      writer, octree->left_out);
+  }
+  OccupancyGridOptions grid;
+  if (req.grid().has_floor_z()) {
+    if (!std::isfinite(req.grid().floor_z())) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "grid.floor_z must be finite");
+    }
+    grid.floor_z = req.grid().floor_z();
+  }
+  if (req.grid().min_height_m() != 0.0) grid.min_height_m = req.grid().min_height_m();
+  if (req.grid().max_height_m() != 0.0) grid.max_height_m = req.grid().max_height_m();
+  if (!(grid.min_height_m >= 0.0 && grid.min_height_m < grid.max_height_m &&
+        grid.max_height_m <= 10.0)) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("grid heights must satisfy 0 <= min_height_m < max_height_m "
+                                     "<= 10 (metres above the floor), got ",
+                                     grid.min_height_m, " and ", grid.max_height_m));
+  }
+  auto g = ExportOccupancyGrid(ctx_->engine->store(), map.id, map.name, visit_id, options, grid,
+                               cancelled);
+  if (!g.ok()) return ToGrpcStatus(g.status());
+  v1::OccupancyGridInfo info;
+  info.set_resolution_m(g->resolution_m);
+  info.set_origin_x(g->origin_x);
+  info.set_origin_y(g->origin_y);
+  info.set_width(static_cast<uint32_t>(g->width));
+  info.set_height(static_cast<uint32_t>(g->height));
+  info.set_floor_z(g->floor_z);
+  info.set_floor_estimated(g->floor_estimated);
+  info.set_min_height_m(g->min_height_m);
+  info.set_max_height_m(g->max_height_m);
+  info.set_occupied_cells(g->occupied_cells);
+  info.set_free_cells(g->free_cells);
+  return SendChunks(g->ToPgm(), "image/x-portable-graymap", g->cells.size(), writer, g->left_out,
+                    &info);
 }
 
 grpc::Status MapServiceImpl::ExportSemantic(const store::MapRecord& map,
@@ -438,13 +535,61 @@ grpc::Status MapServiceImpl::RebuildSemanticOctrees(
 }
 
 grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
-                                       grpc::ServerReader<v1::ImportChunk>*, v1::Map*) {
+                                       grpc::ServerReader<v1::ImportChunk>* reader, v1::Map* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/ImportMap");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
+  // Like CreateMap: map names are one name space over every map.
   if (auto s = caller->CheckEveryMap("importing maps"); !s.ok()) return ToGrpcStatus(s);
-  return grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                      "ImportMap is not implemented yet: map import/export of whole maps is "
-                      "planned; use AdminService.Backup to copy a server's database");
+  store::Store* store = ctx_->engine->store();
+  MapArchiveImport archive(*store);
+  v1::ImportChunk chunk;
+  std::string name;
+  uint64_t chunks = 0;
+  for (;;) {
+    const ReadOutcome got = ReadMessage(reader, &chunk);
+    if (got == ReadOutcome::kEnd) break;
+    if (got == ReadOutcome::kUnparsable) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                          absl::StrCat("chunk ", chunks + 1,
+                                       " of the import could not be parsed: most often the "
+                                       "map's name holds bytes that are not valid UTF-8"));
+    }
+    if (chunks++ == 0) {
+      name = chunk.name();
+      if (!name.empty()) {
+        if (auto s = store::ValidateMapName(name); !s.ok()) {
+          return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                              absl::StrCat("name: ", s.message()));
+        }
+      }
+    } else if (!chunk.name().empty()) {
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only the first chunk names the map");
+    }
+    if (auto s = archive.Add(chunk.data()); !s.ok()) return ToGrpcStatus(s);
+  }
+  if (chunks == 0) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        "no chunks: send the archive `lifemap maps export` wrote");
+  }
+  if (name.empty()) {
+    name = archive.manifest().map;
+    if (auto s = store::ValidateMapName(name); !s.ok()) {
+      return grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("the archive's map name: ", s.message(), "; import it under another name"));
+    }
+  }
+  auto map = archive.Finish(store, name, caller->AsMapCreator());
+  if (!map.ok()) return ToGrpcStatus(map.status());
+  // The new map's keyframes join the appearance index; rankings and models see it.
+  ctx_->engine->appearance()->AddMap(map->id);
+  ctx_->engine->places()->Invalidate();
+  ctx_->engine->models()->InvalidateActivations();
+  spdlog::info("imported map '{}' (id {}) from an archive of map '{}': {} visits, {} keyframes",
+               map->name, map->id, archive.manifest().map, archive.manifest().visits,
+               archive.manifest().keyframes);
+  MapToProto(*map, resp);
+  return grpc::Status::OK;
 }
 
 }  // namespace lifemap::server

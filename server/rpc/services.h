@@ -64,6 +64,10 @@ class MapServiceImpl final : public v1::MapService::Service {
   // ExportMap's semantic octree formats (server/engine/semantic_export.h).
   grpc::Status ExportSemantic(const store::MapRecord& map, const v1::ExportMapRequest& req,
                               grpc::ServerWriter<v1::ExportChunk>* writer);
+  // ExportMap's occupancy formats, without a model (server/engine/occupancy_export.h).
+  grpc::Status ExportOccupancyOf(const store::MapRecord& map, int64_t visit_id,
+                                 const v1::ExportMapRequest& req, grpc::ServerContext* context,
+                                 grpc::ServerWriter<v1::ExportChunk>* writer);
 
   ServiceContext* ctx_;
 };
@@ -81,6 +85,8 @@ class VisitServiceImpl final : public v1::VisitService::Service {
                                 v1::AnchorHistory*) override;
   grpc::Status GetChanges(grpc::ServerContext*, const v1::GetChangesRequest*,
                           v1::VisitChanges*) override;
+  grpc::Status DeleteVisit(grpc::ServerContext*, const v1::DeleteVisitRequest*,
+                           v1::DeleteVisitResponse*) override;
 
  private:
   ServiceContext* ctx_;

@@ -3,6 +3,8 @@
 #include "absl/strings/str_cat.h"
 #include "core/common/utf8.h"
 #include "server/engine/anchor_retry.h"
+#include "server/engine/appearance.h"
+#include "server/engine/architecture.h"
 #include "server/engine/keyframe_committer.h"
 #include "server/engine/semantic_export.h"
 #include "server/engine/visit_changes.h"
@@ -13,6 +15,18 @@ namespace lifemap::server {
 namespace {
 
 constexpr size_t kLabelMaxBytes = 256;
+
+// The request's visit id, required, and one of the caller's maps' (NOT_FOUND otherwise, as for
+// an unknown visit).
+absl::StatusOr<int64_t> CallersVisitId(store::Store* store, const Principal& caller, uint64_t raw) {
+  const auto visit_id = IdFromProto(raw, "visit_id");
+  if (!visit_id.ok()) return visit_id.status();
+  if (*visit_id == 0) return absl::InvalidArgumentError("visit_id is required");
+  if (!caller.every_map) {
+    if (auto v = FindCallersVisit(store, caller, *visit_id); !v.ok()) return v.status();
+  }
+  return *visit_id;
+}
 
 }  // namespace
 
@@ -48,18 +62,32 @@ grpc::Status VisitServiceImpl::EndVisit(grpc::ServerContext* context,
                                         const v1::EndVisitRequest* req, v1::Visit* resp) {
   auto caller = ctx_->keys->Authorize(*context, "VisitService/EndVisit");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  const auto visit_id = IdFromProto(req->visit_id(), "visit_id");
+  const auto visit_id = CallersVisitId(ctx_->engine->store(), *caller, req->visit_id());
   if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
   const int64_t id = *visit_id;
-  if (id == 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "visit_id is required");
-  if (!caller->every_map) {
-    if (auto v = FindCallersVisit(ctx_->engine->store(), *caller, id); !v.ok()) {
-      return ToGrpcStatus(v.status());
-    }
-  }
   auto visit = ctx_->engine->EndVisit(id);
   if (!visit.ok()) return ToGrpcStatus(visit.status());
   VisitToProto(*visit, resp);
+  return grpc::Status::OK;
+}
+
+grpc::Status VisitServiceImpl::DeleteVisit(grpc::ServerContext* context,
+                                           const v1::DeleteVisitRequest* req,
+                                           v1::DeleteVisitResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "VisitService/DeleteVisit");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  const auto visit_id = CallersVisitId(ctx_->engine->store(), *caller, req->visit_id());
+  if (!visit_id.ok()) return ToGrpcStatus(visit_id.status());
+  const int64_t id = *visit_id;
+  auto deleted = ctx_->engine->store()->DeleteVisit(id);
+  if (!deleted.ok()) return ToGrpcStatus(deleted.status());
+  // Its keyframes leave the appearance index; rankings forget its floor plan.
+  ctx_->engine->appearance()->RemoveKeyframes(deleted->keyframe_ids);
+  ctx_->engine->places()->Invalidate();
+  spdlog::info("deleted visit {} of map '{}': {} keyframes", id, deleted->map_name,
+               deleted->keyframe_ids.size());
+  resp->set_map(deleted->map_name);
+  resp->set_deleted_keyframes(deleted->keyframe_ids.size());
   return grpc::Status::OK;
 }
 

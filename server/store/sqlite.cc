@@ -116,6 +116,8 @@ absl::Status Statement::BindError() const {
   return SqliteError(db_, bind_error_, "binding a statement parameter");
 }
 
+int Statement::ParameterCount() const { return sqlite3_bind_parameter_count(stmt_); }
+
 absl::StatusOr<bool> Statement::Step() {
   if (bind_error_ != 0) return BindError();
   const int rc = sqlite3_step(stmt_);

@@ -32,6 +32,9 @@ class Statement {
   Statement& BindBlob(int index, std::string_view bytes);
   Statement& BindNull(int index);
 
+  // How many parameters the statement has (the highest ?N).
+  int ParameterCount() const;
+
   // Steps once: true when a row is available, false when done. Errors carry SQLite's message.
   absl::StatusOr<bool> Step();
   // Steps to completion, for statements that return no rows.

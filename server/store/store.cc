@@ -13,6 +13,7 @@
 #include <limits>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
 #include "absl/synchronization/mutex.h"
 #include "server/store/sqlite.h"
@@ -407,6 +408,29 @@ CREATE TABLE keyframe_sightings (
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
+}  // namespace
+
+absl::Status MigrateSchema(Database* db, int64_t from, const std::string& path) {
+  for (int64_t v = from; v < Store::kSchemaVersion; ++v) {
+    Transaction tx(db);
+    if (auto s = tx.Begin(); !s.ok()) return s;
+    if (auto s = db->Exec(kMigrations[v]); !s.ok()) return s;
+    // The migration must leave every reference intact (foreign keys are off while it runs).
+    auto dangling = db->QueryInt("SELECT COUNT(*) FROM pragma_foreign_key_check");
+    if (!dangling.ok()) return dangling.status();
+    if (*dangling > 0) {
+      return absl::DataLossError(
+          absl::StrCat(path, ": migrating to schema ", v + 1, " would leave ", *dangling,
+                       " rows referencing rows that do not exist; the file stays at schema ", v,
+                       " (run an older lifemapd, or restore a backup)"));
+    }
+    if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", v + 1)); !s.ok()) return s;
+    if (auto s = tx.Commit(); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+namespace {
 
 constexpr char kKeyframeColumns[] =
     "k.id, k.visit_id, k.sequence, k.timestamp_s, k.has_pose, k.tx, k.ty, k.tz, k.qx, k.qy, "
@@ -741,22 +765,7 @@ absl::StatusOr<std::unique_ptr<Store>> Store::Open(const std::string& path,
           absl::StrCat(path, " holds tables but is not a lifemap database"));
     }
   }
-  for (int64_t v = *version; v < kSchemaVersion; ++v) {
-    Transaction tx(db);
-    if (auto s = tx.Begin(); !s.ok()) return s;
-    if (auto s = db->Exec(kMigrations[v]); !s.ok()) return s;
-    // The migration must leave every reference intact (foreign keys are off while it runs).
-    auto dangling = db->QueryInt("SELECT COUNT(*) FROM pragma_foreign_key_check");
-    if (!dangling.ok()) return dangling.status();
-    if (*dangling > 0) {
-      return absl::DataLossError(
-          absl::StrCat(path, ": migrating to schema ", v + 1, " would leave ", *dangling,
-                       " rows referencing rows that do not exist; the file stays at schema ", v,
-                       " (run an older lifemapd, or restore a backup)"));
-    }
-    if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", v + 1)); !s.ok()) return s;
-    if (auto s = tx.Commit(); !s.ok()) return s;
-  }
+  if (auto s = MigrateSchema(db, *version, path); !s.ok()) return s;
   if (options.quick_check) {
     auto check = db->Prepare("PRAGMA quick_check(1)");
     if (!check.ok()) return check.status();
@@ -927,6 +936,84 @@ absl::StatusOr<std::pair<int64_t, int64_t>> Store::DeleteMap(const std::string& 
   }
   if (auto s = tx.Commit(); !s.ok()) return s;
   return std::make_pair(map->visit_count, map->keyframe_count);
+}
+
+absl::StatusOr<VisitDeletion> Store::DeleteVisit(int64_t visit_id) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  auto visit = impl_->GetVisitLocked(db, visit_id);
+  if (!visit.ok()) return visit.status();
+  if (!visit->ended) {
+    return absl::FailedPreconditionError(absl::StrCat("visit ", visit_id,
+                                                      " is open: end it first (lifemap visits "
+                                                      "end ",
+                                                      visit_id, ")"));
+  }
+  // Ids of visits of the map matching `where` (?1 = the visit, ?2 = its map).
+  const auto visits_where = [&](const char* where) -> absl::StatusOr<std::vector<int64_t>> {
+    auto stmt = db->Prepare(absl::StrCat(
+        "SELECT id FROM visits WHERE map_id = ?2 AND id <> ?1 AND ", where, " ORDER BY id"));
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, visit_id).Bind(2, visit->map_id);
+    std::vector<int64_t> ids;
+    while (true) {
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      ids.push_back(s->ColumnInt(0));
+    }
+    return ids;
+  };
+  auto anchored = visits_where("anchor_visit_id = ?1");
+  if (!anchored.ok()) return anchored.status();
+  if (!anchored->empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "visits ", absl::StrJoin(*anchored, ", "), " of map '", visit->map_name,
+        "' are anchored to visit ", visit_id, ": their frame is its; delete them first"));
+  }
+  if (visit->first_of_map) {
+    auto tracked = visits_where(
+        "EXISTS (SELECT 1 FROM keyframes k WHERE k.visit_id = visits.id AND k.odom_tx IS NOT "
+        "NULL)");
+    if (!tracked.ok()) return tracked.status();
+    if (!tracked->empty()) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("visit ", visit_id, " is map '", visit->map_name,
+                       "''s first visit, whose frame is the map's, and the tracked visits ",
+                       absl::StrJoin(*tracked, ", "),
+                       " stand in it: delete them first (or the map), or keep it"));
+    }
+  }
+  VisitDeletion out;
+  out.map_id = visit->map_id;
+  out.map_name = visit->map_name;
+  {
+    auto stmt = db->Prepare("SELECT id FROM keyframes WHERE visit_id = ?1 ORDER BY id");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, visit_id);
+    while (true) {
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      out.keyframe_ids.push_back(s->ColumnInt(0));
+    }
+  }
+  // What names the visit without a foreign key; the rest cascades from the visit's row.
+  for (const char* sql :
+       {"DELETE FROM keyframe_sightings WHERE visit_id = ?1",
+        "DELETE FROM pose_optimisations WHERE visit_id = ?1", "DELETE FROM visits WHERE id = ?1"}) {
+    auto stmt = db->Prepare(sql);
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, visit_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return out;
 }
 
 absl::StatusOr<MapRecord> Store::RenameMap(const std::string& name, const std::string& new_name) {

@@ -211,6 +211,20 @@ struct ModelRecord {
 };
 
 // Which API key creates a map, and how many maps it may have created (0: no limit).
+// What DeleteVisit removed.
+struct VisitDeletion {
+  int64_t map_id = 0;
+  std::string map_name;
+  std::vector<int64_t> keyframe_ids;
+};
+
+// What a map archive holds.
+struct ArchiveCounts {
+  int64_t visits = 0;
+  int64_t keyframes = 0;
+  int64_t schema_version = 0;
+};
+
 struct MapCreator {
   int64_t key_id = 0;  // 0: none (auth off, or the store used directly)
   std::string key_name;
@@ -370,6 +384,30 @@ class Store {
   absl::StatusOr<MapRecord> GetMapById(int64_t map_id);
   // Deletes the map with its visits and keyframes; returns the counts deleted.
   absl::StatusOr<std::pair<int64_t, int64_t>> DeleteMap(const std::string& name);
+
+  // Deletes ended visit `visit_id` with everything that hangs on it (keyframes with images,
+  // features and sightings, floor plan, octree, anchor history, pose edges, solves, the
+  // sightings it made of other visits' keyframes) in one transaction; returns its map and the
+  // keyframes deleted. NOT_FOUND; FAILED_PRECONDITION, saying why, for an open visit, a visit
+  // other visits are anchored to, or a map's first visit while tracked visits of the map stand
+  // in its frame (the next visit would become the map's frame under them).
+  absl::StatusOr<VisitDeletion> DeleteVisit(int64_t visit_id);
+
+  // Map archives (issue 37; server/engine/map_archive.h frames them with a manifest and a
+  // checksum). WriteMapArchive copies map `name` whole, from one consistent snapshot, into a
+  // new SQLite file at `path` with this store's schema: the map and its model, visits (anchors,
+  // anchor history), keyframes (images, features, sightings), pose edges and solves, floor
+  // plans and semantic octrees. NOT_FOUND for an unknown map.
+  absl::StatusOr<ArchiveCounts> WriteMapArchive(const std::string& name, const std::string& path);
+  // Adds the map in the archive file at `path` as a new map `name`, in one transaction (nothing
+  // of it is stored unless all of it is). Every id is new and every reference follows; visits
+  // still open when exported arrive ended; the map's merged semantic octree (a cache) is made
+  // again when first exported. An archive of an older schema is migrated first (the file is
+  // changed). ALREADY_EXISTS for a name in use; FAILED_PRECONDITION for a newer schema or a
+  // model of the same name with other contents; INVALID_ARGUMENT for a file that is not a
+  // consistent archive of one map.
+  absl::StatusOr<MapRecord> ReadMapArchive(const std::string& path, const std::string& name,
+                                           const MapCreator& creator);
   absl::StatusOr<MapRecord> RenameMap(const std::string& name, const std::string& new_name);
 
   // Visits. NOT_FOUND for an unknown map or visit.

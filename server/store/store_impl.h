@@ -25,6 +25,10 @@ struct Store::Impl {
   absl::StatusOr<VisitRecord> GetVisitLocked(Database* db, int64_t visit_id);
 };
 
+// Runs the schema migrations from version `from` up to Store::kSchemaVersion, each in its own
+// transaction (foreign keys must be off); `path` names the file in errors.
+absl::Status MigrateSchema(Database* db, int64_t from, const std::string& path);
+
 // A pose as seven columns: tx, ty, tz, qx, qy, qz, qw, bound from parameter `first` (1-based)
 // or read from column `first` (0-based; the quaternion normalised).
 void BindPose(Statement* s, int first, const Pose& p);

@@ -15,8 +15,8 @@
 #include "absl/strings/match.h"
 #include "core/common/utf8.h"
 #include "lifemap/v1/frame_service.grpc.pb.h"
-#include "server/rpc/auth.h"
 #include "server/engine/clock.h"
+#include "server/rpc/auth.h"
 #include "server/store/store.h"
 #include "tests/integration/server_fixture.h"
 
@@ -795,7 +795,8 @@ TEST(AuthStartTest, AServerThatNeedsKeysRefusesToStartWithoutAnAdminKey) {
   auto s = server::LifemapServer::Start(config);
   ASSERT_FALSE(s.ok());
   EXPECT_TRUE(absl::IsFailedPrecondition(s.status())) << s.status();
-  EXPECT_NE(s.status().message().find("lifemapd keys create --db"), std::string::npos)
+  EXPECT_NE(s.status().message().find("lifemapd keys create NAME --role admin --db"),
+            std::string::npos)
       << s.status();
   EXPECT_NE(s.status().message().find("--insecure-no-auth"), std::string::npos) << s.status();
   config.insecure_no_auth = true;

@@ -836,16 +836,33 @@ TEST_F(ServerTest, AFarFutureTimestampIsRefusedAndTheVisitGoesOn) {
   EXPECT_TRUE((*resumed)->Finish().ok());
 }
 
-TEST_F(ServerTest, UnbuiltRpcsAnswerUnimplementedAndHealthIsServing) {
+// ImportMap is built (issue 37): an empty import is refused saying what to send, bytes that
+// are not an archive saying so; health answers SERVING.
+TEST_F(ServerTest, AnImportWithoutAnArchiveIsRefusedAndHealthIsServing) {
   auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
   auto maps = v1::MapService::NewStub(channel);
-  grpc::ClientContext ctx;
-  v1::Map imported;
-  auto writer = maps->ImportMap(&ctx, &imported);
-  writer->WritesDone();
-  const grpc::Status s = writer->Finish();
-  EXPECT_EQ(s.error_code(), grpc::StatusCode::UNIMPLEMENTED);
-  EXPECT_NE(s.error_message().find("ImportMap"), std::string::npos);
+  {
+    grpc::ClientContext ctx;
+    v1::Map imported;
+    auto writer = maps->ImportMap(&ctx, &imported);
+    writer->WritesDone();
+    const grpc::Status s = writer->Finish();
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(s.error_message().find("no chunks"), std::string::npos) << s.error_message();
+  }
+  {
+    grpc::ClientContext ctx;
+    v1::Map imported;
+    auto writer = maps->ImportMap(&ctx, &imported);
+    v1::ImportChunk chunk;
+    chunk.set_data("SQLite format 3");
+    writer->Write(chunk);
+    writer->WritesDone();
+    const grpc::Status s = writer->Finish();
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(s.error_message().find("not a lifemap map archive"), std::string::npos)
+        << s.error_message();
+  }
 
   const testing::HealthAnswer health = testing::CheckHealth(target_);
   ASSERT_TRUE(health.status.ok()) << health.status.error_message();

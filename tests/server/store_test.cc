@@ -204,6 +204,192 @@ TEST_F(StoreTest, SightingsSayWhichVisitsRecognisedAKeyframeAndGoWithIt) {
 
 // Retention deletes each visit's keyframes in one transaction: a kill at any moment leaves every
 // visit whole or thinned, the file passes its integrity check and every kept keyframe reads.
+// Issue 37: a visit deleted with all that hangs on it, in one transaction; an open visit, one
+// another visit is anchored to, and a map's first while tracked visits stand in its frame are
+// refused, saying why.
+TEST_F(StoreTest, DeleteVisitRemovesItWholeAndRefusesVisitsOthersStandOn) {
+  ASSERT_TRUE(store_->CreateMap("lab", "", 1.0).ok());
+  std::vector<int64_t> visits;
+  for (int v = 0; v < 3; ++v) {
+    auto visit = store_->StartVisit("lab", "", "", 1.0 + v);
+    std::vector<KeyframeRecord> batch;
+    for (int k = 0; k < 4; ++k) batch.push_back(Keyframe(visit->id, 10.0 * v + k));
+    ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+    visits.push_back(visit->id);
+  }
+  auto open = store_->DeleteVisit(visits[1]);
+  EXPECT_EQ(open.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(open.status().message().find("lifemap visits end"), std::string::npos);
+  for (const int64_t v : visits) ASSERT_TRUE(store_->EndVisit(v, 50.0, {v, 4, 0}).ok());
+  EXPECT_EQ(store_->DeleteVisit(9999).status().code(), absl::StatusCode::kNotFound);
+
+  auto deleted = store_->DeleteVisit(visits[1]);
+  ASSERT_TRUE(deleted.ok()) << deleted.status();
+  EXPECT_EQ(deleted->map_name, "lab");
+  EXPECT_EQ(deleted->keyframe_ids.size(), 4u);
+  EXPECT_EQ(store_->GetVisit(visits[1]).status().code(), absl::StatusCode::kNotFound);
+  const auto left = *store_->ListKeyframes(deleted->map_id, 0);
+  EXPECT_EQ(left.size(), 8u);
+  for (const auto& k : left) EXPECT_NE(k.visit_id, visits[1]);
+  auto problems = store_->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+
+  // A visit anchored to the third: the third is refused, naming it.
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(tmp_.File("lifemap.db").c_str(), &db), SQLITE_OK);
+  const std::string anchor = "UPDATE visits SET anchor_visit_id = " + std::to_string(visits[2]) +
+                             " WHERE id = " + std::to_string(visits[0]);
+  ASSERT_EQ(sqlite3_exec(db, anchor.c_str(), nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+  auto refused = store_->DeleteVisit(visits[2]);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("anchored to visit"), std::string::npos)
+      << refused.status();
+  EXPECT_EQ(store_->ListKeyframes(deleted->map_id, 0)->size(), 8u) << "nothing deleted";
+  // The third tracked by the server: the map's first visit, whose frame it stands in, is kept.
+  ASSERT_EQ(sqlite3_open(tmp_.File("lifemap.db").c_str(), &db), SQLITE_OK);
+  const std::string tracked =
+      "UPDATE keyframes SET odom_tx = 0 WHERE visit_id = " + std::to_string(visits[2]);
+  ASSERT_EQ(sqlite3_exec(db, tracked.c_str(), nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+  refused = store_->DeleteVisit(visits[0]);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("first visit"), std::string::npos) << refused.status();
+}
+
+// Issue 37: a map copied whole through an archive file into a store that has used other ids
+// (and deleted some): every keyframe, visit and reference arrives renumbered, nothing of another
+// map is touched, and a name in use, a second map in the file or a newer schema is refused.
+TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
+  ASSERT_TRUE(store_->CreateMap("lab", "the lab", 1.0).ok());
+  std::vector<int64_t> visits;
+  for (int v = 0; v < 2; ++v) {
+    auto visit = store_->StartVisit("lab", "bot", "v" + std::to_string(v), 10.0 + v);
+    ASSERT_TRUE(visit.ok());
+    std::vector<KeyframeRecord> batch;
+    for (int k = 0; k < 5; ++k) batch.push_back(Keyframe(visit->id, 10.0 * v + k));
+    ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+    ASSERT_TRUE(store_->EndVisit(visit->id, 20.0 + v, {visit->id, 5, 0}).ok());
+    visits.push_back(visit->id);
+  }
+  const auto keyframes = *store_->ListKeyframes(store_->GetMap("lab")->id, 0);
+  const std::string archive = tmp_.File("lab.archive");
+  auto counts = store_->WriteMapArchive("lab", archive);
+  ASSERT_TRUE(counts.ok()) << counts.status();
+  EXPECT_EQ(counts->visits, 2);
+  EXPECT_EQ(counts->keyframes, 10);
+  EXPECT_EQ(store_->WriteMapArchive("nowhere", tmp_.File("x")).status().code(),
+            absl::StatusCode::kNotFound);
+
+  // Another store whose ids have moved on: maps, visits and keyframes made and deleted.
+  auto other = Store::Open(tmp_.File("other.db"));
+  ASSERT_TRUE(other.ok());
+  ASSERT_TRUE((*other)->CreateMap("hall", "", 1.0).ok());
+  ASSERT_TRUE((*other)->CreateMap("gone", "", 1.0).ok());
+  for (const char* map : {"hall", "gone"}) {
+    auto visit = (*other)->StartVisit(map, "", "", 1.0);
+    std::vector<KeyframeRecord> batch;
+    for (int k = 0; k < 7; ++k) batch.push_back(Keyframe(visit->id, 1.0 + k));
+    ASSERT_TRUE((*other)->InsertKeyframes(&batch, {}).ok());
+  }
+  ASSERT_TRUE((*other)->DeleteMap("gone").ok());
+  const auto hall_before = *(*other)->ListKeyframes((*other)->GetMap("hall")->id, 0);
+
+  auto copy = (*other)->ReadMapArchive(archive, "lab", {});
+  ASSERT_TRUE(copy.ok()) << copy.status();
+  EXPECT_EQ(copy->description, "the lab");
+  const auto copied = *(*other)->ListKeyframes(copy->id, 0);
+  ASSERT_EQ(copied.size(), keyframes.size());
+  for (size_t i = 0; i < copied.size(); ++i) {
+    EXPECT_GT(copied[i].id, 14) << "ids above every id the store used, deleted ones too";
+    EXPECT_EQ(copied[i].timestamp_s, keyframes[i].timestamp_s);
+    ASSERT_TRUE(copied[i].T_world_camera.has_value());
+    EXPECT_EQ(copied[i].T_world_camera->translation, keyframes[i].T_world_camera->translation);
+    auto read = (*other)->GetKeyframe(copy->id, copied[i].id);
+    ASSERT_TRUE(read.ok()) << read.status();
+    EXPECT_EQ(read->depth, "depth-bytes");
+    auto visit = (*other)->GetVisit(copied[i].visit_id);
+    ASSERT_TRUE(visit.ok());
+    EXPECT_EQ(visit->map_id, copy->id) << "a keyframe's visit is of the copy";
+  }
+  EXPECT_EQ((*other)->ListKeyframes((*other)->GetMap("hall")->id, 0)->size(), hall_before.size());
+  auto problems = (*other)->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+
+  // Refused, leaving nothing: the name in use; a file of another schema or with two maps.
+  EXPECT_EQ((*other)->ReadMapArchive(archive, "lab", {}).status().code(),
+            absl::StatusCode::kAlreadyExists);
+  const std::string newer = tmp_.File("newer.archive");
+  std::filesystem::copy_file(archive, newer);
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(newer.c_str(), &db), SQLITE_OK);
+  ASSERT_EQ(sqlite3_exec(db, "PRAGMA user_version = 99", nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+  EXPECT_EQ((*other)->ReadMapArchive(newer, "newer", {}).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  const std::string two = tmp_.File("two.archive");
+  std::filesystem::copy_file(archive, two);
+  ASSERT_EQ(sqlite3_open(two.c_str(), &db), SQLITE_OK);
+  ASSERT_EQ(sqlite3_exec(db, "INSERT INTO maps (name, created_time_s) VALUES ('x', 1)", nullptr,
+                         nullptr, nullptr),
+            SQLITE_OK);
+  sqlite3_close(db);
+  const auto refused = (*other)->ReadMapArchive(two, "two", {});
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_EQ((*other)->ListMaps()->size(), 2u) << "hall and lab only";
+}
+
+// Issue 37: an import killed at any moment leaves the map whole or absent.
+TEST_F(StoreTest, AKillDuringAMapImportLeavesItWholeOrAbsent) {
+  ASSERT_TRUE(store_->CreateMap("big", "", 1.0).ok());
+  for (int v = 0; v < 10; ++v) {
+    auto visit = store_->StartVisit("big", "", "", 1.0 + v);
+    std::vector<KeyframeRecord> batch;
+    for (int k = 0; k < 40; ++k) {
+      batch.push_back(Keyframe(visit->id, 100.0 * v + k));
+      batch.back().depth = std::string(50000, static_cast<char>('a' + k % 26));
+    }
+    ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  }
+  const std::string archive = tmp_.File("big.archive");
+  ASSERT_TRUE(store_->WriteMapArchive("big", archive).ok());
+  const std::string path = tmp_.File("import.db");
+  ASSERT_TRUE(Store::Open(path).ok());
+  int whole = 0;
+  for (const int delay_ms : {5, 20, 50, 100, 200, 400}) {
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      auto store = Store::Open(path);
+      if (!store.ok()) _exit(2);
+      std::filesystem::copy_file(archive, archive + ".child",
+                                 std::filesystem::copy_options::overwrite_existing);
+      auto map = (*store)->ReadMapArchive(archive + ".child", "big" + std::to_string(delay_ms), {});
+      _exit(map.ok() ? 0 : 3);
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms));
+    kill(child, SIGKILL);
+    int status = 0;
+    waitpid(child, &status, 0);
+    ASSERT_FALSE(WIFEXITED(status) && WEXITSTATUS(status) != 0) << WEXITSTATUS(status);
+    auto store = Store::Open(path);
+    ASSERT_TRUE(store.ok()) << store.status();
+    auto problems = (*store)->CheckIntegrity();
+    ASSERT_TRUE(problems.ok());
+    EXPECT_TRUE(problems->empty()) << problems->front();
+    auto map = (*store)->GetMap("big" + std::to_string(delay_ms));
+    if (map.ok()) {
+      EXPECT_EQ((*store)->ListKeyframes(map->id, 0)->size(), 400u) << "whole, or not at all";
+      ++whole;
+    } else {
+      EXPECT_EQ(map.status().code(), absl::StatusCode::kNotFound);
+    }
+  }
+  std::cout << whole << " of 6 imports finished before the kill\n";
+}
+
 TEST_F(StoreTest, AKillDuringThinningLeavesEachVisitWholeOrThinned) {
   const std::string path = tmp_.File("kill.db");
   std::vector<int64_t> visits;

@@ -1,0 +1,406 @@
+// Map archives: one map copied whole between a store and an SQLite file of the same schema
+// (Store::WriteMapArchive, Store::ReadMapArchive).
+//
+// An archive is a lifemap database holding one map's rows, so that the copy is SQLite's own
+// INSERT ... SELECT over tables whose columns are the store's, an older archive is brought
+// forward by the store's own migrations, and a reader needs nothing but SQLite. Reading one
+// renumbers every id above the destination's (ids are never reused: schema 5) and rewrites the
+// references between its rows.
+#include <map>
+#include <string>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "server/store/sqlite.h"
+#include "server/store/store.h"
+#include "server/store/store_impl.h"
+
+namespace lifemap::store {
+namespace {
+
+// Parameters every copy statement may use (bound when the statement has them).
+enum Param : int {
+  kMap = 1,         // export: the map's id in the store; import: the new map's id
+  kVisitOffset,     // import: added to every visit id
+  kKeyframeOffset,  // ... keyframe id
+  kEdgeOffset,      // ... pose edge id
+  kSolveOffset,     // ... pose-graph solve id
+  kRevisionOffset,  // ... anchor revision id
+  kModel,           // import: the model's id in the store (NULL: none)
+  kCreator,         // import: the key that imported it (NULL: none)
+  kName,            // import: the new map's name (text)
+  kParamCount = kName
+};
+
+// Values for the Params: integers (nullopt binds NULL) and the name.
+struct Bindings {
+  std::vector<std::optional<int64_t>> ints = std::vector<std::optional<int64_t>>(kParamCount + 1);
+  std::string name;
+};
+
+// One table of an archive: which of its rows belong to map ?1 in the store (export) and how
+// its columns change on import (column -> SQL expression over the archive's row; the others are
+// copied as they are). `from` in the expressions is the schema rows are read from.
+struct TableCopy {
+  std::string table;
+  std::string export_where;
+  std::map<std::string, std::string> import_columns;
+  std::string import_where = "1";  // which of the archive's rows are imported
+};
+
+constexpr char kMapVisits[] = "(SELECT id FROM src.visits WHERE map_id = ?1)";
+constexpr char kMapKeyframes[] =
+    "(SELECT k.id FROM src.keyframes k JOIN src.visits v ON k.visit_id = v.id "
+    "WHERE v.map_id = ?1)";
+
+// A reference to a row of `table` in the archive, renumbered by `offset`; a reference to a row
+// the archive does not hold (an edge retention removed, a visit deleted) becomes `missing`
+// rather than a row of another map.
+std::string Ref(const std::string& column, const std::string& table, Param offset,
+                const std::string& missing) {
+  return absl::StrCat("CASE WHEN ", column, " IN (SELECT id FROM src.", table, ") THEN ", column,
+                      " + ?", static_cast<int>(offset), " ELSE ", missing, " END");
+}
+
+std::string Plus(const std::string& column, Param offset) {
+  return absl::StrCat(column, " + ?", static_cast<int>(offset));
+}
+
+// Every table holding a map's rows, parents first (the import runs with foreign keys on). The
+// map's merged semantic octree is left out on import: a cache named by its visits' ids, made
+// again from the visits' octrees when first exported.
+std::vector<TableCopy> Tables() {
+  const std::string visits = kMapVisits, keyframes = kMapKeyframes;
+  return {
+      {"models", "id = (SELECT model_id FROM src.maps WHERE id = ?1)", {}},
+      {"maps",
+       "id = ?1",
+       {{"id", "?1"}, {"name", "?9"}, {"model_id", "?7"}, {"created_by_key_id", "?8"}}},
+      {"visits",
+       "map_id = ?1",
+       {{"id", Plus("id", kVisitOffset)},
+        {"map_id", "?1"},
+        {"anchor_visit_id", Ref("anchor_visit_id", "visits", kVisitOffset, "NULL")},
+        {"anchor_edge_id", Ref("anchor_edge_id", "pose_edges", kEdgeOffset, "NULL")}}},
+      {"pose_optimisations",
+       "map_id = ?1",
+       {{"id", Plus("id", kSolveOffset)},
+        {"map_id", "?1"},
+        {"visit_id", Ref("visit_id", "visits", kVisitOffset, "0")}}},
+      {"keyframes",
+       "visit_id IN " + visits,
+       {{"id", Plus("id", kKeyframeOffset)},
+        {"visit_id", Plus("visit_id", kVisitOffset)},
+        {"optimisation_id", Ref("optimisation_id", "pose_optimisations", kSolveOffset, "NULL")}}},
+      {"keyframe_images",
+       "keyframe_id IN " + keyframes,
+       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)}}},
+      {"keyframe_features",
+       "keyframe_id IN " + keyframes,
+       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)}}},
+      // A sighting by a visit the archive does not hold is dropped (it names no visit there).
+      {"keyframe_sightings",
+       "keyframe_id IN " + keyframes,
+       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)},
+        {"visit_id", Plus("visit_id", kVisitOffset)}},
+       "visit_id IN (SELECT id FROM src.visits)"},
+      {"pose_edges",
+       "map_id = ?1",
+       {{"id", Plus("id", kEdgeOffset)},
+        {"map_id", "?1"},
+        {"from_keyframe", Plus("from_keyframe", kKeyframeOffset)},
+        {"to_keyframe", Plus("to_keyframe", kKeyframeOffset)}}},
+      {"anchor_revisions",
+       "visit_id IN " + visits,
+       {{"id", Plus("id", kRevisionOffset)},
+        {"visit_id", Plus("visit_id", kVisitOffset)},
+        {"to_visit_id", Ref("to_visit_id", "visits", kVisitOffset, "0")},
+        {"edge_id", Ref("edge_id", "pose_edges", kEdgeOffset, "NULL")}}},
+      {"visit_places", "visit_id IN " + visits, {{"visit_id", Plus("visit_id", kVisitOffset)}}},
+      {"semantic_octrees", "visit_id IN " + visits, {{"visit_id", Plus("visit_id", kVisitOffset)}}},
+      {"semantic_octree_chunks",
+       "visit_id IN " + visits,
+       {{"visit_id", Plus("visit_id", kVisitOffset)}}},
+      {"semantic_map_octrees", "map_id = ?1", {}},
+      {"semantic_map_octree_chunks", "map_id = ?1", {}},
+  };
+}
+
+bool ImportsTable(const TableCopy& t) {
+  return t.table != "models" && t.table.rfind("semantic_map_octree", 0) != 0;
+}
+
+absl::StatusOr<std::vector<std::string>> ColumnsOf(Database* db, const std::string& table) {
+  auto stmt = db->Prepare(absl::StrCat("SELECT name FROM pragma_table_info('", table, "')"));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  std::vector<std::string> columns;
+  while (true) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    columns.push_back(s->ColumnText(0));
+  }
+  if (columns.empty()) return absl::InternalError(absl::StrCat("no table ", table));
+  return columns;
+}
+
+// INSERT INTO main.t (columns) SELECT expressions FROM src.t WHERE where, with `params` bound
+// (index = Param; only those the statement uses). Table and column names are the schema's own;
+// no value is ever part of the SQL.
+absl::Status Copy(Database* db, const std::string& table, const std::string& where,
+                  const std::map<std::string, std::string>& columns_changed,
+                  const Bindings& params) {
+  auto columns = ColumnsOf(db, table);
+  if (!columns.ok()) return columns.status();
+  std::vector<std::string> values;
+  for (const std::string& c : *columns) {
+    const auto it = columns_changed.find(c);
+    values.push_back(it == columns_changed.end() ? c : it->second);
+  }
+  auto stmt = db->Prepare(
+      absl::StrCat("INSERT INTO main.", table, " (", absl::StrJoin(*columns, ", "), ") SELECT ",
+                   absl::StrJoin(values, ", "), " FROM src.", table, " WHERE ", where));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  for (int p = 1; p <= s->ParameterCount(); ++p) {
+    const auto& value = params.ints.at(static_cast<size_t>(p));
+    if (p == kName) {
+      s->Bind(p, params.name);
+    } else if (value) {
+      s->Bind(p, *value);
+    } else {
+      s->BindNull(p);
+    }
+  }
+  return s->Run();
+}
+
+// Attaches a file as schema `src` for the scope (ATTACH cannot run inside a transaction).
+class Attached {
+ public:
+  static absl::StatusOr<std::unique_ptr<Attached>> Open(Database* db, const std::string& path) {
+    auto stmt = db->Prepare("ATTACH DATABASE ?1 AS src");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, path);
+    if (auto st = s->Run(); !st.ok()) return st;
+    return std::unique_ptr<Attached>(new Attached(db));
+  }
+  ~Attached() { db_->Exec("DETACH DATABASE src").IgnoreError(); }
+
+ private:
+  explicit Attached(Database* db) : db_(db) {}
+  Database* db_;
+};
+
+absl::StatusOr<int64_t> QueryIntBound(Database* db, const std::string& sql, int64_t value) {
+  auto stmt = db->Prepare(sql);
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  if (s->ParameterCount() > 0) s->Bind(1, value);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  return *row ? s->ColumnInt(0) : 0;
+}
+
+absl::Status NotAnArchive(const std::string& why) {
+  return absl::InvalidArgumentError(
+      absl::StrCat("not a consistent lifemap map archive: ", why,
+                   "; export the map again with `lifemap maps export`"));
+}
+
+}  // namespace
+
+absl::StatusOr<ArchiveCounts> Store::WriteMapArchive(const std::string& name,
+                                                     const std::string& path) {
+  auto map = GetMap(name);
+  if (!map.ok()) return map.status();
+  auto archive = Database::Open(path, /*create=*/true, /*read_only=*/false, 5000);
+  if (!archive.ok()) return archive.status();
+  Database* db = archive->get();
+  // Written once and read back whole: no journal needed; the file is checksummed afterwards.
+  if (auto s = db->Exec("PRAGMA journal_mode=OFF; PRAGMA synchronous=OFF"); !s.ok()) return s;
+  if (auto s = MigrateSchema(db, 0, path); !s.ok()) return s;
+  auto attached = Attached::Open(db, path_);
+  if (!attached.ok()) return attached.status();
+  // One read transaction over the store: every table from the same snapshot.
+  if (auto s = db->Exec("BEGIN"); !s.ok()) return s;
+  Bindings params;
+  params.ints[kMap] = map->id;
+  for (const TableCopy& t : Tables()) {
+    if (auto s = Copy(db, t.table, t.export_where, {}, params); !s.ok()) {
+      db->Exec("ROLLBACK").IgnoreError();
+      return s;
+    }
+  }
+  if (auto s = db->Exec("COMMIT"); !s.ok()) return s;
+  ArchiveCounts counts;
+  counts.schema_version = kSchemaVersion;
+  auto visits = db->QueryInt("SELECT COUNT(*) FROM main.visits");
+  auto keyframes = db->QueryInt("SELECT COUNT(*) FROM main.keyframes");
+  if (!visits.ok()) return visits.status();
+  if (!keyframes.ok()) return keyframes.status();
+  counts.visits = *visits;
+  counts.keyframes = *keyframes;
+  return counts;
+}
+
+absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const std::string& name,
+                                                const MapCreator& creator) {
+  // Checked and, when older, migrated on its own connection first.
+  {
+    auto archive = Database::Open(path, /*create=*/false, /*read_only=*/false, 5000);
+    if (!archive.ok()) return archive.status();
+    Database* db = archive->get();
+    auto check = db->Prepare("PRAGMA quick_check(1)");
+    if (!check.ok()) return NotAnArchive(std::string(check.status().message()));
+    {
+      StatementScope s(*check);
+      auto row = s->Step();
+      if (!row.ok()) return NotAnArchive(std::string(row.status().message()));
+      if (*row && s->ColumnText(0) != "ok") return NotAnArchive(s->ColumnText(0));
+    }
+    auto version = db->QueryInt("PRAGMA user_version");
+    if (!version.ok()) return NotAnArchive(std::string(version.status().message()));
+    if (*version > kSchemaVersion) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("the archive is of schema ", *version, ", newer than this lifemapd's (",
+                       kSchemaVersion, "): import it into a newer lifemapd"));
+    }
+    if (*version < 1) return NotAnArchive("no lifemap schema");
+    if (auto s = MigrateSchema(db, *version, path); !s.ok()) return s;
+    auto maps = db->QueryInt("SELECT COUNT(*) FROM maps");
+    if (!maps.ok()) return maps.status();
+    if (*maps != 1) return NotAnArchive(absl::StrCat("it holds ", *maps, " maps, not one"));
+    auto dangling = db->QueryInt("SELECT COUNT(*) FROM pragma_foreign_key_check");
+    if (!dangling.ok()) return dangling.status();
+    if (*dangling > 0) {
+      return NotAnArchive(absl::StrCat(*dangling, " rows reference rows it does not hold"));
+    }
+  }
+
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  if (creator.max_maps > 0) {
+    auto created =
+        QueryIntBound(db, "SELECT COUNT(*) FROM maps WHERE created_by_key_id = ?1", creator.key_id);
+    if (!created.ok()) return created.status();
+    if (*created >= creator.max_maps) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat("API key '", creator.key_name, "' may create at most ", creator.max_maps,
+                       " maps (its max_maps limit) and ", *created, " it created still exist"));
+    }
+  }
+  auto attached = Attached::Open(db, path);
+  if (!attached.ok()) return attached.status();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  {
+    auto stmt = db->Prepare("SELECT COUNT(*) FROM main.maps WHERE name = ?1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, name);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row && s->ColumnInt(0) > 0) {
+      return absl::AlreadyExistsError(
+          absl::StrCat("map '", name, "' exists: import under another name (--rename NAME)"));
+    }
+  }
+
+  Bindings params;
+  params.name = name;
+  // The map's model: the store's model of that name when it is the same file, else a new one.
+  auto has_model = db->QueryInt("SELECT COUNT(*) FROM src.models");
+  if (!has_model.ok()) return has_model.status();
+  if (*has_model > 0) {
+    auto stmt = db->Prepare(
+        "SELECT m.id, m.data = a.data, a.name FROM src.models a LEFT JOIN main.models m "
+        "ON m.name = a.name LIMIT 1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row && !s->ColumnIsNull(0)) {
+      if (s->ColumnInt(1) == 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "the archive's map uses model '", s->ColumnText(2),
+            "' and this server holds another model of that name: rename one (upload it under "
+            "another name, activate that, delete the old one) and import again"));
+      }
+      params.ints[kModel] = s->ColumnInt(0);
+    }
+  }
+  if (*has_model > 0 && !params.ints[kModel]) {
+    auto columns = ColumnsOf(db, "models");
+    if (!columns.ok()) return columns.status();
+    std::vector<std::string> copied;
+    for (const std::string& c : *columns) {
+      if (c != "id") copied.push_back(c);
+    }
+    const std::string list = absl::StrJoin(copied, ", ");
+    if (auto s = db->Exec(absl::StrCat("INSERT INTO main.models (", list, ") SELECT ", list,
+                                       " FROM src.models LIMIT 1"));
+        !s.ok()) {
+      return s;
+    }
+    params.ints[kModel] = db->LastInsertRowId();
+  }
+  if (creator.key_id > 0) params.ints[kCreator] = creator.key_id;
+
+  // Ids above every id the store has used (sqlite_sequence keeps deleted ones' too).
+  const std::pair<const char*, Param> renumbered[] = {{"visits", kVisitOffset},
+                                                      {"keyframes", kKeyframeOffset},
+                                                      {"pose_edges", kEdgeOffset},
+                                                      {"pose_optimisations", kSolveOffset},
+                                                      {"anchor_revisions", kRevisionOffset}};
+  for (const auto& [table, param] : renumbered) {
+    auto used = QueryIntBound(
+        db,
+        absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM main.", table,
+                     "), 0), COALESCE((SELECT seq FROM main.sqlite_sequence WHERE name = '", table,
+                     "'), 0))"),
+        0);
+    auto lowest =
+        QueryIntBound(db, absl::StrCat("SELECT COALESCE(MIN(id), 1) FROM src.", table), 0);
+    if (!used.ok()) return used.status();
+    if (!lowest.ok()) return lowest.status();
+    params.ints[param] = *used + 1 - *lowest;
+  }
+  {
+    auto next = QueryIntBound(
+        db,
+        "SELECT MAX(COALESCE((SELECT MAX(id) FROM main.maps), 0), COALESCE((SELECT seq FROM "
+        "main.sqlite_sequence WHERE name = 'maps'), 0)) + 1",
+        0);
+    if (!next.ok()) return next.status();
+    params.ints[kMap] = *next;
+  }
+  for (const TableCopy& t : Tables()) {
+    if (!ImportsTable(t)) continue;
+    if (auto s = Copy(db, t.table, t.import_where, t.import_columns, params); !s.ok()) {
+      if (IsConstraintViolation(s)) {
+        return NotAnArchive(absl::StrCat("its ", t.table, " do not fit: ", s.message()));
+      }
+      return s;
+    }
+  }
+  // Nothing streams into an imported visit: one open when exported arrives ended, at its
+  // last keyframe's time.
+  {
+    auto stmt = db->Prepare(
+        "UPDATE visits SET ended = 1, end_time_s = MAX(start_time_s, COALESCE((SELECT "
+        "MAX(timestamp_s) FROM keyframes k WHERE k.visit_id = visits.id), start_time_s)) "
+        "WHERE map_id = ?1 AND ended = 0");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, *params.ints[kMap]);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (auto s = tx.Commit(); !s.ok()) return s;
+  return impl_->GetMapLocked(db, name);
+}
+
+}  // namespace lifemap::store
