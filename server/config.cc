@@ -70,6 +70,17 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("listen address '", listen, "' must be HOST:PORT, e.g. 127.0.0.1:50051"));
   }
+  if (!http_listen.empty() &&
+      (http_listen.rfind(':') == std::string::npos || absl::StartsWith(http_listen, "unix:"))) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("browser view address '", http_listen,
+                     "' (http, --http) must be HOST:PORT, e.g. 127.0.0.1:8080 (port 0 picks one)"));
+  }
+  if (!http_listen.empty() && http_listen == listen && !absl::EndsWith(listen, ":0")) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the browser view (--http) and gRPC (--listen) cannot share ", listen,
+                     ": give them different ports"));
+  }
   if (max_message_bytes < (1 << 20) || max_message_bytes > (256 << 20)) {
     return absl::InvalidArgumentError(absl::StrCat(
         "max message size must be within [1, 256] MiB, got ", max_message_bytes >> 20, " MiB"));
@@ -155,6 +166,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
     for (const auto& [key, value] : j.items()) {
       if (key == "listen") {
         c.listen = value.get<std::string>();
+      } else if (key == "http") {
+        c.http_listen = value.get<std::string>();
       } else if (key == "db") {
         c.db_path = value.get<std::string>();
       } else if (key == "max_message_mb") {

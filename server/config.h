@@ -23,6 +23,9 @@ bool IsLoopbackAddress(absl::string_view listen);
 
 struct ServerConfig {
   std::string listen = "127.0.0.1:50051";  // HOST:PORT; port 0 picks a free port
+  // The browser view (issue 38, server/http/web_server.h): HOST:PORT, empty = off (config key
+  // `http`, flag --http).
+  std::string http_listen;
   std::string db_path = "lifemap.db";
   int max_message_bytes = 16 << 20;  // largest request or response; bigger gets RESOURCE_EXHAUSTED
   int max_streams = 16;              // concurrent StreamFrames calls
@@ -100,7 +103,7 @@ std::string BackupDirectory(const ServerConfig& config);
 absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name);
 
 // Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
-// Keys: listen, db, max_message_mb, max_streams, max_streams_per_key, stream_start_timeout_s,
+// Keys: listen, http, db, max_message_mb, max_streams, max_streams_per_key, stream_start_timeout_s,
 // stream_idle_timeout_s, max_inflight_frames, keyframe_batch_max,
 // shutdown_grace_s, synchronous ("full" | "normal"), log_level,
 // keyframe {min_translation_m, min_rotation_deg, max_interval_s},

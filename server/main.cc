@@ -118,6 +118,9 @@ int main(int argc, char** argv) {
       ->check(CLI::ExistingFile);
   app.add_option("--listen", listen, "HOST:PORT to listen on (default 127.0.0.1:50051)");
   app.add_option("--db", db, "SQLite database file (created if missing)");
+  std::string http;
+  app.add_option("--http", http,
+                 "HOST:PORT for the browser view (off by default; same keys and TLS as gRPC)");
   app.add_option("--max-message-mb", max_message_mb, "largest message, MiB (default 16)");
   app.add_option("--max-streams", max_streams, "concurrent frame streams (default 16)");
   app.add_option("--max-inflight-frames", max_inflight,
@@ -214,6 +217,7 @@ int main(int argc, char** argv) {
   auto given = [&app](const char* flag) { return app.count(flag) > 0; };
   if (given("--listen")) config.listen = listen;
   if (given("--db")) config.db_path = db;
+  if (given("--http")) config.http_listen = http;
   if (given("--max-message-mb")) {
     config.max_message_bytes = (max_message_mb > 0 && max_message_mb <= 1024)
                                    ? max_message_mb << 20
@@ -241,6 +245,9 @@ int main(int argc, char** argv) {
   }
   // Scripts read the bound port from this line (useful with --listen HOST:0).
   std::cout << "lifemapd listening on port " << (*server)->port() << std::endl;
+  if ((*server)->http_port() > 0) {
+    std::cout << "lifemapd browser view on port " << (*server)->http_port() << std::endl;
+  }
 
   std::thread waiter([&] {
     int sig = 0;

@@ -29,6 +29,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "server/engine/periodic_task.h"
+#include "server/http/web_server.h"
 #include "server/instance_lock.h"
 #include "server/rpc/audit_interceptor.h"
 #include "server/rpc/auth.h"
@@ -56,6 +57,7 @@ struct LifemapServer::Impl {
   std::unique_ptr<StreamWatchdog> stream_watchdog;  // outlives the handlers (grpc_server)
   std::unique_ptr<grpc::Server> grpc_server;
   int port = 0;
+  std::unique_ptr<WebServer> web;  // the browser view, when config.http_listen is set
   // Runs the housekeeper every second; stopped first at shutdown.
   std::unique_ptr<Housekeeper> housekeeper;
   std::unique_ptr<PeriodicTask> housekeeping;
@@ -343,6 +345,14 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
         " (the port is in use, perhaps by another lifemapd, or the address is not one of this "
         "host's)"));
   }
+  if (!config.http_listen.empty()) {
+    auto web = WebServer::Start(config, impl->engine.get());
+    if (!web.ok()) {
+      impl->grpc_server->Shutdown();
+      return web.status();
+    }
+    impl->web = *std::move(web);
+  }
   impl->housekeeper =
       std::make_unique<Housekeeper>(store, impl->keys.get(), impl->stream_watchdog.get(),
                                     impl->grpc_server.get(), config.db_path);
@@ -362,6 +372,8 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
 
 int LifemapServer::port() const { return impl_->port; }
 
+int LifemapServer::http_port() const { return impl_->web ? impl_->web->port() : 0; }
+
 void LifemapServer::Wait() { impl_->grpc_server->Wait(); }
 
 void LifemapServer::Shutdown() {
@@ -376,6 +388,7 @@ void LifemapServer::Shutdown() {
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
   impl_->housekeeping.reset();
+  if (impl_->web) impl_->web->Stop();  // its requests finish before the engine drains
   impl_->grpc_server->Shutdown(deadline);
   // Every handler has returned: the engine drains its workers (loops closed, octrees stored,
   // floor plans folded, keyframes committed) and closes the store.

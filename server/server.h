@@ -19,6 +19,8 @@ class LifemapServer {
 
   // The port actually bound (useful with port 0).
   int port() const;
+  // The browser view's port (config.http_listen), 0 when it is off.
+  int http_port() const;
   // Blocks until Shutdown() completes.
   void Wait();
   // Stops accepting calls, lets running calls finish for up to config.shutdown_grace_s, then

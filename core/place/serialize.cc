@@ -153,19 +153,26 @@ struct Painter {
   std::function<void(const Eigen::Vector2d&, double radius_px, double opacity)> circle;
   // Text with its baseline's left end at the point.
   std::function<void(const Eigen::Vector2d&, const std::string& text, double height_px)> text;
+  std::function<void(const Eigen::Vector2d&, int64_t id)> marker;  // optional
 };
 
 // Wide enough for the legend (with the truth key) and the scale bar side by side.
 constexpr double kHeaderPx = 64, kMinWidthPx = 700;
 
 Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::string& title,
-                      const Painter* painter) {
+                      const Painter* painter, const std::vector<PlanMarker>* markers = nullptr) {
   Eigen::Vector2d lo(1e9, 1e9), hi(-1e9, -1e9);
   for (const FloorPlan* p : {&plan, truth}) {
     if (p == nullptr) continue;
     for (const auto& w : p->walls) {
       lo = lo.cwiseMin(w.start).cwiseMin(w.end);
       hi = hi.cwiseMax(w.start).cwiseMax(w.end);
+    }
+  }
+  if (markers != nullptr) {
+    for (const auto& m : *markers) {
+      lo = lo.cwiseMin(m.at);
+      hi = hi.cwiseMax(m.at);
     }
   }
   if (lo.x() > hi.x()) lo = hi = Eigen::Vector2d::Zero();
@@ -192,6 +199,9 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::
   };
   if (truth != nullptr) draw(*truth, 18, 0.25);
   draw(plan, 6, 1.0);
+  if (markers != nullptr && painter->marker) {
+    for (const auto& m : *markers) painter->marker(px(m.at), m.id);
+  }
 
   // Header: title; legend; scale bar.
   painter->text({10, 22}, title.empty() ? "floor plan (top view, y up)" : title, 16);
@@ -224,8 +234,9 @@ Eigen::Vector2d Paint(const FloorPlan& plan, const FloorPlan* truth, const std::
 
 }  // namespace
 
-std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth, const std::string& title) {
-  const Eigen::Vector2d size = Paint(plan, truth, title, nullptr);
+std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth, const std::string& title,
+                         const std::vector<PlanMarker>* markers) {
+  const Eigen::Vector2d size = Paint(plan, truth, title, nullptr, markers);
   std::string svg = absl::StrFormat(
       "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"%.0f\" height=\"%.0f\">\n"
       "<rect width=\"100%%\" height=\"100%%\" fill=\"white\"/>\n",
@@ -261,7 +272,13 @@ std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth, const st
         "<text x=\"%.1f\" y=\"%.1f\" font-family=\"sans-serif\" font-size=\"%.0f\">%s</text>\n",
         at.x(), at.y(), height, escaped);
   };
-  Paint(plan, truth, title, &painter);
+  painter.marker = [&](const Eigen::Vector2d& c, int64_t id) {
+    svg += absl::StrFormat(
+        "<circle class=\"keyframe\" data-id=\"%d\" cx=\"%.1f\" cy=\"%.1f\" r=\"5\" "
+        "fill=\"crimson\" fill-opacity=\"0.8\"><title>keyframe %d</title></circle>\n",
+        id, c.x(), c.y(), id);
+  };
+  Paint(plan, truth, title, &painter, markers);
   return svg + "</svg>\n";
 }
 

@@ -2,7 +2,9 @@
 // prints them. Lengths in metres, angles in degrees, ground-plane coordinates of the plan.
 #pragma once
 
+#include <cstdint>
 #include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "core/place/descriptor.h"
@@ -25,8 +27,16 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& json);
 // The plan as an SVG drawing, 100 px per metre, y up: walls black, doors brown, windows blue,
 // stairs a green circle. With `truth`, the truth is drawn first, wide and pale, under the plan.
 // A header above it holds `title` (what the plan is of), a legend and a 1 m scale bar.
+// `markers` (when given) are drawn as small red dots on top, each an SVG circle of class
+// "keyframe" with its id as data-id (the browser view links them), and widen the drawing to
+// hold them.
+struct PlanMarker {
+  Eigen::Vector2d at;  // ground-plane coordinates, as the walls' (e1·p, e2·p)
+  int64_t id = 0;
+};
 std::string FloorPlanSvg(const FloorPlan& plan, const FloorPlan* truth = nullptr,
-                         const std::string& title = "");
+                         const std::string& title = "",
+                         const std::vector<PlanMarker>* markers = nullptr);
 // The same drawing as a BGR image (for PNG files).
 cv::Mat FloorPlanImage(const FloorPlan& plan, const FloorPlan* truth = nullptr,
                        const std::string& title = "");

@@ -351,14 +351,12 @@ absl::Status KeyRing::ReloadLocked() {
 }
 
 absl::StatusOr<std::shared_ptr<KeyRing::Entry>> KeyRing::Find(
-    const grpc::ServerContextBase& context, absl::string_view method) {
-  const auto& metadata = context.client_metadata();
-  const auto it = metadata.find("authorization");
-  if (it == metadata.end()) {
+    std::optional<absl::string_view> authorization, absl::string_view method) {
+  if (!authorization) {
     return absl::UnauthenticatedError(
         absl::StrCat(method, " needs an API key and the call carries none: ", HowToSendAKey()));
   }
-  const absl::string_view value(it->second.data(), it->second.size());
+  const absl::string_view value = *authorization;
   if (!absl::StartsWith(value, kBearer)) {
     return absl::UnauthenticatedError(absl::StrCat(
         "the 'authorization' metadata must be 'Bearer KEY' (a key from `lifemap keys create`)"));
@@ -386,14 +384,28 @@ absl::StatusOr<std::shared_ptr<KeyRing::Entry>> KeyRing::Find(
   return entry;
 }
 
+namespace {
+std::optional<absl::string_view> AuthorizationOf(const grpc::ServerContextBase& context) {
+  const auto& metadata = context.client_metadata();
+  const auto it = metadata.find("authorization");
+  if (it == metadata.end()) return std::nullopt;
+  return absl::string_view(it->second.data(), it->second.size());
+}
+}  // namespace
+
 absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& context,
                                              absl::string_view method) {
   const std::optional<Role> needed = RequiredRole(method);
   if (!needed) {
     return absl::InternalError(absl::StrCat(method, " has no role in the server's policy"));
   }
+  return AuthorizeBearer(AuthorizationOf(context), *needed, method);
+}
+
+absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_view> authorization,
+                                                   Role needed, absl::string_view what) {
   if (!required_) return Principal{};
-  auto entry = Find(context, method);
+  auto entry = Find(authorization, what);
   if (!entry.ok()) return entry.status();
   const store::ApiKeyRecord& key = (*entry)->record;
   const std::optional<Role> role = ParseRole(key.role);
@@ -401,8 +413,8 @@ absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& cont
     return absl::PermissionDeniedError(
         absl::StrCat("API key '", key.name, "' has an unknown role '", key.role, "'"));
   }
-  if (*role < *needed) {
-    return absl::PermissionDeniedError(absl::StrCat(method, " needs the ", RoleName(*needed),
+  if (*role < needed) {
+    return absl::PermissionDeniedError(absl::StrCat(what, " needs the ", RoleName(needed),
                                                     " role; API key '", key.name, "' is ",
                                                     RoleName(*role)));
   }
@@ -437,7 +449,7 @@ absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& cont
 
 std::string KeyRing::KeyNameOf(const grpc::ServerContextBase& context) {
   if (!required_) return "";
-  auto entry = Find(context, "");
+  auto entry = Find(AuthorizationOf(context), "");
   return entry.ok() ? (*entry)->record.name : "";
 }
 

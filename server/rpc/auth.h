@@ -133,6 +133,10 @@ class KeyRing {
   // MethodRoles() (a programming error the tests catch).
   absl::StatusOr<Principal> Authorize(const grpc::ServerContextBase& context,
                                       absl::string_view method);
+  // The same for a request of another front end (lifemapd --http): `authorization` is its
+  // "Bearer KEY" header (nullopt: none), `needed` the role it needs, `what` names it in errors.
+  absl::StatusOr<Principal> AuthorizeBearer(std::optional<absl::string_view> authorization,
+                                            Role needed, absl::string_view what);
   // The name of the live key the call carries, "" if none (for the audit log).
   std::string KeyNameOf(const grpc::ServerContextBase& context);
   // Reads the keys from the store now (after a key is created or revoked): a revoked key's
@@ -152,7 +156,7 @@ class KeyRing {
     double touched_s = 0;             // last_used_time_s as last written; guarded by mu_
   };
   // The live entry of `authorization`'s key, or UNAUTHENTICATED.
-  absl::StatusOr<std::shared_ptr<Entry>> Find(const grpc::ServerContextBase& context,
+  absl::StatusOr<std::shared_ptr<Entry>> Find(std::optional<absl::string_view> authorization,
                                               absl::string_view method);
   absl::Status ReloadLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
 

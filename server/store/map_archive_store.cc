@@ -21,16 +21,17 @@ namespace {
 
 // Parameters every copy statement may use (bound when the statement has them).
 enum Param : int {
-  kMap = 1,         // export: the map's id in the store; import: the new map's id
-  kVisitOffset,     // import: added to every visit id
-  kKeyframeOffset,  // ... keyframe id
-  kEdgeOffset,      // ... pose edge id
-  kSolveOffset,     // ... pose-graph solve id
-  kRevisionOffset,  // ... anchor revision id
-  kModel,           // import: the model's id in the store (NULL: none)
-  kCreator,         // import: the key that imported it (NULL: none)
-  kName,            // import: the new map's name (text)
-  kParamCount = kName
+  kMap = 1,           // export: the map's id in the store; import: the new map's id
+  kVisitOffset,       // import: added to every visit id
+  kKeyframeOffset,    // ... keyframe id
+  kEdgeOffset,        // ... pose edge id
+  kSolveOffset,       // ... pose-graph solve id
+  kRevisionOffset,    // ... anchor revision id
+  kModel,             // import: the model's id in the store (NULL: none)
+  kCreator,           // import: the key that imported it (NULL: none)
+  kName,              // import: the new map's name (text)
+  kAnnotationOffset,  // import: added to every annotation id
+  kParamCount = kAnnotationOffset
 };
 
 // Values for the Params: integers (nullopt binds NULL) and the name.
@@ -122,6 +123,7 @@ std::vector<TableCopy> Tables() {
       {"semantic_octree_chunks",
        "visit_id IN " + visits,
        {{"visit_id", Plus("visit_id", kVisitOffset)}}},
+      {"annotations", "map_id = ?1", {{"id", Plus("id", kAnnotationOffset)}, {"map_id", "?1"}}},
       {"semantic_map_octrees", "map_id = ?1", {}},
       {"semantic_map_octree_chunks", "map_id = ?1", {}},
   };
@@ -355,7 +357,8 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
                                                       {"keyframes", kKeyframeOffset},
                                                       {"pose_edges", kEdgeOffset},
                                                       {"pose_optimisations", kSolveOffset},
-                                                      {"anchor_revisions", kRevisionOffset}};
+                                                      {"anchor_revisions", kRevisionOffset},
+                                                      {"annotations", kAnnotationOffset}};
   for (const auto& [table, param] : renumbered) {
     auto used = QueryIntBound(
         db,

@@ -405,6 +405,19 @@ CREATE TABLE keyframe_sightings (
   PRIMARY KEY (keyframe_id, visit_id)
 ) WITHOUT ROWID;
 )sql",
+    // 17 -> 18: annotations (issue 38, paper 002's tool): a class given to regions of a map's
+    // frame, boxes packed as 6 little-endian doubles each (min xyz, max xyz; metres).
+    R"sql(
+CREATE TABLE annotations (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  map_id INTEGER NOT NULL REFERENCES maps(id) ON DELETE CASCADE,
+  class_name TEXT NOT NULL,
+  boxes BLOB NOT NULL,
+  author TEXT NOT NULL,
+  created_time_s REAL NOT NULL
+);
+CREATE INDEX annotations_map ON annotations(map_id);
+)sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
               "one migration per schema version");
@@ -1258,17 +1271,19 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   return committed;
 }
 
-absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id, int64_t visit_id) {
+absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id, int64_t visit_id,
+                                                                 int64_t offset, int64_t limit) {
   absl::MutexLock lock(&impl_->read_mu);
   auto stmt = impl_->read_db->Prepare(
       absl::StrCat("SELECT ", kKeyframeColumns,
                    ", f.superjut_count, f.entropy_threshold, f.keypoint_type, f.keypoints_stored, "
                    "f.keypoints_masked FROM keyframes k JOIN visits v ON v.id = k.visit_id "
                    "LEFT JOIN keyframe_features f ON f.keyframe_id = k.id WHERE v.map_id = ?1 "
-                   "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id"));
+                   "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id "
+                   "LIMIT ?3 OFFSET ?4"));
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
-  s->Bind(1, map_id).Bind(2, visit_id);
+  s->Bind(1, map_id).Bind(2, visit_id).Bind(3, limit).Bind(4, std::max<int64_t>(offset, 0));
   std::vector<KeyframeRecord> out;
   for (;;) {
     auto row = s->Step();

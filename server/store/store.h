@@ -356,6 +356,24 @@ struct MapSemanticSnapshotRecord {
   std::string merged;  // its writer's account of the visits merged and left out
 };
 
+// An axis-aligned box of a map's frame, metres.
+struct AnnotationBox {
+  double min[3] = {0, 0, 0};
+  double max[3] = {0, 0, 0};
+};
+
+// A class given to a region of a map's frame (issue 38, paper 002's annotation tool): one or
+// more boxes (a selected voxel is a box of its size). Projected into every keyframe that sees
+// it for a training folder (server/engine/annotation_export.h).
+struct AnnotationRecord {
+  int64_t id = 0;  // assigned by InsertAnnotation
+  int64_t map_id = 0;
+  std::string class_name;
+  std::vector<AnnotationBox> boxes;
+  std::string author;  // the API key's name ("" without keys)
+  double created_time_s = 0.0;
+};
+
 class Store {
  public:
   // Opens or creates the database and migrates its schema forward. FailedPrecondition when the
@@ -366,7 +384,7 @@ class Store {
   Store(const Store&) = delete;
   Store& operator=(const Store&) = delete;
 
-  static constexpr int kSchemaVersion = 17;
+  static constexpr int kSchemaVersion = 18;
   int schema_version() const { return kSchemaVersion; }
   const std::string& path() const { return path_; }
 
@@ -438,8 +456,10 @@ class Store {
   // What map `map_id` holds (MapStorage); zeros for an unknown map.
   absl::StatusOr<MapStorage> GetMapStorage(int64_t map_id);
 
-  // Keyframes of a map (all visits, or one when visit_id != 0) in time order, without images.
-  absl::StatusOr<std::vector<KeyframeRecord>> ListKeyframes(int64_t map_id, int64_t visit_id);
+  // Keyframes of a map (all visits, or one when visit_id != 0) by visit, then in time order,
+  // without images; `limit` of them (< 0: all) after skipping `offset` (a page of them).
+  absl::StatusOr<std::vector<KeyframeRecord>> ListKeyframes(int64_t map_id, int64_t visit_id,
+                                                            int64_t offset = 0, int64_t limit = -1);
   // Calls `fn` for each keyframe with its images, one at a time (bounded memory); stops early
   // when `fn` returns a non-OK status and returns it.
   absl::Status ForEachKeyframeWithImages(
@@ -546,6 +566,12 @@ class Store {
   // A map's solves (of one visit, or all for 0), oldest first.
   absl::StatusOr<std::vector<PoseOptimisationRecord>> ListPoseOptimisations(int64_t map_id,
                                                                             int64_t visit_id);
+
+  // Annotations (schema 18). Insert assigns the id (NOT_FOUND for an unknown map); List: a
+  // map's, oldest first; Delete: NOT_FOUND unless the map holds annotation `id`.
+  absl::StatusOr<AnnotationRecord> InsertAnnotation(const AnnotationRecord& record);
+  absl::StatusOr<std::vector<AnnotationRecord>> ListAnnotations(int64_t map_id);
+  absl::Status DeleteAnnotation(int64_t map_id, int64_t id);
 
   // API keys (issue 17). Insert: ALREADY_EXISTS for a name in use (revoked keys keep theirs),
   // NOT_FOUND for an unknown map id; assigns the id. List: every key (revoked too) by name,
