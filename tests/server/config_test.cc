@@ -14,6 +14,18 @@ namespace {
 
 TEST(ServerConfig, DefaultsAreValid) { EXPECT_TRUE(ServerConfig().Validate().ok()); }
 
+TEST(ServerConfig, TheBrowserViewNeedsAnAddressOfItsOwn) {
+  ServerConfig c;
+  c.http_listen = "127.0.0.1:8080";
+  EXPECT_TRUE(c.Validate().ok());
+  c.http_listen = "8080";
+  EXPECT_NE(c.Validate().message().find("must be HOST:PORT"), std::string::npos);
+  c.http_listen = c.listen;
+  EXPECT_NE(c.Validate().message().find("different ports"), std::string::npos);
+  c.listen = c.http_listen = "127.0.0.1:0";  // two free ports, picked apart
+  EXPECT_TRUE(c.Validate().ok());
+}
+
 // A config file LoadConfigFile must refuse with InvalidArgument, and a phrase its message must
 // hold ("" for any message).
 struct Refused {
