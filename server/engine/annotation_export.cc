@@ -91,12 +91,15 @@ class BoxGrid {
   };
 
   void Add(const Box& box) {
-    const Eigen::Vector3i a = Cell(box.lo), b = Cell(box.hi);
-    const Eigen::Vector3i n = b - a + Eigen::Vector3i::Ones();
-    if (static_cast<int64_t>(n.x()) * n.y() * n.z() > kMaxCellsPerBox) {
+    // Counted in doubles: a box is validated (within ±kMaxAnnotationExtentM) but the count
+    // must not overflow whatever it holds.
+    const Eigen::Vector3d cells =
+        (box.hi / kCellM).array().floor() - (box.lo / kCellM).array().floor() + 1.0;
+    if (!(cells.prod() <= static_cast<double>(kMaxCellsPerBox))) {
       large_.push_back(box);
       return;
     }
+    const Eigen::Vector3i a = Cell(box.lo), b = Cell(box.hi);
     for (int x = a.x(); x <= b.x(); ++x) {
       for (int y = a.y(); y <= b.y(); ++y) {
         for (int z = a.z(); z <= b.z(); ++z) cells_[Key(x, y, z)].push_back(box);

@@ -25,11 +25,13 @@ struct CloudExport {
 // listed in `left_out`); else that visit alone, in its own frame. `voxel_m` > 0 and `pixel_stride`
 // >= 1 (the caller validates them). FAILED_PRECONDITION naming `map_name` when no keyframe has a
 // pose; DATA_LOSS for a stored keyframe that does not decode; CANCELLED when `cancelled` says so
-// between keyframes. Memory stays bounded on large maps: the cloud is folded into voxels as it
-// grows.
+// between keyframes. `keyframe_stride` > 1: every n-th posed keyframe only (the browser view's
+// level of detail for large maps). Memory stays bounded on large maps: the cloud is folded into
+// voxels as it grows.
 absl::StatusOr<CloudExport> ExportCloud(store::Store* store, int64_t map_id,
                                         const std::string& map_name, int64_t visit_id,
                                         double voxel_m, int pixel_stride,
-                                        const std::function<bool()>& cancelled);
+                                        const std::function<bool()>& cancelled,
+                                        int64_t keyframe_stride = 1);
 
 }  // namespace lifemap::server

@@ -1,5 +1,7 @@
 #include "server/engine/visit_frame.h"
 
+#include <algorithm>
+
 #include "absl/strings/str_cat.h"
 
 namespace lifemap::server {
@@ -34,7 +36,8 @@ absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::
 absl::StatusOr<PosedKeyframes> ForEachPosedKeyframe(
     store::Store* store, int64_t map_id, const std::string& map_name, int64_t visit_id,
     const std::function<bool()>& cancelled,
-    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use) {
+    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use,
+    int64_t keyframe_stride) {
   PosedKeyframes out;
   std::optional<MapFrameVisits> frame;
   if (visit_id == 0) {
@@ -43,20 +46,30 @@ absl::StatusOr<PosedKeyframes> ForEachPosedKeyframe(
     frame = *std::move(visits);
     out.left_out = frame->left_out;
   }
-  const absl::Status st = store->ForEachKeyframeWithImages(
-      map_id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {
-        if (cancelled && cancelled()) return absl::CancelledError("export cancelled");
-        if (!k.T_world_camera) return absl::OkStatus();
-        if (frame && frame->in_map_frame.count(k.visit_id) == 0) return absl::OkStatus();
-        auto decoded = DecodeRgbdFrame(store::StoredFrame(k));
-        if (!decoded.ok()) {
-          return absl::DataLossError(absl::StrCat(
-              "stored keyframe ", k.id, " cannot be decoded: ", decoded.status().message()));
-        }
-        ++out.used;
-        return use(k, *decoded);
-      });
-  if (!st.ok()) return st;
+  // The listing first (no images): keyframes without a pose or out of the map's frame are
+  // passed over before their images are read; then one keyframe at a time, every
+  // `keyframe_stride`-th of those used.
+  auto listed = store->ListKeyframes(map_id, visit_id);
+  if (!listed.ok()) return listed.status();
+  const int64_t stride = std::max<int64_t>(1, keyframe_stride);
+  int64_t usable = 0;
+  for (const store::KeyframeRecord& summary : *listed) {
+    if (cancelled && cancelled()) return absl::CancelledError("export cancelled");
+    if (!summary.T_world_camera) continue;
+    if (frame && frame->in_map_frame.count(summary.visit_id) == 0) continue;
+    if (usable++ % stride != 0) continue;
+    auto k = store->GetKeyframe(map_id, summary.id);
+    if (absl::IsNotFound(k.status())) continue;  // deleted meanwhile
+    if (!k.ok()) return k.status();
+    if (!k->T_world_camera) continue;
+    auto decoded = DecodeRgbdFrame(store::StoredFrame(*k));
+    if (!decoded.ok()) {
+      return absl::DataLossError(absl::StrCat("stored keyframe ", k->id,
+                                              " cannot be decoded: ", decoded.status().message()));
+    }
+    ++out.used;
+    if (auto s = use(*k, *decoded); !s.ok()) return s;
+  }
   if (out.used == 0 && !out.left_out.empty()) {
     return absl::FailedPreconditionError(
         absl::StrCat("no posed keyframe of map '", map_name, "' is in the map's frame (",

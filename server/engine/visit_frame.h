@@ -32,6 +32,8 @@ absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::
 // Returns the visits left out ("visit N: why"). FAILED_PRECONDITION naming `map_name` when no
 // keyframe is posed (there), DATA_LOSS for one that does not decode, CANCELLED when `cancelled`
 // says so between keyframes; `use`'s own error ends the walk.
+// `keyframe_stride` > 1 uses every n-th posed keyframe only (a coarser level of detail; the
+// others' images are not read).
 struct PosedKeyframes {
   int64_t used = 0;
   std::vector<std::string> left_out;
@@ -39,6 +41,7 @@ struct PosedKeyframes {
 absl::StatusOr<PosedKeyframes> ForEachPosedKeyframe(
     store::Store* store, int64_t map_id, const std::string& map_name, int64_t visit_id,
     const std::function<bool()>& cancelled,
-    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use);
+    const std::function<absl::Status(const store::KeyframeRecord&, const RgbdFrame&)>& use,
+    int64_t keyframe_stride = 1);
 
 }  // namespace lifemap::server

@@ -47,6 +47,7 @@ constexpr int kThumbnailWidth = 160;
 constexpr int64_t kMaxPageSize = 1000;
 constexpr int64_t kDefaultMaxPoints = 1000000;
 constexpr int64_t kMaxPoints = 20000000;
+constexpr int64_t kMaxCloudKeyframes = 1000;
 constexpr size_t kCacheBytes = size_t{256} << 20;
 constexpr size_t kMaxAnnotationBodyBytes = size_t{16} << 20;
 
@@ -633,13 +634,16 @@ void WebServer::Impl::Cloud(const httplib::Request& req, httplib::Response& res)
   if (!(voxel_m >= 0.005 && voxel_m <= 1.0)) {
     return SendError(res, absl::InvalidArgumentError("voxel_m must be in [0.005, 1]"));
   }
+  // Large maps: every n-th keyframe, at most kMaxCloudKeyframes of them decoded.
+  const int64_t keyframe_stride = std::max<int64_t>(
+      1, (static_cast<int64_t>(map->keyframe_count) + kMaxCloudKeyframes - 1) / kMaxCloudKeyframes);
   const std::string key = absl::StrCat("cloud/", map->id, "/", map->keyframe_count, "/",
                                        map->visit_count, "/", voxel_m);
   std::string points;
   if (auto hit = cache.Get(key)) {
     points = *std::move(hit);
   } else {
-    auto cloud = ExportCloud(store(), map->id, map->name, 0, voxel_m, 4, nullptr);
+    auto cloud = ExportCloud(store(), map->id, map->name, 0, voxel_m, 4, nullptr, keyframe_stride);
     if (!cloud.ok()) return SendError(res, cloud.status());
     for (const auto& p : cloud->points) {
       AppendRaw(&points, p.x);
@@ -663,6 +667,7 @@ void WebServer::Impl::Cloud(const httplib::Request& req, httplib::Response& res)
     out.append(points, static_cast<size_t>(i) * kPointBytes, kPointBytes);
   }
   res.set_header("X-Lifemap-Points-Total", std::to_string(total));
+  res.set_header("X-Lifemap-Keyframe-Stride", std::to_string(keyframe_stride));
   res.set_header("Cache-Control", "no-store");
   res.set_content(out, "application/octet-stream");
 }

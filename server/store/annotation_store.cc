@@ -45,10 +45,12 @@ absl::StatusOr<AnnotationRecord> Store::InsertAnnotation(const AnnotationRecord&
       "INSERT INTO annotations (map_id, class_name, boxes, author, created_time_s) "
       "VALUES (?1, ?2, ?3, ?4, ?5)");
   if (!stmt.ok()) return stmt.status();
+  // Bound without a copy (SQLITE_STATIC): the bytes must outlive the statement's run.
+  const std::string boxes = PackBoxes(record.boxes);
   StatementScope s(*stmt);
   s->Bind(1, record.map_id)
       .Bind(2, record.class_name)
-      .BindBlob(3, PackBoxes(record.boxes))
+      .BindBlob(3, boxes)
       .Bind(4, record.author)
       .Bind(5, record.created_time_s);
   if (auto st = s->Run(); !st.ok()) {

@@ -289,9 +289,12 @@ async function scenePage(name) {
   });
   status.push(`${sceneJson.visits.length} visits in the map's frame`);
 
-  const maxPoints = Number(new URLSearchParams(location.hash.split('?')[1] || '').get('points')) || 1000000;
+  // Level of detail: #/3d/MAP?points=N&voxel=M (defaults 1,000,000 points, 2 cm voxels).
+  const query = new URLSearchParams(location.hash.split('?')[1] || '');
+  const maxPoints = Number(query.get('points')) || 1000000;
+  const voxel = Number(query.get('voxel')) || 0.02;
   try {
-    const buf = await bytes(`/api/maps/${enc(name)}/cloud.bin?max_points=${maxPoints}`);
+    const buf = await bytes(`/api/maps/${enc(name)}/cloud.bin?max_points=${maxPoints}&voxel_m=${voxel}`);
     const n = new DataView(buf).getUint32(0, true);
     const pos = new Float32Array(n * 3), col = new Float32Array(n * 3);
     const dv = new DataView(buf, 4);
