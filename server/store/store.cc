@@ -417,6 +417,9 @@ CREATE TABLE annotations (
   created_time_s REAL NOT NULL
 );
 CREATE INDEX annotations_map ON annotations(map_id);
+-- The counts and sizes maps and visits are listed with, read from an index instead of the
+-- keyframes' rows: a map of 100,000 keyframes was listed in 0.7 s (issue 38's browser view).
+CREATE INDEX keyframes_sizes ON keyframes(visit_id, depth_bytes, color_bytes, odom_tx);
 )sql",
 };
 static_assert(sizeof(kMigrations) / sizeof(kMigrations[0]) == Store::kSchemaVersion,
@@ -1277,8 +1280,11 @@ absl::StatusOr<std::vector<KeyframeRecord>> Store::ListKeyframes(int64_t map_id,
   auto stmt = impl_->read_db->Prepare(
       absl::StrCat("SELECT ", kKeyframeColumns,
                    ", f.superjut_count, f.entropy_threshold, f.keypoint_type, f.keypoints_stored, "
-                   "f.keypoints_masked FROM keyframes k JOIN visits v ON v.id = k.visit_id "
-                   "LEFT JOIN keyframe_features f ON f.keyframe_id = k.id WHERE v.map_id = ?1 "
+                   "f.keypoints_masked FROM keyframes k "
+                   "LEFT JOIN keyframe_features f ON f.keyframe_id = k.id "
+                   // Driven by keyframes_by_visit, in its order: no sort of the map's keyframes
+                   // for a page of them (0.8 s for 100,000 as a join from visits).
+                   "WHERE k.visit_id IN (SELECT id FROM visits WHERE map_id = ?1) "
                    "AND (?2 = 0 OR k.visit_id = ?2) ORDER BY k.visit_id, k.timestamp_s, k.id "
                    "LIMIT ?3 OFFSET ?4"));
   if (!stmt.ok()) return stmt.status();
