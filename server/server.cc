@@ -71,11 +71,9 @@ namespace {
 // is made on the server's machine (no chicken-and-egg).
 absl::Status CheckAuthCanWork(const ServerConfig& config, store::Store* store) {
   if (!config.AuthRequired()) return absl::OkStatus();
-  auto keys = store->ListApiKeys();
-  if (!keys.ok()) return keys.status();
-  for (const auto& k : *keys) {
-    if (k.revoked_time_s == 0 && k.role == RoleName(Role::kAdmin)) return absl::OkStatus();
-  }
+  auto admin = HasLiveAdminKey(store);
+  if (!admin.ok()) return admin.status();
+  if (*admin) return absl::OkStatus();
   return absl::FailedPreconditionError(absl::StrCat(
       "calls to ", config.listen,
       config.require_auth ? " need API keys (security.require_auth)"

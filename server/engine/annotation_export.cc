@@ -75,12 +75,10 @@ std::vector<std::string> AnnotationClasses(const std::vector<store::AnnotationRe
   return classes;
 }
 
-namespace {
-
 // The annotations' boxes (grown by the margin) hashed on a grid of kCellM cells, so a pixel's
 // point tests only the boxes of its cell: selections are thousands of voxel-sized boxes.
 // Boxes spanning more than kMaxCellsPerBox cells are tested for every point instead.
-class BoxGrid {
+class AnnotationProjector::BoxGrid {
  public:
   static constexpr double kCellM = 0.05;
   static constexpr int64_t kMaxCellsPerBox = 4096;
@@ -107,6 +105,8 @@ class BoxGrid {
     }
   }
   bool empty() const { return cells_.empty() && large_.empty(); }
+  // Every box's extent: a point outside it is tested against none.
+  Eigen::AlignedBox3d all;
 
   // The class of the latest annotation holding `p`, or kUnlabelled.
   uint8_t ClassAt(const Eigen::Vector3d& p) const {
@@ -138,16 +138,9 @@ class BoxGrid {
   std::vector<Box> large_;
 };
 
-}  // namespace
-
-cv::Mat ProjectAnnotations(const std::vector<store::AnnotationRecord>& annotations,
-                           const std::vector<std::string>& classes, const RgbdFrame& frame,
-                           const Pose& T_map_camera, double margin_m, int64_t* labelled) {
-  const cv::Mat& depth = frame.depth_m;
-  cv::Mat labels(depth.size(), CV_8UC1, cv::Scalar(kUnlabelled));
-  int64_t count = 0;
-  BoxGrid grid;
-  Eigen::AlignedBox3d all;
+AnnotationProjector::AnnotationProjector(const std::vector<store::AnnotationRecord>& annotations,
+                                         const std::vector<std::string>& classes, double margin_m)
+    : grid_(std::make_unique<BoxGrid>()) {
   size_t order = 0;
   for (auto a = annotations.rbegin(); a != annotations.rend(); ++a, ++order) {
     const auto found = std::find(classes.begin(), classes.end(), a->class_name);
@@ -157,35 +150,48 @@ cv::Mat ProjectAnnotations(const std::vector<store::AnnotationRecord>& annotatio
       const BoxGrid::Box box{Eigen::Vector3d(b.min[0], b.min[1], b.min[2]).array() - margin_m,
                              Eigen::Vector3d(b.max[0], b.max[1], b.max[2]).array() + margin_m, id,
                              order};
-      all.extend(box.lo);
-      all.extend(box.hi);
-      grid.Add(box);
+      grid_->all.extend(box.lo);
+      grid_->all.extend(box.hi);
+      grid_->Add(box);
     }
   }
-  if (grid.empty()) {
-    if (labelled != nullptr) *labelled = 0;
-    return labels;
-  }
-  const Eigen::Isometry3d T = T_map_camera.ToIsometry();
-  const CameraIntrinsics& k = frame.intrinsics;
-  for (int v = 0; v < depth.rows; ++v) {
-    const float* d = depth.ptr<float>(v);
-    uint8_t* out = labels.ptr<uint8_t>(v);
-    for (int u = 0; u < depth.cols; ++u) {
-      const double z = d[u];
-      if (!(z > 0)) continue;
-      const Eigen::Vector3d p =
-          T * Eigen::Vector3d((u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z);
-      if (!all.contains(p)) continue;
-      const uint8_t c = grid.ClassAt(p);
-      if (c != kUnlabelled) {
-        out[u] = c;
-        ++count;
+}
+
+AnnotationProjector::~AnnotationProjector() = default;
+
+cv::Mat AnnotationProjector::Project(const RgbdFrame& frame, const Pose& T_map_camera,
+                                     int64_t* labelled) const {
+  const cv::Mat& depth = frame.depth_m;
+  cv::Mat labels(depth.size(), CV_8UC1, cv::Scalar(kUnlabelled));
+  int64_t count = 0;
+  if (!grid_->empty()) {
+    const Eigen::Isometry3d T = T_map_camera.ToIsometry();
+    const CameraIntrinsics& k = frame.intrinsics;
+    for (int v = 0; v < depth.rows; ++v) {
+      const float* d = depth.ptr<float>(v);
+      uint8_t* out = labels.ptr<uint8_t>(v);
+      for (int u = 0; u < depth.cols; ++u) {
+        const double z = d[u];
+        if (!(z > 0)) continue;
+        const Eigen::Vector3d p =
+            T * Eigen::Vector3d((u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z);
+        if (!grid_->all.contains(p)) continue;
+        const uint8_t c = grid_->ClassAt(p);
+        if (c != kUnlabelled) {
+          out[u] = c;
+          ++count;
+        }
       }
     }
   }
   if (labelled != nullptr) *labelled = count;
   return labels;
+}
+
+cv::Mat ProjectAnnotations(const std::vector<store::AnnotationRecord>& annotations,
+                           const std::vector<std::string>& classes, const RgbdFrame& frame,
+                           const Pose& T_map_camera, double margin_m, int64_t* labelled) {
+  return AnnotationProjector(annotations, classes, margin_m).Project(frame, T_map_camera, labelled);
 }
 
 absl::StatusOr<TrainingFolder> ExportTrainingFolder(
@@ -207,6 +213,7 @@ absl::StatusOr<TrainingFolder> ExportTrainingFolder(
   int64_t other_camera = 0;
   std::string rgb_list = "# colour images of keyframes that see annotated regions\n";
   std::string depth_list = "# depth images (PNG-16, 5000 per metre)\n";
+  const AnnotationProjector projector(*annotations, out.classes, options.margin_m);
   auto walked = ForEachPosedKeyframe(
       store, map.id, map.name, 0, cancelled,
       [&](const store::KeyframeRecord& k, const RgbdFrame& frame) -> absl::Status {
@@ -217,8 +224,7 @@ absl::StatusOr<TrainingFolder> ExportTrainingFolder(
           return absl::OkStatus();
         }
         int64_t labelled = 0;
-        const cv::Mat labels = ProjectAnnotations(*annotations, out.classes, frame,
-                                                  *k.T_world_camera, options.margin_m, &labelled);
+        const cv::Mat labels = projector.Project(frame, *k.T_world_camera, &labelled);
         if (labelled < options.min_labelled_pixels) return absl::OkStatus();
         for (int v = 0; v < labels.rows; ++v) {
           const uint8_t* row = labels.ptr<uint8_t>(v);

@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -33,6 +34,21 @@ std::vector<std::string> AnnotationClasses(const std::vector<store::AnnotationRe
 // the pixel's depth point, or no depth). A point inside boxes of several annotations takes the
 // latest one's class. `margin_m` grows every box on each side (depth noise puts a surface a
 // little outside the voxels it was seen in). `labelled` counts the labelled pixels.
+// AnnotationProjector holds the boxes hashed once, for projecting into many views (a training
+// folder's); ProjectAnnotations builds one for a single view.
+class AnnotationProjector {
+ public:
+  AnnotationProjector(const std::vector<store::AnnotationRecord>& annotations,
+                      const std::vector<std::string>& classes, double margin_m);
+  ~AnnotationProjector();
+  AnnotationProjector(const AnnotationProjector&) = delete;
+  AnnotationProjector& operator=(const AnnotationProjector&) = delete;
+  cv::Mat Project(const RgbdFrame& frame, const Pose& T_map_camera, int64_t* labelled) const;
+
+ private:
+  class BoxGrid;
+  std::unique_ptr<BoxGrid> grid_;
+};
 cv::Mat ProjectAnnotations(const std::vector<store::AnnotationRecord>& annotations,
                            const std::vector<std::string>& classes, const RgbdFrame& frame,
                            const Pose& T_map_camera, double margin_m, int64_t* labelled);

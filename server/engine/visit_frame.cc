@@ -12,6 +12,13 @@ std::optional<Pose> MapFromVisit(const store::VisitRecord& v) {
   return std::nullopt;
 }
 
+std::string WhyNotInMapFrame(const store::VisitRecord& v) {
+  return v.anchor_dropped.empty()
+             ? "tracked and not anchored in the map's frame yet (its poses are in its own frame)"
+             : absl::StrCat("its anchor was dropped (its poses are in its own frame again): ",
+                            v.anchor_dropped);
+}
+
 absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::string& map_name) {
   auto visits = store->ListVisits(map_name);
   if (!visits.ok()) return visits.status();
@@ -20,14 +27,7 @@ absl::StatusOr<MapFrameVisits> VisitsInMapFrame(store::Store* store, const std::
     if (MapFromVisit(v)) {
       out.in_map_frame.insert(v.id);
     } else {
-      out.left_out.push_back(
-          v.anchor_dropped.empty()
-              ? absl::StrCat("visit ", v.id,
-                             ": tracked and not anchored in the map's frame yet (its poses are "
-                             "in its own frame)")
-              : absl::StrCat("visit ", v.id,
-                             ": its anchor was dropped (its poses are in its own frame again): ",
-                             v.anchor_dropped));
+      out.left_out.push_back(absl::StrCat("visit ", v.id, ": ", WhyNotInMapFrame(v)));
     }
   }
   return out;

@@ -21,6 +21,10 @@ namespace lifemap::server {
 // nullopt for a tracked visit that no match has anchored yet.
 std::optional<Pose> MapFromVisit(const store::VisitRecord& v);
 
+// Why visit `v` is not in the map's frame (MapFromVisit is nullopt): not anchored yet, or its
+// anchor dropped and why.
+std::string WhyNotInMapFrame(const store::VisitRecord& v);
+
 struct MapFrameVisits {
   std::set<int64_t> in_map_frame;     // visit ids
   std::vector<std::string> left_out;  // "visit N: why", for the others

@@ -257,6 +257,15 @@ struct WebServer::Impl {
     return *std::move(map);
   }
 
+  // Visit `visit_id` if it is one of `map`'s; NOT_FOUND otherwise.
+  absl::StatusOr<store::VisitRecord> MapsVisit(const store::MapRecord& map, int64_t visit_id) {
+    auto v = store()->GetVisit(visit_id);
+    if (!v.ok() || v->map_id != map.id) {
+      return absl::NotFoundError(absl::StrCat("map '", map.name, "' has no visit ", visit_id));
+    }
+    return v;
+  }
+
   absl::StatusOr<store::KeyframeRecord> MapsKeyframe(const store::MapRecord& map,
                                                      const std::string& id_text) {
     auto id = PathId(id_text, "the keyframe id");
@@ -325,24 +334,12 @@ void WebServer::Impl::Map(const httplib::Request& req, httplib::Response& res) {
   if (!map) return;
   auto visits = store()->ListVisits(map->name);
   if (!visits.ok()) return SendError(res, visits.status());
-  auto frame = VisitsInMapFrame(store(), map->name);
-  if (!frame.ok()) return SendError(res, frame.status());
   auto places = store()->ListVisitPlaces(map->name);
   if (!places.ok()) return SendError(res, places.status());
   auto annotations = store()->ListAnnotations(map->id);
   if (!annotations.ok()) return SendError(res, annotations.status());
   std::map<int64_t, int> plan_keyframes;
   for (const auto& p : *places) plan_keyframes[p.visit_id] = p.keyframes;
-  std::map<int64_t, std::string> why_out;
-  for (const std::string& line : frame->left_out) {
-    // "visit N: why"
-    int64_t id = 0;
-    const size_t colon = line.find(':');
-    if (line.rfind("visit ", 0) == 0 && colon != std::string::npos &&
-        absl::SimpleAtoi(line.substr(6, colon - 6), &id)) {
-      why_out[id] = line.substr(std::min(line.size(), colon + 2));
-    }
-  }
   json vs = json::array();
   for (const auto& v : *visits) {
     json j = {{"id", v.id},
@@ -357,7 +354,7 @@ void WebServer::Impl::Map(const httplib::Request& req, httplib::Response& res) {
               {"tracked_keyframes", v.tracked_keyframes},
               {"loops_accepted", v.loops_accepted},
               {"first_of_map", v.first_of_map},
-              {"in_map_frame", frame->in_map_frame.count(v.id) > 0},
+              {"in_map_frame", MapFromVisit(v).has_value()},
               {"has_plan", plan_keyframes.count(v.id) > 0}};
     // Why the visit is (or is not) in the map's frame, in words.
     std::string why;
@@ -368,12 +365,10 @@ void WebServer::Impl::Map(const httplib::Request& req, httplib::Response& res) {
       j["anchor"] = {{"to_visit_id", v.anchor->to_visit_id},
                      {"time_s", v.anchor->anchored_time_s},
                      {"T_map_visit", PoseJson(v.anchor->T_map_visit)}};
-    } else if (frame->in_map_frame.count(v.id) > 0) {
+    } else if (MapFromVisit(v)) {
       why = "posed by its client in the map's frame";
-    } else if (auto it = why_out.find(v.id); it != why_out.end()) {
-      why = it->second;
     } else {
-      why = "not in the map's frame";
+      why = WhyNotInMapFrame(v);
     }
     if (!v.anchor_dropped.empty()) j["anchor_dropped"] = v.anchor_dropped;
     j["frame_why"] = why;
@@ -398,11 +393,7 @@ void WebServer::Impl::Keyframes(const httplib::Request& req, httplib::Response& 
     if (!p->ok()) return SendError(res, p->status());
   }
   if (*visit != 0) {
-    auto v = store()->GetVisit(*visit);
-    if (!v.ok() || v->map_id != map->id) {
-      return SendError(
-          res, absl::NotFoundError(absl::StrCat("map '", map->name, "' has no visit ", *visit)));
-    }
+    if (auto v = MapsVisit(*map, *visit); !v.ok()) return SendError(res, v.status());
   }
   auto page = store()->ListKeyframes(map->id, *visit, *offset, *limit);
   if (!page.ok()) return SendError(res, page.status());
@@ -521,9 +512,9 @@ absl::StatusOr<std::string> WebServer::Impl::RenderImage(const store::MapRecord&
       return absl::FailedPreconditionError(
           absl::StrCat("keyframe ", k.id, " has no pose to render the octree into"));
     }
-    auto frame_visits = VisitsInMapFrame(store(), map.name);
-    if (!frame_visits.ok()) return frame_visits.status();
-    const bool in_map = frame_visits->in_map_frame.count(k.visit_id) > 0;
+    auto visit = store()->GetVisit(k.visit_id);
+    if (!visit.ok()) return visit.status();
+    const bool in_map = MapFromVisit(*visit).has_value();
     auto octree = CollectSemanticExport(store(), engine->visits(), engine->semantic_worker(), map,
                                         in_map ? 0 : k.visit_id, engine->options().semantic);
     if (!octree.ok()) return octree.status();
@@ -570,10 +561,8 @@ void WebServer::Impl::Plan(const httplib::Request& req, httplib::Response& res) 
   if (!map) return;
   auto visit_id = PathId(req.matches[2], "the visit id");
   if (!visit_id.ok()) return SendError(res, visit_id.status());
-  auto visit = store()->GetVisit(*visit_id);
-  if (!visit.ok() || visit->map_id != map->id) {
-    return SendError(
-        res, absl::NotFoundError(absl::StrCat("map '", map->name, "' has no visit ", *visit_id)));
+  if (auto visit = MapsVisit(*map, *visit_id); !visit.ok()) {
+    return SendError(res, visit.status());
   }
   auto place = store()->GetVisitPlace(*visit_id);
   if (!place.ok()) return SendError(res, place.status());
@@ -926,12 +915,9 @@ absl::StatusOr<std::unique_ptr<WebServer>> WebServer::Start(const ServerConfig& 
       config.AuthRequired() || (!IsLoopbackAddress(config.http_listen) && !config.insecure_no_auth);
   impl->keys = std::make_unique<KeyRing>(engine->store(), required);
   if (required) {
-    auto keys = engine->store()->ListApiKeys();
-    if (!keys.ok()) return keys.status();
-    const bool admin = std::any_of(keys->begin(), keys->end(), [](const store::ApiKeyRecord& k) {
-      return k.revoked_time_s == 0 && k.role == RoleName(Role::kAdmin);
-    });
-    if (!admin) {
+    auto admin = HasLiveAdminKey(engine->store());
+    if (!admin.ok()) return admin.status();
+    if (!*admin) {
       return absl::FailedPreconditionError(absl::StrCat(
           "the browser view on ", config.http_listen,
           " needs API keys and the database has no live admin key: create one with `lifemapd "

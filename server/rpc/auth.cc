@@ -293,6 +293,15 @@ store::MapCreator Principal::AsMapCreator() const {
   return store::MapCreator{key_id, key_name, limits.max_maps};
 }
 
+absl::StatusOr<bool> HasLiveAdminKey(store::Store* store) {
+  auto keys = store->ListApiKeys();
+  if (!keys.ok()) return keys.status();
+  for (const auto& k : *keys) {
+    if (k.revoked_time_s == 0 && k.role == RoleName(Role::kAdmin)) return true;
+  }
+  return false;
+}
+
 std::string NewApiKeySecret() {
   unsigned char bytes[32];
   if (RAND_bytes(bytes, sizeof(bytes)) != 1) {

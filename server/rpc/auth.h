@@ -105,6 +105,10 @@ absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Princ
 absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const Principal& caller,
                                                     int64_t visit_id);
 
+// Whether the store holds a live (not revoked) admin key: a server that requires keys cannot be
+// administered without one (lifemapd refuses to start, for gRPC and the browser view alike).
+absl::StatusOr<bool> HasLiveAdminKey(store::Store* store);
+
 // INVALID_ARGUMENT for a negative or non-finite limit.
 absl::Status ValidateKeyLimits(const store::KeyLimits& limits);
 
