@@ -4,14 +4,17 @@
 #include <sys/socket.h>
 #include <sys/types.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdlib>
 
 #include <grpcpp/grpcpp.h>
 #include <opencv2/imgcodecs.hpp>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
 #include "core/common/depth_codec.h"
 #include "core/common/image_codec.h"
 #include "lifemap/v1/admin_service.grpc.pb.h"
@@ -23,6 +26,21 @@
 
 namespace lifemap::client {
 namespace {
+
+// The map name in a map archive's manifest (its second line, JSON with "map":"NAME"; names are
+// [A-Za-z0-9._-], never escaped), "" if the bytes do not hold one. The server parses the archive
+// properly; this only routes the call.
+std::string ArchiveMapName(std::string_view head) {
+  const size_t line = head.find('\n');
+  if (line == std::string_view::npos) return "";
+  head = head.substr(line + 1, head.find('\n', line + 1) - line - 1);
+  constexpr std::string_view kKey = "\"map\":\"";
+  const size_t at = head.find(kKey);
+  if (at == std::string_view::npos) return "";
+  const size_t start = at + kKey.size(), end = head.find('"', start);
+  if (end == std::string_view::npos) return "";
+  return std::string(head.substr(start, end - start));
+}
 
 absl::Status FromGrpc(const grpc::Status& s) {
   if (s.ok()) return absl::OkStatus();
@@ -118,12 +136,13 @@ class GrpcClient final : public Client {
     return info;
   }
   absl::StatusOr<v1::QueryPlaceResponse> QueryPlace(const v1::QueryPlaceRequest& request) override {
-    return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request);
+    return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request,
+                 MapOfVisit(request.visit_id()));
   }
   absl::StatusOr<v1::ListPlacesResponse> ListPlaces(const std::string& map) override {
     v1::ListPlacesRequest req;
     req.set_map(map);
-    return Unary(&v1::PlaceService::Stub::ListPlaces, places_.get(), req);
+    return Unary(&v1::PlaceService::Stub::ListPlaces, places_.get(), req, map);
   }
   absl::StatusOr<v1::ListModelsResponse> ListModels() override {
     return Unary(&v1::ModelService::Stub::ListModels, models_.get(), v1::ListModelsRequest());
@@ -133,7 +152,7 @@ class GrpcClient final : public Client {
     v1::ActivateModelRequest req;
     req.set_name(name);
     req.set_map(map);
-    return Unary(&v1::ModelService::Stub::ActivateModel, models_.get(), req);
+    return Unary(&v1::ModelService::Stub::ActivateModel, models_.get(), req, map);
   }
   absl::StatusOr<v1::DeleteModelResponse> DeleteModel(const std::string& name) override {
     v1::DeleteModelRequest req;
@@ -143,7 +162,7 @@ class GrpcClient final : public Client {
   absl::StatusOr<v1::ListClassesResponse> ListClasses(const std::string& map) override {
     v1::ListClassesRequest req;
     req.set_map(map);
-    return Unary(&v1::ModelService::Stub::ListClasses, models_.get(), req);
+    return Unary(&v1::ModelService::Stub::ListClasses, models_.get(), req, map);
   }
 
   absl::StatusOr<v1::ServerInfo> GetServerInfo() override {
@@ -195,48 +214,68 @@ class GrpcClient final : public Client {
     v1::CreateMapRequest req;
     req.set_name(name);
     req.set_description(description);
-    return Unary(&v1::MapService::Stub::CreateMap, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::CreateMap, maps_.get(), req, name);
   }
+  // Through a cluster, every shard is asked (named in kShardHeader) and the answers merged by
+  // name; a shard that does not answer is listed in unreachable_shards, not an error.
   absl::StatusOr<v1::ListMapsResponse> ListMaps() override {
-    return Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest());
+    auto info = GetServerInfo();
+    if (!info.ok()) return info.status();
+    if (info->shards().empty()) {
+      return Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest());
+    }
+    v1::ListMapsResponse merged;
+    for (const v1::ShardInfo& shard : info->shards()) {
+      auto part = Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest(), "",
+                        shard.name());
+      if (!part.ok()) {
+        merged.add_unreachable_shards(absl::StrCat(shard.name(), ": ", part.status().message()));
+        continue;
+      }
+      for (v1::Map& m : *part->mutable_maps()) *merged.add_maps() = std::move(m);
+    }
+    std::sort(merged.mutable_maps()->begin(), merged.mutable_maps()->end(),
+              [](const v1::Map& a, const v1::Map& b) { return a.name() < b.name(); });
+    return merged;
   }
   absl::StatusOr<v1::Map> GetMap(const std::string& name) override {
     v1::GetMapRequest req;
     req.set_name(name);
-    return Unary(&v1::MapService::Stub::GetMap, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::GetMap, maps_.get(), req, name);
   }
   absl::StatusOr<v1::Map> RenameMap(const std::string& name, const std::string& new_name) override {
     v1::RenameMapRequest req;
     req.set_name(name);
     req.set_new_name(new_name);
-    return Unary(&v1::MapService::Stub::RenameMap, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::RenameMap, maps_.get(), req, name);
   }
   absl::StatusOr<v1::DeleteMapResponse> DeleteMap(const std::string& name) override {
     v1::DeleteMapRequest req;
     req.set_name(name);
-    return Unary(&v1::MapService::Stub::DeleteMap, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::DeleteMap, maps_.get(), req, name);
   }
   absl::StatusOr<v1::Map> UpdateMap(const v1::UpdateMapRequest& request) override {
-    return Unary(&v1::MapService::Stub::UpdateMap, maps_.get(), request);
+    return Unary(&v1::MapService::Stub::UpdateMap, maps_.get(), request, request.name());
   }
   absl::StatusOr<v1::ListKeyframesResponse> ListKeyframes(const std::string& map,
                                                           uint64_t visit_id) override {
     v1::ListKeyframesRequest req;
     req.set_map(map);
     req.set_visit_id(visit_id);
-    return Unary(&v1::MapService::Stub::ListKeyframes, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::ListKeyframes, maps_.get(), req, map);
   }
   absl::StatusOr<v1::Keyframe> GetKeyframe(const std::string& map, uint64_t keyframe_id) override {
     v1::GetKeyframeRequest req;
     req.set_map(map);
     req.set_keyframe_id(keyframe_id);
-    return Unary(&v1::MapService::Stub::GetKeyframe, maps_.get(), req);
+    return Unary(&v1::MapService::Stub::GetKeyframe, maps_.get(), req, map);
   }
   absl::StatusOr<uint64_t> ExportMap(const v1::ExportMapRequest& request, std::ostream* out,
                                      std::vector<std::string>* left_out,
                                      v1::OccupancyGridInfo* grid) override {
     grpc::ClientContext context;
     AddKey(&context);
+    AddRoute(&context, request.map());
     auto reader = maps_->ExportMap(&context, request);
     v1::ExportChunk chunk;
     uint64_t items = 0;
@@ -257,21 +296,25 @@ class GrpcClient final : public Client {
   }
   absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name) override {
     constexpr size_t kChunk = 1 << 20;
+    // The first chunk is read before the call starts: through a cluster the call is routed by
+    // the map's name, which without `name` is the one in the archive's manifest.
+    std::string buffer(kChunk, '\0');
+    in->read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+    size_t n = static_cast<size_t>(in->gcount());
     grpc::ClientContext context;
     AddKey(&context);
+    AddRoute(&context, name.empty() ? ArchiveMapName(std::string_view(buffer.data(), n)) : name);
     v1::Map map;
     auto writer = maps_->ImportMap(&context, &map);
-    std::string buffer(kChunk, '\0');
-    bool first = true;
-    while (*in) {
-      in->read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
-      const auto n = static_cast<size_t>(in->gcount());
+    for (bool first = true;; first = false) {
       if (n == 0 && !first) break;
       v1::ImportChunk chunk;
       if (first) chunk.set_name(name);
-      first = false;
       chunk.set_data(buffer.substr(0, n));
       if (!writer->Write(chunk)) break;  // the server answered early; Finish() says why
+      if (!*in) break;
+      in->read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
+      n = static_cast<size_t>(in->gcount());
     }
     const bool read_failed = in->bad();
     writer->WritesDone();
@@ -284,6 +327,7 @@ class GrpcClient final : public Client {
       const std::function<void(const v1::SemanticOctreeRebuild&)>& on_visit) override {
     grpc::ClientContext context;
     AddKey(&context);
+    AddRoute(&context, request.map());
     auto reader = maps_->RebuildSemanticOctrees(&context, request);
     v1::SemanticOctreeRebuild visit;
     while (reader->Read(&visit)) on_visit(visit);
@@ -291,22 +335,28 @@ class GrpcClient final : public Client {
   }
 
   absl::StatusOr<v1::Visit> StartVisit(const v1::StartVisitRequest& request) override {
-    return Unary(&v1::VisitService::Stub::StartVisit, visits_.get(), request);
+    auto visit = Unary(&v1::VisitService::Stub::StartVisit, visits_.get(), request, request.map());
+    if (visit.ok()) RememberVisit(visit->id(), visit->map());
+    return visit;
   }
   absl::StatusOr<v1::Visit> EndVisit(uint64_t visit_id) override {
     v1::EndVisitRequest req;
     req.set_visit_id(visit_id);
-    return Unary(&v1::VisitService::Stub::EndVisit, visits_.get(), req);
+    return Unary(&v1::VisitService::Stub::EndVisit, visits_.get(), req, MapOfVisit(visit_id));
   }
   absl::StatusOr<v1::DeleteVisitResponse> DeleteVisit(uint64_t visit_id) override {
     v1::DeleteVisitRequest req;
     req.set_visit_id(visit_id);
-    return Unary(&v1::VisitService::Stub::DeleteVisit, visits_.get(), req);
+    return Unary(&v1::VisitService::Stub::DeleteVisit, visits_.get(), req, MapOfVisit(visit_id));
   }
   absl::StatusOr<v1::ListVisitsResponse> ListVisits(const std::string& map) override {
     v1::ListVisitsRequest req;
     req.set_map(map);
-    return Unary(&v1::VisitService::Stub::ListVisits, visits_.get(), req);
+    auto visits = Unary(&v1::VisitService::Stub::ListVisits, visits_.get(), req, map);
+    if (visits.ok()) {
+      for (const v1::Visit& v : visits->visits()) RememberVisit(v.id(), v.map());
+    }
+    return visits;
   }
   absl::StatusOr<v1::AnchorVisitsResponse> AnchorVisits(const std::string& map, uint64_t visit_id,
                                                         bool dry_run) override {
@@ -314,12 +364,13 @@ class GrpcClient final : public Client {
     req.set_map(map);
     req.set_visit_id(visit_id);
     req.set_dry_run(dry_run);
-    return Unary(&v1::VisitService::Stub::AnchorVisits, visits_.get(), req);
+    return Unary(&v1::VisitService::Stub::AnchorVisits, visits_.get(), req, map);
   }
   absl::StatusOr<v1::AnchorHistory> GetAnchorHistory(uint64_t visit_id) override {
     v1::GetAnchorHistoryRequest req;
     req.set_visit_id(visit_id);
-    return Unary(&v1::VisitService::Stub::GetAnchorHistory, visits_.get(), req);
+    return Unary(&v1::VisitService::Stub::GetAnchorHistory, visits_.get(), req,
+                 MapOfVisit(visit_id));
   }
   absl::StatusOr<v1::VisitChanges> GetChanges(const std::string& map, uint64_t from_visit,
                                               uint64_t to_visit) override {
@@ -327,16 +378,17 @@ class GrpcClient final : public Client {
     req.set_map(map);
     req.set_from_visit(from_visit);
     req.set_to_visit(to_visit);
-    return Unary(&v1::VisitService::Stub::GetChanges, visits_.get(), req);
+    return Unary(&v1::VisitService::Stub::GetChanges, visits_.get(), req, map);
   }
 
   absl::StatusOr<v1::FrameResult> ProcessFrame(const v1::ProcessFrameRequest& request) override {
-    return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request);
+    return Unary(&v1::FrameService::Stub::ProcessFrame, frames_.get(), request, request.map());
   }
 
   absl::StatusOr<std::unique_ptr<FrameStream>> OpenStream(const v1::StreamStart& start) override {
     auto context = std::make_unique<grpc::ClientContext>();
     AddKey(context.get());
+    AddRoute(context.get(), start.map());
     auto stream = frames_->StreamFrames(context.get());
     v1::StreamFramesRequest request;
     *request.mutable_start() = start;
@@ -347,6 +399,7 @@ class GrpcClient final : public Client {
       if (s.ok()) return absl::InternalError("server did not acknowledge the stream start");
       return FromGrpc(s);
     }
+    RememberVisit(response.started().visit_id(), response.started().map());
     return std::unique_ptr<FrameStream>(new GrpcFrameStream(
         std::move(context), std::move(stream), std::move(*response.mutable_started())));
   }
@@ -355,9 +408,12 @@ class GrpcClient final : public Client {
   template <typename Stub, typename Request, typename Response>
   absl::StatusOr<Response> Unary(grpc::Status (Stub::*method)(grpc::ClientContext*, const Request&,
                                                               Response*),
-                                 Stub* stub, const Request& request) {
+                                 Stub* stub, const Request& request, const std::string& map = "",
+                                 const std::string& shard = "") {
     grpc::ClientContext context;
     AddKey(&context);
+    AddRoute(&context, map);
+    if (!shard.empty()) context.AddMetadata(kShardHeader, shard);
     context.set_deadline(
         std::chrono::system_clock::now() +
         std::chrono::milliseconds(static_cast<int64_t>(options_.call_timeout_s * 1000)));
@@ -373,7 +429,26 @@ class GrpcClient final : public Client {
       context->AddMetadata("authorization", "Bearer " + options_.api_key);
   }
 
+  // The map a call is about, for a cluster's nginx to route on (harmless to a lone server).
+  static void AddRoute(grpc::ClientContext* context, const std::string& map) {
+    if (!map.empty()) context->AddMetadata(kMapHeader, map);
+  }
+  // Calls that name only a visit are routed by the map the visit was seen in (StartVisit,
+  // OpenStream, ListVisits); "" if this client has not seen it.
+  void RememberVisit(uint64_t visit_id, const std::string& map) {
+    if (visit_id == 0 || map.empty()) return;
+    absl::MutexLock lock(&visits_mu_);
+    visit_maps_[visit_id] = map;
+  }
+  std::string MapOfVisit(uint64_t visit_id) {
+    absl::MutexLock lock(&visits_mu_);
+    const auto it = visit_maps_.find(visit_id);
+    return it == visit_maps_.end() ? "" : it->second;
+  }
+
   ClientOptions options_;
+  absl::Mutex visits_mu_;
+  absl::flat_hash_map<uint64_t, std::string> visit_maps_ ABSL_GUARDED_BY(visits_mu_);
   std::unique_ptr<v1::MapService::Stub> maps_;
   std::unique_ptr<v1::VisitService::Stub> visits_;
   std::unique_ptr<v1::FrameService::Stub> frames_;

@@ -17,6 +17,7 @@
 #include <utility>
 
 #include "absl/status/statusor.h"
+#include "core/common/cluster_headers.h"
 #include "lifemap/v1/admin_service.pb.h"
 #include "lifemap/v1/frame_service.pb.h"
 #include "lifemap/v1/map_service.pb.h"
@@ -25,6 +26,10 @@
 #include "lifemap/v1/visit_service.pb.h"
 
 namespace lifemap::client {
+
+// Through a cluster of shards behind nginx (issue 39) every call about one map carries its name
+// in kMapHeader, and ListMaps is fanned out to every shard (kShardHeader): core/common/
+// cluster_headers.h. A lone server ignores both.
 
 struct ClientOptions {
   std::string target = "127.0.0.1:50051";  // HOST:PORT of lifemapd

@@ -1,5 +1,7 @@
 #include "server/config.h"
 
+#include "server/placement/placement.h"
+
 #include <arpa/inet.h>
 #include <netinet/in.h>
 
@@ -80,6 +82,14 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("the browser view (--http) and gRPC (--listen) cannot share ", listen,
                      ": give them different ports"));
+  }
+  if (placement_uri.empty() != shard_name.empty()) {
+    return absl::InvalidArgumentError(
+        "a shard needs both the placement database (placement, --placement URI) and its name "
+        "in it (shard, --shard NAME); give both, or neither for a lone server");
+  }
+  if (!shard_name.empty()) {
+    if (auto s = placement::ValidateShardName(shard_name); !s.ok()) return s;
   }
   if (max_message_bytes < (1 << 20) || max_message_bytes > (256 << 20)) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -168,6 +178,10 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
         c.listen = value.get<std::string>();
       } else if (key == "http") {
         c.http_listen = value.get<std::string>();
+      } else if (key == "placement") {
+        c.placement_uri = value.get<std::string>();
+      } else if (key == "shard") {
+        c.shard_name = value.get<std::string>();
       } else if (key == "db") {
         c.db_path = value.get<std::string>();
       } else if (key == "max_message_mb") {

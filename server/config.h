@@ -26,6 +26,10 @@ struct ServerConfig {
   // The browser view (issue 38, server/http/web_server.h): HOST:PORT, empty = off (config key
   // `http`, flag --http).
   std::string http_listen;
+  // A shard of a cluster (issue 39): the placement database (libpq URI) and this shard's name
+  // in it (`lifemap admin shards add NAME ADDRESS`); both or neither. Empty: a lone server.
+  std::string placement_uri;
+  std::string shard_name;
   std::string db_path = "lifemap.db";
   int max_message_bytes = 16 << 20;  // largest request or response; bigger gets RESOURCE_EXHAUSTED
   int max_streams = 16;              // concurrent StreamFrames calls

@@ -121,6 +121,10 @@ int main(int argc, char** argv) {
   std::string http;
   app.add_option("--http", http,
                  "HOST:PORT for the browser view (off by default; same keys and TLS as gRPC)");
+  std::string placement, shard;
+  app.add_option("--placement", placement,
+                 "a shard of a cluster: the placement database, postgresql://USER@HOST:PORT/DB");
+  app.add_option("--shard", shard, "a shard of a cluster: this shard's name in the placement");
   app.add_option("--max-message-mb", max_message_mb, "largest message, MiB (default 16)");
   app.add_option("--max-streams", max_streams, "concurrent frame streams (default 16)");
   app.add_option("--max-inflight-frames", max_inflight,
@@ -218,6 +222,8 @@ int main(int argc, char** argv) {
   if (given("--listen")) config.listen = listen;
   if (given("--db")) config.db_path = db;
   if (given("--http")) config.http_listen = http;
+  if (given("--placement")) config.placement_uri = placement;
+  if (given("--shard")) config.shard_name = shard;
   if (given("--max-message-mb")) {
     config.max_message_bytes = (max_message_mb > 0 && max_message_mb <= 1024)
                                    ? max_message_mb << 20

@@ -48,6 +48,8 @@ struct LifemapServer::Impl {
   ServiceContext ctx;
   std::unique_ptr<Engine> engine;  // drained at Shutdown, after the calls have returned
   std::unique_ptr<KeyRing> keys;
+  std::unique_ptr<ShardMembership> shard;  // a shard of a cluster (--placement), else null
+  std::unique_ptr<PeriodicTask> shard_heartbeat;
   std::unique_ptr<MapServiceImpl> map_service;
   std::unique_ptr<VisitServiceImpl> visit_service;
   std::unique_ptr<FrameServiceImpl> frame_service;
@@ -288,6 +290,12 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   store::Store* store = impl->engine->store();
   impl->keys = std::make_unique<KeyRing>(store, config.AuthRequired());
   if (auto s = CheckAuthCanWork(config, store); !s.ok()) return s;
+  if (!config.placement_uri.empty()) {
+    auto shard = ShardMembership::Join(config.placement_uri, config.shard_name, store);
+    if (!shard.ok()) return shard.status();
+    impl->shard = *std::move(shard);
+    impl->keys->set_map_gate(impl->shard.get());
+  }
   auto credentials = ServerCredentialsFor(config);
   if (!credentials.ok()) return credentials.status();
   if (auto s = CheckLoopbackSiblingIsFree(config.listen); !s.ok()) return s;
@@ -298,6 +306,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->stream_watchdog = std::make_unique<StreamWatchdog>();
   ctx.stream_watchdog = impl->stream_watchdog.get();
   ctx.keys = impl->keys.get();
+  ctx.shard = impl->shard.get();
   ctx.started_time_s = NowSeconds();
 
   impl->map_service = std::make_unique<MapServiceImpl>(&ctx);
@@ -356,9 +365,15 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
                                     impl->grpc_server.get(), config.db_path);
   impl->housekeeping = std::make_unique<PeriodicTask>(absl::Seconds(1),
                                                       [h = impl->housekeeper.get()] { h->Tick(); });
-  spdlog::info("lifemapd {} listening on port {} ({}, {}) with database {}", LIFEMAP_VERSION,
+  if (impl->shard) {
+    impl->shard_heartbeat =
+        std::make_unique<PeriodicTask>(absl::Seconds(placement::kHeartbeatIntervalS),
+                                       [shard = impl->shard.get()] { shard->Tick(); });
+  }
+  spdlog::info("lifemapd {} listening on port {} ({}, {}) with database {}{}", LIFEMAP_VERSION,
                impl->port, config.tls_cert.empty() ? "plaintext" : "TLS",
-               config.AuthRequired() ? "API keys required" : "no authentication", config.db_path);
+               config.AuthRequired() ? "API keys required" : "no authentication", config.db_path,
+               impl->shard ? absl::StrCat(", shard ", config.shard_name) : "");
   if (config.insecure_no_auth && !IsLoopbackAddress(config.listen)) {
     spdlog::warn(
         "--insecure-no-auth: anyone who can reach {} may call every method, delete "
@@ -386,6 +401,7 @@ void LifemapServer::Shutdown() {
       std::chrono::system_clock::now() +
       std::chrono::milliseconds(static_cast<int64_t>(impl_->ctx.config.shutdown_grace_s * 1000));
   impl_->housekeeping.reset();
+  impl_->shard_heartbeat.reset();
   if (impl_->web) impl_->web->Stop();  // its requests finish before the engine drains
   impl_->grpc_server->Shutdown(deadline);
   // Every handler has returned: the engine drains its workers (loops closed, octrees stored,

@@ -355,6 +355,9 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
       return RunCall<v1::ListMapsResponse>(
           *ctx, [](client::Client& c) { return c.ListMaps(); },
           [](const v1::ListMapsResponse& list) {
+            for (const auto& shard : list.unreachable_shards()) {
+              std::cerr << "warning: shard " << shard << "\n  its maps are missing below\n";
+            }
             if (list.maps().empty()) {
               std::cout << "no maps yet: create one with 'lifemap maps create NAME'\n";
               return;
@@ -1169,6 +1172,7 @@ void AddKeyCommands(CLI::App* app, CliContext* ctx) {
 void AddAdminCommands(CLI::App* app, CliContext* ctx) {
   auto* admin = app->add_subcommand("admin", "Operate the server's database");
   admin->require_subcommand(1);
+  AddShardsCommands(admin, ctx);
   admin->add_subcommand("stats", "Counts, database size, activity")->callback([ctx] {
     ctx->run = [ctx] {
       return RunCall<v1::Stats>(

@@ -70,6 +70,8 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx);
 void AddExportCommand(CLI::App* app, CliContext* ctx);
 void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
+// `admin shards ...` (shards_command.cc), under `admin`.
+void AddShardsCommands(CLI::App* admin, CliContext* ctx);
 void AddKeyCommands(CLI::App* app, CliContext* ctx);
 void AddStreamCommand(CLI::App* app, CliContext* ctx);
 void AddEvalCommands(CLI::App* app, CliContext* ctx);

@@ -66,6 +66,25 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   resp->set_schema_version(static_cast<uint32_t>(ctx_->engine->store()->schema_version()));
   resp->set_started_time_s(ctx_->started_time_s);
   resp->set_default_result_images(kDefaultResultImages);
+  if (ctx_->shard != nullptr) {
+    resp->set_shard(ctx_->shard->shard());
+  }
+  // The cluster's shards only to a caller that came through the cluster's nginx (its table
+  // sets lifemap-routed-by): a client connected to one shard directly talks to that shard
+  // alone, and must not fan calls out to the others through it.
+  if (ctx_->shard != nullptr && context->client_metadata().count(kRoutedByHeader) > 0) {
+    auto shards = ctx_->shard->Shards();
+    if (!shards.ok()) return ToGrpcStatus(shards.status());
+    const double now = NowSeconds();
+    for (const placement::Shard& s : *shards) {
+      v1::ShardInfo* info = resp->add_shards();
+      info->set_name(s.name);
+      info->set_address(s.address);
+      info->set_state(s.state);
+      info->set_up(s.Up(now));
+      info->set_seen_age_s(s.seen_s > 0 ? now - s.seen_s : -1);
+    }
+  }
   resp->set_auth_required(ctx_->keys->required());
   if (ctx_->keys->required()) {
     resp->set_caller_key(caller->key_name);

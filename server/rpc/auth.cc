@@ -136,6 +136,9 @@ absl::Status Principal::CheckNotRevoked() const {
 absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Principal& caller,
                                                 const std::string& name) {
   if (auto s = store::ValidateMapName(name); !s.ok()) return s;
+  if (caller.gate != nullptr) {
+    if (auto s = caller.gate->CheckMap(name); !s.ok()) return s;
+  }
   auto map = store->GetMap(name);
   if (!map.ok()) {
     if (absl::IsNotFound(map.status()) && !caller.every_map) return caller.CheckMap(-1, name);
@@ -153,6 +156,9 @@ absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const P
       return caller.CheckMap(-1, absl::StrCat("(the map of visit ", visit_id, ")"));
     }
     return visit.status();
+  }
+  if (caller.gate != nullptr) {
+    if (auto s = caller.gate->CheckMap(visit->map_name); !s.ok()) return s;
   }
   if (!caller.MayUseMap(visit->map_id)) {
     return caller.CheckMap(visit->map_id, absl::StrCat("(the map of visit ", visit_id, ")"));
@@ -413,7 +419,11 @@ absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& cont
 
 absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_view> authorization,
                                                    Role needed, absl::string_view what) {
-  if (!required_) return Principal{};
+  if (!required_) {
+    Principal anyone;
+    anyone.gate = gate_;
+    return anyone;
+  }
   auto entry = Find(authorization, what);
   if (!entry.ok()) return entry.status();
   const store::ApiKeyRecord& key = (*entry)->record;
@@ -453,6 +463,7 @@ absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_vi
   p.revoked = (*entry)->revoked;
   p.limits = key.limits;
   p.usage = (*entry)->usage;
+  p.gate = gate_;
   return p;
 }
 

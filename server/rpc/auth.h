@@ -61,6 +61,15 @@ class KeyUsage {
   std::deque<double> visits_started_s_ ABSL_GUARDED_BY(mu_);  // within the last hour
 };
 
+// Whether this server may answer for a map at all, before its keys are looked at: a shard of a
+// cluster refuses maps the placement puts on another shard (server/rpc/shard_membership.h).
+class MapGate {
+ public:
+  virtual ~MapGate() = default;
+  // OK, or why calls about `map` are refused here (naming where the map lives).
+  virtual absl::Status CheckMap(const std::string& map) const = 0;
+};
+
 // The caller of one call.
 struct Principal {
   std::string key_name;  // "" when the server runs without auth
@@ -74,6 +83,8 @@ struct Principal {
   // The key's own limits (0: only the server's) and its use of them (null without auth).
   store::KeyLimits limits;
   std::shared_ptr<KeyUsage> usage;
+  // The server's gate (KeyRing::set_map_gate); null for a lone server.
+  const MapGate* gate = nullptr;
 
   bool MayUseMap(int64_t map_id) const;
   // PERMISSION_DENIED naming the key's maps unless it may use the map.
@@ -96,12 +107,14 @@ struct Principal {
   store::MapCreator AsMapCreator() const;
 };
 
-// The map named `name` if the caller may use it. INVALID_ARGUMENT for a bad name; for a key
+// The map named `name` if the caller may use it. INVALID_ARGUMENT for a bad name; the gate's
+// refusal (a shard of a cluster: the map lives on another shard); for a key
 // limited to other maps PERMISSION_DENIED whether the map exists or not (it learns nothing of
 // them); NOT_FOUND.
 absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Principal& caller,
                                                 const std::string& name);
-// The visit if the caller may use its map: NOT_FOUND, or PERMISSION_DENIED as above.
+// The visit if the caller may use its map: NOT_FOUND, the gate's refusal or PERMISSION_DENIED
+// as above.
 absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const Principal& caller,
                                                     int64_t visit_id);
 
@@ -130,6 +143,8 @@ class KeyRing {
   // `required`: calls need a live key; otherwise every call is an unlimited admin's.
   KeyRing(store::Store* store, bool required);
   bool required() const { return required_; }
+  // Every Principal this ring hands out carries `gate` (set once, before calls arrive).
+  void set_map_gate(const MapGate* gate) { gate_ = gate; }
 
   // The caller of `method` ("Service/Method") from the call's `authorization` metadata.
   // UNAUTHENTICATED without a key, with an unknown or revoked one; PERMISSION_DENIED when the
@@ -166,6 +181,7 @@ class KeyRing {
 
   store::Store* const store_;
   const bool required_;
+  const MapGate* gate_ = nullptr;
   absl::Mutex mu_;
   absl::flat_hash_map<std::string, std::shared_ptr<Entry>> by_hash_ ABSL_GUARDED_BY(mu_);
   double loaded_s_ ABSL_GUARDED_BY(mu_) = -1;

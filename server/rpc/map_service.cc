@@ -75,6 +75,11 @@ grpc::Status SendChunks(const std::string& body, const std::string& content_type
 
 }  // namespace
 
+absl::StatusOr<bool> MapServiceImpl::PlaceNewMap(const std::string& name) {
+  if (ctx_->shard == nullptr) return false;
+  return ctx_->shard->PlaceNew(name);
+}
+
 grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext* context,
                                        const v1::CreateMapRequest* req, v1::Map* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/CreateMap");
@@ -88,10 +93,15 @@ grpc::Status MapServiceImpl::CreateMap(grpc::ServerContext* context,
   }
   auto threshold = EntropyThresholdFromProto(req->entropy_threshold(), "entropy_threshold");
   if (!threshold.ok()) return ToGrpcStatus(threshold.status());
+  auto placed = PlaceNewMap(req->name());
+  if (!placed.ok()) return ToGrpcStatus(placed.status());
   auto map =
       ctx_->engine->store()->CreateMap(req->name(), req->description(), NowSeconds(), *threshold,
                                        req->keep_original_color(), caller->AsMapCreator());
-  if (!map.ok()) return ToGrpcStatus(map.status());
+  if (!map.ok()) {
+    if (*placed) ctx_->shard->Unplace(req->name());
+    return ToGrpcStatus(map.status());
+  }
   spdlog::info("created map '{}' (id {})", map->name, map->id);
   MapToProto(*map, resp);
   return grpc::Status::OK;
@@ -101,9 +111,21 @@ grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext* context, const v1::Li
                                       v1::ListMapsResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "MapService/ListMaps");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
+  // A fan-out meant for another shard that reached this one (a client connected to a shard
+  // directly): answering would list this shard's maps as the other's.
+  if (const auto meant = context->client_metadata().find(kShardHeader);
+      ctx_->shard != nullptr && meant != context->client_metadata().end() &&
+      std::string(meant->second.data(), meant->second.size()) != ctx_->shard->shard()) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("this is shard '", ctx_->shard->shard(), "', not '",
+                                     std::string(meant->second.data(), meant->second.size()),
+                                     "': list a cluster's maps through its nginx"));
+  }
   auto maps = ctx_->engine->store()->ListMaps();
   if (!maps.ok()) return ToGrpcStatus(maps.status());
   for (const auto& m : *maps) {
+    // A shard lists only the maps it serves, not stale copies of maps that moved away.
+    if (ctx_->shard != nullptr && !ctx_->shard->CheckMap(m.name).ok()) continue;
     if (caller->MayUseMap(m.id)) MapToProto(m, resp->add_maps());
   }
   return grpc::Status::OK;
@@ -131,6 +153,7 @@ grpc::Status MapServiceImpl::DeleteMap(grpc::ServerContext* context,
   if (!map.ok()) return ToGrpcStatus(map.status());
   auto deleted = ctx_->engine->store()->DeleteMap(req->name());
   if (!deleted.ok()) return ToGrpcStatus(deleted.status());
+  if (ctx_->shard != nullptr) ctx_->shard->Unplace(req->name());
   // Streams still writing its visits end with NOT_FOUND and commit nothing more.
   ctx_->engine->visits()->CloseMap(
       map->id, absl::NotFoundError(absl::StrCat(
@@ -151,6 +174,11 @@ grpc::Status MapServiceImpl::RenameMap(grpc::ServerContext* context,
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (auto m = FindCallersMap(ctx_->engine->store(), *caller, req->name()); !m.ok()) {
     return ToGrpcStatus(m.status());
+  }
+  if (ctx_->shard != nullptr) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "renaming a map of a cluster is not built yet (nginx routes by name): "
+                        "export it, import it under the new name, delete the old one");
   }
   // Map names are one name space over every map: a key limited to some maps would learn from
   // ALREADY_EXISTS which names other maps have.
@@ -579,8 +607,13 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
           absl::StrCat("the archive's map name: ", s.message(), "; import it under another name"));
     }
   }
+  auto placed = PlaceNewMap(name);
+  if (!placed.ok()) return ToGrpcStatus(placed.status());
   auto map = archive.Finish(store, name, caller->AsMapCreator());
-  if (!map.ok()) return ToGrpcStatus(map.status());
+  if (!map.ok()) {
+    if (*placed) ctx_->shard->Unplace(name);
+    return ToGrpcStatus(map.status());
+  }
   // The new map's keyframes join the appearance index; rankings and models see it.
   ctx_->engine->appearance()->AddMap(map->id);
   ctx_->engine->places()->Invalidate();

@@ -18,6 +18,7 @@
 #include "server/engine/engine.h"
 #include "server/engine/visit_registry.h"
 #include "server/rpc/auth.h"
+#include "server/rpc/shard_membership.h"
 #include "server/rpc/stream_watchdog.h"
 #include "server/store/store.h"
 
@@ -33,6 +34,7 @@ struct ServiceContext {
   Engine* engine = nullptr;                   // the lifelong map (server/engine/engine.h)
   KeyRing* keys = nullptr;                    // who may call what (server/rpc/auth.h)
   StreamWatchdog* stream_watchdog = nullptr;  // ends streams that went quiet
+  ShardMembership* shard = nullptr;  // a shard of a cluster (--placement); null when alone
   double started_time_s = 0.0;
   std::atomic<int> active_streams{0};
 };
@@ -69,6 +71,9 @@ class MapServiceImpl final : public v1::MapService::Service {
                                  const v1::ExportMapRequest& req, grpc::ServerContext* context,
                                  grpc::ServerWriter<v1::ExportChunk>* writer);
 
+  // A shard of a cluster places a map it is about to hold (true: placed now, to be undone if
+  // the map is not made after all); a lone server places nothing (false).
+  absl::StatusOr<bool> PlaceNewMap(const std::string& name);
   ServiceContext* ctx_;
 };
 

@@ -1,0 +1,82 @@
+// Where each map lives when several lifemapd share the work (issue 39): the placement, kept in
+// PostgreSQL so that every shard, the operators' CLI and the nginx configuration read one truth.
+//
+// A map is the unit of sharding (one writer per visit, one pose graph per map): each map is
+// placed on exactly one shard. Names are unique across the cluster, ignoring case (nginx matches
+// its routing table without case). Tables (created on first use, under an advisory lock so that
+// shards starting together do not race):
+//   lifemap_shards(name, address, state 'active'|'draining', added_s, seen_s)
+//   lifemap_maps(name, shard, state 'active'|'moving', move_to, move_phase, placed_s)
+// Times are seconds since the Unix epoch. `seen_s` is the shard's heartbeat (every
+// kHeartbeatIntervalS while it runs): a shard not seen for kDownAfterS is reported down.
+//
+// Thread-safe: one connection behind a mutex, reopened when it breaks. Every call answers
+// UNAVAILABLE (saying the placement database is unreachable) when PostgreSQL cannot be reached.
+#pragma once
+
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace lifemap::placement {
+
+inline constexpr double kHeartbeatIntervalS = 2.0;
+inline constexpr double kDownAfterS = 10.0;
+
+struct Shard {
+  std::string name;     // 1-64 of [A-Za-z0-9._-]
+  std::string address;  // HOST:PORT where nginx and `maps move` reach its gRPC port
+  std::string state;    // "active" (takes new maps) | "draining" (keeps its maps, takes none)
+  double added_s = 0;
+  double seen_s = 0;  // last heartbeat; 0 = never started
+  bool Up(double now_s) const { return seen_s > 0 && now_s - seen_s < kDownAfterS; }
+};
+
+struct MapPlacement {
+  std::string map;
+  std::string shard;
+  std::string state;       // "active" | "moving"
+  std::string move_to;     // while moving: the shard it goes to
+  std::string move_phase;  // while moving: "frozen" | "copied" | "switched"
+  double placed_s = 0;
+};
+
+class Placement {
+ public:
+  // Connects to `uri` (a libpq connection string or postgresql:// URI) and creates the tables
+  // if they are missing. UNAVAILABLE if the database cannot be reached.
+  static absl::StatusOr<std::unique_ptr<Placement>> Open(const std::string& uri);
+  virtual ~Placement() = default;
+
+  // INVALID_ARGUMENT for a bad name or address; ALREADY_EXISTS for a name in use.
+  virtual absl::Status AddShard(const std::string& name, const std::string& address,
+                                double now_s) = 0;
+  virtual absl::StatusOr<std::vector<Shard>> ListShards() = 0;
+  // NOT_FOUND for an unknown shard.
+  virtual absl::StatusOr<Shard> GetShard(const std::string& name) = 0;
+  // "active" or "draining"; NOT_FOUND for an unknown shard.
+  virtual absl::Status SetShardState(const std::string& name, const std::string& state) = 0;
+  // Removes a shard that holds no map; FAILED_PRECONDITION naming its maps otherwise.
+  virtual absl::Status RemoveShard(const std::string& name) = 0;
+  // The shard's heartbeat: seen_s = now_s. NOT_FOUND once the shard has been removed.
+  virtual absl::Status Heartbeat(const std::string& shard, double now_s) = 0;
+
+  // Every map's placement (`shard` empty), or one shard's, by name.
+  virtual absl::StatusOr<std::vector<MapPlacement>> ListMaps(const std::string& shard) = 0;
+  // The map's placement, matched without case; nullopt if it is placed nowhere.
+  virtual absl::StatusOr<std::optional<MapPlacement>> FindMap(const std::string& map) = 0;
+  // Places a new map on `shard`. ALREADY_EXISTS naming the shard when a map of that name
+  // (ignoring case) is placed anywhere; FAILED_PRECONDITION when `shard` is unknown.
+  virtual absl::Status PlaceMap(const std::string& map, const std::string& shard, double now_s) = 0;
+  // Forgets the map if it is placed on `shard` (a deleted map); OK if it is not placed at all.
+  virtual absl::Status UnplaceMap(const std::string& map, const std::string& shard) = 0;
+};
+
+// OK for 1-64 of [A-Za-z0-9._-]; INVALID_ARGUMENT saying what is wrong otherwise.
+absl::Status ValidateShardName(const std::string& name);
+
+}  // namespace lifemap::placement
