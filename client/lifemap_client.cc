@@ -208,6 +208,13 @@ class GrpcClient final : public Client {
       const v1::ListAuditEventsRequest& request) override {
     return Unary(&v1::AdminService::Stub::ListAuditEvents, admin_.get(), request);
   }
+  absl::StatusOr<v1::RefreshPlacementResponse> RefreshPlacement(const std::string& map) override {
+    v1::RefreshPlacementRequest req;
+    req.set_map(map);
+    // Waits for the map's writes to drain on a source shard: up to a minute.
+    return Unary(&v1::AdminService::Stub::RefreshPlacement, admin_.get(), req, map, "",
+                 std::max(options_.call_timeout_s, 90.0));
+  }
 
   absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                     const std::string& description) override {
@@ -294,7 +301,8 @@ class GrpcClient final : public Client {
     if (!*out) return absl::DataLossError("writing the export failed");
     return items;
   }
-  absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name) override {
+  absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name,
+                                    bool keep_ids) override {
     constexpr size_t kChunk = 1 << 20;
     // The first chunk is read before the call starts: through a cluster the call is routed by
     // the map's name, which without `name` is the one in the archive's manifest.
@@ -309,7 +317,10 @@ class GrpcClient final : public Client {
     for (bool first = true;; first = false) {
       if (n == 0 && !first) break;
       v1::ImportChunk chunk;
-      if (first) chunk.set_name(name);
+      if (first) {
+        chunk.set_name(name);
+        chunk.set_keep_ids(keep_ids);
+      }
       chunk.set_data(buffer.substr(0, n));
       if (!writer->Write(chunk)) break;  // the server answered early; Finish() says why
       if (!*in) break;
@@ -409,14 +420,14 @@ class GrpcClient final : public Client {
   absl::StatusOr<Response> Unary(grpc::Status (Stub::*method)(grpc::ClientContext*, const Request&,
                                                               Response*),
                                  Stub* stub, const Request& request, const std::string& map = "",
-                                 const std::string& shard = "") {
+                                 const std::string& shard = "", double timeout_s = 0) {
     grpc::ClientContext context;
     AddKey(&context);
     AddRoute(&context, map);
     if (!shard.empty()) context.AddMetadata(kShardHeader, shard);
-    context.set_deadline(
-        std::chrono::system_clock::now() +
-        std::chrono::milliseconds(static_cast<int64_t>(options_.call_timeout_s * 1000)));
+    if (timeout_s <= 0) timeout_s = options_.call_timeout_s;
+    context.set_deadline(std::chrono::system_clock::now() +
+                         std::chrono::milliseconds(static_cast<int64_t>(timeout_s * 1000)));
     Response response;
     if (auto s = FromGrpc((stub->*method)(&context, request, &response)); !s.ok()) return s;
     return response;

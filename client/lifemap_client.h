@@ -104,6 +104,8 @@ class Client {
   virtual absl::StatusOr<v1::ApiKey> RevokeApiKey(const std::string& name) = 0;
   virtual absl::StatusOr<v1::ListAuditEventsResponse> ListAuditEvents(
       const v1::ListAuditEventsRequest& request) = 0;
+  // A shard reads the placement now; for a map moving away, once its writes have drained.
+  virtual absl::StatusOr<v1::RefreshPlacementResponse> RefreshPlacement(const std::string& map) = 0;
 
   virtual absl::StatusOr<v1::Map> CreateMap(const std::string& name,
                                             const std::string& description) = 0;
@@ -127,7 +129,9 @@ class Client {
   // Adds a map from an archive (ExportMap EXPORT_MAP_ARCHIVE) read from `in`, sent in 1 MiB
   // chunks, under `name` ("" = the name it was exported under). No deadline: a large map takes
   // as long as its bytes take to send and store.
-  virtual absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name) = 0;
+  // `keep_ids`: ImportChunk.keep_ids (a move between the shards of a cluster).
+  virtual absl::StatusOr<v1::Map> ImportMap(std::istream* in, const std::string& name,
+                                            bool keep_ids = false) = 0;
   // Rebuilds semantic octrees from stored keyframes; `on_visit` gets each visit's outcome as
   // the server decides it (no deadline: a large map takes minutes).
   virtual absl::Status RebuildSemanticOctrees(

@@ -291,7 +291,7 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->keys = std::make_unique<KeyRing>(store, config.AuthRequired());
   if (auto s = CheckAuthCanWork(config, store); !s.ok()) return s;
   if (!config.placement_uri.empty()) {
-    auto shard = ShardMembership::Join(config.placement_uri, config.shard_name, store);
+    auto shard = ShardMembership::Join(config.placement_uri, config.shard_name, impl->engine.get());
     if (!shard.ok()) return shard.status();
     impl->shard = *std::move(shard);
     impl->keys->set_map_gate(impl->shard.get());

@@ -150,8 +150,13 @@ absl::StatusOr<v1::CameraIntrinsics> ParseIntrinsicsFlag(const std::string& text
 }
 
 absl::StatusOr<std::unique_ptr<client::Client>> CliContext::Connect() const {
+  return ConnectTo(server);
+}
+
+absl::StatusOr<std::unique_ptr<client::Client>> CliContext::ConnectTo(
+    const std::string& target) const {
   client::ClientOptions options;
-  options.target = server;
+  options.target = target;
   options.connect_timeout_s = timeout_s;
   auto key = client::ResolveApiKey(api_key, api_key_file);
   if (!key.ok()) return key.status();
@@ -333,6 +338,7 @@ void AddMapArchiveCommands(CLI::App* maps, CliContext* ctx) {
 
 void AddMapCommands(CLI::App* app, CliContext* ctx) {
   auto* maps = app->add_subcommand("maps", "Create, list, inspect, rename and delete maps");
+  AddMapsMoveCommand(maps, ctx);
   maps->require_subcommand(1);
 
   auto* create = maps->add_subcommand("create", "Create an empty map");

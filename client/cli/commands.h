@@ -33,6 +33,8 @@ struct CliContext {
   std::function<int()> run;  // the chosen command
 
   absl::StatusOr<std::unique_ptr<client::Client>> Connect() const;
+  // The same options (keys, TLS) for another server: a shard at its own address.
+  absl::StatusOr<std::unique_ptr<client::Client>> ConnectTo(const std::string& target) const;
 };
 
 // Core values as the messages a robot sends.
@@ -70,6 +72,8 @@ void AddKeyframeCommands(CLI::App* app, CliContext* ctx);
 void AddExportCommand(CLI::App* app, CliContext* ctx);
 void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
+// `maps move` (move_command.cc), under `maps`.
+void AddMapsMoveCommand(CLI::App* maps, CliContext* ctx);
 // `admin shards ...` (shards_command.cc), under `admin`.
 void AddShardsCommands(CLI::App* admin, CliContext* ctx);
 void AddKeyCommands(CLI::App* app, CliContext* ctx);

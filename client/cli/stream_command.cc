@@ -46,6 +46,10 @@ struct StreamArgs {
   // --result-images: "png" (in the results, base64 in --json), "none", or a folder the PNGs
   // are written into (the JSON then names the files).
   std::string result_images = "png";
+  // A stream that breaks with UNAVAILABLE (a shard's map moving, nginx or a server restarted)
+  // is opened again on the same visit for up to this long, and the frames not yet answered are
+  // sent again; 0 = never.
+  double reconnect_s = 60.0;
 };
 
 // Writes a result's PNGs into `dir` as SEQUENCE_<what>.png, clears them from `result`, and
@@ -158,6 +162,8 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   auto stream = (*client)->OpenStream(start);
   if (!stream.ok()) return Fail(stream.status());
   const uint64_t visit_id = (*stream)->started().visit_id();
+  // Reconnections resume this visit.
+  start.set_visit_id(visit_id);
   const bool progress = !ctx.json && isatty(STDERR_FILENO);
   if (!ctx.json) {
     std::cerr << absl::StrFormat(
@@ -178,9 +184,12 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   std::atomic<size_t> sent{0};
   std::string send_error;
   const auto t0 = Clock::now();
-  std::thread sender([&] {
+  size_t answered_upto = 0;  // frames [0, answered_upto) have their results (they come in order)
+  size_t reconnections = 0;
+  // One stream session: sends frames from `from` on.
+  const auto send_from = [&](size_t from) {
     const double first_ts = seq->frames[0].timestamp_s;
-    for (size_t i = 0; i < n; ++i) {
+    for (size_t i = from; i < n; ++i) {
       const auto& e = seq->frames[i];
       if (a.rate_hz != 0.0) {
         const double offset_s = a.rate_hz < 0 ? e.timestamp_s - first_ts : i / a.rate_hz;
@@ -215,7 +224,8 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
       sent.fetch_add(1);
     }
     (*stream)->CloseSend();
-  });
+  };
+  std::thread sender(send_from, 0);
 
   std::vector<double> latencies_ms;
   std::vector<uint64_t> keyframe_ids;
@@ -223,57 +233,100 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   size_t results = 0, rejected = 0;
   size_t tracked = 0, lost_by_tracker = 0;  // frames the server tracked (sent without a pose)
   v1::FrameResult result;
-  while ((*stream)->Receive(&result)) {
-    const auto now = Clock::now();
-    double latency_ms = 0.0;
+  absl::Status final_status;
+  for (;;) {
+    while ((*stream)->Receive(&result)) {
+      // A frame refused because the way is closing (its map moving to another shard) is sent
+      // again after the reconnection, not counted as answered.
+      if (result.has_error() && a.reconnect_s > 0 &&
+          result.error().code() == static_cast<int>(absl::StatusCode::kUnavailable)) {
+        continue;
+      }
+      answered_upto = std::max(answered_upto, static_cast<size_t>(result.sequence()) + 1);
+      const auto now = Clock::now();
+      double latency_ms = 0.0;
+      {
+        std::lock_guard<std::mutex> lock(sent_mu);
+        auto it = sent_at.find(result.sequence());
+        if (it != sent_at.end()) {
+          latency_ms = std::chrono::duration<double, std::milli>(now - it->second).count();
+          sent_at.erase(it);
+        }
+      }
+      ++results;
+      latencies_ms.push_back(latency_ms);
+      if (result.has_error()) {
+        ++rejected;
+        if (!ctx.json) {
+          std::cerr << (progress ? "\n" : "") << "frame " << result.sequence()
+                    << " rejected: " << result.error().message() << "\n";
+        }
+      }
+      if (result.has_tracking()) {
+        ++tracked;
+        if (result.tracking().state() == v1::TRACKING_LOST) ++lost_by_tracker;
+      }
+      if (result.keyframe().committed()) {
+        keyframe_ids.push_back(result.keyframe().keyframe_id());
+      } else if (result.keyframe().selected()) {
+        ++keyframes_refused[result.keyframe().reason()];
+      }
+      std::vector<std::string> image_files;
+      if (images_to_files) {
+        auto written = WriteResultImages(a.result_images, &result);
+        if (!written.ok()) {
+          (*stream)->Cancel();
+          return Fail(written.status());
+        }
+        image_files = *std::move(written);
+      }
+      if (ctx.json) {
+        nlohmann::json line = nlohmann::json::parse(ToJson(result, false));
+        line["client_latency_ms"] = latency_ms;
+        if (images_to_files) line["image_files"] = image_files;
+        std::cout << line.dump() << std::endl;
+      } else if (progress) {
+        const double elapsed = std::chrono::duration<double>(now - t0).count();
+        std::cerr << absl::StrFormat("\r  frames %d/%d  keyframes %d  %.1f frames/s   ", results, n,
+                                     keyframe_ids.size(), results / std::max(elapsed, 1e-9));
+      }
+    }
+    sender.join();
+    final_status = (*stream)->Finish();
+    // Broken by the way there, not by the server's judgement of the frames: open the visit
+    // again and send what has no answer yet. Results already received are kept (a frame whose
+    // answer was lost may be stored twice; an acknowledged one is never lost).
+    if (!absl::IsUnavailable(final_status) || a.reconnect_s <= 0 || answered_upto >= n ||
+        !send_error.empty()) {
+      break;
+    }
+    const auto give_up = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                            std::chrono::duration<double>(a.reconnect_s));
+    if (!ctx.json) {
+      std::cerr << (progress ? "\n" : "") << "stream broke (" << final_status.message()
+                << "): reconnecting to resume visit " << visit_id << " at frame " << answered_upto
+                << "\n";
+    }
+    absl::StatusOr<std::unique_ptr<client::FrameStream>> again = final_status;
+    for (int attempt = 0; Clock::now() < give_up; ++attempt) {
+      std::this_thread::sleep_for(
+          std::chrono::milliseconds(std::min(2000, 100 << std::min(attempt, 5))));
+      again = (*client)->OpenStream(start);
+      if (again.ok() || !absl::IsUnavailable(again.status())) break;
+    }
+    if (!again.ok()) {
+      final_status = again.status();
+      break;
+    }
+    ++reconnections;
+    *stream = *std::move(again);
     {
       std::lock_guard<std::mutex> lock(sent_mu);
-      auto it = sent_at.find(result.sequence());
-      if (it != sent_at.end()) {
-        latency_ms = std::chrono::duration<double, std::milli>(now - it->second).count();
-        sent_at.erase(it);
-      }
+      sent_at.clear();
     }
-    ++results;
-    latencies_ms.push_back(latency_ms);
-    if (result.has_error()) {
-      ++rejected;
-      if (!ctx.json) {
-        std::cerr << (progress ? "\n" : "") << "frame " << result.sequence()
-                  << " rejected: " << result.error().message() << "\n";
-      }
-    }
-    if (result.has_tracking()) {
-      ++tracked;
-      if (result.tracking().state() == v1::TRACKING_LOST) ++lost_by_tracker;
-    }
-    if (result.keyframe().committed()) {
-      keyframe_ids.push_back(result.keyframe().keyframe_id());
-    } else if (result.keyframe().selected()) {
-      ++keyframes_refused[result.keyframe().reason()];
-    }
-    std::vector<std::string> image_files;
-    if (images_to_files) {
-      auto written = WriteResultImages(a.result_images, &result);
-      if (!written.ok()) {
-        (*stream)->Cancel();
-        return Fail(written.status());
-      }
-      image_files = *std::move(written);
-    }
-    if (ctx.json) {
-      nlohmann::json line = nlohmann::json::parse(ToJson(result, false));
-      line["client_latency_ms"] = latency_ms;
-      if (images_to_files) line["image_files"] = image_files;
-      std::cout << line.dump() << std::endl;
-    } else if (progress) {
-      const double elapsed = std::chrono::duration<double>(now - t0).count();
-      std::cerr << absl::StrFormat("\r  frames %d/%d  keyframes %d  %.1f frames/s   ", results, n,
-                                   keyframe_ids.size(), results / std::max(elapsed, 1e-9));
-    }
+    sent.store(answered_upto);
+    sender = std::thread(send_from, answered_upto);
   }
-  sender.join();
-  const absl::Status final_status = (*stream)->Finish();
   const double elapsed_s = std::chrono::duration<double>(Clock::now() - t0).count();
   if (progress) std::cerr << "\n";
 
@@ -345,6 +398,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         {"frames_lost_by_tracker", lost_by_tracker},
         {"visit_frame", visit_frame},
         {"visit_ended", end_asked && end_status.ok()},
+        {"reconnections", reconnections},
     };
     if (!end_status.ok()) summary["end_visit_error"] = std::string(end_status.message());
     if (!ended.ok()) {
@@ -433,6 +487,13 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
       "folder: each result's PNGs written there as SEQUENCE_<what>.png (entropy_score, "
       "entropy_mask, labels, label_confidence, fused_labels, fused_confidence, moved) and "
       "named in --json's image_files");
+  stream
+      ->add_option("--reconnect-s", a->reconnect_s,
+                   "when the stream breaks with UNAVAILABLE (a map moving between shards, a "
+                   "restart), reopen the visit for up to this long and send again the frames "
+                   "not yet answered; 0 = never")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 86400.0));
   stream->callback([ctx, a] { ctx->run = [ctx, a] { return RunStream(*ctx, *a); }; });
 }
 

@@ -236,7 +236,8 @@ absl::Status MapArchiveImport::Add(std::string_view bytes) {
 
 absl::StatusOr<store::MapRecord> MapArchiveImport::Finish(store::Store* store,
                                                           const std::string& name,
-                                                          const store::MapCreator& creator) {
+                                                          const store::MapCreator& creator,
+                                                          bool keep_ids) {
   if (!have_manifest_) {
     return absl::InvalidArgumentError(
         "the archive ended before its manifest: give a whole file `lifemap maps export` wrote");
@@ -256,7 +257,7 @@ absl::StatusOr<store::MapRecord> MapArchiveImport::Finish(store::Store* store,
                                             ", its manifest says ", manifest_.sha256,
                                             "; copy it again or export the map again"));
   }
-  return store->ReadMapArchive(scratch_, name.empty() ? manifest_.map : name, creator);
+  return store->ReadMapArchive(scratch_, name.empty() ? manifest_.map : name, creator, keep_ids);
 }
 
 }  // namespace lifemap::server

@@ -62,8 +62,9 @@ class MapArchiveImport {
   // Checks that every byte came and the checksum, then imports the map as `name` (empty: the
   // name it was exported under) in one transaction (Store::ReadMapArchive). DATA_LOSS for a
   // damaged archive.
+  // `keep_ids`: Store::ReadMapArchive's (a move between shards).
   absl::StatusOr<store::MapRecord> Finish(store::Store* store, const std::string& name,
-                                          const store::MapCreator& creator);
+                                          const store::MapCreator& creator, bool keep_ids = false);
   const MapArchiveManifest& manifest() const { return manifest_; }
 
  private:

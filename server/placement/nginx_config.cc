@@ -54,9 +54,9 @@ std::string NginxConfig(const std::vector<Shard>& shards, const std::vector<MapP
   line("", "map $http_lifemap_map $lifemap_by_map {");
   line("  ", "default \"\";");
   for (const MapPlacement& m : maps) {
-    // A map being moved is served by its source until the switch, then by its target.
-    const bool switched = m.state == "moving" && m.move_phase == "switched";
-    line("  ", absl::StrCat(Quoted(m.map), " ", Upstream(switched ? m.move_to : m.shard), ";"));
+    // A map being moved is served by its source until the switch, then by its target: the
+    // placement's `shard` says which.
+    line("  ", absl::StrCat(Quoted(m.map), " ", Upstream(m.shard), ";"));
   }
   line("", "}");
   line("", "map \"$lifemap_by_shard|$lifemap_by_map\" $lifemap_upstream {");
@@ -85,8 +85,7 @@ std::string NginxConfig(const std::vector<Shard>& shards, const std::vector<MapP
   }
   line("  ", "client_max_body_size 0;  # frame streams are long request bodies");
   line("  ", absl::StrCat("client_body_timeout ", timeout, ";"));
-  line("  ", absl::StrCat("http2_recv_timeout ", timeout, ";"));
-  line("  ", absl::StrCat("http2_idle_timeout ", timeout, ";"));
+  line("  ", absl::StrCat("keepalive_timeout ", timeout, ";"));
   line("  ", "http2_max_concurrent_streams 1024;");
   line("  ", "location / {");
   line("    ", "grpc_pass grpc://$lifemap_upstream;");

@@ -18,6 +18,7 @@ constexpr long long kSchemaLockKey = 0x6c6966656d6170;  // "lifemap"
 constexpr const char* kSchema = R"sql(
 CREATE TABLE IF NOT EXISTS lifemap_shards (
   name text PRIMARY KEY,
+  number serial UNIQUE,
   address text NOT NULL,
   state text NOT NULL DEFAULT 'active' CHECK (state IN ('active', 'draining')),
   added_s double precision NOT NULL,
@@ -28,7 +29,9 @@ CREATE TABLE IF NOT EXISTS lifemap_maps (
   shard text NOT NULL REFERENCES lifemap_shards(name),
   state text NOT NULL DEFAULT 'active' CHECK (state IN ('active', 'moving')),
   move_to text REFERENCES lifemap_shards(name),
-  move_phase text,
+  move_from text REFERENCES lifemap_shards(name),
+  move_phase text CHECK (move_phase IN ('frozen', 'copied', 'switched')),
+  move_started_s double precision,
   placed_s double precision NOT NULL
 );
 CREATE UNIQUE INDEX IF NOT EXISTS lifemap_maps_name_nocase ON lifemap_maps (lower(name));
@@ -51,8 +54,10 @@ MapPlacement MapFromRow(const pqxx::row& r) {
   m.shard = r[1].as<std::string>();
   m.state = r[2].as<std::string>();
   m.move_to = r[3].is_null() ? "" : r[3].as<std::string>();
-  m.move_phase = r[4].is_null() ? "" : r[4].as<std::string>();
-  m.placed_s = r[5].as<double>();
+  m.move_from = r[4].is_null() ? "" : r[4].as<std::string>();
+  m.move_phase = r[5].is_null() ? "" : r[5].as<std::string>();
+  m.move_started_s = r[6].is_null() ? 0.0 : r[6].as<double>();
+  m.placed_s = r[7].as<double>();
   return m;
 }
 
@@ -63,11 +68,22 @@ Shard ShardFromRow(const pqxx::row& r) {
   s.state = r[2].as<std::string>();
   s.added_s = r[3].as<double>();
   s.seen_s = r[4].as<double>();
+  s.number = r[5].as<int64_t>();
   return s;
 }
 
-constexpr const char* kMapColumns = "name, shard, state, move_to, move_phase, placed_s";
-constexpr const char* kShardColumns = "name, address, state, added_s, seen_s";
+constexpr const char* kMapColumns =
+    "name, shard, state, move_to, move_from, move_phase, move_started_s, placed_s";
+constexpr const char* kShardColumns = "name, address, state, added_s, seen_s, number";
+
+// A move lock: its own connection, holding a session-level advisory lock until closed.
+class PgMoveLock final : public MoveLock {
+ public:
+  explicit PgMoveLock(std::unique_ptr<pqxx::connection> conn) : conn_(std::move(conn)) {}
+
+ private:
+  std::unique_ptr<pqxx::connection> conn_;
+};
 
 class PgPlacement final : public Placement {
  public:
@@ -141,7 +157,8 @@ class PgPlacement final : public Placement {
   absl::Status RemoveShard(const std::string& name) override {
     return Run([&](pqxx::work& w) {
       auto maps = w.exec_params(
-          "SELECT name FROM lifemap_maps WHERE shard = $1 OR move_to = $1 ORDER BY name LIMIT 11",
+          "SELECT name FROM lifemap_maps WHERE shard = $1 OR move_to = $1 OR move_from = $1 ORDER "
+          "BY name LIMIT 11",
           name);
       if (!maps.empty()) {
         std::vector<std::string> names;
@@ -222,7 +239,91 @@ class PgPlacement final : public Placement {
     });
   }
 
+  absl::StatusOr<std::unique_ptr<MoveLock>> LockMove(const std::string& map) override {
+    try {
+      auto conn = std::make_unique<pqxx::connection>(uri_);
+      pqxx::nontransaction n(*conn);
+      auto r =
+          n.exec_params("SELECT pg_try_advisory_lock(hashtext('lifemap-move:' || lower($1)))", map);
+      if (!r[0][0].as<bool>()) {
+        return absl::AbortedError(absl::StrCat(
+            "another `lifemap maps move` of map '", map,
+            "' is running now: wait for it (lifemap admin shards list shows the move)"));
+      }
+      return std::unique_ptr<MoveLock>(new PgMoveLock(std::move(conn)));
+    } catch (const std::exception& e) {
+      return absl::UnavailableError(absl::StrCat("the placement database is unreachable: ",
+                                                 absl::StripAsciiWhitespace(e.what())));
+    }
+  }
+
+  absl::Status BeginMove(const std::string& map, const std::string& to, double now_s) override {
+    return Run([&](pqxx::work& w) -> absl::Status {
+      auto known = w.exec_params("SELECT 1 FROM lifemap_shards WHERE name = $1", to);
+      if (known.empty()) return UnknownShard(to);
+      auto r = w.exec_params(
+          "UPDATE lifemap_maps SET state = 'moving', move_to = $2, move_phase = 'frozen', "
+          "move_started_s = $3 WHERE name = $1 AND state = 'active' AND shard <> $2",
+          map, to, now_s);
+      if (r.affected_rows() == 1) return absl::OkStatus();
+      return NotInPhase(w, map, "active");
+    });
+  }
+
+  absl::Status AdvanceMove(const std::string& map, const std::string& from_phase) override {
+    const char* sql = nullptr;
+    if (from_phase == "frozen") {
+      sql =
+          "UPDATE lifemap_maps SET move_phase = 'copied' WHERE name = $1 AND move_phase = "
+          "'frozen'";
+    } else if (from_phase == "copied") {
+      sql =
+          "UPDATE lifemap_maps SET move_from = shard, shard = move_to, move_to = NULL, "
+          "move_phase = 'switched' WHERE name = $1 AND move_phase = 'copied'";
+    } else if (from_phase == "switched") {
+      sql =
+          "UPDATE lifemap_maps SET state = 'active', move_from = NULL, move_phase = NULL, "
+          "move_started_s = NULL WHERE name = $1 AND move_phase = 'switched'";
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat("no move phase '", from_phase, "'"));
+    }
+    return Run([&](pqxx::work& w) -> absl::Status {
+      auto r = w.exec_params(sql, map);
+      if (r.affected_rows() == 1) return absl::OkStatus();
+      return NotInPhase(w, map, from_phase);
+    });
+  }
+
+  absl::Status AbortMove(const std::string& map) override {
+    return Run([&](pqxx::work& w) -> absl::Status {
+      auto r = w.exec_params(
+          "UPDATE lifemap_maps SET state = 'active', move_to = NULL, move_phase = NULL, "
+          "move_started_s = NULL WHERE name = $1 AND move_phase IN ('frozen', 'copied')",
+          map);
+      if (r.affected_rows() == 1) return absl::OkStatus();
+      return NotInPhase(w, map, "frozen or copied");
+    });
+  }
+
  private:
+  // Why a map is not in `phase`: unknown, or where it stands.
+  static absl::Status NotInPhase(pqxx::work& w, const std::string& map, const std::string& phase) {
+    auto r = w.exec_params(
+        absl::StrCat("SELECT ", kMapColumns, " FROM lifemap_maps WHERE name = $1"), map);
+    if (r.empty()) {
+      return absl::NotFoundError(absl::StrCat("map '", map, "' is not placed on any shard"));
+    }
+    const MapPlacement m = MapFromRow(r[0]);
+    if (m.state == "active") {
+      return absl::FailedPreconditionError(absl::StrCat("map '", map, "' is on shard '", m.shard,
+                                                        "' and not moving (wanted ", phase, ")"));
+    }
+    return absl::FailedPreconditionError(absl::StrCat(
+        "map '", map, "' is moving ", m.move_phase == "switched" ? m.move_from : m.shard, " -> ",
+        m.move_phase == "switched" ? m.shard : m.move_to, ", phase ", m.move_phase, " (wanted ",
+        phase, ")"));
+  }
+
   static absl::Status UnknownShard(const std::string& name) {
     return absl::NotFoundError(absl::StrCat(
         "shard '", name, "' is not in the placement database: lifemap admin shards list"));

@@ -5,8 +5,9 @@
 // placed on exactly one shard. Names are unique across the cluster, ignoring case (nginx matches
 // its routing table without case). Tables (created on first use, under an advisory lock so that
 // shards starting together do not race):
-//   lifemap_shards(name, address, state 'active'|'draining', added_s, seen_s)
-//   lifemap_maps(name, shard, state 'active'|'moving', move_to, move_phase, placed_s)
+//   lifemap_shards(name, number, address, state 'active'|'draining', added_s, seen_s)
+//   lifemap_maps(name, shard, state 'active'|'moving', move_to, move_from, move_phase,
+//                move_started_s, placed_s)
 // Times are seconds since the Unix epoch. `seen_s` is the shard's heartbeat (every
 // kHeartbeatIntervalS while it runs): a shard not seen for kDownAfterS is reported down.
 //
@@ -14,6 +15,7 @@
 // UNAVAILABLE (saying the placement database is unreachable) when PostgreSQL cannot be reached.
 #pragma once
 
+#include <cstdint>
 #include <memory>
 #include <optional>
 #include <string>
@@ -29,6 +31,7 @@ inline constexpr double kDownAfterS = 10.0;
 
 struct Shard {
   std::string name;     // 1-64 of [A-Za-z0-9._-]
+  int64_t number = 0;   // 1, 2, ... in the order shards were added; never reused
   std::string address;  // HOST:PORT where nginx and `maps move` reach its gRPC port
   std::string state;    // "active" (takes new maps) | "draining" (keeps its maps, takes none)
   double added_s = 0;
@@ -36,13 +39,30 @@ struct Shard {
   bool Up(double now_s) const { return seen_s > 0 && now_s - seen_s < kDownAfterS; }
 };
 
+// A move (`lifemap maps move`, MapMover) goes through phases, each recorded before the next
+// step, so that a move killed anywhere is finished (or aborted) by running it again:
+//   frozen    shard = source, move_to = target: the source refuses writes and drains; the map is
+//             exported from it and imported into the target, which does not serve it yet
+//   copied    the target holds the whole map
+//   switched  shard = target, move_from = source: the target serves the map; the source answers
+//             UNAVAILABLE (moved) until its copy is deleted; nginx's table follows
+// and back to "active" once the source's copy is gone.
 struct MapPlacement {
   std::string map;
   std::string shard;
   std::string state;       // "active" | "moving"
-  std::string move_to;     // while moving: the shard it goes to
-  std::string move_phase;  // while moving: "frozen" | "copied" | "switched"
+  std::string move_to;     // frozen, copied: the shard it goes to
+  std::string move_from;   // switched: the shard it came from
+  std::string move_phase;  // "frozen" | "copied" | "switched"; "" when active
+  double move_started_s = 0;
   double placed_s = 0;
+};
+
+// Held while one process moves one map (a PostgreSQL session lock: released when the process
+// dies, so a killed move never blocks the next).
+class MoveLock {
+ public:
+  virtual ~MoveLock() = default;
 };
 
 class Placement {
@@ -74,6 +94,17 @@ class Placement {
   virtual absl::Status PlaceMap(const std::string& map, const std::string& shard, double now_s) = 0;
   // Forgets the map if it is placed on `shard` (a deleted map); OK if it is not placed at all.
   virtual absl::Status UnplaceMap(const std::string& map, const std::string& shard) = 0;
+
+  // Moves (see MapPlacement). ABORTED when another process moves the map now.
+  virtual absl::StatusOr<std::unique_ptr<MoveLock>> LockMove(const std::string& map) = 0;
+  // active -> frozen towards `to`. FAILED_PRECONDITION when the map is not active (another
+  // move stands: say which) or unknown.
+  virtual absl::Status BeginMove(const std::string& map, const std::string& to, double now_s) = 0;
+  // frozen -> copied; copied -> switched (shard = target, move_from = source); switched ->
+  // active. FAILED_PRECONDITION when the map is not in the phase before.
+  virtual absl::Status AdvanceMove(const std::string& map, const std::string& from_phase) = 0;
+  // frozen or copied -> active on the source (the target's copy is the caller's to delete).
+  virtual absl::Status AbortMove(const std::string& map) = 0;
 };
 
 // OK for 1-64 of [A-Za-z0-9._-]; INVALID_ARGUMENT saying what is wrong otherwise.

@@ -394,4 +394,23 @@ grpc::Status AdminServiceImpl::ListAuditEvents(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
+grpc::Status AdminServiceImpl::RefreshPlacement(grpc::ServerContext* context,
+                                                const v1::RefreshPlacementRequest* req,
+                                                v1::RefreshPlacementResponse* resp) {
+  auto caller = ctx_->keys->Authorize(*context, "AdminService/RefreshPlacement");
+  if (!caller.ok()) return ToGrpcStatus(caller.status());
+  if (ctx_->shard == nullptr) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "this server is not a shard of a cluster (lifemapd --placement --shard)");
+  }
+  if (!req->map().empty()) {
+    if (auto s = store::ValidateMapName(req->map()); !s.ok()) return ToGrpcStatus(s);
+  }
+  auto phase = ctx_->shard->Refresh(req->map());
+  if (!phase.ok()) return ToGrpcStatus(phase.status());
+  resp->set_shard(ctx_->shard->shard());
+  if (!req->map().empty()) resp->set_map_phase(*phase);
+  return grpc::Status::OK;
+}
+
 }  // namespace lifemap::server

@@ -93,6 +93,7 @@ const std::vector<std::pair<absl::string_view, Role>>& MethodRoles() {
       {"AdminService/ListApiKeys", Role::kAdmin},
       {"AdminService/RevokeApiKey", Role::kAdmin},
       {"AdminService/ListAuditEvents", Role::kAdmin},
+      {"AdminService/RefreshPlacement", Role::kAdmin},
   };
   return *kTable;
 }
@@ -137,7 +138,9 @@ absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Princ
                                                 const std::string& name) {
   if (auto s = store::ValidateMapName(name); !s.ok()) return s;
   if (caller.gate != nullptr) {
-    if (auto s = caller.gate->CheckMap(name); !s.ok()) return s;
+    auto lease = caller.gate->CheckMap(name, caller.method);
+    if (!lease.ok()) return lease.status();
+    if (*lease) caller.write_lease = *std::move(lease);
   }
   auto map = store->GetMap(name);
   if (!map.ok()) {
@@ -158,7 +161,9 @@ absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const P
     return visit.status();
   }
   if (caller.gate != nullptr) {
-    if (auto s = caller.gate->CheckMap(visit->map_name); !s.ok()) return s;
+    auto lease = caller.gate->CheckMap(visit->map_name, caller.method);
+    if (!lease.ok()) return lease.status();
+    if (*lease) caller.write_lease = *std::move(lease);
   }
   if (!caller.MayUseMap(visit->map_id)) {
     return caller.CheckMap(visit->map_id, absl::StrCat("(the map of visit ", visit_id, ")"));
@@ -422,6 +427,7 @@ absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_vi
   if (!required_) {
     Principal anyone;
     anyone.gate = gate_;
+    anyone.method = std::string(what);
     return anyone;
   }
   auto entry = Find(authorization, what);
@@ -464,6 +470,7 @@ absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_vi
   p.limits = key.limits;
   p.usage = (*entry)->usage;
   p.gate = gate_;
+  p.method = std::string(what);
   return p;
 }
 

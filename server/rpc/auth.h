@@ -66,8 +66,12 @@ class KeyUsage {
 class MapGate {
  public:
   virtual ~MapGate() = default;
-  // OK, or why calls about `map` are refused here (naming where the map lives).
-  virtual absl::Status CheckMap(const std::string& map) const = 0;
+  // OK, or why calls of `method` ("Service/Method") about `map` are refused here (naming where
+  // the map lives, or that it is moving). A call that writes the map is given a lease, held
+  // until the call ends (a move waits for every lease of the map before copying it); null for
+  // a call that only reads.
+  virtual absl::StatusOr<std::shared_ptr<void>> CheckMap(const std::string& map,
+                                                         absl::string_view method) const = 0;
 };
 
 // The caller of one call.
@@ -85,6 +89,10 @@ struct Principal {
   std::shared_ptr<KeyUsage> usage;
   // The server's gate (KeyRing::set_map_gate); null for a lone server.
   const MapGate* gate = nullptr;
+  std::string method;  // the call's "Service/Method" (what the gate judges)
+  // The gate's lease on the map this call writes (set by FindCallersMap/FindCallersVisit),
+  // released with the Principal when the call's handler returns.
+  mutable std::shared_ptr<void> write_lease;
 
   bool MayUseMap(int64_t map_id) const;
   // PERMISSION_DENIED naming the key's maps unless it may use the map.

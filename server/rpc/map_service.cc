@@ -125,7 +125,8 @@ grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext* context, const v1::Li
   if (!maps.ok()) return ToGrpcStatus(maps.status());
   for (const auto& m : *maps) {
     // A shard lists only the maps it serves, not stale copies of maps that moved away.
-    if (ctx_->shard != nullptr && !ctx_->shard->CheckMap(m.name).ok()) continue;
+    if (ctx_->shard != nullptr && !ctx_->shard->CheckMap(m.name, "MapService/ListMaps").ok())
+      continue;
     if (caller->MayUseMap(m.id)) MapToProto(m, resp->add_maps());
   }
   return grpc::Status::OK;
@@ -572,6 +573,7 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
   MapArchiveImport archive(*store);
   v1::ImportChunk chunk;
   std::string name;
+  bool keep_ids = false;
   uint64_t chunks = 0;
   for (;;) {
     const ReadOutcome got = ReadMessage(reader, &chunk);
@@ -584,6 +586,7 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
     }
     if (chunks++ == 0) {
       name = chunk.name();
+      keep_ids = chunk.keep_ids();
       if (!name.empty()) {
         if (auto s = store::ValidateMapName(name); !s.ok()) {
           return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -609,7 +612,7 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
   }
   auto placed = PlaceNewMap(name);
   if (!placed.ok()) return ToGrpcStatus(placed.status());
-  auto map = archive.Finish(store, name, caller->AsMapCreator());
+  auto map = archive.Finish(store, name, caller->AsMapCreator(), keep_ids);
   if (!map.ok()) {
     if (*placed) ctx_->shard->Unplace(name);
     return ToGrpcStatus(map.status());

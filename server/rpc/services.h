@@ -160,6 +160,8 @@ class AdminServiceImpl final : public v1::AdminService::Service {
                             v1::ApiKey*) override;
   grpc::Status ListAuditEvents(grpc::ServerContext*, const v1::ListAuditEventsRequest*,
                                v1::ListAuditEventsResponse*) override;
+  grpc::Status RefreshPlacement(grpc::ServerContext*, const v1::RefreshPlacementRequest*,
+                                v1::RefreshPlacementResponse*) override;
   grpc::Status RebuildAppearanceIndex(grpc::ServerContext*,
                                       const v1::RebuildAppearanceIndexRequest*,
                                       v1::AppearanceIndexInfo*) override;

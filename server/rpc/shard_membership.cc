@@ -4,16 +4,43 @@
 
 #include <utility>
 
+#include "absl/container/flat_hash_set.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/time/clock.h"
 #include "server/engine/clock.h"
+#include "server/engine/engine.h"
+#include "server/engine/visit_registry.h"
 
 namespace lifemap::server {
+namespace {
+
+// Calls that change a map's rows: refused while the map is frozen for a move, and counted
+// (a lease each) so that the move waits for them before copying.
+bool Writes(absl::string_view method) {
+  static const auto* writes = new absl::flat_hash_set<absl::string_view>{
+      "FrameService/StreamFrames",  "FrameService/ProcessFrame",
+      "VisitService/StartVisit",    "VisitService/EndVisit",
+      "VisitService/DeleteVisit",   "VisitService/AnchorVisits",
+      "MapService/UpdateMap",       "MapService/RenameMap",
+      "MapService/DeleteMap",       "MapService/RebuildSemanticOctrees",
+      "ModelService/ActivateModel", "AdminService/ApplyRetention",
+  };
+  return writes->contains(method);
+}
+
+std::string Key(const std::string& map) { return absl::AsciiStrToLower(map); }
+
+}  // namespace
+
+ShardMembership::ShardMembership(std::string shard, std::unique_ptr<placement::Placement> placement,
+                                 Engine* engine)
+    : shard_(std::move(shard)), placement_(std::move(placement)), engine_(engine) {}
 
 absl::StatusOr<std::unique_ptr<ShardMembership>> ShardMembership::Join(const std::string& uri,
                                                                        const std::string& shard,
-                                                                       store::Store* store) {
+                                                                       Engine* engine) {
   auto placement = placement::Placement::Open(uri);
   if (!placement.ok()) return placement.status();
   auto self = (*placement)->GetShard(shard);
@@ -27,53 +54,53 @@ absl::StatusOr<std::unique_ptr<ShardMembership>> ShardMembership::Join(const std
                      " HOST:PORT --placement URI` (HOST:PORT: where nginx reaches this "
                      "server's gRPC port)"));
   }
+  if (auto s = engine->store()->RaiseIdFloor(self->number << kIdRangeBits); !s.ok()) return s;
   std::unique_ptr<ShardMembership> membership(
-      new ShardMembership(shard, *std::move(placement), store));
+      new ShardMembership(shard, *std::move(placement), engine));
   if (auto s = membership->Reconcile(); !s.ok()) return s;
   membership->Tick();
   return membership;
 }
 
 absl::Status ShardMembership::Reconcile() {
-  auto local = store_->ListMaps();
+  auto local = engine_->store()->ListMaps();
   if (!local.ok()) return local.status();
-  std::vector<std::string> adopted, stale;
+  std::vector<std::string> adopted, elsewhere;
   for (const store::MapRecord& m : *local) {
     auto placed = placement_->FindMap(m.name);
     if (!placed.ok()) return placed.status();
     if (!placed->has_value()) {
       if (auto s = placement_->PlaceMap(m.name, shard_, NowSeconds()); !s.ok()) return s;
       adopted.push_back(m.name);
-    } else if ((*placed)->shard != shard_ && (*placed)->move_to != shard_) {
-      stale.push_back(absl::StrCat(m.name, " (on ", (*placed)->shard, ")"));
+    } else if ((*placed)->shard != shard_) {
+      elsewhere.push_back(absl::StrCat(m.name, " (placed on ", (*placed)->shard,
+                                       (*placed)->state == "moving" ? ", moving" : "", ")"));
     }
   }
   if (!adopted.empty()) {
     spdlog::info("shard {}: placed {} map(s) it holds that were placed nowhere: {}", shard_,
                  adopted.size(), absl::StrJoin(adopted, ", "));
   }
-  if (!stale.empty()) {
+  if (!elsewhere.empty()) {
     spdlog::warn(
-        "shard {}: {} map(s) held here live on other shards (moved while this shard was away); "
-        "calls about them are refused: {}",
-        shard_, stale.size(), absl::StrJoin(stale, ", "));
+        "shard {}: {} map(s) held here are placed on other shards (moved, or moving); calls "
+        "about them are refused here: {}",
+        shard_, elsewhere.size(), absl::StrJoin(elsewhere, ", "));
   }
   return absl::OkStatus();
 }
 
-absl::Status ShardMembership::Refresh() {
+absl::Status ShardMembership::ReadPlacement() {
   auto shards = placement_->ListShards();
   if (!shards.ok()) return shards.status();
   auto maps = placement_->ListMaps("");
   if (!maps.ok()) return maps.status();
-  absl::flat_hash_map<std::string, placement::MapPlacement> elsewhere;
-  for (placement::MapPlacement& m : *maps) {
-    if (m.shard != shard_) elsewhere.emplace(absl::AsciiStrToLower(m.map), std::move(m));
-  }
+  absl::flat_hash_map<std::string, placement::MapPlacement> placed;
+  for (placement::MapPlacement& m : *maps) placed.emplace(Key(m.map), std::move(m));
   absl::flat_hash_map<std::string, std::string> addresses;
   for (const placement::Shard& s : *shards) addresses[s.name] = s.address;
   absl::MutexLock lock(&mu_);
-  elsewhere_ = std::move(elsewhere);
+  placed_ = std::move(placed);
   addresses_ = std::move(addresses);
   return absl::OkStatus();
 }
@@ -84,29 +111,99 @@ void ShardMembership::Tick() {
   }
   // Until a read succeeds the last one stands: a shard keeps serving its own maps while
   // PostgreSQL is away (maps only change shards through `lifemap maps move`, which needs it).
-  if (auto s = Refresh(); !s.ok()) {
+  if (auto s = ReadPlacement(); !s.ok()) {
     spdlog::warn("shard {}: reading the placement: {}", shard_, std::string(s.message()));
   }
 }
 
-absl::Status ShardMembership::CheckMap(const std::string& map) const {
-  placement::MapPlacement where;
-  std::string address;
-  {
-    absl::MutexLock lock(&mu_);
-    const auto it = elsewhere_.find(absl::AsciiStrToLower(map));
-    if (it == elsewhere_.end()) return absl::OkStatus();
-    where = it->second;
-    const auto a = addresses_.find(where.shard);
-    if (a != addresses_.end()) address = a->second;
+std::string ShardMembership::AddressOf(const std::string& shard) const {
+  const auto it = addresses_.find(shard);
+  return it == addresses_.end() ? "address unknown" : it->second;
+}
+
+std::string ShardMembership::PhaseLocked(const placement::MapPlacement& m) const {
+  if (m.state != "moving") return m.shard == shard_ ? "serving" : "elsewhere";
+  if (m.move_phase == "switched") {
+    if (m.shard == shard_) return "serving";
+    return m.move_from == shard_ ? "moved" : "elsewhere";
   }
-  const bool held_here = store_->GetMap(map).ok();
+  if (m.shard == shard_) return "frozen";
+  return m.move_to == shard_ ? "arriving" : "elsewhere";
+}
+
+absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::string& map,
+                                                                absl::string_view method) const {
+  const std::string key = Key(map);
+  const bool writes = Writes(method);
+  absl::MutexLock lock(&mu_);
+  const auto it = placed_.find(key);
+  std::string phase = it == placed_.end() ? "unplaced" : PhaseLocked(it->second);
+  if (phase == "serving" || phase == "unplaced" || (phase == "frozen" && !writes)) {
+    if (!writes) return std::shared_ptr<void>();
+    ++writers_[key];
+    // The lease: one writer fewer when the call ends.
+    return std::shared_ptr<void>(nullptr, [this, key](void*) {
+      absl::MutexLock release(&mu_);
+      if (--writers_[key] == 0) writers_.erase(key);
+    });
+  }
+  const placement::MapPlacement& m = it->second;
+  // A copy left here may be deleted whatever the placement says (the move deletes it so).
+  if (method == "MapService/DeleteMap" && phase != "frozen") return std::shared_ptr<void>();
+  if (phase == "frozen") {
+    return absl::UnavailableError(absl::StrCat(
+        "map '", m.map, "' is moving from shard '", shard_, "' to shard '", m.move_to,
+        "': writes are refused until it is there (seconds to minutes); retry, the client "
+        "libraries reconnect and resume the visit"));
+  }
+  if (phase == "arriving") {
+    return absl::UnavailableError(absl::StrCat("map '", m.map, "' is being moved to this shard '",
+                                               shard_, "' from shard '", m.shard,
+                                               "' and is served here once the move switches"));
+  }
+  if (phase == "moved") {
+    return absl::UnavailableError(absl::StrCat(
+        "map '", m.map, "' moved to shard '", m.shard, "' (", AddressOf(m.shard),
+        "): reconnect through the cluster's nginx, which routes there once its table is reloaded"));
+  }
+  const bool held_here = engine_->store()->GetMap(map).ok();
   return absl::FailedPreconditionError(absl::StrCat(
-      "map '", where.map, "' lives on shard '", where.shard, "' (", address,
+      "map '", m.map, "' lives on shard '", m.shard, "' (", AddressOf(m.shard),
       "), not on this shard '", shard_, "'",
       held_here ? ": the copy here is stale (the map moved while this shard was away) and is "
                   "refused; delete it here once the map is safe where it lives"
                 : ": connect through the cluster's nginx, which routes by the lifemap-map header"));
+}
+
+absl::StatusOr<std::string> ShardMembership::Refresh(const std::string& map) {
+  if (auto s = ReadPlacement(); !s.ok()) return s;
+  const std::string key = Key(map);
+  std::string phase;
+  {
+    absl::MutexLock lock(&mu_);
+    const auto it = placed_.find(key);
+    phase = it == placed_.end() ? "unplaced" : PhaseLocked(it->second);
+  }
+  if (phase != "frozen" && phase != "moved") return phase;
+  // No new write is admitted now; end the map's streams and wait for the writes running.
+  auto record = engine_->store()->GetMap(map);
+  if (record.ok()) {
+    engine_->visits()->CloseMap(
+        record->id,
+        absl::UnavailableError(absl::StrCat("map '", map,
+                                            "' is moving to another shard: reconnect; the client "
+                                            "libraries resume the visit there")));
+  }
+  const absl::Time deadline = absl::Now() + absl::Seconds(kDrainTimeoutS);
+  absl::MutexLock lock(&mu_);
+  const auto drained = [this, &key]()
+                           ABSL_SHARED_LOCKS_REQUIRED(mu_) { return !writers_.contains(key); };
+  if (!mu_.AwaitWithDeadline(absl::Condition(&drained), deadline)) {
+    return absl::DeadlineExceededError(absl::StrCat(
+        writers_[key], " call(s) still write map '", map, "' after ", kDrainTimeoutS,
+        " s (a long RebuildSemanticOctrees?): the move waits for them; run it again later"));
+  }
+  return phase;
 }
 
 absl::StatusOr<bool> ShardMembership::PlaceNew(const std::string& map) {
@@ -117,8 +214,9 @@ absl::StatusOr<bool> ShardMembership::PlaceNew(const std::string& map) {
     return false;
   }
   if (auto s = placement_->PlaceMap(map, shard_, NowSeconds()); !s.ok()) return s;
-  absl::MutexLock lock(&mu_);
-  elsewhere_.erase(absl::AsciiStrToLower(map));
+  if (auto s = ReadPlacement(); !s.ok()) {
+    spdlog::warn("shard {}: reading the placement: {}", shard_, std::string(s.message()));
+  }
   return true;
 }
 

@@ -1,13 +1,24 @@
 // lifemapd as one shard of a cluster (issue 39): `--placement URI --shard NAME`.
 //
 // On start the shard must be in the placement (`lifemap admin shards add`); maps it holds that
-// are placed nowhere are placed on it (a lone server joining a cluster keeps its maps), and
-// maps it holds that the placement puts on another shard are stale copies (the map moved while
-// this shard was away): every call about them is refused with FAILED_PRECONDITION saying where
-// the map lives. Every kHeartbeatIntervalS the shard writes its heartbeat and reads the
-// placement again. Thread-safe.
+// are placed nowhere are placed on it (a lone server joining a cluster keeps its maps). Every
+// kHeartbeatIntervalS, and whenever `lifemap maps move` asks (Refresh), the shard writes its
+// heartbeat and reads the whole placement again. Calls about a map are judged against it
+// (CheckMap):
+//   placed here                      served
+//   placed on another shard          FAILED_PRECONDITION naming the shard and its address (the
+//                                    copy here, if any, is stale: it moved while this shard
+//                                    was away); DeleteMap of that copy is allowed
+//   moving away, frozen or copied    reads served; writes UNAVAILABLE (retry: the client
+//                                    libraries reconnect and resume)
+//   moving here, not switched yet    UNAVAILABLE; ImportMap (the move's copy) and DeleteMap
+//                                    allowed
+//   moved away, source copy left     UNAVAILABLE naming where it went; DeleteMap allowed
+// New ids start in this shard's own range (its number << kIdRangeBits), so that a map moved
+// here keeps its ids. Thread-safe.
 #pragma once
 
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -22,17 +33,23 @@
 
 namespace lifemap::server {
 
+class Engine;
+
 class ShardMembership final : public MapGate {
  public:
+  static constexpr int kIdRangeBits = 40;  // ~10^12 ids per shard
+  static constexpr double kDrainTimeoutS = 60.0;
+
   // UNAVAILABLE when the placement database cannot be reached; NOT_FOUND (saying how to add
   // it) when `shard` is not in it.
   static absl::StatusOr<std::unique_ptr<ShardMembership>> Join(const std::string& uri,
                                                                const std::string& shard,
-                                                               store::Store* store);
+                                                               Engine* engine);
 
   const std::string& shard() const { return shard_; }
-  // MapGate: FAILED_PRECONDITION naming the map's shard when the placement puts it elsewhere.
-  absl::Status CheckMap(const std::string& map) const override;
+  // MapGate, as the table above says.
+  absl::StatusOr<std::shared_ptr<void>> CheckMap(const std::string& map,
+                                                 absl::string_view method) const override;
   // A map about to be created or imported here: placed on this shard (ALREADY_EXISTS naming
   // the shard that holds it, UNAVAILABLE without the placement database). True when placed
   // now; false when it already was placed here or is being moved here (`lifemap maps move`).
@@ -42,23 +59,32 @@ class ShardMembership final : public MapGate {
   void Unplace(const std::string& map);
   // The cluster's shards, for GetServerInfo (clients fan calls over every map out to them).
   absl::StatusOr<std::vector<placement::Shard>> Shards() const;
-  // Heartbeat and a fresh read of where other shards' maps are. Run every kHeartbeatIntervalS.
+  // Reads the placement now. When `map` is moving away from this shard, ends its streams
+  // (UNAVAILABLE: they reconnect) and waits until no call writes it any more, so that what
+  // the move copies next holds every acknowledged write. Returns the map's placement phase
+  // here ("serving", "frozen", "moved", "elsewhere", "arriving", "unplaced").
+  absl::StatusOr<std::string> Refresh(const std::string& map);
+  // Heartbeat and a fresh read of the placement. Run every kHeartbeatIntervalS.
   void Tick();
 
  private:
   ShardMembership(std::string shard, std::unique_ptr<placement::Placement> placement,
-                  store::Store* store)
-      : shard_(std::move(shard)), placement_(std::move(placement)), store_(store) {}
+                  Engine* engine);
   absl::Status Reconcile();
-  absl::Status Refresh();
+  absl::Status ReadPlacement();
+  // Where `map` stands for this shard (Refresh's words), under mu_.
+  std::string PhaseLocked(const placement::MapPlacement& m) const ABSL_SHARED_LOCKS_REQUIRED(mu_);
+  std::string AddressOf(const std::string& shard) const ABSL_SHARED_LOCKS_REQUIRED(mu_);
 
   const std::string shard_;
   const std::unique_ptr<placement::Placement> placement_;
-  store::Store* const store_;
+  Engine* const engine_;
   mutable absl::Mutex mu_;
-  // Maps the placement puts on another shard, by lower-case name: where they live.
-  absl::flat_hash_map<std::string, placement::MapPlacement> elsewhere_ ABSL_GUARDED_BY(mu_);
+  // Every placed map, by lower-case name.
+  absl::flat_hash_map<std::string, placement::MapPlacement> placed_ ABSL_GUARDED_BY(mu_);
   absl::flat_hash_map<std::string, std::string> addresses_ ABSL_GUARDED_BY(mu_);  // by shard
+  // Calls writing each map now, by lower-case name.
+  mutable absl::flat_hash_map<std::string, int> writers_ ABSL_GUARDED_BY(mu_);
 };
 
 }  // namespace lifemap::server

@@ -249,8 +249,44 @@ absl::StatusOr<ArchiveCounts> Store::WriteMapArchive(const std::string& name,
   return counts;
 }
 
+// The tables whose ids an import renumbers, with the parameter that shifts them.
+constexpr std::pair<const char*, Param> kRenumbered[] = {{"visits", kVisitOffset},
+                                                         {"keyframes", kKeyframeOffset},
+                                                         {"pose_edges", kEdgeOffset},
+                                                         {"pose_optimisations", kSolveOffset},
+                                                         {"anchor_revisions", kRevisionOffset},
+                                                         {"annotations", kAnnotationOffset}};
+
+absl::Status Store::RaiseIdFloor(int64_t floor) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction tx(db);
+  if (auto s = tx.Begin(); !s.ok()) return s;
+  for (const auto& [table, param] : kRenumbered) {
+    (void)param;
+    // AUTOINCREMENT takes the larger of sqlite_sequence and the largest id, plus one.
+    auto stmt = db->Prepare(
+        "INSERT INTO sqlite_sequence (name, seq) SELECT ?1, ?2 WHERE NOT EXISTS (SELECT 1 FROM "
+        "sqlite_sequence WHERE name = ?1)");
+    if (!stmt.ok()) return stmt.status();
+    {
+      StatementScope s(*stmt);
+      s->Bind(1, std::string(table));
+      s->Bind(2, floor);
+      if (auto st = s->Run(); !st.ok()) return st;
+    }
+    auto raise = db->Prepare("UPDATE sqlite_sequence SET seq = ?2 WHERE name = ?1 AND seq < ?2");
+    if (!raise.ok()) return raise.status();
+    StatementScope r(*raise);
+    r->Bind(1, std::string(table));
+    r->Bind(2, floor);
+    if (auto st = r->Run(); !st.ok()) return st;
+  }
+  return tx.Commit();
+}
+
 absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const std::string& name,
-                                                const MapCreator& creator) {
+                                                const MapCreator& creator, bool keep_ids) {
   // Checked and, when older, migrated on its own connection first.
   {
     auto archive = Database::Open(path, /*create=*/false, /*read_only=*/false, 5000);
@@ -352,14 +388,24 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
   }
   if (creator.key_id > 0) params.ints[kCreator] = creator.key_id;
 
-  // Ids above every id the store has used (sqlite_sequence keeps deleted ones' too).
-  const std::pair<const char*, Param> renumbered[] = {{"visits", kVisitOffset},
-                                                      {"keyframes", kKeyframeOffset},
-                                                      {"pose_edges", kEdgeOffset},
-                                                      {"pose_optimisations", kSolveOffset},
-                                                      {"anchor_revisions", kRevisionOffset},
-                                                      {"annotations", kAnnotationOffset}};
-  for (const auto& [table, param] : renumbered) {
+  // Ids above every id the store has used (sqlite_sequence keeps deleted ones' too); or, kept,
+  // none of them in use here.
+  for (const auto& [table, param] : kRenumbered) {
+    if (keep_ids) {
+      auto clash =
+          QueryIntBound(db,
+                        absl::StrCat("SELECT COALESCE((SELECT a.id FROM src.", table,
+                                     " a JOIN main.", table, " m ON m.id = a.id LIMIT 1), 0)"),
+                        0);
+      if (!clash.ok()) return clash.status();
+      if (*clash != 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "the map cannot keep its ids here: ", table, " id ", *clash,
+            " is in use on this server; import it with new ids (its open visits then end)"));
+      }
+      params.ints[param] = 0;
+      continue;
+    }
     auto used = QueryIntBound(
         db,
         absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM main.", table,
@@ -391,8 +437,8 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
     }
   }
   // Nothing streams into an imported visit: one open when exported arrives ended, at its
-  // last keyframe's time.
-  {
+  // last keyframe's time. A moved map's open visits stay open: their streams resume here.
+  if (!keep_ids) {
     auto stmt = db->Prepare(
         "UPDATE visits SET ended = 1, end_time_s = MAX(start_time_s, COALESCE((SELECT "
         "MAX(timestamp_s) FROM keyframes k WHERE k.visit_id = visits.id), start_time_s)) "

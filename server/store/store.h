@@ -424,8 +424,16 @@ class Store {
   // changed). ALREADY_EXISTS for a name in use; FAILED_PRECONDITION for a newer schema or a
   // model of the same name with other contents; INVALID_ARGUMENT for a file that is not a
   // consistent archive of one map.
+  // `keep_ids` (a map moved between the shards of a cluster, issue 39): visits, keyframes and
+  // the other renumbered rows keep their ids, so that clients' references stay true, and open
+  // visits stay open, so that their streams resume on this store; FAILED_PRECONDITION naming
+  // the table when an id is in use here.
   absl::StatusOr<MapRecord> ReadMapArchive(const std::string& path, const std::string& name,
-                                           const MapCreator& creator);
+                                           const MapCreator& creator, bool keep_ids = false);
+  // New ids of visits, keyframes and the other rows an archive renumbers start above `floor`
+  // from now on (a shard's own range, so that maps moved between shards keep their ids).
+  // Lowers nothing.
+  absl::Status RaiseIdFloor(int64_t floor);
   absl::StatusOr<MapRecord> RenameMap(const std::string& name, const std::string& new_name);
 
   // Visits. NOT_FOUND for an unknown map or visit.

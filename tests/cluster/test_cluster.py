@@ -8,6 +8,7 @@ root), three shards and nginx (`nginx -p DIR -c FILE`, the table written by
 (`lifemap sim`) through nginx.
 """
 import json
+import shlex
 import os
 import re
 import shutil
@@ -149,6 +150,35 @@ class Cluster:
             self.nginx_dir / "error.log", "-s", "reload")
         time.sleep(0.5)  # the new workers take over
 
+    def reload_command(self):
+        """What `maps move --reload-command` runs: the table written again, nginx reloaded."""
+        nginx = shlex.join([NGINX, "-p", str(self.nginx_dir), "-c",
+                            str(self.nginx_dir / "nginx.conf"), "-e",
+                            str(self.nginx_dir / "error.log"), "-s", "reload"])
+        return shlex.join([LIFEMAP, "admin", "shards", "--placement", self.pg.uri, "nginx-config",
+                           "--listen", f"127.0.0.1:{self.nginx_port}", "--prefix",
+                           str(self.nginx_dir), "--out", str(self.nginx_dir / "nginx.conf"),
+                           "--reload-command", nginx])
+
+    def move(self, name, to, *extra, stop_after=None, check=True):
+        env = dict(os.environ)
+        if stop_after:
+            env["LIFEMAP_MOVE_STOP_AFTER"] = stop_after
+        p = subprocess.run([LIFEMAP, "maps", "move", name, "--to", to, "--placement", self.pg.uri,
+                            "--reload-command", self.reload_command(), *extra],
+                           capture_output=True, text=True, timeout=300, env=env)
+        if check and p.returncode != 0:
+            raise AssertionError(f"maps move {name} --to {to} exited {p.returncode}:\n"
+                                 f"{p.stdout}\n{p.stderr}\n{self.logs()}")
+        return p
+
+    def move_state(self, name):
+        out = run(PG_BIN / "psql", "-At", "-h", "127.0.0.1", "-p", self.pg.port, "-U", "lifemap",
+                  "-d", "postgres", "-c",
+                  f"SELECT shard, state, coalesce(move_phase, '') FROM lifemap_maps "
+                  f"WHERE name = '{name}'").stdout.strip()
+        return tuple(out.split("|"))
+
     def stop_nginx(self):
         if self.nginx is not None and self.nginx.poll() is None:
             self.nginx.send_signal(signal.SIGQUIT)  # graceful: lets running requests finish
@@ -197,7 +227,7 @@ class ClusterTest(unittest.TestCase):
         cls.cluster = Cluster()
         cls.sim = cls.cluster.folder / "sim"
         run(LIFEMAP, "sim", "--world", "rooms", "--seed", "6", "--place-shape", "rect", "--visits",
-            "1", "--frames", "30", "--out", cls.sim)
+            "1", "--frames", "60", "--out", cls.sim)
 
     @classmethod
     def tearDownClass(cls):
@@ -238,7 +268,7 @@ class ClusterTest(unittest.TestCase):
     def map_on(self, placed, shard):
         return next(m for m in MAPS if placed[m] == shard)
 
-    def test_1_new_maps_are_placed_over_the_shards_and_listed_through_nginx(self):
+    def test_01_new_maps_are_placed_over_the_shards_and_listed_through_nginx(self):
         placed = self.ensure_maps()
         self.assertEqual({m: s for s, names in HOMES.items() for m in names},
                          {m: placed[m] for m in MAPS})
@@ -266,7 +296,7 @@ class ClusterTest(unittest.TestCase):
         self.assertNotEqual(0, dup.returncode)
         self.assertIn(f"exists on shard '{placed['lab']}'", dup.stderr)
 
-    def test_2_robots_stream_to_maps_on_different_shards_at_once(self):
+    def test_02_robots_stream_to_maps_on_different_shards_at_once(self):
         placed = self.ensure_maps()
         self.c.reload_nginx()  # every placed map pinned by name
         targets = [self.map_on(placed, s) for s in SHARDS]
@@ -292,7 +322,7 @@ class ClusterTest(unittest.TestCase):
             info = json.loads(self.c.cli("--json", "maps", "show", name, target=direct).stdout)
             self.assertGreaterEqual(int(info["keyframe_count"]), committed)
 
-    def test_3_a_shard_asked_about_another_shards_map_says_where_it_lives(self):
+    def test_03_a_shard_asked_about_another_shards_map_says_where_it_lives(self):
         placed = self.ensure_maps()
         name = self.map_on(placed, "s2")
         wrong = f"127.0.0.1:{self.c.ports['s1']}"
@@ -300,7 +330,7 @@ class ClusterTest(unittest.TestCase):
         self.assertNotEqual(0, p.returncode)
         self.assertIn(f"lives on shard 's2' (127.0.0.1:{self.c.ports['s2']})", p.stderr)
 
-    def test_4_a_killed_shard_answers_unavailable_naming_it_and_the_others_go_on(self):
+    def test_04_a_killed_shard_answers_unavailable_naming_it_and_the_others_go_on(self):
         placed = self.ensure_maps()
         self.c.reload_nginx()
         down = self.map_on(placed, "s3")
@@ -323,7 +353,7 @@ class ClusterTest(unittest.TestCase):
             self.c.start_shard("s3")
         self.c.cli("maps", "show", down)
 
-    def test_5_nginx_restarted_while_nothing_streams_comes_back_with_its_table(self):
+    def test_05_nginx_restarted_while_nothing_streams_comes_back_with_its_table(self):
         placed = self.ensure_maps()
         self.c.stop_nginx()
         p = self.c.cli("--connect-timeout", "1", "maps", "show", "lab", check=False)
@@ -332,6 +362,161 @@ class ClusterTest(unittest.TestCase):
         for name in MAPS:
             self.c.cli("maps", "show", name)
         self.assertEqual(placed, self.c.placement())
+
+    def keyframes(self, name, target=None):
+        out = json.loads(self.c.cli("--json", "keyframes", "list", name, target=target).stdout)
+        return sorted(int(k["id"]) for k in out.get("keyframes", []))
+
+    def visits(self, name, target=None):
+        out = json.loads(self.c.cli("--json", "visits", "list", name, target=target).stdout)
+        return sorted((int(v["id"]), v.get("ended", False)) for v in out.get("visits", []))
+
+    def shard_of(self, name):
+        return self.c.placement()[name]
+
+    def direct(self, shard):
+        return f"127.0.0.1:{self.c.ports[shard]}"
+
+    def test_06_a_map_moves_while_idle_and_keeps_its_ids(self):
+        placed = self.ensure_maps()
+        name = HOMES["s1"][1]  # hall
+        source = placed[name]
+        self.stream(name, "--robot", "before-the-move", "--end-visit")
+        keyframes, visits = self.keyframes(name), self.visits(name)
+        self.assertTrue(keyframes)
+        target = "s2" if source != "s2" else "s3"
+        self.c.move(name, target)
+        self.assertEqual((target, "active", ""), self.c.move_state(name))
+        # Through nginx: the same visits and keyframes, with the same ids, on the target alone.
+        self.assertEqual(keyframes, self.keyframes(name))
+        self.assertEqual(visits, self.visits(name))
+        self.assertEqual(keyframes, self.keyframes(name, target=self.direct(target)))
+        held = json.loads(self.c.cli("--json", "maps", "list", target=self.direct(source)).stdout)
+        self.assertNotIn(name, [m["name"] for m in held.get("maps", [])])
+        # New visits go on where it lives now; its ids come from the target's range.
+        self.stream(name, "--robot", "after-the-move", "--end-visit")
+        self.assertGreater(len(self.keyframes(name)), len(keyframes))
+        self.c.move(name, source)  # and back home
+        self.assertEqual(source, self.shard_of(name))
+
+    def test_07_a_map_moves_while_a_robot_streams_to_it_and_loses_nothing(self):
+        placed = self.ensure_maps()
+        name = HOMES["s2"][1]  # kitchen
+        source = placed[name]
+        target = "s3" if source != "s3" else "s1"
+        out = {}
+
+        def robot():
+            out["p"] = self.stream(name, "--robot", "moving-robot", "--rate", "6", "--end-visit",
+                                   check=False, frames=60)
+
+        t = threading.Thread(target=robot)
+        t.start()
+        deadline = time.time() + 60
+        while time.time() < deadline:  # some keyframes stored before the move
+            info = json.loads(self.c.cli("--json", "maps", "show", name).stdout)
+            if int(info.get("keyframe_count", 0)) >= 2:
+                break
+            time.sleep(0.2)
+        self.c.move(name, target)
+        t.join()
+        p = out["p"]
+        if p.returncode != 0:
+            self.fail_with_logs(f"the stream did not survive the move: {p.stdout[-2000:]}\n"
+                                f"{p.stderr}")
+        summary = json.loads(p.stdout.strip().splitlines()[-1])["summary"]
+        self.assertGreaterEqual(int(summary["reconnections"]), 1, summary)
+        self.assertEqual(60, int(summary["results"]), summary)
+        acknowledged = {int(k) for k in summary["keyframe_ids"]}
+        stored = set(self.keyframes(name, target=self.direct(target)))
+        self.assertTrue(acknowledged, summary)
+        self.assertFalse(acknowledged - stored,
+                         f"acknowledged keyframes missing on the target: "
+                         f"{sorted(acknowledged - stored)}")
+        self.assertEqual((target, "active", ""), self.c.move_state(name))
+        self.c.move(name, source)
+
+    def test_08_two_moves_of_one_map_at_once_the_second_is_refused(self):
+        self.ensure_maps()
+        name = HOMES["s3"][0]  # garage
+        # A move running elsewhere holds the map's lock: a session holding it stands in for it.
+        holder = subprocess.Popen(
+            [str(PG_BIN / "psql"), "-h", "127.0.0.1", "-p", str(self.c.pg.port), "-U", "lifemap",
+             "-d", "postgres", "-c",
+             f"SELECT pg_advisory_lock(hashtext('lifemap-move:{name}')), pg_sleep(4)"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            time.sleep(1.0)
+            p = self.c.move(name, "s1", check=False)
+            self.assertNotEqual(0, p.returncode)
+            self.assertIn("another `lifemap maps move`", p.stderr)
+            self.assertEqual(("s3", "active", ""), self.c.move_state(name))
+        finally:
+            holder.wait(30)  # its session ends with the sleep: the lock is free again
+        # A move cut short stands: another target is refused until it is finished or aborted.
+        p = self.c.move(name, "s1", stop_after="exported", check=False)
+        self.assertEqual(-9, p.returncode, p.stderr)
+        self.assertEqual(("s3", "moving", "frozen"), self.c.move_state(name))
+        other = self.c.move(name, "s2", check=False)
+        self.assertNotEqual(0, other.returncode)
+        self.assertIn("already moving to shard 's1'", other.stderr)
+        # Writes are refused meanwhile, saying why; reads go on.
+        self.c.cli("maps", "show", name)
+        w = self.c.cli("maps", "set", name, "--description", "frozen?", check=False)
+        self.assertNotEqual(0, w.returncode)
+        self.assertIn("is moving from shard 's3' to shard 's1'", w.stderr)
+        a = self.c.move(name, "s1", "--abort")
+        self.assertIn("move aborted", a.stderr)
+        self.assertEqual(("s3", "active", ""), self.c.move_state(name))
+        self.c.cli("maps", "set", name, "--description", "writable again")
+
+    def test_09_a_move_killed_at_any_step_is_finished_by_running_it_again(self):
+        placed = self.ensure_maps()
+        name = HOMES["s3"][1]  # atrium
+        self.stream(name, "--robot", "kill-test", "--end-visit")
+        keyframes = self.keyframes(name)
+        home = placed[name]
+        where = home
+        for step in ["begun", "drained", "exported", "imported", "switched", "reloaded",
+                     "deleted"]:
+            to = "s1" if where != "s1" else "s2"
+            p = self.c.move(name, to, stop_after=step, check=False)
+            self.assertEqual(-9, p.returncode, f"{step}: {p.stderr}")
+            self.c.move(name, to)
+            where = to
+            self.assertEqual((to, "active", ""), self.c.move_state(name), step)
+            self.assertEqual(keyframes, self.keyframes(name), f"after a kill at {step}")
+            for shard in SHARDS:
+                held = json.loads(self.c.cli("--json", "maps", "list",
+                                             target=self.direct(shard)).stdout)
+                has = name in [m["name"] for m in held.get("maps", [])]
+                self.assertEqual(shard == to, has, f"{shard} after a kill at {step}")
+        self.c.move(name, home)
+
+    def test_10_a_shard_back_with_a_copy_of_a_map_that_moved_is_refused(self):
+        placed = self.ensure_maps()
+        name = HOMES["s1"][0]  # lab
+        self.assertEqual("s1", placed[name])
+        # The source goes away after the switch: the move cannot delete its copy.
+        p = self.c.move(name, "s2", stop_after="switched", check=False)
+        self.assertEqual(-9, p.returncode)
+        self.c.kill_shard("s1")
+        try:
+            p = self.c.move(name, "s2", check=False)
+            self.assertNotEqual(0, p.returncode)
+            self.assertIn("was not deleted", p.stderr)
+            self.c.cli("maps", "show", name)  # served by s2 through nginx meanwhile
+        finally:
+            self.c.start_shard("s1")
+        # Back, s1 holds the old copy: refused, saying where the map is.
+        w = self.c.cli("maps", "show", name, target=self.direct("s1"), check=False)
+        self.assertNotEqual(0, w.returncode)
+        self.assertIn("moved to shard 's2'", w.stderr)
+        self.c.move(name, "s2")  # finishes: the copy goes
+        self.assertEqual(("s2", "active", ""), self.c.move_state(name))
+        w = self.c.cli("maps", "show", name, target=self.direct("s1"), check=False)
+        self.assertIn("lives on shard 's2'", w.stderr)
+        self.c.move(name, "s1")
 
 
 if __name__ == "__main__":

@@ -341,6 +341,59 @@ TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
   EXPECT_EQ((*other)->ListMaps()->size(), 2u) << "hall and lab only";
 }
 
+// Issue 39: a map moved between shards keeps its ids and its open visit; each store mints new
+// ids in its own range (RaiseIdFloor), so the moved ids do not collide; a collision is refused.
+TEST_F(StoreTest, AMovedMapKeepsItsIdsAndOpenVisitsAboveTheTargetsFloor) {
+  ASSERT_TRUE(store_->RaiseIdFloor(int64_t{1} << 40).ok());
+  ASSERT_TRUE(store_->CreateMap("lab", "", 1.0).ok());
+  auto ended = store_->StartVisit("lab", "bot", "ended", 1.0);
+  ASSERT_TRUE(ended.ok());
+  EXPECT_GT(ended->id, int64_t{1} << 40) << "new ids start above the floor";
+  std::vector<KeyframeRecord> batch;
+  for (int k = 0; k < 3; ++k) batch.push_back(Keyframe(ended->id, 1.0 + k));
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  ASSERT_TRUE(store_->EndVisit(ended->id, 5.0, {ended->id, 3, 0}).ok());
+  auto open = store_->StartVisit("lab", "bot", "open", 6.0);
+  ASSERT_TRUE(open.ok());
+  const auto keyframes = *store_->ListKeyframes(store_->GetMap("lab")->id, 0);
+  const std::string archive = tmp_.File("lab.archive");
+  ASSERT_TRUE(store_->WriteMapArchive("lab", archive).ok());
+
+  auto target = Store::Open(tmp_.File("target.db"));
+  ASSERT_TRUE(target.ok());
+  ASSERT_TRUE((*target)->RaiseIdFloor(int64_t{2} << 40).ok());
+  ASSERT_TRUE((*target)->RaiseIdFloor(int64_t{1} << 40).ok()) << "lowers nothing";
+  ASSERT_TRUE((*target)->CreateMap("hall", "", 1.0).ok());
+  auto own = (*target)->StartVisit("hall", "", "", 1.0);
+  ASSERT_TRUE(own.ok());
+  EXPECT_GT(own->id, int64_t{2} << 40);
+
+  auto moved = (*target)->ReadMapArchive(archive, "lab", {}, /*keep_ids=*/true);
+  ASSERT_TRUE(moved.ok()) << moved.status();
+  const auto arrived = *(*target)->ListKeyframes(moved->id, 0);
+  ASSERT_EQ(arrived.size(), keyframes.size());
+  for (size_t i = 0; i < arrived.size(); ++i) {
+    EXPECT_EQ(arrived[i].id, keyframes[i].id);
+    EXPECT_EQ(arrived[i].visit_id, keyframes[i].visit_id);
+  }
+  auto still_open = (*target)->GetVisit(open->id);
+  ASSERT_TRUE(still_open.ok()) << still_open.status();
+  EXPECT_FALSE(still_open->ended) << "its stream resumes it on the target";
+  EXPECT_TRUE((*target)->GetVisit(ended->id)->ended);
+  // The target's own new ids stay in its range, above the moved ones.
+  auto next = (*target)->StartVisit("hall", "", "", 2.0);
+  ASSERT_TRUE(next.ok());
+  EXPECT_GT(next->id, own->id);
+  // The same ids again (a second copy under another name): refused, naming the table.
+  auto clash = (*target)->ReadMapArchive(archive, "lab2", {}, /*keep_ids=*/true);
+  EXPECT_EQ(clash.status().code(), absl::StatusCode::kFailedPrecondition) << clash.status();
+  EXPECT_NE(clash.status().message().find("visits id"), std::string::npos) << clash.status();
+  EXPECT_FALSE((*target)->GetMap("lab2").ok()) << "nothing of it stored";
+  auto problems = (*target)->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+}
+
 // Issue 37: an import killed at any moment leaves the map whole or absent.
 TEST_F(StoreTest, AKillDuringAMapImportLeavesItWholeOrAbsent) {
   ASSERT_TRUE(store_->CreateMap("big", "", 1.0).ok());

@@ -11,9 +11,10 @@ Unix epoch; a pose is T_world_camera as (tx, ty, tz, qx, qy, qz, qw).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import time
-from typing import Iterable, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import grpc
 import numpy as np
@@ -199,6 +200,18 @@ def _bytes_of(value: Union[None, bytes, str, os.PathLike]) -> Optional[bytes]:
         return f.read()
 
 
+def _archive_map_name(data: bytes) -> str:
+    """The map name in a map archive's manifest (its second line, JSON), "" if none: only to
+    route the import through a cluster; the server reads the archive properly."""
+    lines = data[:65536].split(b"\n", 2)
+    if len(lines) < 2:
+        return ""
+    try:
+        return str(json.loads(lines[1]).get("map", ""))
+    except ValueError:
+        return ""
+
+
 def _chunks(message, data: bytes, **first):
     """`data` as messages of at most 1 MiB; the first also carries `first` (e.g. the name)."""
     chunk = 1 << 20
@@ -238,6 +251,8 @@ class Client:
         else:
             self._channel = grpc.insecure_channel(target, options)
         self._metadata = [("authorization", f"Bearer {api_key.strip()}")] if api_key else []
+        # Calls that name only a visit are routed by the map it was seen in.
+        self._visit_maps: Dict[int, str] = {}
         self._timeout_s = timeout_s
         self.maps_stub = map_grpc.MapServiceStub(self._channel)
         self.visits_stub = visit_grpc.VisitServiceStub(self._channel)
@@ -255,11 +270,27 @@ class Client:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _call(self, method, request):
+    def _routed(self, map_name: str = "", shard: str = ""):
+        """The call's metadata: the key, and for a cluster of shards behind nginx the map the
+        call is about (`lifemap-map`, which nginx routes on) or the shard it is meant for
+        (`lifemap-shard`). A lone server ignores both (docs/OPERATIONS.md "Several servers")."""
+        metadata = list(self._metadata)
+        if map_name:
+            metadata.append(("lifemap-map", map_name))
+        if shard:
+            metadata.append(("lifemap-shard", shard))
+        return metadata
+
+    def _call(self, method, request, map_name: str = "", shard: str = ""):
         try:
-            return method(request, timeout=self._timeout_s, metadata=self._metadata)
+            return method(request, timeout=self._timeout_s,
+                          metadata=self._routed(map_name, shard))
         except grpc.RpcError as e:
             raise _raise_from(e) from None
+
+    def _remember(self, visit_id: int, map_name: str) -> None:
+        if visit_id and map_name:
+            self._visit_maps[visit_id] = map_name
 
     # --- the server -------------------------------------------------------------------------
 
@@ -278,35 +309,58 @@ class Client:
                    entropy_threshold: float = 0.0) -> map_pb.Map:
         return self._call(self.maps_stub.CreateMap,
                           map_pb.CreateMapRequest(name=name, description=description,
-                                                  entropy_threshold=entropy_threshold))
+                                                  entropy_threshold=entropy_threshold), name)
 
     def maps(self) -> List[map_pb.Map]:
-        return list(self._call(self.maps_stub.ListMaps, map_pb.ListMapsRequest()).maps)
+        """Every map. Through a cluster's nginx, asked of every shard and merged; shards that
+        do not answer are in `unreachable_shards` (see maps_response)."""
+        return list(self.maps_response().maps)
+
+    def maps_response(self) -> map_pb.ListMapsResponse:
+        shards = self.server_info().shards
+        if not shards:
+            return self._call(self.maps_stub.ListMaps, map_pb.ListMapsRequest())
+        merged = map_pb.ListMapsResponse()
+        for shard in shards:
+            try:
+                part = self._call(self.maps_stub.ListMaps, map_pb.ListMapsRequest(),
+                                  shard=shard.name)
+            except Error as e:
+                merged.unreachable_shards.append(f"{shard.name}: {e.details}")
+                continue
+            merged.maps.extend(part.maps)
+        merged.maps.sort(key=lambda m: m.name)
+        return merged
 
     def get_map(self, name: str) -> map_pb.Map:
-        return self._call(self.maps_stub.GetMap, map_pb.GetMapRequest(name=name))
+        return self._call(self.maps_stub.GetMap, map_pb.GetMapRequest(name=name), name)
 
     def delete_map(self, name: str) -> map_pb.DeleteMapResponse:
-        return self._call(self.maps_stub.DeleteMap, map_pb.DeleteMapRequest(name=name))
+        return self._call(self.maps_stub.DeleteMap, map_pb.DeleteMapRequest(name=name), name)
 
     def visits(self, map_name: str) -> List[visit_pb.Visit]:
-        return list(self._call(self.visits_stub.ListVisits,
-                               visit_pb.ListVisitsRequest(map=map_name)).visits)
+        visits = list(self._call(self.visits_stub.ListVisits,
+                                 visit_pb.ListVisitsRequest(map=map_name), map_name).visits)
+        for v in visits:
+            self._remember(v.id, v.map)
+        return visits
 
     def end_visit(self, visit_id: int) -> visit_pb.Visit:
-        return self._call(self.visits_stub.EndVisit, visit_pb.EndVisitRequest(visit_id=visit_id))
+        return self._call(self.visits_stub.EndVisit, visit_pb.EndVisitRequest(visit_id=visit_id),
+                          self._visit_maps.get(visit_id, ""))
 
     def keyframes(self, map_name: str, visit_id: int = 0) -> List[map_pb.KeyframeSummary]:
         return list(self._call(self.maps_stub.ListKeyframes,
-                               map_pb.ListKeyframesRequest(map=map_name,
-                                                           visit_id=visit_id)).keyframes)
+                               map_pb.ListKeyframesRequest(map=map_name, visit_id=visit_id),
+                               map_name).keyframes)
 
     def keyframe(self, map_name: str, keyframe_id: int) -> map_pb.Keyframe:
         """The stored keyframe: colour (JPEG or PNG) and depth (the store's lossless formats)
         as stored, with its summary and superjuts (`lifemap keyframes get` writes them as
         files)."""
         return self._call(self.maps_stub.GetKeyframe,
-                          map_pb.GetKeyframeRequest(map=map_name, keyframe_id=keyframe_id))
+                          map_pb.GetKeyframeRequest(map=map_name, keyframe_id=keyframe_id),
+                          map_name)
 
     # --- frames -----------------------------------------------------------------------------
 
@@ -324,7 +378,8 @@ class Client:
                                  timestamp_s if timestamp_s is not None else time.time(),
                                  sequence),
             options=self._options(options))
-        result = FrameResult(self._call(self.frames_stub.ProcessFrame, request), visit_id)
+        result = FrameResult(self._call(self.frames_stub.ProcessFrame, request, map_name or ""),
+                             visit_id)
         if result.error is not None:
             raise result.error
         return result
@@ -366,12 +421,13 @@ class Client:
                     sequence)
                 yield frame_pb.StreamFramesRequest(frame=message)
 
-        responses = self.frames_stub.StreamFrames(requests(), metadata=self._metadata)
+        responses = self.frames_stub.StreamFrames(requests(), metadata=self._routed(map_name))
         started_visit = 0
         try:
             for response in responses:
                 if response.HasField("started"):
                     started_visit = response.started.visit_id
+                    self._remember(started_visit, map_name)
                 elif response.HasField("result"):
                     yield FrameResult(response.result, started_visit)
         except grpc.RpcError as e:
@@ -402,7 +458,7 @@ class Client:
         """Labels the frames of map_name (empty: of every map without its own) with the model
         `name`; an empty name deactivates."""
         return self._call(self.models_stub.ActivateModel,
-                          model_pb.ActivateModelRequest(name=name, map=map_name))
+                          model_pb.ActivateModelRequest(name=name, map=map_name), map_name)
 
     def models(self) -> List[model_pb.ModelInfo]:
         return list(self._call(self.models_stub.ListModels, model_pb.ListModelsRequest()).models)
@@ -432,7 +488,8 @@ class Client:
                 item.intrinsics if item.intrinsics is not None else intrinsics,
                 item.depth_scale if item.depth_scale is not None else depth_scale, item.pose,
                 item.timestamp_s if item.timestamp_s is not None else time.time(), index))
-        return self._call(self.places_stub.QueryPlace, request)
+        return self._call(self.places_stub.QueryPlace, request,
+                          self._visit_maps.get(visit_id, ""))
 
     # --- export -----------------------------------------------------------------------------
 
@@ -490,14 +547,15 @@ class Client:
                    name: str = "") -> map_pb.Map:
         """Adds a map from an archive (export(..., "map") or `lifemap maps export`), given as
         its bytes or its path, under `name` (empty: the name it was exported under)."""
-        return self._call(self.maps_stub.ImportMap,
-                          _chunks(map_pb.ImportChunk, _bytes_of(archive), name=name))
+        data = _bytes_of(archive)
+        return self._call(self.maps_stub.ImportMap, _chunks(map_pb.ImportChunk, data, name=name),
+                          name or _archive_map_name(data))
 
     def _export(self, request: map_pb.ExportMapRequest) -> Tuple[bytes, map_pb.ExportChunk]:
         parts, last = [], map_pb.ExportChunk()
         try:
             for chunk in self.maps_stub.ExportMap(request, timeout=self._timeout_s * 10,
-                                                  metadata=self._metadata):
+                                                  metadata=self._routed(request.map)):
                 parts.append(chunk.data)
                 if chunk.last:
                     last = chunk
