@@ -98,6 +98,16 @@ struct RunReport {
 
 // Client options for `target`, with the API key in $LIFEMAP_API_KEY when set (a server that
 // requires keys: the key needs the operator role for the runs, admin for nothing).
+// The maps the streams write (--maps; a cluster's figures spread them over shards): stream s
+// writes maps[s % size].
+std::vector<std::string>& StreamMaps() {
+  static auto* maps = new std::vector<std::string>{"load"};
+  return *maps;
+}
+const std::string& MapFor(int stream) {
+  return StreamMaps()[static_cast<size_t>(stream) % StreamMaps().size()];
+}
+
 lifemap::client::ClientOptions OptionsFor(const std::string& target) {
   auto options = lifemap::client::ClientOptions::At(target);
   if (const char* key = std::getenv("LIFEMAP_API_KEY"); key != nullptr) options.api_key = key;
@@ -174,7 +184,7 @@ RunReport RunStreams(const std::string& target, const std::vector<lifemap::v1::F
       auto client = lifemap::client::Client::Connect(OptionsFor(target));
       if (!client.ok()) return;
       lifemap::v1::StreamStart st;
-      st.set_map("load");
+      st.set_map(MapFor(s));
       *st.mutable_options() = options;
       st.set_robot(absl::StrFormat("load-%d", s));
       auto stream = (*client)->OpenStream(st);
@@ -330,7 +340,7 @@ SoakReport RunSoak(const std::string& target, const std::vector<lifemap::v1::Fra
         return;
       }
       lifemap::v1::StreamStart st;
-      st.set_map("load");
+      st.set_map(MapFor(s));
       *st.mutable_options() = options;
       st.set_robot(absl::StrFormat("soak-%d", s));
       auto stream = (*client)->OpenStream(st);
@@ -450,6 +460,10 @@ int main(int argc, char** argv) {
   app.add_option("--tum", tum, "TUM folder whose frames are replayed")
       ->check(CLI::ExistingDirectory);
   app.add_option("--streams", streams, "concurrent streams")->check(CLI::Range(1, 256));
+  app.add_option("--maps", StreamMaps(),
+                 "maps the streams write, stream s the (s mod N)-th (created if missing; "
+                 "default load)")
+      ->delimiter(',');
   app.add_option("--frames", frames, "frames per stream")->check(CLI::Range(1, 1000000));
   app.add_option("--rate", rate, "frames/s per stream; 0 = as fast as possible")
       ->check(CLI::Range(0.0, 1000.0));
@@ -564,10 +578,12 @@ int main(int argc, char** argv) {
       std::cerr << "load_generator: " << client.status().message() << "\n";
       return 1;
     }
-    auto m = (*client)->CreateMap("load", "load generator");
-    if (!m.ok() && !absl::IsAlreadyExists(m.status())) {
-      std::cerr << "load_generator: " << m.status().message() << "\n";
-      return 1;
+    for (const std::string& name : StreamMaps()) {
+      auto m = (*client)->CreateMap(name, "load generator");
+      if (!m.ok() && !absl::IsAlreadyExists(m.status())) {
+        std::cerr << "load_generator: " << m.status().message() << "\n";
+        return 1;
+      }
     }
   }
 

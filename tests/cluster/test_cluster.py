@@ -86,9 +86,13 @@ class PostgreSQL:
 
 
 class Cluster:
-    """PostgreSQL, three shards and nginx, until stop()."""
+    """PostgreSQL, shards and nginx, until stop(). `cpu_quota`: each shard's share of one CPU
+    (a cgroup v1 cfs quota; bench/cluster_scaling.py), None = unlimited."""
 
-    def __init__(self):
+    def __init__(self, shards=SHARDS, cpu_quota=None):
+        self.names = tuple(shards)
+        self.cpu_quota = cpu_quota
+        self.cgroups = []
         self.folder = Path(tempfile.mkdtemp(prefix="lifemap-cluster-"))
         self.folder.chmod(0o755)  # the postgres user reaches its folder inside
         self.shards = {}
@@ -102,10 +106,10 @@ class Cluster:
             raise
 
     def start(self):
-        self.ports = {name: free_port() for name in SHARDS}
-        for name in SHARDS:
+        self.ports = {name: free_port() for name in self.names}
+        for name in self.names:
             self.admin("add", name, f"127.0.0.1:{self.ports[name]}")
-        for name in SHARDS:
+        for name in self.names:
             self.start_shard(name)
         self.nginx_port = free_port()
         self.nginx_dir = self.folder / "nginx"
@@ -117,6 +121,15 @@ class Cluster:
     def admin(self, *args, check=True):
         return run(LIFEMAP, "admin", "shards", "--placement", self.pg.uri, *args, check=check)
 
+    def limit_cpu(self, pid, name):
+        """Puts the process in a cgroup of its own with `cpu_quota` of one CPU."""
+        group = Path(f"/sys/fs/cgroup/cpu/lifemap-{os.getpid()}-{name}")
+        group.mkdir(exist_ok=True)
+        (group / "cpu.cfs_period_us").write_text("100000")
+        (group / "cpu.cfs_quota_us").write_text(str(int(self.cpu_quota * 100000)))
+        (group / "cgroup.procs").write_text(str(pid))
+        self.cgroups.append(group)
+
     def start_shard(self, name):
         with open(self.folder / f"{name}.log", "a") as err:
             p = subprocess.Popen(
@@ -124,6 +137,8 @@ class Cluster:
                  f"127.0.0.1:{self.ports[name]}", "--placement", self.pg.uri, "--shard", name,
                  "--log-level", "info", "--shutdown-grace-s", "5"],
                 stdout=subprocess.DEVNULL, stderr=err)
+        if self.cpu_quota is not None:
+            self.limit_cpu(p.pid, name)
         wait_port(self.ports[name], process=p, what=f"shard {name}")
         self.shards[name] = p
 
@@ -208,6 +223,11 @@ class Cluster:
             except subprocess.TimeoutExpired:
                 p.kill()
         self.pg.stop()
+        for group in self.cgroups:
+            try:
+                group.rmdir()
+            except OSError:
+                pass
 
     def logs(self):
         text = []
@@ -517,6 +537,30 @@ class ClusterTest(unittest.TestCase):
         w = self.c.cli("maps", "show", name, target=self.direct("s1"), check=False)
         self.assertIn("lives on shard 's2'", w.stderr)
         self.c.move(name, "s1")
+
+    def test_11_the_python_client_routes_through_nginx_too(self):
+        try:
+            import lifemap
+        except ImportError:
+            self.skipTest("the Python client is not installed (scripts/test-cluster installs it)")
+        placed = self.ensure_maps()
+        with lifemap.Client(self.c.target) as client:
+            self.assertEqual(sorted(MAPS), sorted(m.name for m in client.maps()))
+            for name in MAPS:
+                self.assertEqual(name, client.get_map(name).name)
+                for v in client.visits(name):
+                    self.assertEqual(name, v.map)
+            # Straight to one shard: that shard's maps alone (no fan-out through it).
+        with lifemap.Client(self.direct("s3")) as client:
+            self.assertEqual(sorted(m for m in MAPS if placed[m] == "s3"),
+                             sorted(m.name for m in client.maps()))
+        # An archive imported through nginx lands where nginx routes its manifest's name.
+        with lifemap.Client(self.c.target) as client:
+            archive = client.export(HOMES["s2"][0], "map")
+            client.delete_map(HOMES["s2"][0])
+            imported = client.import_map(archive)
+            self.assertEqual(HOMES["s2"][0], imported.name)
+            self.assertIn(HOMES["s2"][0], self.c.placement())
 
 
 if __name__ == "__main__":
