@@ -23,6 +23,8 @@
 #include <iostream>
 #include <map>
 
+#include <nlohmann/json.hpp>
+
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/cli/commands.h"
@@ -330,6 +332,15 @@ void AddMapsMoveCommand(CLI::App* maps, CliContext* ctx) {
       if (!p.ok()) return Fail(p.status());
       Mover mover(*ctx, *a, p->get());
       if (auto s = mover.Run(); !s.ok()) return Fail(s);
+      if (ctx->json) {
+        auto where = (*p)->FindMap(a->map);
+        nlohmann::json out = {{"map", a->map}};
+        if (where.ok() && where->has_value()) {
+          out["shard"] = (*where)->shard;
+          out["state"] = (*where)->state;
+        }
+        std::cout << out.dump() << "\n";
+      }
       return 0;
     };
   });

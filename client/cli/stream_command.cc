@@ -48,8 +48,8 @@ struct StreamArgs {
   std::string result_images = "png";
   // A stream that breaks with UNAVAILABLE (a shard's map moving, nginx or a server restarted)
   // is opened again on the same visit for up to this long, and the frames not yet answered are
-  // sent again; 0 = never.
-  double reconnect_s = 60.0;
+  // sent again; 0 = never (the default: a script sees the break at once).
+  double reconnect_s = 0.0;
 };
 
 // Writes a result's PNGs into `dir` as SEQUENCE_<what>.png, clears them from `result`, and

@@ -283,7 +283,7 @@ class ClusterTest(unittest.TestCase):
     def stream(self, name, *extra, check=True, frames=30):
         return self.c.cli("--json", "stream", name, "--tum", self.sim / "visit_00",
                           "--use-groundtruth", "--max-frames", frames, "--result-images", "none",
-                          *extra, check=check)
+                          "--reconnect-s", "60", *extra, check=check)
 
     def map_on(self, placed, shard):
         return next(m for m in MAPS if placed[m] == shard)
