@@ -16,6 +16,9 @@
 namespace lifemap {
 struct CameraIntrinsics;
 struct Pose;
+namespace placement {
+class Placement;
+}  // namespace placement
 }  // namespace lifemap
 
 namespace lifemap::cli {
@@ -74,6 +77,9 @@ void AddProcessCommand(CLI::App* app, CliContext* ctx);
 void AddAdminCommands(CLI::App* app, CliContext* ctx);
 // `maps move` (move_command.cc), under `maps`.
 void AddMapsMoveCommand(CLI::App* maps, CliContext* ctx);
+// The cluster's placement database (shards_command.cc): `flag` (--placement), else
+// $LIFEMAP_PLACEMENT.
+absl::StatusOr<std::unique_ptr<placement::Placement>> OpenPlacement(const std::string& flag);
 // `admin shards ...` (shards_command.cc), under `admin`.
 void AddShardsCommands(CLI::App* admin, CliContext* ctx);
 void AddKeyCommands(CLI::App* app, CliContext* ctx);

@@ -323,12 +323,7 @@ void AddMapsMoveCommand(CLI::App* maps, CliContext* ctx) {
                  "undo a move that has not switched yet: the map stays where it was");
   move->callback([ctx, a] {
     ctx->run = [ctx, a] {
-      std::string uri = a->placement;
-      if (uri.empty()) {
-        const char* env = std::getenv("LIFEMAP_PLACEMENT");
-        if (env != nullptr) uri = env;
-      }
-      auto p = placement::Placement::Open(uri);
+      auto p = OpenPlacement(a->placement);
       if (!p.ok()) return Fail(p.status());
       Mover mover(*ctx, *a, p->get());
       if (auto s = mover.Run(); !s.ok()) return Fail(s);

@@ -27,12 +27,7 @@ double Now() { return static_cast<double>(std::time(nullptr)); }
 struct ShardFlags {
   std::string placement;  // --placement, else $LIFEMAP_PLACEMENT
   absl::StatusOr<std::unique_ptr<placement::Placement>> Open() const {
-    std::string uri = placement;
-    if (uri.empty()) {
-      const char* env = std::getenv("LIFEMAP_PLACEMENT");
-      if (env != nullptr) uri = env;
-    }
-    return placement::Placement::Open(uri);
+    return OpenPlacement(placement);
   }
 };
 
@@ -92,6 +87,15 @@ absl::Status WriteAtomically(const std::string& path, const std::string& text) {
 }
 
 }  // namespace
+
+absl::StatusOr<std::unique_ptr<placement::Placement>> OpenPlacement(const std::string& flag) {
+  std::string uri = flag;
+  if (uri.empty()) {
+    const char* env = std::getenv("LIFEMAP_PLACEMENT");
+    if (env != nullptr) uri = env;
+  }
+  return placement::Placement::Open(uri);
+}
 
 void AddShardsCommands(CLI::App* admin, CliContext* ctx) {
   auto flags = std::make_shared<ShardFlags>();

@@ -134,14 +134,21 @@ absl::Status Principal::CheckNotRevoked() const {
       absl::StrCat("API key '", key_name, "' was revoked during this call; ", HowToSendAKey()));
 }
 
+namespace {
+// The server's gate on `map` for the caller's method; a write's lease is kept in the Principal.
+absl::Status PassGate(const Principal& caller, const std::string& map) {
+  if (caller.gate == nullptr) return absl::OkStatus();
+  auto lease = caller.gate->CheckMap(map, caller.method);
+  if (!lease.ok()) return lease.status();
+  if (*lease) caller.write_lease = *std::move(lease);
+  return absl::OkStatus();
+}
+}  // namespace
+
 absl::StatusOr<store::MapRecord> FindCallersMap(store::Store* store, const Principal& caller,
                                                 const std::string& name) {
   if (auto s = store::ValidateMapName(name); !s.ok()) return s;
-  if (caller.gate != nullptr) {
-    auto lease = caller.gate->CheckMap(name, caller.method);
-    if (!lease.ok()) return lease.status();
-    if (*lease) caller.write_lease = *std::move(lease);
-  }
+  if (auto s = PassGate(caller, name); !s.ok()) return s;
   auto map = store->GetMap(name);
   if (!map.ok()) {
     if (absl::IsNotFound(map.status()) && !caller.every_map) return caller.CheckMap(-1, name);
@@ -160,11 +167,7 @@ absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const P
     }
     return visit.status();
   }
-  if (caller.gate != nullptr) {
-    auto lease = caller.gate->CheckMap(visit->map_name, caller.method);
-    if (!lease.ok()) return lease.status();
-    if (*lease) caller.write_lease = *std::move(lease);
-  }
+  if (auto s = PassGate(caller, visit->map_name); !s.ok()) return s;
   if (!caller.MayUseMap(visit->map_id)) {
     return caller.CheckMap(visit->map_id, absl::StrCat("(the map of visit ", visit_id, ")"));
   }

@@ -57,25 +57,32 @@ absl::StatusOr<std::unique_ptr<ShardMembership>> ShardMembership::Join(const std
   if (auto s = engine->store()->RaiseIdFloor(self->number << kIdRangeBits); !s.ok()) return s;
   std::unique_ptr<ShardMembership> membership(
       new ShardMembership(shard, *std::move(placement), engine));
-  if (auto s = membership->Reconcile(); !s.ok()) return s;
-  membership->Tick();
+  if (auto s = membership->Reconcile(); !s.ok()) return s;  // reads the placement
+  membership->Beat();
   return membership;
 }
 
 absl::Status ShardMembership::Reconcile() {
   auto local = engine_->store()->ListMaps();
   if (!local.ok()) return local.status();
-  std::vector<std::string> adopted, elsewhere;
-  for (const store::MapRecord& m : *local) {
-    auto placed = placement_->FindMap(m.name);
-    if (!placed.ok()) return placed.status();
-    if (!placed->has_value()) {
-      if (auto s = placement_->PlaceMap(m.name, shard_, NowSeconds()); !s.ok()) return s;
-      adopted.push_back(m.name);
-    } else if ((*placed)->shard != shard_) {
-      elsewhere.push_back(absl::StrCat(m.name, " (placed on ", (*placed)->shard,
-                                       (*placed)->state == "moving" ? ", moving" : "", ")"));
+  if (auto s = ReadPlacement(); !s.ok()) return s;
+  std::vector<std::string> unplaced, adopted, elsewhere;
+  {
+    absl::MutexLock lock(&mu_);
+    for (const store::MapRecord& m : *local) {
+      const auto it = placed_.find(Key(m.name));
+      if (it == placed_.end()) {
+        unplaced.push_back(m.name);
+      } else if (it->second.shard != shard_) {
+        elsewhere.push_back(absl::StrCat(m.name, " (placed on ", it->second.shard,
+                                         it->second.state == "moving" ? ", moving" : "", ")"));
+      }
     }
+  }
+  for (const std::string& name : unplaced) {
+    auto placed = PlaceNew(name);
+    if (!placed.ok()) return placed.status();
+    adopted.push_back(name);
   }
   if (!adopted.empty()) {
     spdlog::info("shard {}: placed {} map(s) it holds that were placed nowhere: {}", shard_,
@@ -105,10 +112,14 @@ absl::Status ShardMembership::ReadPlacement() {
   return absl::OkStatus();
 }
 
-void ShardMembership::Tick() {
+void ShardMembership::Beat() {
   if (auto s = placement_->Heartbeat(shard_, NowSeconds()); !s.ok()) {
     spdlog::warn("shard {}: heartbeat: {}", shard_, std::string(s.message()));
   }
+}
+
+void ShardMembership::Tick() {
+  Beat();
   // Until a read succeeds the last one stands: a shard keeps serving its own maps while
   // PostgreSQL is away (maps only change shards through `lifemap maps move`, which needs it).
   if (auto s = ReadPlacement(); !s.ok()) {
@@ -135,21 +146,27 @@ absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::strin
                                                                 absl::string_view method) const {
   const std::string key = Key(map);
   const bool writes = Writes(method);
-  absl::MutexLock lock(&mu_);
-  const auto it = placed_.find(key);
-  std::string phase = it == placed_.end() ? "unplaced" : PhaseLocked(it->second);
-  if (phase == "serving" || phase == "unplaced" || (phase == "frozen" && !writes)) {
-    if (!writes) return std::shared_ptr<void>();
-    ++writers_[key];
-    // The lease: one writer fewer when the call ends.
-    return std::shared_ptr<void>(nullptr, [this, key](void*) {
-      absl::MutexLock release(&mu_);
-      if (--writers_[key] == 0) writers_.erase(key);
-    });
+  std::string phase;
+  placement::MapPlacement m;
+  std::string address;  // of the shard the refusal names
+  {
+    absl::MutexLock lock(&mu_);
+    const auto it = placed_.find(key);
+    phase = it == placed_.end() ? "unplaced" : PhaseLocked(it->second);
+    if (phase == "serving" || phase == "unplaced" || (phase == "frozen" && !writes)) {
+      if (!writes) return std::shared_ptr<void>();
+      ++writers_[key];
+      // The lease: one writer fewer when the call ends.
+      return std::shared_ptr<void>(nullptr, [this, key](void*) {
+        absl::MutexLock release(&mu_);
+        if (--writers_[key] == 0) writers_.erase(key);
+      });
+    }
+    // A copy left here may be deleted whatever the placement says (the move deletes it so).
+    if (method == "MapService/DeleteMap" && phase != "frozen") return std::shared_ptr<void>();
+    m = it->second;
+    address = AddressOf(m.shard);
   }
-  const placement::MapPlacement& m = it->second;
-  // A copy left here may be deleted whatever the placement says (the move deletes it so).
-  if (method == "MapService/DeleteMap" && phase != "frozen") return std::shared_ptr<void>();
   if (phase == "frozen") {
     return absl::UnavailableError(absl::StrCat(
         "map '", m.map, "' is moving from shard '", shard_, "' to shard '", m.move_to,
@@ -163,13 +180,13 @@ absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::strin
   }
   if (phase == "moved") {
     return absl::UnavailableError(absl::StrCat(
-        "map '", m.map, "' moved to shard '", m.shard, "' (", AddressOf(m.shard),
+        "map '", m.map, "' moved to shard '", m.shard, "' (", address,
         "): reconnect through the cluster's nginx, which routes there once its table is reloaded"));
   }
   const bool held_here = engine_->store()->GetMap(map).ok();
   return absl::FailedPreconditionError(absl::StrCat(
-      "map '", m.map, "' lives on shard '", m.shard, "' (", AddressOf(m.shard),
-      "), not on this shard '", shard_, "'",
+      "map '", m.map, "' lives on shard '", m.shard, "' (", address, "), not on this shard '",
+      shard_, "'",
       held_here ? ": the copy here is stale (the map moved while this shard was away) and is "
                   "refused; delete it here once the map is safe where it lives"
                 : ": connect through the cluster's nginx, which routes by the lifemap-map header"));
@@ -213,10 +230,17 @@ absl::StatusOr<bool> ShardMembership::PlaceNew(const std::string& map) {
       ((*placed)->shard == shard_ || (*placed)->move_to == shard_)) {
     return false;
   }
-  if (auto s = placement_->PlaceMap(map, shard_, NowSeconds()); !s.ok()) return s;
-  if (auto s = ReadPlacement(); !s.ok()) {
-    spdlog::warn("shard {}: reading the placement: {}", shard_, std::string(s.message()));
-  }
+  const double now = NowSeconds();
+  if (auto s = placement_->PlaceMap(map, shard_, now); !s.ok()) return s;
+  // Served here from now on, whatever the cache held for the name (a map of that name deleted
+  // elsewhere since the last read); the next read of the placement says the same.
+  placement::MapPlacement here;
+  here.map = map;
+  here.shard = shard_;
+  here.state = "active";
+  here.placed_s = now;
+  absl::MutexLock lock(&mu_);
+  placed_[Key(map)] = std::move(here);
   return true;
 }
 

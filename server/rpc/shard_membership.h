@@ -70,7 +70,9 @@ class ShardMembership final : public MapGate {
  private:
   ShardMembership(std::string shard, std::unique_ptr<placement::Placement> placement,
                   Engine* engine);
+  // Reads the placement, and places the maps held here that are placed nowhere.
   absl::Status Reconcile();
+  void Beat();  // the heartbeat; logged, not returned, when it fails
   absl::Status ReadPlacement();
   // Where `map` stands for this shard (Refresh's words), under mu_.
   std::string PhaseLocked(const placement::MapPlacement& m) const ABSL_SHARED_LOCKS_REQUIRED(mu_);

@@ -562,6 +562,34 @@ class ClusterTest(unittest.TestCase):
             self.assertEqual(HOMES["s2"][0], imported.name)
             self.assertIn(HOMES["s2"][0], self.c.placement())
 
+    def test_12_bad_input_is_refused_saying_what_to_do(self):
+        self.ensure_maps()
+        p = self.c.move("nowhere", "s2", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("map 'nowhere' is not placed on any shard", p.stderr)
+        p = self.c.move(HOMES["s1"][0], "s9", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("shard 's9' is not in the placement database", p.stderr)
+        self.assertEqual(("s1", "active", ""), self.c.move_state(HOMES["s1"][0]))
+        p = self.c.admin("add", "bad name", "127.0.0.1:1", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("shard name 'bad name' must be", p.stderr)
+        p = self.c.admin("add", "s4", "no-port", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("has no port", p.stderr)
+        p = self.c.admin("add", "s1", "127.0.0.1:1", check=False)
+        self.assertIn("already", p.stderr)
+        p = self.c.admin("nginx-config", "--out", "-", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("--prefix", p.stderr)
+        p = self.c.admin("remove", "s2", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("still holds maps", p.stderr)
+        p = run(LIFEMAP, "admin", "shards", "--placement",
+                "postgresql://lifemap@127.0.0.1:1/x?connect_timeout=2", "list", check=False)
+        self.assertNotEqual(0, p.returncode)
+        self.assertIn("placement database", p.stderr)
+
 
 if __name__ == "__main__":
     unittest.main(argv=[sys.argv[0], *sys.argv[1:]], verbosity=2)
