@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdlib>
+#include <thread>
 
 #include <grpcpp/grpcpp.h>
 #include <opencv2/imgcodecs.hpp>
@@ -14,7 +15,9 @@
 #include "absl/container/flat_hash_map.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
+#include "client/cluster_merge.h"
 #include "core/common/depth_codec.h"
 #include "core/common/image_codec.h"
 #include "lifemap/v1/admin_service.grpc.pb.h"
@@ -135,9 +138,62 @@ class GrpcClient final : public Client {
     if (auto s = FromGrpc(writer->Finish()); !s.ok()) return s;
     return info;
   }
+  // By a stored visit: routed to the visit's map. By frames through a cluster: every shard is
+  // asked at once and the rankings merged by score (cluster_merge.h); a shard with nothing to
+  // match (FAILED_PRECONDITION) adds its reason, one that does not answer is listed in
+  // unreachable_shards; FAILED_PRECONDITION only when no shard computed any method.
   absl::StatusOr<v1::QueryPlaceResponse> QueryPlace(const v1::QueryPlaceRequest& request) override {
-    return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request,
-                 MapOfVisit(request.visit_id()));
+    if (request.visit_id() != 0) {
+      return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request,
+                   MapOfVisit(request.visit_id()));
+    }
+    auto shards = ClusterShards();
+    if (!shards.ok()) return shards.status();
+    if (shards->empty()) return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request);
+    auto answers = FanOut<v1::QueryPlaceResponse>(*shards, [&](const std::string& shard) {
+      return Unary(&v1::PlaceService::Stub::QueryPlace, places_.get(), request, "", shard);
+    });
+    std::vector<std::pair<std::string, v1::QueryPlaceResponse>> parts;
+    std::vector<std::string> unreachable;
+    absl::Status refused;  // the first FAILED_PRECONDITION
+    for (size_t i = 0; i < shards->size(); ++i) {
+      const std::string& shard = (*shards)[i];
+      if (answers[i].ok()) {
+        parts.emplace_back(shard, *std::move(answers[i]));
+        continue;
+      }
+      const absl::Status& s = answers[i].status();
+      if (absl::IsUnavailable(s) || absl::IsDeadlineExceeded(s)) {
+        unreachable.push_back(absl::StrCat(shard, ": ", s.message()));
+      } else if (absl::IsFailedPrecondition(s)) {
+        if (refused.ok())
+          refused = absl::FailedPreconditionError(absl::StrCat(shard, ": ", s.message()));
+        v1::QueryPlaceResponse nothing;  // no method computed there, saying why
+        for (int m : {v1::MATCH_METHOD_ARCHITECTURE, v1::MATCH_METHOD_APPEARANCE}) {
+          const bool asked = request.methods().empty() ||
+                             std::find(request.methods().begin(), request.methods().end(), m) !=
+                                 request.methods().end();
+          if (!asked) continue;
+          auto* status = nothing.add_method_status();
+          status->set_method(static_cast<v1::MatchMethod>(m));
+          status->set_reason(std::string(s.message()));
+        }
+        parts.emplace_back(shard, std::move(nothing));
+      } else {
+        return s;  // a bad request or key: every shard says the same
+      }
+    }
+    v1::QueryPlaceResponse merged =
+        MergePlaceAnswers(parts, request.max_results() == 0 ? 10 : request.max_results());
+    for (std::string& u : unreachable) merged.add_unreachable_shards(std::move(u));
+    const bool computed = std::any_of(merged.method_status().begin(), merged.method_status().end(),
+                                      [](const v1::MethodStatus& m) { return m.computed(); });
+    if (!computed && !refused.ok()) return refused;
+    if (parts.empty()) {
+      return absl::UnavailableError(
+          absl::StrCat("no shard answered: ", absl::StrJoin(merged.unreachable_shards(), "; ")));
+    }
+    return merged;
   }
   absl::StatusOr<v1::ListPlacesResponse> ListPlaces(const std::string& map) override {
     v1::ListPlacesRequest req;
@@ -168,8 +224,37 @@ class GrpcClient final : public Client {
   absl::StatusOr<v1::ServerInfo> GetServerInfo() override {
     return Unary(&v1::AdminService::Stub::GetServerInfo, admin_.get(), v1::GetServerInfoRequest());
   }
+  // Through a cluster: every shard's, summed (cluster_merge.h); shards that do not answer are
+  // listed in unreachable_shards.
   absl::StatusOr<v1::Stats> GetStats() override {
-    return Unary(&v1::AdminService::Stub::GetStats, admin_.get(), v1::GetStatsRequest());
+    auto shards = ClusterShards();
+    if (!shards.ok()) return shards.status();
+    if (shards->empty()) {
+      return Unary(&v1::AdminService::Stub::GetStats, admin_.get(), v1::GetStatsRequest());
+    }
+    auto answers = FanOut<v1::Stats>(*shards, [&](const std::string& shard) {
+      return Unary(&v1::AdminService::Stub::GetStats, admin_.get(), v1::GetStatsRequest(), "",
+                   shard);
+    });
+    std::vector<v1::Stats> parts;
+    std::vector<std::string> unreachable;
+    for (size_t i = 0; i < shards->size(); ++i) {
+      if (answers[i].ok()) {
+        parts.push_back(*std::move(answers[i]));
+      } else if (absl::IsUnavailable(answers[i].status()) ||
+                 absl::IsDeadlineExceeded(answers[i].status())) {
+        unreachable.push_back(absl::StrCat((*shards)[i], ": ", answers[i].status().message()));
+      } else {
+        return answers[i].status();
+      }
+    }
+    if (parts.empty()) {
+      return absl::UnavailableError(
+          absl::StrCat("no shard answered: ", absl::StrJoin(unreachable, "; ")));
+    }
+    v1::Stats merged = MergeStats(parts);
+    for (std::string& u : unreachable) merged.add_unreachable_shards(std::move(u));
+    return merged;
   }
   absl::StatusOr<v1::BackupResponse> Backup(const std::string& name) override {
     v1::BackupRequest req;
@@ -226,20 +311,22 @@ class GrpcClient final : public Client {
   // Through a cluster, every shard is asked (named in kShardHeader) and the answers merged by
   // name; a shard that does not answer is listed in unreachable_shards, not an error.
   absl::StatusOr<v1::ListMapsResponse> ListMaps() override {
-    auto info = GetServerInfo();
-    if (!info.ok()) return info.status();
-    if (info->shards().empty()) {
+    auto shards = ClusterShards();
+    if (!shards.ok()) return shards.status();
+    if (shards->empty()) {
       return Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest());
     }
+    auto answers = FanOut<v1::ListMapsResponse>(*shards, [&](const std::string& shard) {
+      return Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest(), "", shard);
+    });
     v1::ListMapsResponse merged;
-    for (const v1::ShardInfo& shard : info->shards()) {
-      auto part = Unary(&v1::MapService::Stub::ListMaps, maps_.get(), v1::ListMapsRequest(), "",
-                        shard.name());
-      if (!part.ok()) {
-        merged.add_unreachable_shards(absl::StrCat(shard.name(), ": ", part.status().message()));
+    for (size_t i = 0; i < shards->size(); ++i) {
+      if (!answers[i].ok()) {
+        merged.add_unreachable_shards(
+            absl::StrCat((*shards)[i], ": ", answers[i].status().message()));
         continue;
       }
-      for (v1::Map& m : *part->mutable_maps()) *merged.add_maps() = std::move(m);
+      for (v1::Map& m : *answers[i]->mutable_maps()) *merged.add_maps() = std::move(m);
     }
     std::sort(merged.mutable_maps()->begin(), merged.mutable_maps()->end(),
               [](const v1::Map& a, const v1::Map& b) { return a.name() < b.name(); });
@@ -416,6 +503,30 @@ class GrpcClient final : public Client {
   }
 
  private:
+  // The cluster's shard names (GetServerInfo through nginx); empty for a lone server or a
+  // client connected straight to one shard.
+  absl::StatusOr<std::vector<std::string>> ClusterShards() {
+    auto info = GetServerInfo();
+    if (!info.ok()) return info.status();
+    std::vector<std::string> names;
+    for (const v1::ShardInfo& shard : info->shards()) names.push_back(shard.name());
+    return names;
+  }
+
+  // `call(shard)` for every shard at once (a thread each); the answers in the shards' order.
+  template <typename Response, typename Call>
+  std::vector<absl::StatusOr<Response>> FanOut(const std::vector<std::string>& shards,
+                                               const Call& call) {
+    std::vector<absl::StatusOr<Response>> answers(shards.size(), absl::UnknownError("not asked"));
+    std::vector<std::thread> threads;
+    threads.reserve(shards.size());
+    for (size_t i = 0; i < shards.size(); ++i) {
+      threads.emplace_back([&, i] { answers[i] = call(shards[i]); });
+    }
+    for (std::thread& t : threads) t.join();
+    return answers;
+  }
+
   template <typename Stub, typename Request, typename Response>
   absl::StatusOr<Response> Unary(grpc::Status (Stub::*method)(grpc::ClientContext*, const Request&,
                                                               Response*),

@@ -28,8 +28,11 @@
 namespace lifemap::client {
 
 // Through a cluster of shards behind nginx (issue 39) every call about one map carries its name
-// in kMapHeader, and ListMaps is fanned out to every shard (kShardHeader): core/common/
-// cluster_headers.h. A lone server ignores both.
+// in kMapHeader, and the calls over every map — ListMaps, QueryPlace by frames, GetStats — are
+// fanned out to every shard at once (kShardHeader) and merged here (client/cluster_merge.h):
+// core/common/cluster_headers.h. A lone server ignores both headers. Fanning out in the client
+// needs no extra hop or process; a client connected straight to one shard sees that shard's
+// maps alone.
 
 struct ClientOptions {
   std::string target = "127.0.0.1:50051";  // HOST:PORT of lifemapd

@@ -82,9 +82,11 @@ absl::Status CheckAuthCanWork(const ServerConfig& config, store::Store* store) {
                           : " need API keys (it is beyond loopback)",
       " and the database has no live admin key: create one on this machine with `lifemapd keys "
       "create NAME --role admin --db ",
-      config.db_path,
-      "` (it prints the key once), or, on a trusted network only, "
-      "start with --insecure-no-auth"));
+      config.db_path, "` (it prints the key once)",
+      config.placement_uri.empty()
+          ? ""
+          : " or on any other shard's machine (the shards share one key ring)",
+      ", or, on a trusted network only, start with --insecure-no-auth"));
 }
 
 absl::StatusOr<std::string> ReadPemFile(const std::string& path, absl::string_view what) {
@@ -289,13 +291,15 @@ absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const Server
   impl->engine = *std::move(engine);
   store::Store* store = impl->engine->store();
   impl->keys = std::make_unique<KeyRing>(store, config.AuthRequired());
-  if (auto s = CheckAuthCanWork(config, store); !s.ok()) return s;
   if (!config.placement_uri.empty()) {
-    auto shard = ShardMembership::Join(config.placement_uri, config.shard_name, impl->engine.get());
+    // Before the check below: a shard's keys are the cluster's (server/rpc/cluster_keys.h).
+    auto shard = ShardMembership::Join(config.placement_uri, config.shard_name, impl->engine.get(),
+                                       impl->keys.get());
     if (!shard.ok()) return shard.status();
     impl->shard = *std::move(shard);
     impl->keys->set_map_gate(impl->shard.get());
   }
+  if (auto s = CheckAuthCanWork(config, store); !s.ok()) return s;
   auto credentials = ServerCredentialsFor(config);
   if (!credentials.ok()) return credentials.status();
   if (auto s = CheckLoopbackSiblingIsFree(config.listen); !s.ok()) return s;

@@ -1184,6 +1184,9 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
       return RunCall<v1::Stats>(
           *ctx, [](client::Client& c) { return c.GetStats(); },
           [](const v1::Stats& s) {
+            for (const auto& shard : s.unreachable_shards()) {
+              std::cerr << "warning: shard " << shard << "\n  its figures are missing below\n";
+            }
             std::cout << absl::StrFormat(
                 "maps %d, visits %d, keyframes %d\ndatabase %s + WAL %s\nactive streams %d; "
                 "since start: %d frames processed, %d rejected, %d keyframes committed; "

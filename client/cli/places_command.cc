@@ -435,6 +435,9 @@ void AddPlaceCommands(CLI::App* app, CliContext* ctx) {
         j["verdict"] = VerdictJson(verdict);
         std::cout << j.dump(2) << "\n";
       } else {
+        for (const auto& shard : r->unreachable_shards()) {
+          std::cerr << "warning: shard " << shard << "\n  its maps are missing below\n";
+        }
         PrintQueryAnswer(what, *r);
         PrintVerdict(verdict);
       }

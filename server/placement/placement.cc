@@ -8,6 +8,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 
 namespace lifemap::placement {
 namespace {
@@ -36,6 +37,21 @@ CREATE TABLE IF NOT EXISTS lifemap_maps (
 );
 CREATE UNIQUE INDEX IF NOT EXISTS lifemap_maps_name_nocase ON lifemap_maps (lower(name));
 CREATE INDEX IF NOT EXISTS lifemap_maps_by_shard ON lifemap_maps (shard);
+CREATE TABLE IF NOT EXISTS lifemap_keys (
+  name text PRIMARY KEY,
+  role text NOT NULL CHECK (role IN ('robot', 'operator', 'admin')),
+  every_map boolean NOT NULL,
+  map_names text[] NOT NULL DEFAULT '{}',
+  secret_sha256 text NOT NULL,
+  created_s double precision NOT NULL,
+  revoked_s double precision NOT NULL DEFAULT 0,
+  max_streams bigint NOT NULL DEFAULT 0,
+  max_frames_per_s double precision NOT NULL DEFAULT 0,
+  max_maps bigint NOT NULL DEFAULT 0,
+  max_keyframes_per_map bigint NOT NULL DEFAULT 0,
+  max_model_bytes bigint NOT NULL DEFAULT 0,
+  max_visits_per_hour bigint NOT NULL DEFAULT 0
+);
 )sql";
 
 bool ValidName(const std::string& s) {
@@ -70,6 +86,32 @@ Shard ShardFromRow(const pqxx::row& r) {
   s.seen_s = r[4].as<double>();
   s.number = r[5].as<int64_t>();
   return s;
+}
+
+// Map names travel as one newline-separated text (names never hold a newline): libpqxx 6.4 has
+// no array parameters.
+constexpr const char* kKeyColumns =
+    "name, role, every_map, array_to_string(map_names, E'\\n'), secret_sha256, created_s, "
+    "revoked_s, max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, "
+    "max_model_bytes, max_visits_per_hour";
+
+ClusterKey KeyFromRow(const pqxx::row& r) {
+  ClusterKey k;
+  k.name = r[0].as<std::string>();
+  k.role = r[1].as<std::string>();
+  k.every_map = r[2].as<bool>();
+  const std::string names = r[3].as<std::string>();
+  if (!names.empty()) k.map_names = absl::StrSplit(names, '\n');
+  k.secret_sha256 = r[4].as<std::string>();
+  k.created_s = r[5].as<double>();
+  k.revoked_s = r[6].as<double>();
+  k.max_streams = r[7].as<int64_t>();
+  k.max_frames_per_s = r[8].as<double>();
+  k.max_maps = r[9].as<int64_t>();
+  k.max_keyframes_per_map = r[10].as<int64_t>();
+  k.max_model_bytes = r[11].as<int64_t>();
+  k.max_visits_per_hour = r[12].as<int64_t>();
+  return k;
 }
 
 constexpr const char* kMapColumns =
@@ -234,9 +276,68 @@ class PgPlacement final : public Placement {
 
   absl::Status UnplaceMap(const std::string& map, const std::string& shard) override {
     return Run([&](pqxx::work& w) {
-      w.exec_params("DELETE FROM lifemap_maps WHERE name = $1 AND shard = $2", map, shard);
+      auto r = w.exec_params("DELETE FROM lifemap_maps WHERE name = $1 AND shard = $2", map, shard);
+      if (r.affected_rows() > 0) {
+        w.exec_params(
+            "UPDATE lifemap_keys SET map_names = array_remove(map_names, $1) "
+            "WHERE $1 = ANY(map_names)",
+            map);
+      }
       return absl::OkStatus();
     });
+  }
+
+  absl::Status AddKey(const ClusterKey& k) override {
+    return Run([&](pqxx::work& w) {
+      auto r = w.exec_params(
+          "INSERT INTO lifemap_keys (name, role, every_map, map_names, secret_sha256, created_s, "
+          "revoked_s, max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, "
+          "max_model_bytes, max_visits_per_hour) VALUES ($1, $2, $3, "
+          "string_to_array($4, E'\\n'), $5, $6, $7, $8, $9, $10, $11, $12, $13) "
+          "ON CONFLICT (name) DO NOTHING",
+          k.name, k.role, k.every_map, absl::StrJoin(k.map_names, "\n"), k.secret_sha256,
+          k.created_s, k.revoked_s, k.max_streams, k.max_frames_per_s, k.max_maps,
+          k.max_keyframes_per_map, k.max_model_bytes, k.max_visits_per_hour);
+      if (r.affected_rows() == 0) {
+        return absl::AlreadyExistsError(
+            absl::StrCat("an API key named '", k.name,
+                         "' exists in the cluster (revoked keys keep their names): choose "
+                         "another name"));
+      }
+      return absl::OkStatus();
+    });
+  }
+
+  absl::StatusOr<ClusterKey> RevokeKey(const std::string& name, double now_s) override {
+    ClusterKey key;
+    auto s = Run([&](pqxx::work& w) -> absl::Status {
+      w.exec_params("UPDATE lifemap_keys SET revoked_s = $2 WHERE name = $1 AND revoked_s = 0",
+                    name, now_s);
+      auto r = w.exec_params(
+          absl::StrCat("SELECT ", kKeyColumns, " FROM lifemap_keys WHERE name = $1"), name);
+      if (r.empty()) {
+        return absl::NotFoundError(
+            absl::StrCat("no API key named '", name, "' in the cluster (lifemap keys list)"));
+      }
+      key = KeyFromRow(r[0]);
+      return absl::OkStatus();
+    });
+    if (!s.ok()) return s;
+    return key;
+  }
+
+  absl::StatusOr<std::vector<ClusterKey>> ListKeys() override {
+    std::vector<ClusterKey> keys;
+    auto s = Run([&](pqxx::work& w) {
+      keys.clear();
+      for (const auto& row :
+           w.exec(absl::StrCat("SELECT ", kKeyColumns, " FROM lifemap_keys ORDER BY name"))) {
+        keys.push_back(KeyFromRow(row));
+      }
+      return absl::OkStatus();
+    });
+    if (!s.ok()) return s;
+    return keys;
   }
 
   absl::StatusOr<std::unique_ptr<MoveLock>> LockMove(const std::string& map) override {

@@ -8,6 +8,8 @@
 //   lifemap_shards(name, number, address, state 'active'|'draining', added_s, seen_s)
 //   lifemap_maps(name, shard, state 'active'|'moving', move_to, move_from, move_phase,
 //                move_started_s, placed_s)
+//   lifemap_keys(name, role, every_map, map_names, secret_sha256, created_s, revoked_s, limits)
+//                the cluster's one key ring (ClusterKey)
 // Times are seconds since the Unix epoch. `seen_s` is the shard's heartbeat (every
 // kHeartbeatIntervalS while it runs): a shard not seen for kDownAfterS is reported down.
 //
@@ -58,6 +60,27 @@ struct MapPlacement {
   double placed_s = 0;
 };
 
+// An API key of the cluster's one key ring (the shards copy it into their stores: see
+// server/rpc/shard_membership.h). Keys are named like a lone server's; a key limited to maps
+// names them (map ids differ per shard). Never the secret, only its SHA-256 (hex).
+struct ClusterKey {
+  std::string name;
+  std::string role;  // "robot" | "operator" | "admin"
+  bool every_map = true;
+  std::vector<std::string> map_names;  // when !every_map, by name
+  std::string secret_sha256;
+  double created_s = 0;
+  double revoked_s = 0;  // 0 = live; once set, never cleared
+  // The key's own limits (0: only the server's), as store::KeyLimits; each shard applies them
+  // to the calls it serves.
+  int64_t max_streams = 0;
+  double max_frames_per_s = 0;
+  int64_t max_maps = 0;
+  int64_t max_keyframes_per_map = 0;
+  int64_t max_model_bytes = 0;
+  int64_t max_visits_per_hour = 0;
+};
+
 // Held while one process moves one map (a PostgreSQL session lock: released when the process
 // dies, so a killed move never blocks the next).
 class MoveLock {
@@ -92,8 +115,16 @@ class Placement {
   // Places a new map on `shard`. ALREADY_EXISTS naming the shard when a map of that name
   // (ignoring case) is placed anywhere; FAILED_PRECONDITION when `shard` is unknown.
   virtual absl::Status PlaceMap(const std::string& map, const std::string& shard, double now_s) = 0;
-  // Forgets the map if it is placed on `shard` (a deleted map); OK if it is not placed at all.
+  // Forgets the map if it is placed on `shard` (a deleted map), and takes it off the keys
+  // limited to it; OK if it is not placed at all (a copy left by a move: no key changes).
   virtual absl::Status UnplaceMap(const std::string& map, const std::string& shard) = 0;
+
+  // The key ring. AddKey: ALREADY_EXISTS for a name in use (revoked keys keep theirs).
+  // RevokeKey: sets revoked_s once (a second call keeps the first time) and returns the key;
+  // NOT_FOUND for an unknown name. ListKeys: every key, revoked too, by name.
+  virtual absl::Status AddKey(const ClusterKey& key) = 0;
+  virtual absl::StatusOr<ClusterKey> RevokeKey(const std::string& name, double now_s) = 0;
+  virtual absl::StatusOr<std::vector<ClusterKey>> ListKeys() = 0;
 
   // Moves (see MapPlacement). ABORTED when another process moves the map now.
   virtual absl::StatusOr<std::unique_ptr<MoveLock>> LockMove(const std::string& map) = 0;

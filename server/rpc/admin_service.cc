@@ -329,8 +329,11 @@ grpc::Status AdminServiceImpl::CreateApiKey(grpc::ServerContext* context,
   limits.max_model_bytes =
       static_cast<int64_t>(std::min<uint64_t>(req->limits().max_model_bytes(), INT64_MAX));
   limits.max_visits_per_hour = req->limits().max_visits_per_hour();
-  auto created =
-      server::CreateApiKey(ctx_->engine->store(), req->name(), *role, maps, limits, NowSeconds());
+  // A shard's keys are the cluster's (server/rpc/cluster_keys.h).
+  auto created = ctx_->shard != nullptr
+                     ? ctx_->shard->keys()->Create(req->name(), *role, maps, limits, NowSeconds())
+                     : server::CreateApiKey(ctx_->engine->store(), req->name(), *role, maps, limits,
+                                            NowSeconds());
   if (!created.ok()) return ToGrpcStatus(created.status());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("API key '{}' ({}) created by '{}'", req->name(), std::string(RoleName(*role)),
@@ -345,7 +348,8 @@ grpc::Status AdminServiceImpl::ListApiKeys(grpc::ServerContext* context,
                                            v1::ListApiKeysResponse* resp) {
   auto caller = ctx_->keys->Authorize(*context, "AdminService/ListApiKeys");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
-  auto keys = ctx_->engine->store()->ListApiKeys();
+  auto keys =
+      ctx_->shard != nullptr ? ctx_->shard->keys()->List() : ctx_->engine->store()->ListApiKeys();
   if (!keys.ok()) return ToGrpcStatus(keys.status());
   for (const auto& k : *keys) ApiKeyToProto(k, resp->add_keys());
   return grpc::Status::OK;
@@ -356,7 +360,9 @@ grpc::Status AdminServiceImpl::RevokeApiKey(grpc::ServerContext* context,
   auto caller = ctx_->keys->Authorize(*context, "AdminService/RevokeApiKey");
   if (!caller.ok()) return ToGrpcStatus(caller.status());
   if (auto s = store::ValidateName(req->name(), "API key"); !s.ok()) return ToGrpcStatus(s);
-  auto revoked = ctx_->engine->store()->RevokeApiKey(req->name(), NowSeconds());
+  auto revoked = ctx_->shard != nullptr
+                     ? ctx_->shard->keys()->Revoke(req->name(), NowSeconds())
+                     : ctx_->engine->store()->RevokeApiKey(req->name(), NowSeconds());
   if (!revoked.ok()) return ToGrpcStatus(revoked.status());
   if (auto s = ctx_->keys->Reload(); !s.ok()) return ToGrpcStatus(s);
   spdlog::info("API key '{}' revoked by '{}'", req->name(), caller->key_name);

@@ -14,6 +14,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "core/common/cluster_headers.h"
 #include "server/engine/clock.h"
 
 namespace lifemap::server {
@@ -115,10 +116,13 @@ bool Principal::MayUseMap(int64_t map_id) const {
 
 absl::Status Principal::CheckMap(int64_t map_id, absl::string_view map_name) const {
   if (MayUseMap(map_id)) return absl::OkStatus();
-  return absl::PermissionDeniedError(
-      absl::StrCat("API key '", key_name, "' may use only the maps ",
-                   map_names.empty() ? std::string("(none left)") : absl::StrJoin(map_names, ", "),
-                   ", not '", map_name, "': use a key for that map"));
+  // A shard of a cluster knows the key's maps it holds, not those on other shards.
+  const bool shard = gate != nullptr;
+  return absl::PermissionDeniedError(absl::StrCat(
+      "API key '", key_name, "' may use only the maps ",
+      map_names.empty() ? std::string(shard ? "(none)" : "(none left)")
+                        : absl::StrJoin(map_names, ", "),
+      shard ? " on this shard" : "", ", not '", map_name, "': use a key for that map"));
 }
 
 absl::Status Principal::CheckEveryMap(absl::string_view what) const {
@@ -138,7 +142,7 @@ namespace {
 // The server's gate on `map` for the caller's method; a write's lease is kept in the Principal.
 absl::Status PassGate(const Principal& caller, const std::string& map) {
   if (caller.gate == nullptr) return absl::OkStatus();
-  auto lease = caller.gate->CheckMap(map, caller.method);
+  auto lease = caller.gate->CheckMap(map, caller.method, caller.routed_by_proxy);
   if (!lease.ok()) return lease.status();
   if (*lease) caller.write_lease = *std::move(lease);
   return absl::OkStatus();
@@ -174,8 +178,8 @@ absl::StatusOr<store::VisitRecord> FindCallersVisit(store::Store* store, const P
   return visit;
 }
 
-absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> CreateApiKey(
-    store::Store* store, const std::string& name, Role role, const std::vector<std::string>& maps,
+absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> NewApiKey(
+    const std::string& name, Role role, const std::vector<std::string>& maps,
     const store::KeyLimits& limits, double now_s) {
   if (auto s = store::ValidateName(name, "API key"); !s.ok()) return s;
   if (auto s = ValidateKeyLimits(limits); !s.ok()) return s;
@@ -200,17 +204,29 @@ absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> CreateApiKey(
       return absl::InvalidArgumentError(
           absl::StrCat("maps: '", map_name, "' is named twice; name each map once"));
     }
+  }
+  record.map_names = maps;
+  std::string secret = NewApiKeySecret();
+  record.secret_sha256 = ApiKeyHash(secret);
+  record.created_time_s = now_s;
+  return std::make_pair(std::move(secret), std::move(record));
+}
+
+absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> CreateApiKey(
+    store::Store* store, const std::string& name, Role role, const std::vector<std::string>& maps,
+    const store::KeyLimits& limits, double now_s) {
+  auto key = NewApiKey(name, role, maps, limits, now_s);
+  if (!key.ok()) return key.status();
+  store::ApiKeyRecord& record = key->second;
+  for (const std::string& map_name : maps) {
     auto map = store->GetMap(map_name);
     if (!map.ok())
       return absl::Status(map.status().code(), absl::StrCat("maps: ", map.status().message()));
     record.map_ids.push_back(map->id);
   }
-  const std::string secret = NewApiKeySecret();
-  record.secret_sha256 = ApiKeyHash(secret);
-  record.created_time_s = now_s;
   auto stored = store->InsertApiKey(record);
   if (!stored.ok()) return stored.status();
-  return std::make_pair(secret, *std::move(stored));
+  return std::make_pair(std::move(key->first), *std::move(stored));
 }
 
 absl::Status ValidateKeyLimits(const store::KeyLimits& l) {
@@ -385,20 +401,30 @@ absl::StatusOr<std::shared_ptr<KeyRing::Entry>> KeyRing::Find(
         "the 'authorization' metadata must be 'Bearer KEY' (a key from `lifemap keys create`)"));
   }
   const std::string hash = ApiKeyHash(value.substr(kBearer.size()));
-  absl::MutexLock lock(&mu_);
-  if (NowSeconds() - loaded_s_ > kReloadIntervalS) {
-    if (auto s = ReloadLocked(); !s.ok()) {
-      return absl::UnavailableError(absl::StrCat("API keys unreadable: ", s.message()));
+  std::shared_ptr<Entry> entry;
+  for (int attempt = 0; entry == nullptr; ++attempt) {
+    {
+      absl::MutexLock lock(&mu_);
+      if (NowSeconds() - loaded_s_ > kReloadIntervalS) {
+        if (auto s = ReloadLocked(); !s.ok()) {
+          return absl::UnavailableError(absl::StrCat("API keys unreadable: ", s.message()));
+        }
+      }
+      const auto found = by_hash_.find(hash);
+      if (found != by_hash_.end()) {
+        entry = found->second;
+        break;
+      }
+    }
+    // Not here: a key made on another shard of a cluster a moment ago is fetched once (the
+    // source reloads this ring when it writes new keys), outside the lock.
+    if (attempt > 0 || !fetch_new_keys_ || !fetch_new_keys_()) {
+      return absl::UnauthenticatedError(absl::StrCat(
+          "the API key is not one this server knows (mistyped, or made for another server; "
+          "`lifemap keys list` shows the keys by name): ",
+          HowToSendAKey()));
     }
   }
-  const auto found = by_hash_.find(hash);
-  if (found == by_hash_.end()) {
-    return absl::UnauthenticatedError(absl::StrCat(
-        "the API key is not one this server knows (mistyped, or made for another server; "
-        "`lifemap keys list` shows the keys by name): ",
-        HowToSendAKey()));
-  }
-  const std::shared_ptr<Entry>& entry = found->second;
   if (entry->revoked->load()) {
     return absl::UnauthenticatedError(absl::StrCat("API key '", entry->record.name,
                                                    "' has been revoked: ask an admin for a new "
@@ -422,7 +448,11 @@ absl::StatusOr<Principal> KeyRing::Authorize(const grpc::ServerContextBase& cont
   if (!needed) {
     return absl::InternalError(absl::StrCat(method, " has no role in the server's policy"));
   }
-  return AuthorizeBearer(AuthorizationOf(context), *needed, method);
+  auto principal = AuthorizeBearer(AuthorizationOf(context), *needed, method);
+  if (principal.ok()) {
+    principal->routed_by_proxy = context.client_metadata().count(kRoutedByHeader) > 0;
+  }
+  return principal;
 }
 
 absl::StatusOr<Principal> KeyRing::AuthorizeBearer(std::optional<absl::string_view> authorization,

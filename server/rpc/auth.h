@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -69,9 +70,12 @@ class MapGate {
   // OK, or why calls of `method` ("Service/Method") about `map` are refused here (naming where
   // the map lives, or that it is moving). A call that writes the map is given a lease, held
   // until the call ends (a move waits for every lease of the map before copying it); null for
-  // a call that only reads.
+  // a call that only reads. `routed_by_proxy`: the call came through the cluster's nginx (the
+  // lifemap-routed-by header), so a map placed elsewhere means nginx's table is older than the
+  // placement (reloading after a move): a refusal to retry, not the caller's mistake.
   virtual absl::StatusOr<std::shared_ptr<void>> CheckMap(const std::string& map,
-                                                         absl::string_view method) const = 0;
+                                                         absl::string_view method,
+                                                         bool routed_by_proxy) const = 0;
 };
 
 // The caller of one call.
@@ -89,7 +93,8 @@ struct Principal {
   std::shared_ptr<KeyUsage> usage;
   // The server's gate (KeyRing::set_map_gate); null for a lone server.
   const MapGate* gate = nullptr;
-  std::string method;  // the call's "Service/Method" (what the gate judges)
+  std::string method;            // the call's "Service/Method" (what the gate judges)
+  bool routed_by_proxy = false;  // it came through the cluster's nginx (lifemap-routed-by)
   // The gate's lease on the map this call writes (set by FindCallersMap/FindCallersVisit),
   // released with the Principal when the call's handler returns.
   mutable std::shared_ptr<void> write_lease;
@@ -133,6 +138,13 @@ absl::StatusOr<bool> HasLiveAdminKey(store::Store* store);
 // INVALID_ARGUMENT for a negative or non-finite limit.
 absl::Status ValidateKeyLimits(const store::KeyLimits& limits);
 
+// A new key's secret (shown this once) and record, not stored: validates the name (1-64 of
+// [A-Za-z0-9._-]), the limits and the maps (names, each once; empty = every map; not for admin
+// keys), INVALID_ARGUMENT saying what is wrong. map_names = `maps`; no id, no map ids yet.
+absl::StatusOr<std::pair<std::string, store::ApiKeyRecord>> NewApiKey(
+    const std::string& name, Role role, const std::vector<std::string>& maps,
+    const store::KeyLimits& limits, double now_s);
+
 // A new key: validates the name (1-64 of [A-Za-z0-9._-]) and the maps (names; empty = every
 // map; not for admin keys, INVALID_ARGUMENT), stores its hash and returns the secret (shown
 // this once) with the stored record. ALREADY_EXISTS for a name in use; NOT_FOUND for a map.
@@ -153,6 +165,10 @@ class KeyRing {
   bool required() const { return required_; }
   // Every Principal this ring hands out carries `gate` (set once, before calls arrive).
   void set_map_gate(const MapGate* gate) { gate_ = gate; }
+  // Asked when a call carries a key the store does not hold (a shard of a cluster fetches the
+  // cluster's new keys: server/rpc/cluster_keys.h); true when it may have stored new ones (it
+  // reloads this ring itself). Set once, before calls arrive.
+  void set_key_fetcher(std::function<bool()> fetch) { fetch_new_keys_ = std::move(fetch); }
 
   // The caller of `method` ("Service/Method") from the call's `authorization` metadata.
   // UNAUTHENTICATED without a key, with an unknown or revoked one; PERMISSION_DENIED when the
@@ -190,6 +206,7 @@ class KeyRing {
   store::Store* const store_;
   const bool required_;
   const MapGate* gate_ = nullptr;
+  std::function<bool()> fetch_new_keys_;
   absl::Mutex mu_;
   absl::flat_hash_map<std::string, std::shared_ptr<Entry>> by_hash_ ABSL_GUARDED_BY(mu_);
   double loaded_s_ ABSL_GUARDED_BY(mu_) = -1;

@@ -125,7 +125,7 @@ grpc::Status MapServiceImpl::ListMaps(grpc::ServerContext* context, const v1::Li
   if (!maps.ok()) return ToGrpcStatus(maps.status());
   for (const auto& m : *maps) {
     // A shard lists only the maps it serves, not stale copies of maps that moved away.
-    if (ctx_->shard != nullptr && !ctx_->shard->CheckMap(m.name, "MapService/ListMaps").ok())
+    if (ctx_->shard != nullptr && !ctx_->shard->CheckMap(m.name, "MapService/ListMaps", false).ok())
       continue;
     if (caller->MayUseMap(m.id)) MapToProto(m, resp->add_maps());
   }

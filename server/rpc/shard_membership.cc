@@ -35,12 +35,16 @@ std::string Key(const std::string& map) { return absl::AsciiStrToLower(map); }
 }  // namespace
 
 ShardMembership::ShardMembership(std::string shard, std::unique_ptr<placement::Placement> placement,
-                                 Engine* engine)
-    : shard_(std::move(shard)), placement_(std::move(placement)), engine_(engine) {}
+                                 Engine* engine, KeyRing* keys)
+    : shard_(std::move(shard)),
+      placement_(std::move(placement)),
+      engine_(engine),
+      keys_(placement_.get(), engine->store(), keys) {}
 
 absl::StatusOr<std::unique_ptr<ShardMembership>> ShardMembership::Join(const std::string& uri,
                                                                        const std::string& shard,
-                                                                       Engine* engine) {
+                                                                       Engine* engine,
+                                                                       KeyRing* keys) {
   auto placement = placement::Placement::Open(uri);
   if (!placement.ok()) return placement.status();
   auto self = (*placement)->GetShard(shard);
@@ -56,7 +60,10 @@ absl::StatusOr<std::unique_ptr<ShardMembership>> ShardMembership::Join(const std
   }
   if (auto s = engine->store()->RaiseIdFloor(self->number << kIdRangeBits); !s.ok()) return s;
   std::unique_ptr<ShardMembership> membership(
-      new ShardMembership(shard, *std::move(placement), engine));
+      new ShardMembership(shard, *std::move(placement), engine, keys));
+  if (keys != nullptr) {
+    keys->set_key_fetcher([ring = &membership->keys_] { return ring->FetchNewKeys(); });
+  }
   if (auto s = membership->Reconcile(); !s.ok()) return s;  // reads the placement
   membership->Beat();
   return membership;
@@ -94,7 +101,7 @@ absl::Status ShardMembership::Reconcile() {
         "about them are refused here: {}",
         shard_, elsewhere.size(), absl::StrJoin(elsewhere, ", "));
   }
-  return absl::OkStatus();
+  return keys_.Sync();
 }
 
 absl::Status ShardMembership::ReadPlacement() {
@@ -124,6 +131,10 @@ void ShardMembership::Tick() {
   // PostgreSQL is away (maps only change shards through `lifemap maps move`, which needs it).
   if (auto s = ReadPlacement(); !s.ok()) {
     spdlog::warn("shard {}: reading the placement: {}", shard_, std::string(s.message()));
+    return;
+  }
+  if (auto s = keys_.Sync(); !s.ok()) {
+    spdlog::warn("shard {}: syncing the cluster's API keys: {}", shard_, std::string(s.message()));
   }
 }
 
@@ -143,7 +154,8 @@ std::string ShardMembership::PhaseLocked(const placement::MapPlacement& m) const
 }
 
 absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::string& map,
-                                                                absl::string_view method) const {
+                                                                absl::string_view method,
+                                                                bool routed_by_proxy) const {
   const std::string key = Key(map);
   const bool writes = Writes(method);
   std::string phase;
@@ -183,6 +195,16 @@ absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::strin
         "map '", m.map, "' moved to shard '", m.shard, "' (", address,
         "): reconnect through the cluster's nginx, which routes there once its table is reloaded"));
   }
+  if (routed_by_proxy) {
+    // nginx still routes by a table older than the placement: a move just switched (nginx's
+    // old workers serve open connections until they close) or its table was not reloaded.
+    return absl::UnavailableError(absl::StrCat(
+        "nginx sent the call about map '", m.map, "' to shard '", shard_,
+        "', but the map lives on shard '", m.shard, "' (", address,
+        "): nginx's table is older than the placement (it is reloading after a move); retry. "
+        "If this lasts, write nginx's table again (lifemap admin shards nginx-config) and "
+        "reload nginx"));
+  }
   const bool held_here = engine_->store()->GetMap(map).ok();
   return absl::FailedPreconditionError(absl::StrCat(
       "map '", m.map, "' lives on shard '", m.shard, "' (", address, "), not on this shard '",
@@ -194,6 +216,10 @@ absl::StatusOr<std::shared_ptr<void>> ShardMembership::CheckMap(const std::strin
 
 absl::StatusOr<std::string> ShardMembership::Refresh(const std::string& map) {
   if (auto s = ReadPlacement(); !s.ok()) return s;
+  // A map that arrives is usable by its keys from the switch on.
+  if (auto s = keys_.Sync(); !s.ok()) {
+    spdlog::warn("shard {}: syncing the cluster's API keys: {}", shard_, std::string(s.message()));
+  }
   const std::string key = Key(map);
   std::string phase;
   {

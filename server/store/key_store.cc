@@ -66,6 +66,44 @@ absl::StatusOr<ApiKeyRecord> GetKeyLocked(Database* db, const std::string& name)
   return k;
 }
 
+// The maps a limited key may use: exactly `map_ids` (a key's earlier rows are the caller's to
+// delete). NOT_FOUND for an unknown map id.
+absl::Status InsertKeyMaps(Database* db, int64_t key_id, const std::vector<int64_t>& map_ids) {
+  auto stmt = db->Prepare("INSERT INTO api_key_maps (key_id, map_id) VALUES (?1, ?2)");
+  if (!stmt.ok()) return stmt.status();
+  for (int64_t map_id : map_ids) {
+    StatementScope s(*stmt);
+    s->Bind(1, key_id).Bind(2, map_id);
+    if (auto st = s->Run(); !st.ok()) {
+      if (IsConstraintViolation(st)) {
+        return absl::NotFoundError(absl::StrCat("no map with id ", map_id));
+      }
+      return st;
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Binds ?2.. ?12 of the key statements below: role .. max_visits_per_hour.
+void BindKeyFields(Statement* s, const ApiKeyRecord& record) {
+  s->Bind(2, record.role)
+      .Bind(3, static_cast<int64_t>(record.every_map ? 1 : 0))
+      .Bind(4, record.secret_sha256)
+      .Bind(5, record.created_time_s)
+      .Bind(6, record.limits.max_streams)
+      .Bind(7, record.limits.max_frames_per_s)
+      .Bind(8, record.limits.max_maps)
+      .Bind(9, record.limits.max_keyframes_per_map)
+      .Bind(10, record.limits.max_model_bytes)
+      .Bind(11, record.limits.max_visits_per_hour)
+      .Bind(12, record.revoked_time_s);
+}
+
+constexpr char kKeyInsert[] =
+    "INSERT INTO api_keys (name, role, every_map, secret_sha256, created_time_s, max_streams, "
+    "max_frames_per_s, max_maps, max_keyframes_per_map, max_model_bytes, max_visits_per_hour, "
+    "revoked_time_s) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)";
+
 }  // namespace
 
 absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
@@ -74,23 +112,11 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
   Transaction txn(db);
   if (auto st = txn.Begin(); !st.ok()) return st;
   {
-    auto stmt = db->Prepare(
-        "INSERT INTO api_keys (name, role, every_map, secret_sha256, created_time_s, "
-        "max_streams, max_frames_per_s, max_maps, max_keyframes_per_map, max_model_bytes, "
-        "max_visits_per_hour) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)");
+    auto stmt = db->Prepare(kKeyInsert);
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
-    s->Bind(1, record.name)
-        .Bind(2, record.role)
-        .Bind(3, static_cast<int64_t>(record.every_map ? 1 : 0))
-        .Bind(4, record.secret_sha256)
-        .Bind(5, record.created_time_s)
-        .Bind(6, record.limits.max_streams)
-        .Bind(7, record.limits.max_frames_per_s)
-        .Bind(8, record.limits.max_maps)
-        .Bind(9, record.limits.max_keyframes_per_map)
-        .Bind(10, record.limits.max_model_bytes)
-        .Bind(11, record.limits.max_visits_per_hour);
+    s->Bind(1, record.name);
+    BindKeyFields(&**stmt, record);
     if (auto st = s->Run(); !st.ok()) {
       if (IsConstraintViolation(st)) {
         return absl::AlreadyExistsError(
@@ -100,20 +126,8 @@ absl::StatusOr<ApiKeyRecord> Store::InsertApiKey(const ApiKeyRecord& record) {
       return st;
     }
   }
-  const int64_t key_id = db->LastInsertRowId();
   if (!record.every_map) {
-    auto stmt = db->Prepare("INSERT INTO api_key_maps (key_id, map_id) VALUES (?1, ?2)");
-    if (!stmt.ok()) return stmt.status();
-    for (int64_t map_id : record.map_ids) {
-      StatementScope s(*stmt);
-      s->Bind(1, key_id).Bind(2, map_id);
-      if (auto st = s->Run(); !st.ok()) {
-        if (IsConstraintViolation(st)) {
-          return absl::NotFoundError(absl::StrCat("no map with id ", map_id));
-        }
-        return st;
-      }
-    }
+    if (auto st = InsertKeyMaps(db, db->LastInsertRowId(), record.map_ids); !st.ok()) return st;
   }
   if (auto st = txn.Commit(); !st.ok()) return st;
   return GetKeyLocked(db, record.name);
@@ -152,6 +166,48 @@ absl::StatusOr<ApiKeyRecord> Store::RevokeApiKey(const std::string& name, double
     if (auto st = s->Run(); !st.ok()) return st;
   }
   return GetKeyLocked(db, name);
+}
+
+absl::StatusOr<ApiKeyRecord> Store::PutApiKey(const ApiKeyRecord& record) {
+  absl::MutexLock lock(&impl_->write_mu);
+  Database* db = impl_->write_db.get();
+  Transaction txn(db);
+  if (auto st = txn.Begin(); !st.ok()) return st;
+  int64_t key_id = 0;
+  {
+    auto stmt = db->Prepare(
+        "UPDATE api_keys SET role = ?2, every_map = ?3, secret_sha256 = ?4, created_time_s = ?5, "
+        "max_streams = ?6, max_frames_per_s = ?7, max_maps = ?8, max_keyframes_per_map = ?9, "
+        "max_model_bytes = ?10, max_visits_per_hour = ?11, revoked_time_s = ?12 "
+        "WHERE name = ?1 RETURNING id");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, record.name);
+    BindKeyFields(&**stmt, record);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row) key_id = s->ColumnInt(0);
+  }
+  if (key_id == 0) {
+    auto stmt = db->Prepare(kKeyInsert);
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, record.name);
+    BindKeyFields(&**stmt, record);
+    if (auto st = s->Run(); !st.ok()) return st;
+    key_id = db->LastInsertRowId();
+  } else {
+    auto stmt = db->Prepare("DELETE FROM api_key_maps WHERE key_id = ?1");
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    s->Bind(1, key_id);
+    if (auto st = s->Run(); !st.ok()) return st;
+  }
+  if (!record.every_map) {
+    if (auto st = InsertKeyMaps(db, key_id, record.map_ids); !st.ok()) return st;
+  }
+  if (auto st = txn.Commit(); !st.ok()) return st;
+  return GetKeyLocked(db, record.name);
 }
 
 absl::Status Store::TouchApiKey(int64_t key_id, double time_s) {

@@ -919,6 +919,21 @@ absl::StatusOr<std::vector<MapRecord>> Store::ListMaps() {
   return maps;
 }
 
+absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> Store::ListMapNames() {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare("SELECT id, name FROM maps ORDER BY name");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  std::vector<std::pair<int64_t, std::string>> maps;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    maps.emplace_back(s->ColumnInt(0), s->ColumnText(1));
+  }
+  return maps;
+}
+
 absl::StatusOr<MapRecord> Store::GetMap(const std::string& name) {
   absl::MutexLock lock(&impl_->read_mu);
   return impl_->GetMapLocked(impl_->read_db.get(), name);

@@ -14,6 +14,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -398,6 +399,9 @@ class Store {
                                       const MapCreator& creator = {});
   absl::StatusOr<MapRecord> UpdateMap(const std::string& name, const MapUpdate& update);
   absl::StatusOr<std::vector<MapRecord>> ListMaps();
+  // Every map's id and name, by name: ListMaps without its counts (which read every keyframe
+  // row), for callers that run often (a shard's key sync, every 2 s).
+  absl::StatusOr<std::vector<std::pair<int64_t, std::string>>> ListMapNames();
   absl::StatusOr<MapRecord> GetMap(const std::string& name);
   absl::StatusOr<MapRecord> GetMapById(int64_t map_id);
   // Deletes the map with its visits and keyframes; returns the counts deleted.
@@ -589,6 +593,10 @@ class Store {
   absl::StatusOr<std::vector<ApiKeyRecord>> ListApiKeys();
   absl::StatusOr<ApiKeyRecord> RevokeApiKey(const std::string& name, double time_s);
   absl::Status TouchApiKey(int64_t key_id, double time_s);
+  // A key of a cluster's key ring as one shard keeps it (server/rpc/shard_membership.h):
+  // inserted, or its row replaced by name (last_used_time_s kept) with exactly
+  // `record.map_ids`. NOT_FOUND for an unknown map id.
+  absl::StatusOr<ApiKeyRecord> PutApiKey(const ApiKeyRecord& record);
   // The audit log: Append one event; List the newest `limit` at or after `since_time_s`,
   // newest first.
   absl::Status AppendAuditEvent(const AuditEventRecord& event);

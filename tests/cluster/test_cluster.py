@@ -89,7 +89,7 @@ class Cluster:
     """PostgreSQL, shards and nginx, until stop(). `cpu_quota`: each shard's share of one CPU
     (a cgroup v1 cfs quota; bench/cluster_scaling.py), None = unlimited."""
 
-    def __init__(self, shards=SHARDS, cpu_quota=None):
+    def __init__(self, shards=SHARDS, cpu_quota=None, keys=False):
         self.names = tuple(shards)
         self.cpu_quota = cpu_quota
         self.cgroups = []
@@ -97,6 +97,14 @@ class Cluster:
         self.folder.chmod(0o755)  # the postgres user reaches its folder inside
         self.shards = {}
         self.nginx = None
+        # With keys: every shard requires them; the first admin key is made on the first
+        # shard's machine only (the others get it from the cluster's key ring).
+        self.admin_key = None
+        if keys:
+            self.admin_key = self.folder / "admin.key"
+            made = run(LIFEMAPD, "keys", "create", "admin", "--role", "admin", "--db",
+                       self.folder / f"{self.names[0]}.db", "--create")
+            self.admin_key.write_text(made.stdout)
         self.pg = PostgreSQL(self.folder / "pg")
         try:
             self.start()
@@ -135,7 +143,8 @@ class Cluster:
             p = subprocess.Popen(
                 [LIFEMAPD, "--db", str(self.folder / f"{name}.db"), "--listen",
                  f"127.0.0.1:{self.ports[name]}", "--placement", self.pg.uri, "--shard", name,
-                 "--log-level", "info", "--shutdown-grace-s", "5"],
+                 "--log-level", "info", "--shutdown-grace-s", "5",
+                 *(["--require-auth"] if self.admin_key else [])],
                 stdout=subprocess.DEVNULL, stderr=err)
         if self.cpu_quota is not None:
             self.limit_cpu(p.pid, name)
@@ -179,7 +188,8 @@ class Cluster:
         env = dict(os.environ)
         if stop_after:
             env["LIFEMAP_MOVE_STOP_AFTER"] = stop_after
-        p = subprocess.run([LIFEMAP, "maps", "move", name, "--to", to, "--placement", self.pg.uri,
+        p = subprocess.run([LIFEMAP, *self.key_args(), "maps", "move", name, "--to", to,
+                            "--placement", self.pg.uri,
                             "--reload-command", self.reload_command(), *extra],
                            capture_output=True, text=True, timeout=300, env=env)
         if check and p.returncode != 0:
@@ -203,9 +213,14 @@ class Cluster:
                 self.nginx.kill()
                 self.nginx.wait()
 
-    def cli(self, *args, target=None, check=True, timeout=300):
-        return run(LIFEMAP, "--server", target or self.target, *args, check=check,
-                   timeout=timeout)
+    def key_args(self, key=None):
+        """The CLI's key flag: `key` (a file), else the admin key of a cluster with keys."""
+        key = key or self.admin_key
+        return ["--api-key-file", str(key)] if key else []
+
+    def cli(self, *args, target=None, check=True, timeout=300, key=None):
+        return run(LIFEMAP, "--server", target or self.target, *self.key_args(key), *args,
+                   check=check, timeout=timeout)
 
     def placement(self):
         """{map: shard} as the placement database has it."""
@@ -241,13 +256,8 @@ HOMES = {"s1": ["lab", "hall"], "s2": ["office", "kitchen"], "s3": ["garage", "a
 MAPS = [m for names in HOMES.values() for m in names]
 
 
-class ClusterTest(unittest.TestCase):
-    @classmethod
-    def setUpClass(cls):
-        cls.cluster = Cluster()
-        cls.sim = cls.cluster.folder / "sim"
-        run(LIFEMAP, "sim", "--world", "rooms", "--seed", "6", "--place-shape", "rect", "--visits",
-            "1", "--frames", "60", "--out", cls.sim)
+class ClusterCase(unittest.TestCase):
+    """A test class over one Cluster (made by setUpClass as cls.cluster), stopped at its end."""
 
     @classmethod
     def tearDownClass(cls):
@@ -260,6 +270,18 @@ class ClusterTest(unittest.TestCase):
 
     def fail_with_logs(self, message):
         self.fail(f"{message}\n{self.c.logs()}")
+
+    def direct(self, shard):
+        return f"127.0.0.1:{self.c.ports[shard]}"
+
+
+class ClusterTest(ClusterCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.cluster = Cluster()
+        cls.sim = cls.cluster.folder / "sim"
+        run(LIFEMAP, "sim", "--world", "rooms", "--seed", "6", "--place-shape", "rect", "--visits",
+            "1", "--frames", "60", "--out", cls.sim)
 
     def ensure_maps(self):
         """Every map of HOMES on its shard: each shard in turn the only active one."""
@@ -341,6 +363,22 @@ class ClusterTest(unittest.TestCase):
             direct = f"127.0.0.1:{self.c.ports[placed[name]]}"
             info = json.loads(self.c.cli("--json", "maps", "show", name, target=direct).stdout)
             self.assertGreaterEqual(int(info["keyframe_count"]), committed)
+        # Calls over every map are fanned out by the client library and merged. GetStats: the
+        # shards' sums.
+        merged = json.loads(self.c.cli("--json", "admin", "stats").stdout)
+        alone = [json.loads(self.c.cli("--json", "admin", "stats", target=self.direct(s)).stdout)
+                 for s in SHARDS]
+        for field in ("maps", "keyframes"):
+            self.assertEqual(sum(int(a.get(field, 0)) for a in alone), int(merged[field]),
+                             (field, merged, alone))
+        # QueryPlace by frames: every shard's ranking, merged by score; the three maps hold a
+        # visit of this very recording, one map per shard.
+        q = json.loads(self.c.cli("--json", "places", "query", "--tum", self.sim / "visit_00",
+                                  "--method", "architecture", "--max", "10").stdout)
+        found = {m["map"] for m in q.get("matches", [])}
+        self.assertGreaterEqual(len(found & set(targets)), 2, q)
+        scores = [float(m.get("score", 0)) for m in q.get("matches", [])]
+        self.assertEqual(sorted(scores, reverse=True), scores, q)
 
     def test_03_a_shard_asked_about_another_shards_map_says_where_it_lives(self):
         placed = self.ensure_maps()
@@ -349,6 +387,24 @@ class ClusterTest(unittest.TestCase):
         p = self.c.cli("maps", "show", name, target=wrong, check=False)
         self.assertNotEqual(0, p.returncode)
         self.assertIn(f"lives on shard 's2' (127.0.0.1:{self.c.ports['s2']})", p.stderr)
+        # The same call sent by nginx (a table older than the placement, as right after a move
+        # while nginx's old workers still serve open connections): UNAVAILABLE, so the client
+        # retries (the stream's reconnection did not, CI stop 49).
+        try:
+            import grpc
+            from lifemap.v1 import map_service_pb2 as map_pb
+            from lifemap.v1 import map_service_pb2_grpc as map_grpc
+        except ImportError:
+            self.skipTest("the Python client is not installed (scripts/test-cluster installs it)")
+        with grpc.insecure_channel(wrong) as channel:
+            with self.assertRaises(grpc.RpcError) as refused:
+                map_grpc.MapServiceStub(channel).GetMap(
+                    map_pb.GetMapRequest(name=name),
+                    metadata=[("lifemap-map", name), ("lifemap-routed-by", "nginx")], timeout=10)
+        self.assertEqual(grpc.StatusCode.UNAVAILABLE, refused.exception.code())
+        self.assertIn("nginx's table is older than the placement", refused.exception.details())
+        self.assertIn(f"lives on shard 's2' (127.0.0.1:{self.c.ports['s2']})",
+                      refused.exception.details())
 
     def test_04_a_killed_shard_answers_unavailable_naming_it_and_the_others_go_on(self):
         placed = self.ensure_maps()
@@ -356,6 +412,7 @@ class ClusterTest(unittest.TestCase):
         down = self.map_on(placed, "s3")
         up = self.map_on(placed, "s1")
         self.c.kill_shard("s3")
+        killed_at = time.time()
         try:
             p = self.c.cli("maps", "show", down, check=False)
             self.assertNotEqual(0, p.returncode)
@@ -369,6 +426,14 @@ class ClusterTest(unittest.TestCase):
             listed = json.loads(self.c.cli("--json", "maps", "list").stdout)
             self.assertTrue(any(u.startswith("s3") for u in listed.get("unreachable_shards", [])), listed)
             self.assertNotIn(down, [m["name"] for m in listed["maps"]])
+            # A move to a shard the placement reports down (no heartbeat for 10 s) is refused
+            # before anything changes.
+            time.sleep(max(0.0, killed_at + 11.0 - time.time()))
+            moved = self.c.move(up, "s3", check=False)
+            self.assertNotEqual(0, moved.returncode)
+            self.assertIn("shard 's3'", moved.stderr)
+            self.assertIn("is down", moved.stderr)
+            self.assertEqual(("s1", "active", ""), self.c.move_state(up))
         finally:
             self.c.start_shard("s3")
         self.c.cli("maps", "show", down)
@@ -393,9 +458,6 @@ class ClusterTest(unittest.TestCase):
 
     def shard_of(self, name):
         return self.c.placement()[name]
-
-    def direct(self, shard):
-        return f"127.0.0.1:{self.c.ports[shard]}"
 
     def test_06_a_map_moves_while_idle_and_keeps_its_ids(self):
         placed = self.ensure_maps()
@@ -550,6 +612,12 @@ class ClusterTest(unittest.TestCase):
                 self.assertEqual(name, client.get_map(name).name)
                 for v in client.visits(name):
                     self.assertEqual(name, v.map)
+            # GetStats fanned out: the shards' sums.
+            total = 0
+            for shard in SHARDS:
+                with lifemap.Client(self.direct(shard)) as one:
+                    total += one.stats().maps
+            self.assertEqual(total, client.stats().maps)
             # Straight to one shard: that shard's maps alone (no fan-out through it).
         with lifemap.Client(self.direct("s3")) as client:
             self.assertEqual(sorted(m for m in MAPS if placed[m] == "s3"),
@@ -589,6 +657,73 @@ class ClusterTest(unittest.TestCase):
                 "postgresql://lifemap@127.0.0.1:1/x?connect_timeout=2", "list", check=False)
         self.assertNotEqual(0, p.returncode)
         self.assertIn("placement database", p.stderr)
+
+
+class ClusterKeysTest(ClusterCase):
+    """One key ring for every shard: keys in PostgreSQL, copied into each shard's store."""
+
+    @classmethod
+    def setUpClass(cls):
+        cls.cluster = Cluster(shards=("s1", "s2"), keys=True)
+
+    def key_file(self, name, secret):
+        path = self.c.folder / f"{name}.key"
+        path.write_text(secret)
+        return path
+
+    def eventually(self, check, what, timeout=15.0):
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if check():
+                return
+            time.sleep(0.25)
+        self.fail_with_logs(f"{what} within {timeout} s")
+
+    def test_keys_made_anywhere_hold_on_every_shard_and_follow_a_moved_map(self):
+        # s2 was started requiring keys with none of its own: it took the cluster's admin key.
+        for shard in ("s1", "s2"):
+            self.c.cli("maps", "list", target=self.direct(shard))
+        anonymous = run(LIFEMAP, "--server", self.c.target, "maps", "list", check=False)
+        self.assertNotEqual(0, anonymous.returncode)
+        self.assertIn("UNAUTHENTICATED", anonymous.stderr)
+        self.c.cli("maps", "create", "lab", target=self.direct("s1"))
+        self.c.cli("maps", "create", "office", target=self.direct("s2"))
+        self.c.reload_nginx()
+
+        # A robot key limited to one map, made through nginx (whichever shard took the call).
+        made = self.c.cli("keys", "create", "robot1", "--role", "robot", "--maps", "office")
+        robot = self.key_file("robot1", made.stdout)
+        self.c.cli("maps", "show", "office", key=robot)  # nginx passes the key through
+        self.c.cli("maps", "show", "office", key=robot, target=self.direct("s2"))
+        denied = self.c.cli("maps", "show", "lab", key=robot, check=False)
+        self.assertNotEqual(0, denied.returncode)
+        self.assertIn("may use only the maps (none) on this shard, not 'lab'", denied.stderr)
+        for shard in ("s1", "s2"):  # every shard lists the whole ring, maps by name
+            keys = json.loads(self.c.cli("--json", "keys", "list",
+                                         target=self.direct(shard)).stdout)["keys"]
+            robot1 = next(k for k in keys if k["name"] == "robot1")
+            self.assertEqual(["office"], robot1.get("maps"), shard)
+
+        # The map moves to s1: the key follows it by name.
+        self.c.move("office", "s1")
+        self.c.cli("maps", "show", "office", key=robot)
+        self.c.cli("maps", "show", "office", key=robot, target=self.direct("s1"))
+
+        # A key made on a shard's machine while it runs joins the ring and holds on the other.
+        late = run(LIFEMAPD, "keys", "create", "late", "--role", "operator", "--db",
+                   self.c.folder / "s2.db")
+        late_key = self.key_file("late", late.stdout)
+        self.eventually(lambda: self.c.cli("maps", "list", key=late_key, check=False,
+                                           target=self.direct("s1")).returncode == 0,
+                        "a key made on s2's machine did not hold on s1")
+
+        # Revoked through nginx: refused on every shard.
+        self.c.cli("keys", "revoke", "robot1")
+        for shard in ("s1", "s2"):
+            self.eventually(
+                lambda: "revoked" in self.c.cli("maps", "list", key=robot, check=False,
+                                                target=self.direct(shard)).stderr,
+                f"a key revoked through nginx was still taken by {shard}")
 
 
 if __name__ == "__main__":

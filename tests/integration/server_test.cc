@@ -291,6 +291,19 @@ TEST_F(ServerTest, StatsCountTheServersCpuTime) {
       << "no more than every core of a large machine for the whole uptime";
 }
 
+// A lone server has no placement to re-read (issue 39): it says so, and the stats it gives
+// through the client library are its own (no shards to fan out to).
+TEST_F(ServerTest, ALoneServerRefusesRefreshPlacementSayingItIsNoShard) {
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  auto refreshed = client_->RefreshPlacement("lab");
+  EXPECT_EQ(absl::StatusCode::kFailedPrecondition, refreshed.status().code())
+      << refreshed.status();
+  auto stats = client_->GetStats();
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(1u, stats->maps());
+  EXPECT_TRUE(stats->unreachable_shards().empty());
+}
+
 TEST_F(ServerTest, AcceptsRvlAndPalettedDepthAndRefusesDamagedOnes) {
   v1::ProcessFrameRequest req;
   *req.mutable_frame() = MakeFrame();

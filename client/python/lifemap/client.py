@@ -10,6 +10,7 @@ Unix epoch; a pose is T_world_camera as (tx, ty, tz, qx, qy, qz, qw).
 """
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import json
 import os
@@ -220,6 +221,74 @@ def _chunks(message, data: bytes, **first):
         yield message(data=data[at:at + chunk])
 
 
+# Fanned-out answers of a cluster's shards merged into one, as client/cluster_merge.cc does.
+_SUMMED_STATS = ("maps", "visits", "keyframes", "db_bytes", "wal_bytes", "active_streams",
+                 "frames_processed", "frames_rejected", "keyframes_committed", "process_cpu_s",
+                 "resident_bytes")
+_METHOD_ORDER = {frame_pb.MATCH_METHOD_FUSED: 0, frame_pb.MATCH_METHOD_ARCHITECTURE: 1,
+                 frame_pb.MATCH_METHOD_APPEARANCE: 2}
+
+
+def _merge_stats(parts: Sequence[admin_pb.Stats]) -> admin_pb.Stats:
+    if len(parts) == 1:
+        merged = admin_pb.Stats()
+        merged.CopyFrom(parts[0])
+        return merged
+    merged = admin_pb.Stats()
+    for name in _SUMMED_STATS:
+        setattr(merged, name, sum(getattr(p, name) for p in parts))
+    merged.uptime_s = min(p.uptime_s for p in parts)
+    merged.limited_to_maps = any(p.limited_to_maps for p in parts)
+    a = merged.appearance
+    a.enabled = all(p.appearance.enabled for p in parts)
+    a.has_vocabulary = all(p.appearance.has_vocabulary for p in parts)
+    a.words = max(p.appearance.words for p in parts)
+    for name in ("keyframes", "memory_bytes", "stored_keyframes"):
+        setattr(a, name, sum(getattr(p.appearance, name) for p in parts))
+    a.min_training_keyframes = max(p.appearance.min_training_keyframes for p in parts)
+    return merged
+
+
+def _merge_place_answers(parts, max_results: int) -> place_pb.QueryPlaceResponse:
+    """parts: (shard, QueryPlaceResponse). Rankings by method (fused, architecture,
+    appearance), best score first, at most max_results each; per query frame likewise."""
+    merged = place_pb.QueryPlaceResponse()
+    matches, frames, methods = [], {}, {}
+    for shard, part in parts:
+        matches.extend(part.matches)
+        for f in part.frames:
+            entry = frames.setdefault(f.index, place_pb.FrameAppearance(index=f.index))
+            entry.matches.extend(f.matches)
+            if not entry.reason:
+                entry.reason = f.reason
+        if not merged.descriptor_text:
+            merged.descriptor_text = part.descriptor_text
+        for m in part.method_status:
+            computed, reasons = methods.setdefault(m.method, [False, []])
+            methods[m.method][0] = computed or m.computed
+            if not m.computed:
+                reasons.append(f"{shard}: {m.reason}")
+        merged.unreachable_shards.extend(part.unreachable_shards)
+    matches.sort(key=lambda m: (_METHOD_ORDER.get(m.method, 3), -m.score))
+    counts = {}
+    for m in matches:
+        counts[m.method] = counts.get(m.method, 0) + 1
+        if counts[m.method] <= max_results:
+            merged.matches.append(m)
+    for index in sorted(frames):
+        f = frames[index]
+        best = sorted(f.matches, key=lambda m: -m.score)[:max_results]
+        del f.matches[:]
+        f.matches.extend(best)
+        if best:
+            f.reason = ""
+        merged.frames.append(f)
+    for method, (computed, reasons) in methods.items():
+        merged.method_status.add(method=method, computed=computed,
+                                 reason="" if computed else "; ".join(reasons))
+    return merged
+
+
 class Client:
     """A connection to one lifemapd.
 
@@ -317,20 +386,33 @@ class Client:
         return list(self.maps_response().maps)
 
     def maps_response(self) -> map_pb.ListMapsResponse:
-        shards = self.server_info().shards
+        shards = self._shards()
         if not shards:
             return self._call(self.maps_stub.ListMaps, map_pb.ListMapsRequest())
         merged = map_pb.ListMapsResponse()
-        for shard in shards:
-            try:
-                part = self._call(self.maps_stub.ListMaps, map_pb.ListMapsRequest(),
-                                  shard=shard.name)
-            except Error as e:
-                merged.unreachable_shards.append(f"{shard.name}: {e.details}")
+        for shard, part in zip(shards, self._fan_out(self.maps_stub.ListMaps,
+                                                     map_pb.ListMapsRequest(), shards)):
+            if isinstance(part, Error):
+                merged.unreachable_shards.append(f"{shard}: {part.details}")
                 continue
             merged.maps.extend(part.maps)
         merged.maps.sort(key=lambda m: m.name)
         return merged
+
+    def _shards(self) -> List[str]:
+        """The cluster's shards (GetServerInfo through nginx); [] for a lone server or a
+        client connected straight to one shard."""
+        return [s.name for s in self.server_info().shards]
+
+    def _fan_out(self, method, request, shards: Sequence[str]) -> list:
+        """`method(request)` on every shard at once: each shard's answer, or its Error."""
+        def one(shard):
+            try:
+                return self._call(method, request, shard=shard)
+            except Error as e:
+                return e
+        with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, len(shards))) as pool:
+            return list(pool.map(one, shards))
 
     def get_map(self, name: str) -> map_pb.Map:
         return self._call(self.maps_stub.GetMap, map_pb.GetMapRequest(name=name), name)
@@ -488,8 +570,58 @@ class Client:
                 item.intrinsics if item.intrinsics is not None else intrinsics,
                 item.depth_scale if item.depth_scale is not None else depth_scale, item.pose,
                 item.timestamp_s if item.timestamp_s is not None else time.time(), index))
-        return self._call(self.places_stub.QueryPlace, request,
-                          self._visit_maps.get(visit_id, ""))
+        if visit_id:
+            return self._call(self.places_stub.QueryPlace, request,
+                              self._visit_maps.get(visit_id, ""))
+        shards = self._shards()
+        if not shards:
+            return self._call(self.places_stub.QueryPlace, request)
+        # Through a cluster: every shard at once, the rankings merged by score, as the C++
+        # client does (client/cluster_merge.h).
+        parts, unreachable, refused = [], [], None
+        for shard, part in zip(shards, self._fan_out(self.places_stub.QueryPlace, request,
+                                                     shards)):
+            if not isinstance(part, Error):
+                parts.append((shard, part))
+            elif part.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                unreachable.append(f"{shard}: {part.details}")
+            elif part.code == grpc.StatusCode.FAILED_PRECONDITION:
+                refused = refused or part
+                nothing = place_pb.QueryPlaceResponse()
+                for m in (frame_pb.MATCH_METHOD_ARCHITECTURE, frame_pb.MATCH_METHOD_APPEARANCE):
+                    if not request.methods or m in request.methods:
+                        nothing.method_status.add(method=m, computed=False, reason=part.details)
+                parts.append((shard, nothing))
+            else:
+                raise part
+        merged = _merge_place_answers(parts, max_results or 10)
+        merged.unreachable_shards.extend(unreachable)
+        if not any(m.computed for m in merged.method_status) and refused is not None:
+            raise refused
+        if not parts:
+            raise Error(grpc.StatusCode.UNAVAILABLE, "no shard answered: " + "; ".join(unreachable))
+        return merged
+
+    def stats(self) -> admin_pb.Stats:
+        """The server's figures (GetStats). Through a cluster's nginx every shard's, summed
+        (uptime the shortest); shards that do not answer are in `unreachable_shards`."""
+        shards = self._shards()
+        if not shards:
+            return self._call(self.admin_stub.GetStats, admin_pb.GetStatsRequest())
+        parts, unreachable = [], []
+        for shard, part in zip(shards, self._fan_out(self.admin_stub.GetStats,
+                                                     admin_pb.GetStatsRequest(), shards)):
+            if not isinstance(part, Error):
+                parts.append(part)
+            elif part.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                unreachable.append(f"{shard}: {part.details}")
+            else:
+                raise part
+        if not parts:
+            raise Error(grpc.StatusCode.UNAVAILABLE, "no shard answered: " + "; ".join(unreachable))
+        merged = _merge_stats(parts)
+        merged.unreachable_shards.extend(unreachable)
+        return merged
 
     # --- export -----------------------------------------------------------------------------
 

@@ -275,5 +275,46 @@ class ClientTest(unittest.TestCase):
             self.assertEqual(e.exception.code, grpc.StatusCode.UNAVAILABLE)
 
 
+class ClusterMergeTest(unittest.TestCase):
+    """A cluster's fanned-out answers merged as the C++ client merges them (ClusterMerge.*)."""
+
+    def test_place_rankings_merge_by_score_per_method(self):
+        from lifemap.client import _merge_place_answers, _merge_stats
+        from lifemap.v1 import admin_service_pb2 as admin_pb
+        from lifemap.v1 import frame_service_pb2 as frame_pb
+        from lifemap.v1 import place_service_pb2 as place_pb
+        fused, arch, app = (frame_pb.MATCH_METHOD_FUSED, frame_pb.MATCH_METHOD_ARCHITECTURE,
+                            frame_pb.MATCH_METHOD_APPEARANCE)
+        s1 = place_pb.QueryPlaceResponse(descriptor_text="corner 1")
+        s1.matches.add(map="lab", score=0.6, method=fused)
+        s1.matches.add(map="lab", score=0.5, method=arch)
+        s1.matches.add(map="lab", score=0.9, method=app)
+        s1.frames.add(index=0, reason="no verified match")
+        s1.method_status.add(method=arch, computed=True)
+        s1.method_status.add(method=app, computed=False, reason="no vocabulary yet")
+        s2 = place_pb.QueryPlaceResponse()
+        s2.matches.add(map="office", score=0.8, method=fused)
+        s2.matches.add(map="hall", score=0.7, method=fused)
+        s2.matches.add(map="office", score=0.95, method=app)
+        s2.frames.add(index=0).matches.add(map="office", score=0.95, method=app)
+        s2.method_status.add(method=arch, computed=False, reason="no places stored")
+        s2.method_status.add(method=app, computed=True)
+        merged = _merge_place_answers([("s1", s1), ("s2", s2)], 2)
+        self.assertEqual([("office", fused), ("hall", fused), ("lab", arch), ("office", app),
+                          ("lab", app)], [(m.map, m.method) for m in merged.matches])
+        self.assertEqual(1, len(merged.frames[0].matches))
+        self.assertEqual("", merged.frames[0].reason)
+        self.assertEqual("corner 1", merged.descriptor_text)
+        self.assertTrue(all(m.computed for m in merged.method_status))
+        alone = _merge_place_answers([("s2", s2)], 10)
+        self.assertEqual("s2: no places stored", alone.method_status[0].reason)
+
+        a = admin_pb.Stats(maps=2, keyframes=100, uptime_s=300, process_cpu_s=12.5)
+        b = admin_pb.Stats(maps=3, keyframes=100, uptime_s=100, process_cpu_s=12.5)
+        stats = _merge_stats([a, b])
+        self.assertEqual((5, 200, 100.0, 25.0),
+                         (stats.maps, stats.keyframes, stats.uptime_s, stats.process_cpu_s))
+
+
 if __name__ == "__main__":
     unittest.main()
