@@ -717,6 +717,33 @@ class ClusterKeysTest(ClusterCase):
                                            target=self.direct("s1")).returncode == 0,
                         "a key made on s2's machine did not hold on s1")
 
+        # nginx terminating TLS in front of the same shards (the table written with --tls-cert):
+        # the client verifies nginx's certificate and its key passes through to the shards.
+        tls = self.c.folder / "nginx-tls"
+        tls.mkdir()
+        run("openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj",
+            "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost", "-keyout",
+            tls / "key.pem", "-out", tls / "cert.pem")
+        port = free_port()
+        self.c.admin("nginx-config", "--listen", f"127.0.0.1:{port}", "--prefix", tls, "--out",
+                     tls / "nginx.conf", "--tls-cert", tls / "cert.pem", "--tls-key",
+                     tls / "key.pem")
+        nginx = subprocess.Popen([NGINX, "-p", str(tls), "-c", str(tls / "nginx.conf"), "-e",
+                                  str(tls / "error.log"), "-g", "daemon off;"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            wait_port(port, process=nginx, what="nginx with TLS")
+            over_tls = f"127.0.0.1:{port}"
+            shown = json.loads(self.c.cli("--json", "--tls-ca", tls / "cert.pem", "maps", "show",
+                                          "office", key=robot, target=over_tls).stdout)
+            self.assertEqual("office", shown["name"])
+            plain = self.c.cli("--connect-timeout", "2", "maps", "show", "office", key=robot,
+                               target=over_tls, check=False)
+            self.assertNotEqual(0, plain.returncode, "plaintext to a TLS port must fail")
+        finally:
+            nginx.send_signal(signal.SIGQUIT)
+            nginx.wait(10)
+
         # Revoked through nginx: refused on every shard.
         self.c.cli("keys", "revoke", "robot1")
         for shard in ("s1", "s2"):
