@@ -123,7 +123,8 @@ class Mover {
                          moved.status().message(), "); it refuses the map when it reads it"));
       }
       if (auto s = ReloadNginx(); !s.ok()) return s;
-      Say(absl::StrCat("switched: shard '", args_.to, "' serves map '", map_, "'"));
+      Say(absl::StrCat("switched: shard '", args_.to, "' serves map '", map_, "' (",
+                       absl::StrFormat("%.1f s", Elapsed()), ")"));
     }
     if (m.move_phase == "switched") {
       if (!switched_now) {
