@@ -72,7 +72,7 @@ grpc::Status AdminServiceImpl::GetServerInfo(grpc::ServerContext* context,
   // The cluster's shards only to a caller that came through the cluster's nginx (its table
   // sets lifemap-routed-by): a client connected to one shard directly talks to that shard
   // alone, and must not fan calls out to the others through it.
-  if (ctx_->shard != nullptr && context->client_metadata().count(kRoutedByHeader) > 0) {
+  if (ctx_->shard != nullptr && caller->routed_by_proxy) {
     auto shards = ctx_->shard->Shards();
     if (!shards.ok()) return ToGrpcStatus(shards.status());
     const double now = NowSeconds();

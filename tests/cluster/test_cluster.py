@@ -744,6 +744,15 @@ class ClusterKeysTest(ClusterCase):
             nginx.send_signal(signal.SIGQUIT)
             nginx.wait(10)
 
+        # A map deleted from the cluster leaves the keys limited to it (as on a lone server).
+        self.c.cli("maps", "create", "attic", target=self.direct("s2"))
+        self.c.cli("keys", "create", "attic-robot", "--role", "robot", "--maps", "attic,office")
+        self.c.cli("maps", "delete", "attic", "--yes", target=self.direct("s2"))
+        keys = json.loads(self.c.cli("--json", "keys", "list",
+                                     target=self.direct("s1")).stdout)["keys"]
+        self.assertEqual(["office"],
+                         next(k for k in keys if k["name"] == "attic-robot").get("maps"), keys)
+
         # Revoked through nginx: refused on every shard.
         self.c.cli("keys", "revoke", "robot1")
         for shard in ("s1", "s2"):
