@@ -551,9 +551,10 @@ class GrpcClient final : public Client {
       context->AddMetadata("authorization", "Bearer " + options_.api_key);
   }
 
-  // The map a call is about, for a cluster's nginx to route on (harmless to a lone server).
+  // The map a call is about, for a cluster's nginx to route on (harmless to a lone server);
+  // percent-encoded, since a header value that is not printable ASCII aborts gRPC.
   static void AddRoute(grpc::ClientContext* context, const std::string& map) {
-    if (!map.empty()) context->AddMetadata(kMapHeader, map);
+    if (!map.empty()) context->AddMetadata(kMapHeader, EncodeHeaderValue(map));
   }
   // Calls that name only a visit are routed by the map the visit was seen in (StartVisit,
   // OpenStream, ListVisits); "" if this client has not seen it.

@@ -1,6 +1,7 @@
 #include "core/common/utf8.h"
 
 #include <cstdint>
+#include <cstdio>
 
 namespace lifemap {
 namespace {
@@ -71,6 +72,82 @@ absl::string_view Utf8Prefix(absl::string_view text, size_t max_bytes) {
     end += step;
   }
   return text.substr(0, end);
+}
+
+std::optional<std::u32string> Utf8CodePoints(absl::string_view text) {
+  std::u32string out;
+  out.reserve(text.size());
+  for (size_t i = 0; i < text.size();) {
+    const size_t n = SequenceLength(text, i);
+    if (n == 0) return std::nullopt;
+    const auto byte = [&](size_t k) { return static_cast<uint8_t>(text[i + k]); };
+    char32_t cp = 0;
+    if (n == 1) cp = byte(0);
+    if (n == 2) cp = ((byte(0) & 0x1Fu) << 6) | (byte(1) & 0x3Fu);
+    if (n == 3) cp = ((byte(0) & 0x0Fu) << 12) | ((byte(1) & 0x3Fu) << 6) | (byte(2) & 0x3Fu);
+    if (n == 4) {
+      cp = ((byte(0) & 0x07u) << 18) | ((byte(1) & 0x3Fu) << 12) | ((byte(2) & 0x3Fu) << 6) |
+           (byte(3) & 0x3Fu);
+    }
+    out.push_back(cp);
+    i += n;
+  }
+  return out;
+}
+
+bool IsInvisibleOrControl(char32_t cp) {
+  if (cp < 0x20 || (cp >= 0x7F && cp <= 0x9F)) return true;
+  if (cp == 0x2028 || cp == 0x2029) return true;                   // line/paragraph separators
+  if ((cp >= 0x202A && cp <= 0x202E) || (cp >= 0x2066 && cp <= 0x2069)) return true;  // bidi
+  if (cp == 0x200E || cp == 0x200F || cp == 0x061C) return true;  // direction marks
+  if ((cp >= 0x200B && cp <= 0x200D) || cp == 0x2060 || cp == 0xFEFF) return true;  // zero width
+  if (cp >= 0xFDD0 && cp <= 0xFDEF) return true;                  // noncharacters
+  if ((cp & 0xFFFE) == 0xFFFE) return true;                        // U+xFFFE, U+xFFFF
+  return false;
+}
+
+std::string EscapeForLog(absl::string_view text) {
+  std::string out;
+  out.reserve(text.size());
+  char buf[16];
+  for (size_t i = 0; i < text.size();) {
+    const size_t n = SequenceLength(text, i);
+    const auto b0 = static_cast<uint8_t>(text[i]);
+    if (n == 0) {
+      std::snprintf(buf, sizeof buf, "\\x%02x", b0);
+      out += buf;
+      ++i;
+      continue;
+    }
+    if (n == 1) {
+      if (b0 == '\n') {
+        out += "\\n";
+      } else if (b0 == '\r') {
+        out += "\\r";
+      } else if (b0 == '\t') {
+        out += "\\t";
+      } else if (b0 == '\\') {
+        out += "\\\\";
+      } else if (b0 < 0x20 || b0 == 0x7F) {
+        std::snprintf(buf, sizeof buf, "\\x%02x", b0);
+        out += buf;
+      } else {
+        out += static_cast<char>(b0);
+      }
+      ++i;
+      continue;
+    }
+    const auto cps = Utf8CodePoints(text.substr(i, n));
+    const char32_t cp = (*cps)[0];
+    if (IsInvisibleOrControl(cp)) {
+      std::snprintf(buf, sizeof buf, "\\u%04x", static_cast<unsigned>(cp));
+      out += buf;
+    } else {
+      out.append(text.data() + i, n);
+    }
+    i += n;
+  }
+  return out;
 }
 
 }  // namespace lifemap

@@ -18,6 +18,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
+#include "core/common/cluster_headers.h"
 #include "core/place/serialize.h"
 #include "server/config.h"
 #include "server/engine/annotation_export.h"
@@ -832,7 +833,9 @@ void WebServer::Impl::Training(const httplib::Request& req, httplib::Response& r
   res.set_header("X-Lifemap-Views", std::to_string(folder->views_written));
   res.set_header("X-Lifemap-Labelled-Pixels", std::to_string(folder->labelled_pixels));
   res.set_header("Content-Disposition",
-                 absl::StrCat("attachment; filename=\"", map->name, "-training.tar\""));
+                 // RFC 6266: an ASCII fallback, and the UTF-8 name percent-encoded (RFC 5987).
+                 absl::StrCat("attachment; filename=\"training.tar\"; filename*=UTF-8''",
+                              EncodeHeaderValue(map->name), "-training.tar"));
   res.set_header("Cache-Control", "no-store");
   res.set_content(tar.Finish(), "application/x-tar");
 }

@@ -17,6 +17,16 @@ std::string Quoted(const std::string& s) {
   return absl::StrCat("\"", absl::StrReplaceAll(s, {{"\\", "\\\\"}, {"\"", "\\\""}}), "\"");
 }
 
+// A map's key in the `map $http_lifemap_map` block: the header's encoded form (the name's
+// bytes outside [A-Za-z0-9._-] percent-encoded, as the clients send it), with nginx's special
+// words (a map called "default") escaped by a backslash, as the map module asks.
+std::string MapKey(const std::string& name) {
+  std::string key = EncodeHeaderValue(name);
+  if (key == "default" || key == "hostnames" || key == "include" || key == "volatile")
+    key = "\\" + key;
+  return key;
+}
+
 }  // namespace
 
 std::string NginxConfig(const std::vector<Shard>& shards, const std::vector<MapPlacement>& maps,
@@ -56,7 +66,7 @@ std::string NginxConfig(const std::vector<Shard>& shards, const std::vector<MapP
   for (const MapPlacement& m : maps) {
     // A map being moved is served by its source until the switch, then by its target: the
     // placement's `shard` says which.
-    line("  ", absl::StrCat(Quoted(m.map), " ", Upstream(m.shard), ";"));
+    line("  ", absl::StrCat(Quoted(MapKey(m.map)), " ", Upstream(m.shard), ";"));
   }
   line("", "}");
   line("", "map \"$lifemap_by_shard|$lifemap_by_map\" $lifemap_upstream {");

@@ -16,6 +16,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
 #include "absl/synchronization/mutex.h"
+#include "core/common/utf8.h"
 #include "server/store/sqlite.h"
 #include "server/store/store_impl.h"
 
@@ -691,7 +692,38 @@ absl::Status ValidateName(const std::string& name, absl::string_view kind, size_
   return absl::OkStatus();
 }
 
-absl::Status ValidateMapName(const std::string& name) { return ValidateName(name, "map"); }
+absl::Status ValidateMapName(const std::string& name) {
+  constexpr size_t kMaxBytes = 64;
+  if (name.empty() || name.size() > kMaxBytes) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "map name must be 1 to ", kMaxBytes, " bytes of UTF-8, got ", name.size(), " bytes"));
+  }
+  const auto code_points = Utf8CodePoints(name);
+  if (!code_points) {
+    return absl::InvalidArgumentError(
+        "map name is not valid UTF-8: send the name as UTF-8 text (e.g. set LANG=C.UTF-8)");
+  }
+  const std::u32string& cps = *code_points;
+  if (cps.front() == U'.' || cps.front() == U' ' || cps.back() == U' ') {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "map name '", EscapeForLog(name), "' must not start with '.' or start or end with a space"));
+  }
+  for (size_t i = 0; i < cps.size(); ++i) {
+    const char32_t c = cps[i];
+    const bool ascii_ok = (c >= U'a' && c <= U'z') || (c >= U'A' && c <= U'Z') ||
+                          (c >= U'0' && c <= U'9') || c == U'.' || c == U'_' || c == U'-' ||
+                          c == U' ';
+    // Beyond ASCII: letters of any script, accents, CJK, symbols; never controls, invisible or
+    // direction-changing characters (a name must read as what it is), nor the no-break space.
+    const bool other_ok = c > 0xA0 && !IsInvisibleOrControl(c);
+    if (!(ascii_ok || other_ok) || (c == U' ' && i > 0 && cps[i - 1] == U' ')) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "map name '", EscapeForLog(name),
+          "' may only use letters and digits (any script), '.', '_', '-' and single spaces"));
+    }
+  }
+  return absl::OkStatus();
+}
 
 absl::StatusOr<MapRecord> Store::Impl::GetMapLocked(Database* db, const std::string& name) {
   auto stmt = db->Prepare(absl::StrCat(kMapSelect, "WHERE m.name = ?1"));

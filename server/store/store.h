@@ -632,6 +632,9 @@ class Store {
 // InvalidArgument unless the name is 1–max_length characters of [A-Za-z0-9._-] not starting
 // with '.'; the message calls it a `kind` name ("map", "model", "backup").
 absl::Status ValidateName(const std::string& name, absl::string_view kind, size_t max_length = 64);
+// InvalidArgument unless a map name is 1-64 bytes of UTF-8: ASCII letters, digits, '.', '_', '-',
+// single inner spaces, and any non-ASCII character that is seen (letters of any script, "Küche",
+// "東京"; no controls, invisible or bidirectional characters); not starting with '.'.
 absl::Status ValidateMapName(const std::string& name);
 
 }  // namespace lifemap::store

@@ -226,7 +226,7 @@ class Cluster:
         """{map: shard} as the placement database has it."""
         out = run(PG_BIN / "psql", "-At", "-h", "127.0.0.1", "-p", self.pg.port, "-U", "lifemap",
                   "-d", "postgres", "-c", "SELECT name, shard FROM lifemap_maps").stdout
-        return dict(line.split("|") for line in out.split())
+        return dict(line.split("|", 1) for line in out.splitlines() if line)
 
     def stop(self):
         self.stop_nginx()
@@ -629,6 +629,36 @@ class ClusterTest(ClusterCase):
             imported = client.import_map(archive)
             self.assertEqual(HOMES["s2"][0], imported.name)
             self.assertIn(HOMES["s2"][0], self.c.placement())
+
+    def test_13_map_names_in_any_script_route_through_nginx(self):
+        """Issue 52: a name beyond ASCII aborted the clients; nginx routes on its encoded form."""
+        names = ["Küche", "Büro 2", "東京"]
+        for name in names:
+            self.c.cli("maps", "create", name)
+        self.c.reload_nginx()  # the table now pins each by its encoded name
+        placed = self.c.placement()
+        for name in names:
+            self.assertIn(name, placed)
+            self.stream(name, "--end-visit", frames=10)
+            self.assertTrue(self.keyframes(name))  # routed to its shard: no "lives on" refusal
+            self.assertEqual(self.keyframes(name),
+                             self.keyframes(name, target=self.direct(placed[name])))
+        # Moved, it is found where it lives now.
+        target = "s1" if placed["Küche"] != "s1" else "s2"
+        before = self.keyframes("Küche")
+        self.c.move("Küche", target)
+        self.assertEqual(before, self.keyframes("Küche"))
+        try:
+            import lifemap
+        except ImportError:
+            lifemap = None
+        if lifemap is not None:
+            with lifemap.Client(self.c.target) as client:
+                for name in names:
+                    self.assertEqual(name, client.get_map(name).name)
+        for name in names:
+            self.c.cli("maps", "delete", name, "--yes")
+        self.assertFalse(set(names) & set(self.c.placement()))
 
     def test_12_bad_input_is_refused_saying_what_to_do(self):
         self.ensure_maps()

@@ -67,6 +67,22 @@ TEST(NginxConfig, RoutesPlacedMapsToTheirShardAndNewMapsOverActiveShardsOnly) {
   EXPECT_NE(conf.find("listen 127.0.0.1:50050 http2;"), std::string::npos);
 }
 
+// Issue 52: the table's keys are what the clients send in lifemap-map (percent-encoded UTF-8),
+// and a map named after one of nginx's special words is escaped, not taken as the word.
+TEST(NginxConfig, KeysAreTheEncodedHeaderAndSpecialWordsAreEscaped) {
+  std::vector<MapPlacement> maps(3);
+  maps[0].map = "K\xC3\xBC" "che";
+  maps[1].map = "B\xC3\xBCro 2";
+  maps[2].map = "default";
+  for (MapPlacement& m : maps) m.shard = "s1";
+  const std::string conf = NginxConfig(TwoShards(), maps, NginxOptions{});
+  const std::string by_map = Block(conf, "map $http_lifemap_map $lifemap_by_map {");
+  EXPECT_NE(by_map.find("\"K%C3%BCche\" lifemap_shard_s1;"), std::string::npos) << by_map;
+  EXPECT_NE(by_map.find("\"B%C3%BCro%202\" lifemap_shard_s1;"), std::string::npos) << by_map;
+  EXPECT_NE(by_map.find("\"\\\\default\" lifemap_shard_s1;"), std::string::npos) << by_map;
+  for (const char c : conf) EXPECT_TRUE(c == '\n' || (c >= 0x20 && c < 0x7F)) << int(c);
+}
+
 TEST(NginxConfig, IncludeOnlyAndTlsTermination) {
   NginxOptions options;
   options.standalone = false;

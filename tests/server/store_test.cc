@@ -968,9 +968,31 @@ TEST(MapName, ValidatesCharactersAndLength) {
   EXPECT_TRUE(ValidateMapName("office_2-b.v1").ok());
   EXPECT_FALSE(ValidateMapName("").ok());
   EXPECT_FALSE(ValidateMapName(std::string(65, 'a')).ok());
-  EXPECT_FALSE(ValidateMapName("has space").ok());
   EXPECT_FALSE(ValidateMapName("../etc").ok());
   EXPECT_FALSE(ValidateMapName(".hidden").ok());
+}
+
+// Names are UTF-8 (issue 52): letters of any script and single inner spaces; nothing that hides
+// or reorders text, splits a log line or reads as a path.
+TEST(MapName, TakesLettersOfAnyScriptAndRefusesInvisibleCharacters) {
+  for (const char* ok : {"K\u00fcche", "B\u00fcro 2", "\u6771\u4eac", "caf\u00e9-\u00e9t\u00e9"}) {
+    EXPECT_TRUE(ValidateMapName(ok).ok()) << ok;
+  }
+  for (const std::string& bad :
+       {std::string("has  two spaces"), std::string(" lead"), std::string("trail "),
+        std::string("line\nbreak"), std::string("esc\x1b[31m"), std::string("a/b"),
+        std::string("\xff\xfe"), std::string("bidi\u202eevil"), std::string("zero\u200bwidth"),
+        std::string("nbsp\u00a0x"), std::string("c1\u0085x"), std::string("tab\tx")}) {
+    const absl::Status s = ValidateMapName(bad);
+    EXPECT_TRUE(absl::IsInvalidArgument(s)) << bad;
+    EXPECT_EQ(s.message().find('\n'), std::string::npos) << s.message();
+    EXPECT_EQ(s.message().find('\x1b'), std::string::npos) << s.message();
+  }
+  // 64 bytes, not characters: 21 three-byte characters fit, 22 do not.
+  std::string tokyo21;
+  for (int i = 0; i < 21; ++i) tokyo21 += "\u6771";
+  EXPECT_TRUE(ValidateMapName(tokyo21).ok());
+  EXPECT_FALSE(ValidateMapName(tokyo21 + "\u6771").ok());
 }
 
 }  // namespace

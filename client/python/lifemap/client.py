@@ -15,6 +15,7 @@ import dataclasses
 import json
 import os
 import time
+import urllib.parse
 from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import grpc
@@ -345,7 +346,9 @@ class Client:
         (`lifemap-shard`). A lone server ignores both (docs/OPERATIONS.md "Several servers")."""
         metadata = list(self._metadata)
         if map_name:
-            metadata.append(("lifemap-map", map_name))
+            # Percent-encoded: a header must be printable ASCII, names are UTF-8 ("Küche" is
+            # sent as "K%C3%BCche"; core/common/cluster_headers.h, which nginx's table matches).
+            metadata.append(("lifemap-map", urllib.parse.quote(map_name, safe="")))
         if shard:
             metadata.append(("lifemap-shard", shard))
         return metadata

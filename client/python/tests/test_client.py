@@ -103,6 +103,24 @@ class ClientTest(unittest.TestCase):
             # Nothing stored without a map.
             self.assertIsNone(client.process(None, color, depth, intrinsics).keyframe_id)
 
+    def test_map_names_in_any_script(self):
+        """Issue 52: 'Büro 3' raised "metadata was invalid" (a header must be ASCII)."""
+        server = self.start()
+        color, depth, intrinsics = synthetic_frame()
+        with lifemap.Client(server.target) as client:
+            for name in ("Büro 3", "Küche", "東京"):
+                self.assertEqual(client.create_map(name).name, name)
+                result = client.process(name, color, depth, intrinsics, depth_scale=5000.0,
+                                        pose=(0, 0, 0, 0, 0, 0, 1))
+                self.assertIsNotNone(result.keyframe_id)
+                self.assertEqual([k.id for k in client.keyframes(name)], [result.keyframe_id])
+                self.assertEqual(client.get_map(name).name, name)
+            self.assertEqual(sorted(m.name for m in client.maps()), ["Büro 3", "Küche", "東京"])
+            with self.assertRaises(lifemap.Error) as e:
+                client.create_map("new\nline")
+            self.assertEqual(e.exception.code, grpc.StatusCode.INVALID_ARGUMENT)
+            self.assertIn("any script", e.exception.details)
+
     def test_errors_carry_the_grpc_code_and_the_servers_message(self):
         server = self.start()
         with lifemap.Client(server.target) as client:
