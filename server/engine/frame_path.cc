@@ -401,6 +401,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     return p;
   }
   absl::MutexLock placing(&visit->place_mu);
+  bool maybe_resent = false;
   const bool server_tracks = !f.T_world_camera || settings.refine_pose;
   // Odometry that jumped is refused before anything of the frame is tracked or stored.
   if (server_tracks && f.odometry) {
@@ -424,9 +425,20 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       frames_rejected_.fetch_add(1);
       return p;  // its analysis is not answered: it belongs to no visit
     }
+    maybe_resent = visit->last_frame_s && f.timestamp_s <= *visit->last_frame_s;
     if (!visit->last_frame_s || f.timestamp_s > *visit->last_frame_s) {
       visit->last_frame_s = f.timestamp_s;
     }
+  }
+  // A frame no newer than the visit's newest may be one resent after its reply was lost (a
+  // reconnect, a map move: the client resends what was not acknowledged). If its first copy
+  // was stored, it is answered with that keyframe and nothing of it is stored or fused again
+  // (issue 52). The store refuses a second copy too (InsertKeyframes), for a resend that
+  // reaches it first.
+  std::optional<int64_t> resent_as;
+  if (maybe_resent) {
+    auto before = parts_.store->FindKeyframe(visit->visit_id, f.sequence, f.timestamp_s);
+    if (before.ok()) resent_as = *before;
   }
   std::optional<Pose> odometry_pose;  // a tracked frame's pose in the tracker's own frame
   if (server_tracks) {
@@ -496,11 +508,17 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       p.visit_closed = s;
       return p;
     }
-    ++visit->frame_count;
-    if (p.tracking && !p.pose) ++visit->lost_frame_count;
-    visit->selector.set_options(settings.keyframe);
-    decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
-    query_appearance = decision.selected;
+    if (resent_as) {
+      decision.selected = true;
+      decision.reason = absl::StrCat("resent: stored before as keyframe ", *resent_as,
+                                     " (same visit, sequence and timestamp); not stored again");
+    } else {
+      ++visit->frame_count;
+      if (p.tracking && !p.pose) ++visit->lost_frame_count;
+      visit->selector.set_options(settings.keyframe);
+      decision = visit->selector.Decide(f.timestamp_s, f.T_world_camera);
+    }
+    query_appearance = decision.selected && !resent_as;
     if (!query_appearance && settings.appearance_interval_s &&
         (!visit->last_appearance_query_s ||
          f.timestamp_s - *visit->last_appearance_query_s >= *settings.appearance_interval_s)) {
@@ -516,10 +534,11 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
   if (decision.selected || query_appearance) {
     tasks.push_back([&] { features = QueryFeatures(a, facts.entropy_skipped); });
   }
-  const absl::Status keyframe_allowed =
-      decision.selected ? CheckKeyframeLimit(settings, visit->map_id) : absl::OkStatus();
+  const absl::Status keyframe_allowed = decision.selected && !resent_as
+                                            ? CheckKeyframeLimit(settings, visit->map_id)
+                                            : absl::OkStatus();
   if (!keyframe_allowed.ok()) record = keyframe_allowed;
-  if (decision.selected && keyframe_allowed.ok()) {
+  if (decision.selected && keyframe_allowed.ok() && !resent_as) {
     tasks.push_back([&] {
       record = MakeKeyframeRecord(a, visit->visit_id);
       if (record.ok()) {
@@ -534,7 +553,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     // Keypoints in zones likely to move were dropped before they are stored for matching
     // (with entropy masks disabled, all are kept: appearance still works, unpruned).
     if (record.ok() && features.ok()) record->features = *features;
-    if (!record.ok()) {
+    if (!record.ok() && !resent_as) {
       decision.reason = ToValidUtf8(absl::StrCat("not stored: ", record.status().message()));
     }
   }
@@ -554,6 +573,12 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
   if (auto s = visit->CheckWritable(writer); !s.ok()) {
     p.visit_closed = s;
     return p;
+  }
+  if (resent_as) {
+    p.resent_as = resent_as;
+    std::promise<absl::StatusOr<int64_t>> stored;
+    stored.set_value(*resent_as);
+    p.commit = stored.get_future().share();
   }
   if (decision.selected && record.ok()) {
     visit->selector.Accept(f.timestamp_s, f.T_world_camera);
@@ -619,7 +644,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     facts.moved = CompareWithPrevious(a, settings, visit, in_map_frame, &p);
     if (!facts.moved.ok()) p.moved.reset();
   }
-  if (decision.selected && p.commit) SubmitForFusion(a, visit_state);
+  if (decision.selected && p.commit && !resent_as) SubmitForFusion(a, visit_state);
   // Every result carries the visit's ranking by architecture (paper 004) as known now.
   facts.architecture = visit->architecture.Ranking();
   for (const auto& m : facts.architecture->matches) p.place_matches.push_back(m);

@@ -147,6 +147,9 @@ struct FramePlacement {
   store::StoredPoseSource pose_source = store::StoredPoseSource::kNone;
   std::optional<FrameTracking> tracking;               // set when the server tracked the frame
   std::optional<tracking::KeyframeDecision> keyframe;  // frames of a visit
+  // The frame was stored before as this keyframe (a resend after a lost reply; `commit` holds
+  // its id): nothing was stored or fused again.
+  std::optional<int64_t> resent_as;
   // Appearance matches (best first, at most appearance.max_frame_matches), then the visit's
   // ranking by architecture (paper 004) as known now.
   std::vector<PlaceMatch> place_matches;

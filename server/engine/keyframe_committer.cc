@@ -61,7 +61,9 @@ void KeyframeCommitter::Commit(std::deque<Pending>* batch) {
   absl::Status status = store_->InsertKeyframes(&keyframes, counts);
   if (status.ok()) {
     if (on_committed_) {
-      for (const auto& k : keyframes) on_committed_(k);
+      for (const auto& k : keyframes) {
+        if (!k.resent) on_committed_(k);  // a resend's first copy was indexed already
+      }
     }
     size_t next = 0;
     int64_t n = 0;

@@ -22,6 +22,9 @@ namespace fs = std::filesystem;
 constexpr char kMagic[] = "lifemap-map-archive 1\n";
 constexpr int kFormat = 1;
 constexpr size_t kMaxHeaderBytes = 64 * 1024;  // the two lines; a manifest is ~250 bytes
+// The largest archive an import takes (a map of ~10 million keyframes): a manifest claiming more
+// is refused before any byte is written.
+constexpr uint64_t kMaxArchiveBytes = uint64_t{1} << 40;
 
 std::string ScratchPrefix(const store::Store& store) {
   return fs::path(store.path()).filename().string() + ".archive-";
@@ -195,7 +198,15 @@ absl::Status MapArchiveImport::ParseHeader() {
   // The import copies the map into the database: room for the file and the copy.
   std::error_code ec;
   const auto space = fs::space(fs::path(scratch_).parent_path(), ec);
-  if (!ec && space.available < 2 * manifest_.bytes) {
+  if (manifest_.bytes > kMaxArchiveBytes) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the archive's manifest says ", manifest_.bytes, " bytes, more than the ",
+                     kMaxArchiveBytes >> 30,
+                     " GiB an archive may hold: the manifest is damaged or forged; "
+                     "export the map again"));
+  }
+  // Checked arithmetic: bytes <= 1 TiB, so twice it cannot overflow (a forged 2^63 + 1000 did).
+  if (!ec && space.available / 2 < manifest_.bytes) {
     return absl::FailedPreconditionError(absl::StrCat(
         "the archive holds ", manifest_.bytes, " bytes and its import needs about twice that; ",
         fs::path(scratch_).parent_path().string(), " has ", space.available,
@@ -237,7 +248,8 @@ absl::Status MapArchiveImport::Add(std::string_view bytes) {
 absl::StatusOr<store::MapRecord> MapArchiveImport::Finish(store::Store* store,
                                                           const std::string& name,
                                                           const store::MapCreator& creator,
-                                                          bool keep_ids) {
+                                                          bool keep_ids,
+                                                          const std::function<bool()>& cancelled) {
   if (!have_manifest_) {
     return absl::InvalidArgumentError(
         "the archive ended before its manifest: give a whole file `lifemap maps export` wrote");
@@ -257,7 +269,8 @@ absl::StatusOr<store::MapRecord> MapArchiveImport::Finish(store::Store* store,
                                             ", its manifest says ", manifest_.sha256,
                                             "; copy it again or export the map again"));
   }
-  return store->ReadMapArchive(scratch_, name.empty() ? manifest_.map : name, creator, keep_ids);
+  return store->ReadMapArchive(scratch_, name.empty() ? manifest_.map : name, creator, keep_ids,
+                               cancelled);
 }
 
 }  // namespace lifemap::server

@@ -62,9 +62,11 @@ class MapArchiveImport {
   // Checks that every byte came and the checksum, then imports the map as `name` (empty: the
   // name it was exported under) in one transaction (Store::ReadMapArchive). DATA_LOSS for a
   // damaged archive.
-  // `keep_ids`: Store::ReadMapArchive's (a move between shards).
+  // `keep_ids`, `cancelled`: Store::ReadMapArchive's (a move between shards; the call's
+  // cancellation, which rolls the import back: CANCELLED).
   absl::StatusOr<store::MapRecord> Finish(store::Store* store, const std::string& name,
-                                          const store::MapCreator& creator, bool keep_ids = false);
+                                          const store::MapCreator& creator, bool keep_ids = false,
+                                          const std::function<bool()>& cancelled = {});
   const MapArchiveManifest& manifest() const { return manifest_; }
 
  private:

@@ -543,6 +543,7 @@ void PlacementToProto(const AnalysedFrame& a, const FramePlacement& p,
   if (p.keyframe) {
     r->mutable_keyframe()->set_selected(p.keyframe->selected);
     r->mutable_keyframe()->set_reason(p.keyframe->reason);
+    r->mutable_keyframe()->set_resent(p.resent_as.has_value());
   }
   for (const auto& m : p.place_matches) PlaceMatchToProto(m, r->add_place_matches());
   if (p.fused_labels) LabelsToProto(*p.fused_labels, *a.model, images, r->mutable_fused_labels());

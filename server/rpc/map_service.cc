@@ -587,6 +587,13 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
     if (chunks++ == 0) {
       name = chunk.name();
       keep_ids = chunk.keep_ids();
+      // Kept ids bypass the renumbering that protects the store's counters: a move between
+      // shards (an admin's `maps move`) asks for them, nobody else.
+      if (keep_ids && caller->role < Role::kAdmin) {
+        return grpc::Status(grpc::StatusCode::PERMISSION_DENIED,
+                            "keep_ids needs an admin key (it is what `lifemap maps move` asks); "
+                            "import without keep_ids and the map gets new ids");
+      }
       if (!name.empty()) {
         if (auto s = store::ValidateMapName(name); !s.ok()) {
           return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
@@ -612,7 +619,10 @@ grpc::Status MapServiceImpl::ImportMap(grpc::ServerContext* context,
   }
   auto placed = PlaceNewMap(name);
   if (!placed.ok()) return ToGrpcStatus(placed.status());
-  auto map = archive.Finish(store, name, caller->AsMapCreator(), keep_ids);
+  // Cancellation (the client's deadline, a dropped connection) rolls the import back, so a
+  // client told it failed never finds the map stored.
+  auto map = archive.Finish(store, name, caller->AsMapCreator(), keep_ids,
+                            [context] { return context->IsCancelled(); });
   if (!map.ok()) {
     if (*placed) ctx_->shard->Unplace(name);
     return ToGrpcStatus(map.status());

@@ -6,6 +6,9 @@
 // forward by the store's own migrations, and a reader needs nothing but SQLite. Reading one
 // renumbers every id above the destination's (ids are never reused: schema 5) and rewrites the
 // references between its rows.
+#include <sqlite3.h>
+
+#include <functional>
 #include <map>
 #include <string>
 #include <vector>
@@ -21,17 +24,11 @@ namespace {
 
 // Parameters every copy statement may use (bound when the statement has them).
 enum Param : int {
-  kMap = 1,           // export: the map's id in the store; import: the new map's id
-  kVisitOffset,       // import: added to every visit id
-  kKeyframeOffset,    // ... keyframe id
-  kEdgeOffset,        // ... pose edge id
-  kSolveOffset,       // ... pose-graph solve id
-  kRevisionOffset,    // ... anchor revision id
-  kModel,             // import: the model's id in the store (NULL: none)
-  kCreator,           // import: the key that imported it (NULL: none)
-  kName,              // import: the new map's name (text)
-  kAnnotationOffset,  // import: added to every annotation id
-  kParamCount = kAnnotationOffset
+  kMap = 1,      // export: the map's id in the store; import: the new map's id
+  kModel = 2,    // import: the model's id in the store (NULL: none)
+  kCreator = 3,  // import: the key that imported it (NULL: none)
+  kName = 4,     // import: the new map's name (text)
+  kParamCount = kName
 };
 
 // Values for the Params: integers (nullopt binds NULL) and the name.
@@ -55,18 +52,22 @@ constexpr char kMapKeyframes[] =
     "(SELECT k.id FROM src.keyframes k JOIN src.visits v ON k.visit_id = v.id "
     "WHERE v.map_id = ?1)";
 
-// A reference to a row of `table` in the archive, renumbered by `offset`; a reference to a row
-// the archive does not hold (an edge retention removed, a visit deleted) becomes `missing`
-// rather than a row of another map.
-std::string Ref(const std::string& column, const std::string& table, Param offset,
-                const std::string& missing) {
-  return absl::StrCat("CASE WHEN ", column, " IN (SELECT id FROM src.", table, ") THEN ", column,
-                      " + ?", static_cast<int>(offset), " ELSE ", missing, " END");
+// On import, every id of the tables an archive renumbers goes through temp.renumber_<table>
+// (old INTEGER PRIMARY KEY, new): ids given out densely above the store's, never the archive's
+// own numbers (issue 52: an archive's ids near 2^63-1 exhausted the store's counters). A
+// reference that must resolve inside the archive (a keyframe's visit) maps through it, and an
+// import whose references do not all resolve is refused before anything is copied
+// (Dangling); `Ref` is for optional references, which become `missing` when the archive does
+// not hold their row (an edge retention removed, a visit deleted), never a row of another map.
+std::string Mapped(const std::string& column, const std::string& table) {
+  return absl::StrCat("(SELECT new FROM temp.renumber_", table, " WHERE old = ", column, ")");
 }
 
-std::string Plus(const std::string& column, Param offset) {
-  return absl::StrCat(column, " + ?", static_cast<int>(offset));
+std::string Ref(const std::string& column, const std::string& table, const std::string& missing) {
+  return absl::StrCat("COALESCE(", Mapped(column, table), ", ", missing, ")");
 }
+
+std::string Bound(Param p) { return absl::StrCat("?", static_cast<int>(p)); }
 
 // Every table holding a map's rows, parents first (the import runs with foreign keys on). The
 // map's merged semantic octree is left out on import: a cache named by its visits' ids, made
@@ -77,53 +78,56 @@ std::vector<TableCopy> Tables() {
       {"models", "id = (SELECT model_id FROM src.maps WHERE id = ?1)", {}},
       {"maps",
        "id = ?1",
-       {{"id", "?1"}, {"name", "?9"}, {"model_id", "?7"}, {"created_by_key_id", "?8"}}},
+       {{"id", Bound(kMap)},
+        {"name", Bound(kName)},
+        {"model_id", Bound(kModel)},
+        {"created_by_key_id", Bound(kCreator)}}},
       {"visits",
        "map_id = ?1",
-       {{"id", Plus("id", kVisitOffset)},
+       {{"id", Mapped("id", "visits")},
         {"map_id", "?1"},
-        {"anchor_visit_id", Ref("anchor_visit_id", "visits", kVisitOffset, "NULL")},
-        {"anchor_edge_id", Ref("anchor_edge_id", "pose_edges", kEdgeOffset, "NULL")}}},
+        {"anchor_visit_id", Ref("anchor_visit_id", "visits", "NULL")},
+        {"anchor_edge_id", Ref("anchor_edge_id", "pose_edges", "NULL")}}},
       {"pose_optimisations",
        "map_id = ?1",
-       {{"id", Plus("id", kSolveOffset)},
+       {{"id", Mapped("id", "pose_optimisations")},
         {"map_id", "?1"},
-        {"visit_id", Ref("visit_id", "visits", kVisitOffset, "0")}}},
+        {"visit_id", Ref("visit_id", "visits", "0")}}},
       {"keyframes",
        "visit_id IN " + visits,
-       {{"id", Plus("id", kKeyframeOffset)},
-        {"visit_id", Plus("visit_id", kVisitOffset)},
-        {"optimisation_id", Ref("optimisation_id", "pose_optimisations", kSolveOffset, "NULL")}}},
+       {{"id", Mapped("id", "keyframes")},
+        {"visit_id", Mapped("visit_id", "visits")},
+        {"optimisation_id", Ref("optimisation_id", "pose_optimisations", "NULL")}}},
       {"keyframe_images",
        "keyframe_id IN " + keyframes,
-       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)}}},
+       {{"keyframe_id", Mapped("keyframe_id", "keyframes")}}},
       {"keyframe_features",
        "keyframe_id IN " + keyframes,
-       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)}}},
+       {{"keyframe_id", Mapped("keyframe_id", "keyframes")}}},
       // A sighting by a visit the archive does not hold is dropped (it names no visit there).
       {"keyframe_sightings",
        "keyframe_id IN " + keyframes,
-       {{"keyframe_id", Plus("keyframe_id", kKeyframeOffset)},
-        {"visit_id", Plus("visit_id", kVisitOffset)}},
+       {{"keyframe_id", Mapped("keyframe_id", "keyframes")},
+        {"visit_id", Mapped("visit_id", "visits")}},
        "visit_id IN (SELECT id FROM src.visits)"},
       {"pose_edges",
        "map_id = ?1",
-       {{"id", Plus("id", kEdgeOffset)},
+       {{"id", Mapped("id", "pose_edges")},
         {"map_id", "?1"},
-        {"from_keyframe", Plus("from_keyframe", kKeyframeOffset)},
-        {"to_keyframe", Plus("to_keyframe", kKeyframeOffset)}}},
+        {"from_keyframe", Mapped("from_keyframe", "keyframes")},
+        {"to_keyframe", Mapped("to_keyframe", "keyframes")}}},
       {"anchor_revisions",
        "visit_id IN " + visits,
-       {{"id", Plus("id", kRevisionOffset)},
-        {"visit_id", Plus("visit_id", kVisitOffset)},
-        {"to_visit_id", Ref("to_visit_id", "visits", kVisitOffset, "0")},
-        {"edge_id", Ref("edge_id", "pose_edges", kEdgeOffset, "NULL")}}},
-      {"visit_places", "visit_id IN " + visits, {{"visit_id", Plus("visit_id", kVisitOffset)}}},
-      {"semantic_octrees", "visit_id IN " + visits, {{"visit_id", Plus("visit_id", kVisitOffset)}}},
+       {{"id", Mapped("id", "anchor_revisions")},
+        {"visit_id", Mapped("visit_id", "visits")},
+        {"to_visit_id", Ref("to_visit_id", "visits", "0")},
+        {"edge_id", Ref("edge_id", "pose_edges", "NULL")}}},
+      {"visit_places", "visit_id IN " + visits, {{"visit_id", Mapped("visit_id", "visits")}}},
+      {"semantic_octrees", "visit_id IN " + visits, {{"visit_id", Mapped("visit_id", "visits")}}},
       {"semantic_octree_chunks",
        "visit_id IN " + visits,
-       {{"visit_id", Plus("visit_id", kVisitOffset)}}},
-      {"annotations", "map_id = ?1", {{"id", Plus("id", kAnnotationOffset)}, {"map_id", "?1"}}},
+       {{"visit_id", Mapped("visit_id", "visits")}}},
+      {"annotations", "map_id = ?1", {{"id", Mapped("id", "annotations")}, {"map_id", "?1"}}},
       {"semantic_map_octrees", "map_id = ?1", {}},
       {"semantic_map_octree_chunks", "map_id = ?1", {}},
   };
@@ -207,6 +211,12 @@ absl::StatusOr<int64_t> QueryIntBound(Database* db, const std::string& sql, int6
   return *row ? s->ColumnInt(0) : 0;
 }
 
+absl::Status Cancelled() {
+  return absl::CancelledError(
+      "the import was cancelled (the client gave up or its deadline passed): nothing of it was "
+      "stored; import again (with a longer deadline, if the client set one)");
+}
+
 absl::Status NotAnArchive(const std::string& why) {
   return absl::InvalidArgumentError(
       absl::StrCat("not a consistent lifemap map archive: ", why,
@@ -249,21 +259,128 @@ absl::StatusOr<ArchiveCounts> Store::WriteMapArchive(const std::string& name,
   return counts;
 }
 
-// The tables whose ids an import renumbers, with the parameter that shifts them.
-constexpr std::pair<const char*, Param> kRenumbered[] = {{"visits", kVisitOffset},
-                                                         {"keyframes", kKeyframeOffset},
-                                                         {"pose_edges", kEdgeOffset},
-                                                         {"pose_optimisations", kSolveOffset},
-                                                         {"anchor_revisions", kRevisionOffset},
-                                                         {"annotations", kAnnotationOffset}};
+namespace {
+
+// The tables whose ids an import renumbers (temp.renumber_<table>).
+constexpr const char* kRenumbered[] = {
+    "visits", "keyframes", "pose_edges", "pose_optimisations", "anchor_revisions", "annotations"};
+
+// Ids an archive may keep (keep_ids, a move between shards): a shard's range is its number
+// << 40, so 2^56 leaves room for 65,536 shards and keeps every counter far from 2^63 - 1.
+constexpr int64_t kMaxKeptId = int64_t{1} << 56;
+
+// References an imported row must resolve inside the archive (the others are optional: Ref).
+struct Required {
+  const char* table;
+  const char* column;
+  const char* parent;
+};
+constexpr Required kRequired[] = {
+    {"keyframes", "visit_id", "visits"},
+    {"keyframe_images", "keyframe_id", "keyframes"},
+    {"keyframe_features", "keyframe_id", "keyframes"},
+    {"keyframe_sightings", "keyframe_id", "keyframes"},
+    {"pose_edges", "from_keyframe", "keyframes"},
+    {"pose_edges", "to_keyframe", "keyframes"},
+    {"anchor_revisions", "visit_id", "visits"},
+    {"visit_places", "visit_id", "visits"},
+    {"semantic_octrees", "visit_id", "visits"},
+    {"semantic_octree_chunks", "visit_id", "visits"},
+};
+
+// INVALID_ARGUMENT naming the first required reference of the archive (opened on its own
+// connection, so that the writer is not held meanwhile) that names a row it does not hold
+// (issue 52: such a keyframe, renumbered, landed in another map's visit).
+absl::Status CheckReferencesResolve(Database* archive) {
+  for (const Required& r : kRequired) {
+    // By value, not rowid: some tables are WITHOUT ROWID.
+    auto stmt = archive->Prepare(absl::StrCat(
+        "SELECT COALESCE(CAST(", r.column, " AS TEXT), 'NULL') FROM ", r.table, " WHERE ", r.column,
+        " IS NULL OR ", r.column, " NOT IN (SELECT id FROM ", r.parent, ") LIMIT 1"));
+    if (!stmt.ok()) return stmt.status();
+    StatementScope s(*stmt);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row) {
+      return NotAnArchive(absl::StrCat("a row of its ", r.table, " names ", r.parent, " ",
+                                       s->ColumnText(0), " (", r.column,
+                                       "), which the archive does not hold"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Fills temp.renumber_<table> for every renumbered table: kept ids map to themselves (after
+// checking they are in range and free here), others to the next ids above every id the store
+// has used (sqlite_sequence keeps deleted ones' too), in the archive's order.
+absl::Status Renumber(Database* db, bool keep_ids) {
+  for (const char* table : kRenumbered) {
+    const std::string map = absl::StrCat("temp.renumber_", table);
+    if (auto s = db->Exec(absl::StrCat("DROP TABLE IF EXISTS ", map, "; CREATE TABLE ", map,
+                                       " (old INTEGER PRIMARY KEY, new INTEGER NOT NULL)"));
+        !s.ok()) {
+      return s;
+    }
+    if (keep_ids) {
+      auto out_of_range = QueryIntBound(db,
+                                        absl::StrCat("SELECT COALESCE((SELECT id FROM src.", table,
+                                                     " WHERE id < 1 OR id > ?1 LIMIT 1), 0)"),
+                                        kMaxKeptId);
+      if (!out_of_range.ok()) return out_of_range.status();
+      if (*out_of_range != 0) {
+        return NotAnArchive(absl::StrCat("its ", table, " id ", *out_of_range,
+                                         " is outside 1..2^56, which no lifemapd gives out"));
+      }
+      auto clash =
+          QueryIntBound(db,
+                        absl::StrCat("SELECT COALESCE((SELECT a.id FROM src.", table,
+                                     " a JOIN main.", table, " m ON m.id = a.id LIMIT 1), 0)"),
+                        0);
+      if (!clash.ok()) return clash.status();
+      if (*clash != 0) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "the map cannot keep its ids here: ", table, " id ", *clash,
+            " is in use on this server; import it with new ids (its open visits then end)"));
+      }
+      if (auto s = db->Exec(absl::StrCat("INSERT INTO ", map, " SELECT id, id FROM src.", table));
+          !s.ok()) {
+        return s;
+      }
+      continue;
+    }
+    auto used = QueryIntBound(
+        db,
+        absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM main.", table,
+                     "), 0), COALESCE((SELECT seq FROM main.sqlite_sequence WHERE name = '", table,
+                     "'), 0))"),
+        0);
+    if (!used.ok()) return used.status();
+    auto fill = db->Prepare(absl::StrCat("INSERT INTO ", map,
+                                         " SELECT id, ?1 + ROW_NUMBER() OVER (ORDER BY id) FROM "
+                                         "src.",
+                                         table));
+    if (!fill.ok()) return fill.status();
+    StatementScope f(*fill);
+    f->Bind(1, *used);
+    if (auto s = f->Run(); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+void DropRenumbering(Database* db) {
+  for (const char* table : kRenumbered) {
+    db->Exec(absl::StrCat("DROP TABLE IF EXISTS temp.renumber_", table)).IgnoreError();
+  }
+}
+
+}  // namespace
 
 absl::Status Store::RaiseIdFloor(int64_t floor) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
   Transaction tx(db);
   if (auto s = tx.Begin(); !s.ok()) return s;
-  for (const auto& [table, param] : kRenumbered) {
-    (void)param;
+  for (const char* table : kRenumbered) {
     // AUTOINCREMENT takes the larger of sqlite_sequence and the largest id, plus one.
     auto stmt = db->Prepare(
         "INSERT INTO sqlite_sequence (name, seq) SELECT ?1, ?2 WHERE NOT EXISTS (SELECT 1 FROM "
@@ -286,7 +403,8 @@ absl::Status Store::RaiseIdFloor(int64_t floor) {
 }
 
 absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const std::string& name,
-                                                const MapCreator& creator, bool keep_ids) {
+                                                const MapCreator& creator, bool keep_ids,
+                                                const std::function<bool()>& cancelled) {
   // Checked and, when older, migrated on its own connection first.
   {
     auto archive = Database::Open(path, /*create=*/false, /*read_only=*/false, 5000);
@@ -317,7 +435,10 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
     if (*dangling > 0) {
       return NotAnArchive(absl::StrCat(*dangling, " rows reference rows it does not hold"));
     }
+    // Its schema is the archive's own (a crafted one may declare no foreign keys).
+    if (auto s = CheckReferencesResolve(db); !s.ok()) return s;
   }
+  if (cancelled && cancelled()) return Cancelled();
 
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
@@ -388,36 +509,11 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
   }
   if (creator.key_id > 0) params.ints[kCreator] = creator.key_id;
 
-  // Ids above every id the store has used (sqlite_sequence keeps deleted ones' too); or, kept,
-  // none of them in use here.
-  for (const auto& [table, param] : kRenumbered) {
-    if (keep_ids) {
-      auto clash =
-          QueryIntBound(db,
-                        absl::StrCat("SELECT COALESCE((SELECT a.id FROM src.", table,
-                                     " a JOIN main.", table, " m ON m.id = a.id LIMIT 1), 0)"),
-                        0);
-      if (!clash.ok()) return clash.status();
-      if (*clash != 0) {
-        return absl::FailedPreconditionError(absl::StrCat(
-            "the map cannot keep its ids here: ", table, " id ", *clash,
-            " is in use on this server; import it with new ids (its open visits then end)"));
-      }
-      params.ints[param] = 0;
-      continue;
-    }
-    auto used = QueryIntBound(
-        db,
-        absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM main.", table,
-                     "), 0), COALESCE((SELECT seq FROM main.sqlite_sequence WHERE name = '", table,
-                     "'), 0))"),
-        0);
-    auto lowest =
-        QueryIntBound(db, absl::StrCat("SELECT COALESCE(MIN(id), 1) FROM src.", table), 0);
-    if (!used.ok()) return used.status();
-    if (!lowest.ok()) return lowest.status();
-    params.ints[param] = *used + 1 - *lowest;
-  }
+  struct DropOnExit {
+    Database* db;
+    ~DropOnExit() { DropRenumbering(db); }
+  } drop_renumbering{db};
+  if (auto s = Renumber(db, keep_ids); !s.ok()) return s;
   {
     auto next = QueryIntBound(
         db,
@@ -427,9 +523,25 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
     if (!next.ok()) return next.status();
     params.ints[kMap] = *next;
   }
+  // A cancelled call (the client gave up, its deadline passed) interrupts the statement that
+  // runs (SQLite's progress handler, every ~10,000 steps) and rolls back: nothing is stored.
+  struct Interrupt {
+    Database* db;
+    Interrupt(Database* d, const std::function<bool()>* cancelled) : db(d) {
+      if (*cancelled) {
+        sqlite3_progress_handler(
+            db->raw(), 10000,
+            +[](void* c) { return (*static_cast<const std::function<bool()>*>(c))() ? 1 : 0; },
+            const_cast<std::function<bool()>*>(cancelled));
+      }
+    }
+    ~Interrupt() { sqlite3_progress_handler(db->raw(), 0, nullptr, nullptr); }
+  } interrupt(db, &cancelled);
   for (const TableCopy& t : Tables()) {
     if (!ImportsTable(t)) continue;
+    if (cancelled && cancelled()) return Cancelled();
     if (auto s = Copy(db, t.table, t.import_where, t.import_columns, params); !s.ok()) {
+      if (cancelled && cancelled()) return Cancelled();
       if (IsConstraintViolation(s)) {
         return NotAnArchive(absl::StrCat("its ", t.table, " do not fit: ", s.message()));
       }
@@ -448,6 +560,7 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
     s->Bind(1, *params.ints[kMap]);
     if (auto st = s->Run(); !st.ok()) return st;
   }
+  if (cancelled && cancelled()) return Cancelled();
   if (auto s = tx.Commit(); !s.ok()) return s;
   return impl_->GetMapLocked(db, name);
 }

@@ -46,6 +46,16 @@ absl::Status SqliteError(sqlite3* db, int rc, absl::string_view what, absl::stri
   // write (SQLITE_IOERR_WRITE; SQLite does not keep that write's errno reliably, so a failing
   // disk reads the same). Either way the transaction was rolled back, nothing acknowledged is
   // lost, and the next write succeeds once there is room: RESOURCE_EXHAUSTED, retry later.
+  // SQLITE_FULL with no disk error behind it is one of SQLite's own limits: an AUTOINCREMENT
+  // counter at 2^63 - 1 (issue 52: a crafted archive's ids) or max_page_count. Freeing disk
+  // space would not help, so the message says so.
+  if ((rc & 0xff) == SQLITE_FULL && err != ENOSPC && err != EDQUOT && err != EFBIG) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        message,
+        ": the database reached one of SQLite's own limits, not the disk's (most often a table's "
+        "id counter at its maximum, 2^63 - 1); this write was not made and nothing acknowledged "
+        "is lost. `lifemap admin check` names the table; see docs/OPERATIONS.md \"Id counters\""));
+  }
   if ((rc & 0xff) == SQLITE_FULL || rc == SQLITE_IOERR_WRITE) {
     return absl::ResourceExhaustedError(absl::StrCat(
         message,

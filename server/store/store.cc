@@ -10,7 +10,9 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <functional>
 #include <limits>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -695,8 +697,8 @@ absl::Status ValidateName(const std::string& name, absl::string_view kind, size_
 absl::Status ValidateMapName(const std::string& name) {
   constexpr size_t kMaxBytes = 64;
   if (name.empty() || name.size() > kMaxBytes) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "map name must be 1 to ", kMaxBytes, " bytes of UTF-8, got ", name.size(), " bytes"));
+    return absl::InvalidArgumentError(absl::StrCat("map name must be 1 to ", kMaxBytes,
+                                                   " bytes of UTF-8, got ", name.size(), " bytes"));
   }
   const auto code_points = Utf8CodePoints(name);
   if (!code_points) {
@@ -705,8 +707,9 @@ absl::Status ValidateMapName(const std::string& name) {
   }
   const std::u32string& cps = *code_points;
   if (cps.front() == U'.' || cps.front() == U' ' || cps.back() == U' ') {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "map name '", EscapeForLog(name), "' must not start with '.' or start or end with a space"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("map name '", EscapeForLog(name),
+                     "' must not start with '.' or start or end with a space"));
   }
   for (size_t i = 0; i < cps.size(); ++i) {
     const char32_t c = cps[i];
@@ -1121,6 +1124,20 @@ absl::StatusOr<VisitRecord> Store::GetVisit(int64_t visit_id) {
   return impl_->GetVisitLocked(impl_->read_db.get(), visit_id);
 }
 
+absl::StatusOr<std::optional<int64_t>> Store::FindKeyframe(int64_t visit_id, uint64_t sequence,
+                                                           double timestamp_s) {
+  absl::MutexLock lock(&impl_->read_mu);
+  auto stmt = impl_->read_db->Prepare(
+      "SELECT id FROM keyframes WHERE visit_id = ?1 AND timestamp_s = ?2 AND sequence = ?3");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, visit_id).Bind(2, timestamp_s).Bind(3, static_cast<int64_t>(sequence));
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<int64_t>();
+  return std::optional<int64_t>(s->ColumnInt(0));
+}
+
 absl::StatusOr<VisitRecord> Store::EndVisit(int64_t visit_id, double end_time_s,
                                             VisitFrameCount counts) {
   absl::MutexLock lock(&impl_->write_mu);
@@ -1218,6 +1235,9 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
   if (!insert_images.ok()) return insert_images.status();
   auto visit_exists = db->Prepare("SELECT ended FROM visits WHERE id = ?1");
   if (!visit_exists.ok()) return visit_exists.status();
+  auto stored_before = db->Prepare(
+      "SELECT id FROM keyframes WHERE visit_id = ?1 AND timestamp_s = ?2 AND sequence = ?3");
+  if (!stored_before.ok()) return stored_before.status();
 
   for (auto& k : *keyframes) {
     {
@@ -1232,6 +1252,17 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       if (v->ColumnInt(0) != 0) {
         return absl::FailedPreconditionError(absl::StrCat(
             "visit ", k.visit_id, " has ended; keyframe not stored (start a new visit)"));
+      }
+    }
+    {
+      StatementScope s(*stored_before);
+      s->Bind(1, k.visit_id).Bind(2, k.timestamp_s).Bind(3, static_cast<int64_t>(k.sequence));
+      auto row = s->Step();
+      if (!row.ok()) return row.status();
+      if (*row) {
+        k.id = s->ColumnInt(0);
+        k.resent = true;
+        continue;
       }
     }
     {
@@ -1690,34 +1721,86 @@ absl::Status Store::CheckFilesInPlace() {
   return impl_->write_db->CheckFilesInPlace();
 }
 
+namespace {
+
+// Runs `sql` (with `bind` as ?1 when given) and hands each row's statement to `on_row`.
+absl::Status ForEachRow(Database* db, const char* sql, std::optional<int64_t> bind,
+                        const std::function<void(Statement&)>& on_row) {
+  auto stmt = db->Prepare(sql);
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  if (bind) s->Bind(1, *bind);
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::OkStatus();
+    on_row(**stmt);
+  }
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<std::string>> Store::CheckIntegrity() {
   std::vector<std::string> problems;
   if (auto s = CheckFilesInPlace(); !s.ok()) problems.emplace_back(s.message());
   absl::MutexLock lock(&impl_->read_mu);
   Database* db = impl_->read_db.get();
-  {
-    auto stmt = db->Prepare("PRAGMA integrity_check");
-    if (!stmt.ok()) return stmt.status();
-    StatementScope s(*stmt);
-    for (;;) {
-      auto row = s->Step();
-      if (!row.ok()) return row.status();
-      if (!*row) break;
-      const std::string line = s->ColumnText(0);
-      if (line != "ok") problems.push_back(line);
+  if (auto s = ForEachRow(db, "PRAGMA integrity_check", std::nullopt,
+                          [&](Statement& row) {
+                            if (row.ColumnText(0) != "ok") problems.push_back(row.ColumnText(0));
+                          });
+      !s.ok()) {
+    return s;
+  }
+  if (auto s = ForEachRow(db, "PRAGMA foreign_key_check", std::nullopt,
+                          [&](Statement& row) {
+                            problems.push_back(
+                                absl::StrCat("foreign key violation in ", row.ColumnText(0),
+                                             " row ", row.ColumnInt(1), " -> ", row.ColumnText(2)));
+                          });
+      !s.ok()) {
+    return s;
+  }
+  // Rows whose references resolve, but into another map (issue 52: an archive's keyframes
+  // landed in another map's visit). Each query gives a row id, what it names and the two maps.
+  static constexpr const char* kCrossMap[][2] = {
+      {"pose edge",
+       "SELECT e.id, k.id, e.map_id, v.map_id FROM pose_edges e JOIN keyframes k ON k.id IN "
+       "(e.from_keyframe, e.to_keyframe) JOIN visits v ON v.id = k.visit_id WHERE v.map_id != "
+       "e.map_id LIMIT 20"},
+      {"visit",
+       "SELECT v.id, a.id, v.map_id, a.map_id FROM visits v JOIN visits a ON a.id = "
+       "v.anchor_visit_id WHERE a.map_id != v.map_id LIMIT 20"},
+      {"pose solve",
+       "SELECT o.id, v.id, o.map_id, v.map_id FROM pose_optimisations o JOIN visits v ON v.id = "
+       "o.visit_id WHERE v.map_id != o.map_id LIMIT 20"},
+      {"keyframe",
+       "SELECT k.id, o.id, v.map_id, o.map_id FROM keyframes k JOIN visits v ON v.id = "
+       "k.visit_id JOIN pose_optimisations o ON o.id = k.optimisation_id WHERE o.map_id != "
+       "v.map_id LIMIT 20"},
+  };
+  for (const auto& [what, sql] : kCrossMap) {
+    if (auto s = ForEachRow(db, sql, std::nullopt,
+                            [&, what = what](Statement& row) {
+                              problems.push_back(absl::StrCat(
+                                  what, " ", row.ColumnInt(0), " of map id ", row.ColumnInt(2),
+                                  " names ", row.ColumnInt(1), " of map id ", row.ColumnInt(3)));
+                            });
+        !s.ok()) {
+      return s;
     }
   }
-  {
-    auto stmt = db->Prepare("PRAGMA foreign_key_check");
-    if (!stmt.ok()) return stmt.status();
-    StatementScope s(*stmt);
-    for (;;) {
-      auto row = s->Step();
-      if (!row.ok()) return row.status();
-      if (!*row) break;
-      problems.push_back(absl::StrCat("foreign key violation in ", s->ColumnText(0), " row ",
-                                      s->ColumnInt(1), " -> ", s->ColumnText(2)));
-    }
+  // AUTOINCREMENT counters near their end: past 2^63 - 1 every new row of the table fails.
+  if (auto s = ForEachRow(
+          db, "SELECT name, seq FROM sqlite_sequence WHERE seq > ?1", int64_t{1} << 62,
+          [&](Statement& row) {
+            problems.push_back(absl::StrCat(
+                "table ", row.ColumnText(0), "'s id counter is at ", row.ColumnInt(1),
+                ", near its maximum 2^63 - 1: new rows will fail (docs/OPERATIONS.md \"Id "
+                "counters\")"));
+          });
+      !s.ok()) {
+    return s;
   }
   return problems;
 }

@@ -136,6 +136,9 @@ struct KeyframeRecord {
   int64_t visit_id = 0;
   uint64_t sequence = 0;
   double timestamp_s = 0.0;
+  // Set by InsertKeyframes: the visit held this (sequence, timestamp) already, `id` is that
+  // keyframe's and nothing was written.
+  bool resent = false;
   std::optional<Pose> T_world_camera;
   StoredPoseSource pose_source = StoredPoseSource::kClient;  // kNone without a pose
   // A tracked keyframe's pose in its visit's odometry frame, as the tracker gave it (never
@@ -432,8 +435,13 @@ class Store {
   // the other renumbered rows keep their ids, so that clients' references stay true, and open
   // visits stay open, so that their streams resume on this store; FAILED_PRECONDITION naming
   // the table when an id is in use here.
+  // Every id is given out anew, densely, whatever the archive's numbers; kept ids must lie in
+  // 1..2^56. Every reference of a keyframe, image, edge, octree... must resolve inside the
+  // archive, or INVALID_ARGUMENT names the row. `cancelled` (may be empty) is asked between
+  // steps and while a copy runs: when it says true, the import rolls back and answers CANCELLED.
   absl::StatusOr<MapRecord> ReadMapArchive(const std::string& path, const std::string& name,
-                                           const MapCreator& creator, bool keep_ids = false);
+                                           const MapCreator& creator, bool keep_ids = false,
+                                           const std::function<bool()>& cancelled = {});
   // New ids of visits, keyframes and the other rows an archive renumbers start above `floor`
   // from now on (a shard's own range, so that maps moved between shards keep their ids).
   // Lowers nothing.
@@ -453,8 +461,15 @@ class Store {
   // Inserts the keyframes and updates the visits' frame counters in one transaction; assigns
   // ids. On error nothing is written. NOT_FOUND when a visit no longer exists (map deleted);
   // FAILED_PRECONDITION when it has ended.
+  // A keyframe whose visit already holds one of the same sequence and timestamp (a frame resent
+  // after its reply was lost) is not stored again: it gets the stored keyframe's id and
+  // `resent` = true (issue 52).
   absl::Status InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
                                const std::vector<VisitFrameCount>& frame_counts);
+  // The id of visit `visit_id`'s keyframe of this sequence and timestamp, if it has one: the
+  // frame path's check for a resent frame before it does a keyframe's work again.
+  absl::StatusOr<std::optional<int64_t>> FindKeyframe(int64_t visit_id, uint64_t sequence,
+                                                      double timestamp_s);
 
   // Deletes keyframes `ids` of ended visit `visit_id` with their images, features and the pose
   // edges that name them, in one transaction (retention, issue 36): a kill leaves all of them

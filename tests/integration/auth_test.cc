@@ -10,6 +10,7 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <sstream>
 #include <thread>
 
 #include "absl/strings/match.h"
@@ -270,6 +271,29 @@ TEST_F(AuthTest, AKeyLimitedToMapsSeesAndWritesOnlyThose) {
   ASSERT_TRUE(none.ok());
   EXPECT_EQ(none->maps_size(), 0);
   EXPECT_TRUE(absl::IsPermissionDenied(robot->GetMap("hall").status()));
+}
+
+// Issue 52, item 7: kept ids bypass the renumbering that guards the store's id counters, so
+// only an admin (a `maps move`) may ask for them; an operator imports with new ids.
+TEST_F(AuthTest, OnlyAnAdminMayImportAMapKeepingItsIds) {
+  v1::ExportMapRequest req;
+  req.set_map("lab");
+  req.set_format(v1::EXPORT_MAP_ARCHIVE);
+  std::stringstream archive;
+  ASSERT_TRUE(admin_->ExportMap(req, &archive).ok());
+  ASSERT_TRUE(admin_->DeleteMap("lab").ok());
+  auto op = ClientWith(secrets_["operator"]);
+  std::istringstream kept(archive.str());
+  auto refused = op->ImportMap(&kept, "lab", /*keep_ids=*/true);
+  EXPECT_TRUE(absl::IsPermissionDenied(refused.status())) << refused.status();
+  EXPECT_NE(refused.status().message().find("keep_ids needs an admin key"), std::string::npos)
+      << refused.status();
+  std::istringstream renumbered(archive.str());
+  EXPECT_TRUE(op->ImportMap(&renumbered, "lab").ok()) << "without keep_ids an operator may";
+  ASSERT_TRUE(op->DeleteMap("lab").ok());
+  std::istringstream by_admin(archive.str());
+  auto moved = admin_->ImportMap(&by_admin, "lab", /*keep_ids=*/true);
+  EXPECT_TRUE(moved.ok()) << moved.status();
 }
 
 TEST_F(AuthTest, CreateApiKeyValidatesWhatItIsGiven) {

@@ -296,8 +296,7 @@ TEST_F(ServerTest, StatsCountTheServersCpuTime) {
 TEST_F(ServerTest, ALoneServerRefusesRefreshPlacementSayingItIsNoShard) {
   ASSERT_TRUE(client_->CreateMap("lab", "").ok());
   auto refreshed = client_->RefreshPlacement("lab");
-  EXPECT_EQ(absl::StatusCode::kFailedPrecondition, refreshed.status().code())
-      << refreshed.status();
+  EXPECT_EQ(absl::StatusCode::kFailedPrecondition, refreshed.status().code()) << refreshed.status();
   auto stats = client_->GetStats();
   ASSERT_TRUE(stats.ok()) << stats.status();
   EXPECT_EQ(1u, stats->maps());
@@ -806,6 +805,53 @@ TEST_F(ServerTest, ResumedVisitContinuesKeyframeSelection) {
   }
 }
 
+// Issue 52, item 2: a robot that reconnects resends the frames it holds no reply for; a frame
+// whose first copy was stored is answered with that keyframe, marked resent, stored once.
+TEST_F(ServerTest, FramesResentAfterAReconnectAreStoredOnce) {
+  ASSERT_TRUE(client_->CreateMap("m", "").ok());
+  v1::StreamStart start;
+  start.set_map("m");
+  std::vector<uint64_t> first_ids;
+  uint64_t visit_id = 0;
+  {
+    auto stream = client_->OpenStream(start);
+    ASSERT_TRUE(stream.ok()) << stream.status();
+    visit_id = (*stream)->started().visit_id();
+    for (int i = 0; i < 4; ++i) (*stream)->Send(MakeFrame(160, 120, 1.0, 1000.0 + 2.0 * i, i));
+    (*stream)->CloseSend();
+    v1::FrameResult r;
+    while ((*stream)->Receive(&r)) {
+      ASSERT_TRUE(r.keyframe().committed()) << r.keyframe().reason();
+      EXPECT_FALSE(r.keyframe().resent());
+      first_ids.push_back(r.keyframe().keyframe_id());
+    }
+    ASSERT_TRUE((*stream)->Finish().ok());
+  }
+  ASSERT_EQ(first_ids.size(), 4u) << "2 s apart: each frame a keyframe";
+  // The replies of frames 2 and 3 were "lost": both are resent, then a new frame.
+  start.set_visit_id(visit_id);
+  auto stream = client_->OpenStream(start);
+  ASSERT_TRUE(stream.ok()) << stream.status();
+  for (int i = 2; i < 5; ++i) (*stream)->Send(MakeFrame(160, 120, 1.0, 1000.0 + 2.0 * i, i));
+  (*stream)->CloseSend();
+  std::vector<v1::FrameResult> results;
+  v1::FrameResult r;
+  while ((*stream)->Receive(&r)) results.push_back(r);
+  ASSERT_TRUE((*stream)->Finish().ok());
+  ASSERT_EQ(results.size(), 3u);
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_TRUE(results[i].keyframe().resent()) << results[i].keyframe().reason();
+    EXPECT_TRUE(results[i].keyframe().committed());
+    EXPECT_EQ(results[i].keyframe().keyframe_id(), first_ids[2 + i]);
+    EXPECT_NE(results[i].keyframe().reason().find("not stored again"), std::string::npos);
+  }
+  EXPECT_FALSE(results[2].keyframe().resent());
+  EXPECT_TRUE(results[2].keyframe().committed()) << results[2].keyframe().reason();
+  auto map = client_->GetMap("m");
+  ASSERT_TRUE(map.ok());
+  EXPECT_EQ(map->keyframe_count(), 5u) << "4 + 1 new, none twice";
+}
+
 // Issue 33, item 6: one frame stamped in nanoseconds was stored and became the visit's latest,
 // so every later frame, also after resuming, was "time went back 1.3e18 s". Timestamps far
 // ahead of the server's clock or far after the visit's previous frame are refused before
@@ -874,6 +920,23 @@ TEST_F(ServerTest, AnImportWithoutAnArchiveIsRefusedAndHealthIsServing) {
     const grpc::Status s = writer->Finish();
     EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
     EXPECT_NE(s.error_message().find("not a lifemap map archive"), std::string::npos)
+        << s.error_message();
+  }
+  {
+    // Issue 52, item 5: a forged manifest's 2^63 + 1000 bytes overflowed the "twice the
+    // archive" free-space check and took space without limit.
+    grpc::ClientContext ctx;
+    v1::Map imported;
+    auto writer = maps->ImportMap(&ctx, &imported);
+    v1::ImportChunk chunk;
+    chunk.set_data(
+        "lifemap-map-archive 1\n{\"format\":1,\"schema\":1,\"map\":\"forged\",\"visits\":0,"
+        "\"keyframes\":0,\"bytes\":9223372036854776808,\"sha256\":\"00\"}\n");
+    writer->Write(chunk);
+    writer->WritesDone();
+    const grpc::Status s = writer->Finish();
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+    EXPECT_NE(s.error_message().find("more than the 1024 GiB"), std::string::npos)
         << s.error_message();
   }
 

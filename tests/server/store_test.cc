@@ -17,6 +17,9 @@
 
 #include <gtest/gtest.h>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+
 #include "server/store/sqlite.h"
 #include "tests/testing/test_util.h"
 
@@ -108,6 +111,29 @@ TEST_F(StoreTest, KeyframesRoundTripWithPosesAndImages) {
   auto last = store_->LastKeyframe(visit->id);
   ASSERT_TRUE(last.ok() && last->has_value());
   EXPECT_DOUBLE_EQ((*last)->timestamp_s, 3.0);
+}
+
+// Issue 52: a frame resent after its reply was lost (same visit, sequence and timestamp) is
+// stored once; the resend gets the stored keyframe's id.
+TEST_F(StoreTest, AResentKeyframeIsStoredOnceAndGetsTheStoredId) {
+  ASSERT_TRUE(store_->CreateMap("m", "", 1.0).ok());
+  auto visit = store_->StartVisit("m", "", "", 1.0);
+  ASSERT_TRUE(visit.ok());
+  std::vector<KeyframeRecord> first = {Keyframe(visit->id, 1.0), Keyframe(visit->id, 2.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&first, {}).ok());
+  EXPECT_FALSE(first[0].resent);
+  KeyframeRecord other_sequence = Keyframe(visit->id, 2.0);
+  other_sequence.sequence += 1;  // same time, another frame: a keyframe of its own
+  std::vector<KeyframeRecord> again = {Keyframe(visit->id, 2.0), other_sequence,
+                                       Keyframe(visit->id, 3.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&again, {}).ok());
+  EXPECT_TRUE(again[0].resent);
+  EXPECT_EQ(again[0].id, first[1].id);
+  EXPECT_FALSE(again[1].resent);
+  EXPECT_FALSE(again[2].resent);
+  EXPECT_EQ(store_->GetVisit(visit->id)->keyframe_count, 4);
+  EXPECT_EQ(store_->FindKeyframe(visit->id, first[1].sequence, 2.0).value(), first[1].id);
+  EXPECT_FALSE(store_->FindKeyframe(visit->id, 999, 2.0).value().has_value());
 }
 
 TEST_F(StoreTest, KeyframeOfDeletedVisitIsNotFoundAndWritesNothing) {
@@ -339,6 +365,132 @@ TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
   const auto refused = (*other)->ReadMapArchive(two, "two", {});
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
   EXPECT_EQ((*other)->ListMaps()->size(), 2u) << "hall and lab only";
+}
+
+// Issue 52, items 3, 4, 6: an operator's archive is untrusted. Ids near 2^63 - 1 are renumbered
+// densely (they stopped every new visit of the whole store); a keyframe naming a visit the
+// archive does not hold is refused (renumbered, it landed in another map's visit); a cancelled
+// import stores nothing.
+TEST_F(StoreTest, CraftedArchivesCannotExhaustIdsWriteIntoAnotherMapOrOutliveACancel) {
+  ASSERT_TRUE(store_->CreateMap("lab", "", 1.0).ok());
+  auto visit = store_->StartVisit("lab", "bot", "", 10.0);
+  ASSERT_TRUE(visit.ok());
+  std::vector<KeyframeRecord> batch = {Keyframe(visit->id, 10.0), Keyframe(visit->id, 11.0)};
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  ASSERT_TRUE(store_->EndVisit(visit->id, 12.0, {visit->id, 2, 0}).ok());
+  const std::string archive = tmp_.File("lab.archive");
+  ASSERT_TRUE(store_->WriteMapArchive("lab", archive).ok());
+  const auto edit = [&](const std::string& name, const std::string& sql) {
+    const std::string path = tmp_.File(name);
+    std::filesystem::copy_file(archive, path);
+    sqlite3* db = nullptr;
+    EXPECT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
+    EXPECT_EQ(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, nullptr), SQLITE_OK)
+        << sqlite3_errmsg(db);
+    sqlite3_close(db);
+    return path;
+  };
+  auto target = Store::Open(tmp_.File("target.db"));
+  ASSERT_TRUE(target.ok());
+  ASSERT_TRUE((*target)->CreateMap("other", "", 1.0).ok());
+  auto others = (*target)->StartVisit("other", "bot", "", 1.0);
+  ASSERT_TRUE(others.ok());
+
+  // 3. Ids at the top of the range: imported with small ids; new visits still start after it.
+  const std::string huge = edit("huge.archive",
+                                "PRAGMA foreign_keys = OFF;"
+                                "UPDATE visits SET id = 9223372036854775800;"
+                                "UPDATE keyframes SET visit_id = 9223372036854775800;"
+                                "UPDATE keyframe_sightings SET visit_id = 9223372036854775800;"
+                                "UPDATE keyframe_images SET keyframe_id = 9223372036854775806 "
+                                "WHERE keyframe_id = (SELECT MAX(id) FROM keyframes);"
+                                "UPDATE keyframe_features SET keyframe_id = 9223372036854775806 "
+                                "WHERE keyframe_id = (SELECT MAX(id) FROM keyframes);"
+                                "UPDATE keyframe_sightings SET keyframe_id = 9223372036854775806 "
+                                "WHERE keyframe_id = (SELECT MAX(id) FROM keyframes);"
+                                "UPDATE keyframes SET id = 9223372036854775806 WHERE id = "
+                                "(SELECT MAX(id) FROM keyframes);");
+  auto imported = (*target)->ReadMapArchive(huge, "huge", {});
+  ASSERT_TRUE(imported.ok()) << imported.status();
+  const auto copied = *(*target)->ListKeyframes(imported->id, 0);
+  ASSERT_EQ(copied.size(), 2u);
+  for (const auto& k : copied) EXPECT_LT(k.id, 100) << "renumbered densely";
+  EXPECT_TRUE((*target)->StartVisit("other", "bot", "", 20.0).ok()) << "counters not exhausted";
+  // ... and kept ids (a move between shards) must lie in 1..2^56.
+  auto kept = (*target)->ReadMapArchive(huge, "huge-kept", {}, /*keep_ids=*/true);
+  EXPECT_EQ(kept.status().code(), absl::StatusCode::kInvalidArgument) << kept.status();
+  EXPECT_NE(kept.status().message().find("outside 1..2^56"), std::string::npos) << kept.status();
+
+  // 4. A keyframe whose visit is not in the archive: refused, naming the row; no map gains it.
+  // Both with the schema's foreign keys and with a schema edited to declare none (the
+  // archive's own file says what it declares).
+  const std::string foreign = edit(
+      "foreign.archive",
+      "PRAGMA foreign_keys = OFF; UPDATE keyframes SET visit_id = (SELECT MAX(id) FROM visits) "
+      "+ 1 WHERE id = (SELECT MIN(id) FROM keyframes);");
+  const size_t other_before = (*target)->ListKeyframes((*target)->GetMap("other")->id, 0)->size();
+  auto refused = (*target)->ReadMapArchive(foreign, "foreign", {});
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+  EXPECT_NE(refused.status().message().find("does not hold"), std::string::npos)
+      << refused.status();
+  EXPECT_FALSE((*target)->GetMap("foreign").ok());
+  const std::string no_keys = edit(
+      "no-keys.archive",
+      "PRAGMA foreign_keys = OFF; PRAGMA writable_schema = ON;"
+      "UPDATE sqlite_schema SET sql = replace(sql, 'REFERENCES visits(id) ON DELETE CASCADE', '')"
+      " WHERE name = 'keyframes';"
+      "UPDATE keyframes SET visit_id = (SELECT MAX(id) FROM visits) + 1 WHERE id = "
+      "(SELECT MIN(id) FROM keyframes);");
+  auto undeclared = (*target)->ReadMapArchive(no_keys, "no-keys", {});
+  EXPECT_EQ(undeclared.status().code(), absl::StatusCode::kInvalidArgument) << undeclared.status();
+  EXPECT_NE(undeclared.status().message().find("names visits"), std::string::npos)
+      << undeclared.status();
+  EXPECT_FALSE((*target)->GetMap("no-keys").ok());
+  EXPECT_EQ((*target)->ListKeyframes((*target)->GetMap("other")->id, 0)->size(), other_before);
+
+  // 6. Cancelled: rolled back, CANCELLED, nothing stored.
+  int asked = 0;
+  auto cancelled = (*target)->ReadMapArchive(archive, "late", {}, false, [&] {
+    return ++asked > 3;  // a few steps in
+  });
+  EXPECT_EQ(cancelled.status().code(), absl::StatusCode::kCancelled) << cancelled.status();
+  EXPECT_FALSE((*target)->GetMap("late").ok()) << "nothing of a cancelled import is stored";
+  EXPECT_TRUE((*target)->ReadMapArchive(archive, "late", {}).ok()) << "and it imports again";
+  auto problems = (*target)->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+}
+
+// `admin check` names rows whose references resolve into another map, and id counters near
+// their end (issue 52).
+TEST_F(StoreTest, IntegrityCheckNamesCrossMapReferencesAndExhaustedCounters) {
+  ASSERT_TRUE(store_->CreateMap("a", "", 1.0).ok());
+  ASSERT_TRUE(store_->CreateMap("b", "", 1.0).ok());
+  auto va = store_->StartVisit("a", "", "", 1.0);
+  auto vb = store_->StartVisit("b", "", "", 1.0);
+  ASSERT_TRUE(va.ok() && vb.ok());
+  {
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open(tmp_.File("lifemap.db").c_str(), &db), SQLITE_OK);
+    const std::string sql = absl::StrCat(
+        "UPDATE visits SET anchor_visit_id = ", vb->id, " WHERE id = ", va->id,
+        "; UPDATE sqlite_sequence SET seq = 9223372036854775807 WHERE name = 'visits';");
+    ASSERT_EQ(sqlite3_exec(db, sql.c_str(), nullptr, nullptr, nullptr), SQLITE_OK)
+        << sqlite3_errmsg(db);
+    sqlite3_close(db);
+  }
+  auto problems = store_->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  const std::string all = absl::StrJoin(*problems, "\n");
+  EXPECT_NE(all.find(absl::StrCat("visit ", va->id, " of map id")), std::string::npos) << all;
+  EXPECT_NE(all.find("table visits's id counter"), std::string::npos) << all;
+  // A write past the counter's end says what it is, not "the disk is full".
+  auto next = store_->StartVisit("a", "", "", 2.0);
+  ASSERT_FALSE(next.ok());
+  EXPECT_EQ(next.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_NE(next.status().message().find("SQLite's own limits"), std::string::npos)
+      << next.status();
+  EXPECT_EQ(next.status().message().find("the disk is full"), std::string::npos);
 }
 
 // Issue 39: a map moved between shards keeps its ids and its open visit; each store mints new
