@@ -5,6 +5,8 @@
 #include <arpa/inet.h>
 #include <netinet/in.h>
 
+#include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -15,9 +17,32 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "core/common/utf8.h"
 #include "server/store/store.h"
 
 namespace lifemap::server {
+namespace {
+
+// INVALID_ARGUMENT unless `name` is a host name (letters, digits, '-' and '.'; optionally
+// starting with '.': a domain), or "*".
+absl::Status ValidateAllowedHost(const std::string& name) {
+  if (name == "*") return absl::OkStatus();
+  const std::string_view body =
+      !name.empty() && name.front() == '.' ? std::string_view(name).substr(1) : name;
+  const bool ok =
+      !body.empty() && body.size() <= 253 && std::all_of(body.begin(), body.end(), [](char c) {
+        return std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '.';
+      });
+  if (!ok) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("http_allowed_hosts (--http-allowed-host): '", EscapeForLog(name),
+                     "' is not a host name: give a name such as lifemap.lab.example, a domain as "
+                     ".lab.example, or * (any; a proxy in front checks Host)"));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
 
 bool IsLoopbackAddress(absl::string_view listen) {
   if (absl::StartsWith(listen, "unix:") || absl::StartsWith(listen, "unix-abstract:")) return true;
@@ -77,6 +102,9 @@ absl::Status ServerConfig::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("browser view address '", http_listen,
                      "' (http, --http) must be HOST:PORT, e.g. 127.0.0.1:8080 (port 0 picks one)"));
+  }
+  for (const auto& name : http_allowed_hosts) {
+    if (auto s = ValidateAllowedHost(name); !s.ok()) return s;
   }
   if (!http_listen.empty() && http_listen == listen && !absl::EndsWith(listen, ":0")) {
     return absl::InvalidArgumentError(
@@ -178,6 +206,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
         c.listen = value.get<std::string>();
       } else if (key == "http") {
         c.http_listen = value.get<std::string>();
+      } else if (key == "http_allowed_hosts") {
+        c.http_allowed_hosts = value.get<std::vector<std::string>>();
       } else if (key == "placement") {
         c.placement_uri = value.get<std::string>();
       } else if (key == "shard") {

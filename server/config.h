@@ -3,6 +3,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include <optional>
 
@@ -26,6 +27,11 @@ struct ServerConfig {
   // The browser view (issue 38, server/http/web_server.h): HOST:PORT, empty = off (config key
   // `http`, flag --http).
   std::string http_listen;
+  // Names the browser view answers to besides IP literals, localhost, the listen address's
+  // name and this machine's (a request with another Host is refused: DNS rebinding; config
+  // key `http_allowed_hosts`, flag --http-allowed-host, repeated). ".example.org" takes every
+  // name under it, "*" any (a proxy in front checks Host).
+  std::vector<std::string> http_allowed_hosts;
   // A shard of a cluster (issue 39): the placement database (libpq URI) and this shard's name
   // in it (`lifemap admin shards add NAME ADDRESS`); both or neither. Empty: a lone server.
   std::string placement_uri;
@@ -107,20 +113,18 @@ std::string BackupDirectory(const ServerConfig& config);
 absl::StatusOr<std::string> BackupPath(const ServerConfig& config, const std::string& name);
 
 // Reads a JSON config file over `base`. Unknown keys are errors (they are usually typos).
-// Keys: listen, http, db, max_message_mb, max_streams, max_streams_per_key, stream_start_timeout_s,
-// stream_idle_timeout_s, max_inflight_frames, keyframe_batch_max,
-// shutdown_grace_s, synchronous ("full" | "normal"), log_level,
-// keyframe {min_translation_m, min_rotation_deg, max_interval_s},
-// frames {min_depth_m, max_depth_m, max_pixels} (depth outside the range is no reading;
-// larger frames are refused),
-// entropy {enabled, threshold, downsample, k, min_size_px, mesh},
-// labels {enabled, stride, decision ("balanced" | "prior_weighted"), max_model_mb},
-// appearance {enabled, min_training_keyframes, max_training_keyframes, exclude_recent_s,
-// max_frame_matches, frame_interval_s (null = keyframes only), candidates, min_inliers,
-// vocabulary_branching, vocabulary_levels}, storage {color_jpeg_quality, backup_dir},
-// tracking {downscale}, semantic {enabled, resolution_m, max_range_m, pixel_stride,
-// free_space_stride, render_stride}, security {require_auth, insecure_no_auth, tls_cert, tls_key,
-// tls_client_ca}.
+// Keys: listen, http, http_allowed_hosts (names), db, max_message_mb, max_streams,
+// max_streams_per_key, stream_start_timeout_s, stream_idle_timeout_s, max_inflight_frames,
+// keyframe_batch_max, shutdown_grace_s, synchronous ("full" | "normal"), log_level, keyframe
+// {min_translation_m, min_rotation_deg, max_interval_s}, frames {min_depth_m, max_depth_m,
+// max_pixels} (depth outside the range is no reading; larger frames are refused), entropy {enabled,
+// threshold, downsample, k, min_size_px, mesh}, labels {enabled, stride, decision ("balanced" |
+// "prior_weighted"), max_model_mb}, appearance {enabled, min_training_keyframes,
+// max_training_keyframes, exclude_recent_s, max_frame_matches, frame_interval_s (null = keyframes
+// only), candidates, min_inliers, vocabulary_branching, vocabulary_levels}, storage
+// {color_jpeg_quality, backup_dir}, tracking {downscale}, semantic {enabled, resolution_m,
+// max_range_m, pixel_stride, free_space_stride, render_stride}, security {require_auth,
+// insecure_no_auth, tls_cert, tls_key, tls_client_ca}.
 absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfig base);
 
 }  // namespace lifemap::server

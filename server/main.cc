@@ -121,6 +121,10 @@ int main(int argc, char** argv) {
   std::string http;
   app.add_option("--http", http,
                  "HOST:PORT for the browser view (off by default; same keys and TLS as gRPC)");
+  std::vector<std::string> http_allowed_hosts;
+  app.add_option("--http-allowed-host", http_allowed_hosts,
+                 "a name the browser view answers to besides its address, localhost and this "
+                 "host's name (repeat; .example.org: every name under it; *: any)");
   std::string placement, shard;
   app.add_option("--placement", placement,
                  "a shard of a cluster: the placement database, postgresql://USER@HOST:PORT/DB");
@@ -222,6 +226,7 @@ int main(int argc, char** argv) {
   if (given("--listen")) config.listen = listen;
   if (given("--db")) config.db_path = db;
   if (given("--http")) config.http_listen = http;
+  if (given("--http-allowed-host")) config.http_allowed_hosts = http_allowed_hosts;
   if (given("--placement")) config.placement_uri = placement;
   if (given("--shard")) config.shard_name = shard;
   if (given("--max-message-mb")) {

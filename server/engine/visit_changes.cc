@@ -110,12 +110,15 @@ absl::StatusOr<VisitChanges> CompareVisits(store::Store* store, VisitRegistry* v
   }
   if (auto s = options.change.Validate(); !s.ok()) return s;
   for (int64_t id : {from_visit, to_visit}) {
+    // The same answer whether the visit is another map's or none at all: the caller's key may
+    // not see the other map, so its name (or that it exists) is not told (issue 52).
     auto v = store->GetVisit(id);
-    if (!v.ok()) return v.status();
-    if (v->map_id != map.id) {
+    if ((!v.ok() && absl::IsNotFound(v.status())) || (v.ok() && v->map_id != map.id)) {
       return absl::NotFoundError(absl::StrCat("visit ", id, " is not a visit of map '", map.name,
-                                              "' (it is of map '", v->map_name, "')"));
+                                              "': `lifemap visits list ", map.name,
+                                              "` lists its visits"));
     }
+    if (!v.ok()) return v.status();
   }
   auto frame = VisitsInMapFrame(store, map.name);
   if (!frame.ok()) return frame.status();

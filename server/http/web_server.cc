@@ -19,6 +19,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
 #include "core/common/cluster_headers.h"
+#include "core/common/utf8.h"
 #include "core/place/serialize.h"
 #include "server/config.h"
 #include "server/engine/annotation_export.h"
@@ -31,13 +32,16 @@
 #include "server/engine/semantic_export.h"
 #include "server/engine/visit_changes.h"
 #include "server/engine/visit_frame.h"
+#include "server/http/request_guard.h"
 #include "server/http/tar_writer.h"
 #include "server/http/web_assets.h"
 #include "server/http/web_views.h"
 #include "server/rpc/auth.h"
 
-// Last: it includes <resolv.h>, whose `_res` macro breaks Eigen's headers included after it.
+// Last: they include <resolv.h>, whose `_res` macro breaks Eigen's headers included after it.
 #include <httplib.h>
+
+#include "server/http/connection_pool.h"
 
 namespace lifemap::server {
 namespace {
@@ -49,7 +53,11 @@ constexpr int64_t kMaxPageSize = 1000;
 constexpr int64_t kDefaultMaxPoints = 1000000;
 constexpr int64_t kMaxPoints = 20000000;
 constexpr int64_t kMaxCloudKeyframes = 1000;
-constexpr size_t kHttpWorkers = 32;
+// Connections served at once (a thread each; more wait in the kernel's backlog), and of those
+// one client address's at most (its oldest beyond are cut, every kSweepInterval).
+constexpr size_t kMaxConnections = 256;
+constexpr size_t kMaxConnectionsPerClient = 32;
+constexpr auto kSweepInterval = absl::Seconds(1);
 constexpr size_t kCacheBytes = size_t{256} << 20;
 constexpr size_t kMaxAnnotationBodyBytes = size_t{16} << 20;
 
@@ -225,8 +233,15 @@ struct WebServer::Impl {
   std::thread thread;
   int port = 0;
   ByteCache cache{kCacheBytes};
+  HostPolicy host_policy;
+  int listen_fd = -1;  // httplib's listening socket (it owns it)
+  std::unique_ptr<ConnectionLimiter> limiter;
+  std::thread sweeper;  // limiter->Sweep() every kSweepInterval until stopped
   absl::Mutex stop_mu;
   bool stopped ABSL_GUARDED_BY(stop_mu) = false;
+  bool listening_ended ABSL_GUARDED_BY(stop_mu) = false;
+
+  void Sweep();
 
   store::Store* store() const { return engine->store(); }
 
@@ -885,7 +900,24 @@ void WebServer::Impl::Routes() {
   // highest quality, which took 4.9 s for three.js (600 kB) and 1 s for a 13 MB scene; gzip
   // takes milliseconds. The request is httplib's own (not const where it is made); only its
   // Accept-Encoding is narrowed.
-  s.set_pre_routing_handler([](const httplib::Request& req, httplib::Response&) {
+  s.set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
+    // Before anything is read or routed: a request sent to another name (DNS rebinding), or a
+    // change from another site's page, is refused (issue 52, item 8).
+    const std::string host = req.get_header_value("Host");
+    absl::Status guard = CheckHost(host, host_policy);
+    if (guard.ok()) {
+      guard = CheckStateChange(
+          req.method, host, req.get_header_value("Origin"), req.get_header_value("Sec-Fetch-Site"),
+          req.get_header_value("Content-Type"),
+          req.has_header("Content-Length") || req.has_header("Transfer-Encoding"));
+    }
+    if (!guard.ok()) {
+      spdlog::warn("HTTP {} {} from {} refused: {}", EscapeForLog(req.method),
+                   EscapeForLog(req.path), req.remote_addr, std::string(guard.message()));
+      SendError(res, guard);
+      if (absl::IsInvalidArgument(guard)) res.status = 415;
+      return httplib::Server::HandlerResponse::Handled;
+    }
     if (req.has_header("Accept-Encoding")) {
       auto& headers = const_cast<httplib::Request&>(req).headers;
       const bool gzip = req.get_header_value("Accept-Encoding").find("gzip") != std::string::npos;
@@ -895,11 +927,24 @@ void WebServer::Impl::Routes() {
     return httplib::Server::HandlerResponse::Unhandled;
   });
   s.set_payload_max_length(kMaxAnnotationBodyBytes);
-  // A worker per open connection, idle ones included: a browser keeps six per tab alive, and
+  // A thread per open connection, idle ones included: a browser keeps six per tab alive, and
   // with httplib's default pool (8) and keep-alive (5 s) a second tab's requests waited for
-  // idle connections to time out (a map page took 5.5 s instead of 0.5).
-  s.new_task_queue = [] { return new httplib::ThreadPool(kHttpWorkers); };
+  // idle connections to time out (a map page took 5.5 s instead of 0.5). With a fixed pool (32)
+  // 200 slow clients took every thread (issue 52): ConnectionPool starts threads as
+  // connections come, up to kMaxConnections, and the sweeper cuts one client's beyond
+  // kMaxConnectionsPerClient. Each read waits at most 5 s for bytes, each write 5 s.
+  s.new_task_queue = [] { return new ConnectionPool(kMaxConnections); };
+  // httplib listens with a backlog of 5: a burst of new connections (a browser opens six, a
+  // client at full speed more) overflowed it and waited for the SYN to be sent again, 1 s.
+  // The listening socket is recorded here and Start() listens again with the system's
+  // largest backlog (Linux takes a second listen() as a change of backlog).
+  s.set_socket_options([this](socket_t fd) {
+    httplib::default_socket_options(fd);
+    listen_fd = fd;
+  });
   s.set_keep_alive_timeout(2);
+  s.set_read_timeout(5);
+  s.set_write_timeout(5);
   s.set_default_headers({{"X-Content-Type-Options", "nosniff"},
                          {"X-Frame-Options", "DENY"},
                          {"Referrer-Policy", "no-referrer"}});
@@ -953,6 +998,7 @@ absl::StatusOr<std::unique_ptr<WebServer>> WebServer::Start(const ServerConfig& 
     return absl::InvalidArgumentError(absl::StrCat(
         "--http ", config.http_listen, ": give HOST:PORT (e.g. 127.0.0.1:8080; port 0 picks one)"));
   }
+  impl->host_policy = MakeHostPolicy(host, config.http_allowed_hosts);
   if (port == 0) {
     impl->port = impl->http->bind_to_any_port(host);
   } else if (impl->http->bind_to_port(host, port)) {
@@ -963,8 +1009,15 @@ absl::StatusOr<std::unique_ptr<WebServer>> WebServer::Start(const ServerConfig& 
         absl::StrCat("the browser view cannot listen on ", config.http_listen,
                      " (the port is in use, or the address is not one of this host's)"));
   }
+  if (impl->listen_fd >= 0) ::listen(impl->listen_fd, SOMAXCONN);
+  impl->limiter = std::make_unique<ConnectionLimiter>(impl->port, kMaxConnectionsPerClient);
   Impl* raw = impl.get();
-  impl->thread = std::thread([raw] { raw->http->listen_after_bind(); });
+  impl->thread = std::thread([raw] {
+    raw->http->listen_after_bind();
+    absl::MutexLock lock(&raw->stop_mu);
+    raw->listening_ended = true;
+  });
+  impl->sweeper = std::thread([raw] { raw->Sweep(); });
   spdlog::info("browser view on http{}://{}:{}/ ({})", config.tls_cert.empty() ? "" : "s", host,
                impl->port, required ? "API keys required" : "no authentication");
   return std::unique_ptr<WebServer>(new WebServer(std::move(impl)));
@@ -981,7 +1034,34 @@ void WebServer::Stop() {
     impl_->stopped = true;
   }
   impl_->http->stop();
+  // Running requests get a moment to end; then every connection left (a slow client's, an idle
+  // keep-alive) is cut, so a stop never waits for a client.
+  {
+    absl::MutexLock lock(&impl_->stop_mu);
+    const absl::Condition ended(&impl_->listening_ended);
+    if (!impl_->stop_mu.AwaitWithTimeout(ended, absl::Seconds(2))) {
+      while (!impl_->stop_mu.AwaitWithTimeout(ended, absl::Milliseconds(100))) {
+        impl_->limiter->ShutdownAll();
+      }
+    }
+  }
   if (impl_->thread.joinable()) impl_->thread.join();
+  if (impl_->sweeper.joinable()) impl_->sweeper.join();
+}
+
+void WebServer::Impl::Sweep() {
+  for (;;) {
+    {
+      absl::MutexLock lock(&stop_mu);
+      if (stop_mu.AwaitWithTimeout(absl::Condition(&stopped), kSweepInterval)) return;
+    }
+    for (const auto& [client, n] : limiter->Sweep()) {
+      spdlog::warn(
+          "browser view: cut {} connection(s) of {}, which had more than {} open (slow or "
+          "hostile client?)",
+          n, client, kMaxConnectionsPerClient);
+    }
+  }
 }
 
 }  // namespace lifemap::server

@@ -24,6 +24,13 @@ TEST(ServerConfig, TheBrowserViewNeedsAnAddressOfItsOwn) {
   EXPECT_NE(c.Validate().message().find("different ports"), std::string::npos);
   c.listen = c.http_listen = "127.0.0.1:0";  // two free ports, picked apart
   EXPECT_TRUE(c.Validate().ok());
+  // The names it answers to (issue 52): host names, domains, or "*".
+  c.http_allowed_hosts = {"view.lab.example", ".robots.example", "*"};
+  EXPECT_TRUE(c.Validate().ok());
+  for (const char* bad : {"", "http://view.example", "view.example:8080", "a b", "."}) {
+    c.http_allowed_hosts = {bad};
+    EXPECT_NE(c.Validate().message().find("is not a host name"), std::string::npos) << bad;
+  }
 }
 
 // A config file LoadConfigFile must refuse with InvalidArgument, and a phrase its message must
