@@ -21,6 +21,7 @@
 #include "absl/strings/str_join.h"
 #include "server/config.h"
 #include "server/engine/clock.h"
+#include "server/log_format.h"
 #include "server/rpc/auth.h"
 #include "server/server.h"
 #include "server/store/store.h"
@@ -201,6 +202,7 @@ int main(int argc, char** argv) {
   // Logs go to stderr (journald under systemd); stdout carries only the "listening on port"
   // line that scripts read.
   spdlog::set_default_logger(spdlog::stderr_color_mt("lifemapd"));
+  lifemap::server::EscapeDefaultLogMessages();
 
   // A file-size limit (ulimit -f) makes a write fail (the store answers RESOURCE_EXHAUSTED,
   // like a full disk) instead of killing the server with SIGXFSZ.

@@ -31,6 +31,7 @@
 #include "server/engine/periodic_task.h"
 #include "server/http/web_server.h"
 #include "server/instance_lock.h"
+#include "server/log_format.h"
 #include "server/rpc/audit_interceptor.h"
 #include "server/rpc/auth.h"
 #include "server/rpc/services.h"
@@ -282,6 +283,7 @@ LifemapServer::~LifemapServer() { Shutdown(); }
 absl::StatusOr<std::unique_ptr<LifemapServer>> LifemapServer::Start(const ServerConfig& config) {
   if (auto s = config.Validate(); !s.ok()) return s;
   spdlog::set_level(spdlog::level::from_str(config.log_level));
+  EscapeDefaultLogMessages();
   auto impl = std::make_unique<Impl>();
   auto lock = InstanceLock::Acquire(config.db_path);
   if (!lock.ok()) return lock.status();

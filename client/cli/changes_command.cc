@@ -166,8 +166,8 @@ void PrintTable(const v1::VisitChanges& r) {
       }
       std::cout << absl::StrFormat(
           "%-11s  %-10s  %6.2f %6.2f %6.2f    %4.2f %4.2f %4.2f    %8d  %s\n", c.kind(),
-          c.class_name().empty() ? "-" : c.class_name(), c.center().x(), c.center().y(),
-          c.center().z(), c.extent().x(), c.extent().y(), c.extent().z(), c.evidence_views(), from);
+          Shown(c.class_name()), c.center().x(), c.center().y(), c.center().z(), c.extent().x(),
+          c.extent().y(), c.extent().z(), c.evidence_views(), from);
     }
   }
   std::cout << absl::StrFormat(

@@ -75,9 +75,8 @@ void PrintMap(const v1::Map& m) {
   std::cout << absl::StrFormat(
       "name:        %s\nid:          %d\ndescription: %s\ncreated:     %s\nvisits:      %d\n"
       "keyframes:   %d\nstored:      %s\nentropy threshold: %s\nkeyframe colour:   %s\n",
-      m.name(), m.id(), m.description().empty() ? "-" : m.description(),
-      HumanTime(m.created_time_s()), m.visit_count(), m.keyframe_count(),
-      HumanBytes(m.stored_bytes()),
+      Shown(m.name()), m.id(), Shown(m.description()), HumanTime(m.created_time_s()),
+      m.visit_count(), m.keyframe_count(), HumanBytes(m.stored_bytes()),
       m.entropy_threshold() > 0 ? absl::StrFormat("%.2f", m.entropy_threshold())
                                 : std::string("server default"),
       m.keep_original_color() ? "as the client sent it" : "JPEG (PNG and raw re-encoded)");
@@ -344,7 +343,11 @@ void AddMapCommands(CLI::App* app, CliContext* ctx) {
   auto* create = maps->add_subcommand("create", "Create an empty map");
   auto name = std::make_shared<std::string>();
   auto description = std::make_shared<std::string>();
-  create->add_option("NAME", *name, "map name: letters, digits, '.', '_', '-'")->required();
+  create
+      ->add_option("NAME", *name,
+                   "map name: letters and digits of any script, '.', '_', '-' and single "
+                   "spaces; up to 64 bytes of UTF-8 (e.g. lab, Küche, \"Büro 2\", 東京)")
+      ->required();
   create->add_option("--description", *description, "free text");
   create->callback([ctx, name, description] {
     ctx->run = [ctx, name, description] {
@@ -492,9 +495,8 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                 frame = "unanchored";
               }
               std::cout << absl::StrFormat(
-                  "%6d %-16s %-20s %8d %10d %-14s %-24s  %-23s  %s\n", v.id(),
-                  v.robot().empty() ? "-" : v.robot(), v.label().empty() ? "-" : v.label(),
-                  v.frame_count(), v.keyframe_count(),
+                  "%6d %-16s %-20s %8d %10d %-14s %-24s  %-23s  %s\n", v.id(), Shown(v.robot()),
+                  Shown(v.label()), v.frame_count(), v.keyframe_count(),
                   absl::StrCat(v.loops_accepted(), "/", v.loops_rejected(), "/",
                                v.pose_graph_solves()),
                   frame, HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
@@ -1150,7 +1152,7 @@ void AddKeyCommands(CLI::App* app, CliContext* ctx) {
                                          "CREATED", "LAST USED", "REVOKED", "MAPS", "LIMITS");
             for (const auto& k : r.keys()) {
               std::cout << absl::StrFormat(
-                  "%-24s %-9s %-23s %-23s %-23s %-12s %s\n", k.name(), RoleName(k.role()),
+                  "%-24s %-9s %-23s %-23s %-23s %-12s %s\n", Shown(k.name()), RoleName(k.role()),
                   HumanTime(k.created_time_s()),
                   k.last_used_time_s() > 0 ? HumanTime(k.last_used_time_s()) : "never",
                   k.revoked_time_s() > 0 ? HumanTime(k.revoked_time_s()) : "-",
@@ -1240,10 +1242,10 @@ void AddAdminCommands(CLI::App* app, CliContext* ctx) {
           *ctx, [&](client::Client& c) { return c.ListAuditEvents(*audit_req); },
           [](const v1::ListAuditEventsResponse& r) {
             for (const auto& e : r.events()) {
-              std::cout << absl::StrFormat("%s  %-16s %-36s %-18s %s%s\n", HumanTime(e.time_s()),
-                                           e.key().empty() ? "-" : e.key(), e.method(), e.code(),
-                                           e.request(),
-                                           e.message().empty() ? "" : "  (" + e.message() + ")");
+              std::cout << absl::StrFormat(
+                  "%s  %-16s %-36s %-18s %s%s\n", HumanTime(e.time_s()), Shown(e.key()),
+                  Shown(e.method()), Shown(e.code()), Shown(e.request(), ""),
+                  e.message().empty() ? "" : "  (" + Shown(e.message()) + ")");
             }
           });
     };

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_format.h"
+#include "core/common/utf8.h"
 
 namespace lifemap::cli {
 
@@ -25,7 +26,8 @@ namespace {
 bool json_errors = false;
 
 void PrintError(absl::StatusCode code, absl::string_view message) {
-  std::cerr << "lifemap: " << message << " [" << absl::StatusCodeToString(code) << "]\n";
+  std::cerr << "lifemap: " << EscapeForLog(message) << " [" << absl::StatusCodeToString(code)
+            << "]\n";
   if (json_errors) {
     const nlohmann::json error = {
         {"error", {{"code", absl::StatusCodeToString(code)}, {"message", std::string(message)}}}};
@@ -44,6 +46,10 @@ int Fail(const absl::Status& status) {
 int UsageError(const std::string& message) {
   PrintError(absl::StatusCode::kInvalidArgument, message);
   return 2;
+}
+
+std::string Shown(const std::string& text, const char* empty) {
+  return text.empty() ? std::string(empty) : EscapeForLog(text);
 }
 
 std::string HumanBytes(uint64_t bytes) {

@@ -26,6 +26,11 @@ int UsageError(const std::string& message);
 
 // "12.3 MB", "512 B".
 std::string HumanBytes(uint64_t bytes);
+// Stored text (a description, a robot's name, an audit event's request) as a human table or
+// message shows it: control characters, newlines and invisible characters escaped
+// (core/common/utf8.h EscapeForLog), so that no stored text can forge a row or drive the
+// terminal (issue 52); `empty` when there is none.
+std::string Shown(const std::string& text, const char* empty = "-");
 // "2026-11-23 14:05:09 UTC".
 std::string HumanTime(double seconds_since_epoch);
 

@@ -3,11 +3,14 @@
 #include <openssl/evp.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
+#include <cstdint>
 #include <cstring>
 #include <ctime>
 #include <filesystem>
+#include <stdexcept>
 #include <vector>
 
 #include <nlohmann/json.hpp>
@@ -68,6 +71,26 @@ class Sha256 {
   EVP_MD_CTX* ctx;
 };
 
+std::string ArchiveChecksum(std::string_view bytes) {
+  Sha256 hasher;
+  hasher.Add(bytes);
+  return hasher.Hex();
+}
+
+std::string MapArchiveHeader(const MapArchiveManifest& manifest) {
+  return absl::StrCat(kMagic,
+                      nlohmann::json{{"format", manifest.format},
+                                     {"schema", manifest.schema},
+                                     {"map", manifest.map},
+                                     {"visits", manifest.visits},
+                                     {"keyframes", manifest.keyframes},
+                                     {"bytes", manifest.bytes},
+                                     {"sha256", manifest.sha256},
+                                     {"created_time_s", manifest.created_time_s}}
+                          .dump(),
+                      "\n");
+}
+
 std::string ArchiveScratchDir(const store::Store& store) {
   return fs::absolute(store.path()).parent_path().string();
 }
@@ -118,18 +141,7 @@ absl::StatusOr<MapArchiveManifest> ExportMapArchive(
   manifest.bytes = bytes;
   manifest.sha256 = hasher.Hex();
   manifest.created_time_s = static_cast<double>(std::time(nullptr));
-  const std::string header =
-      absl::StrCat(kMagic,
-                   nlohmann::json{{"format", manifest.format},
-                                  {"schema", manifest.schema},
-                                  {"map", manifest.map},
-                                  {"visits", manifest.visits},
-                                  {"keyframes", manifest.keyframes},
-                                  {"bytes", manifest.bytes},
-                                  {"sha256", manifest.sha256},
-                                  {"created_time_s", manifest.created_time_s}}
-                       .dump(),
-                   "\n");
+  const std::string header = MapArchiveHeader(manifest);
   if (!sink(header)) return absl::CancelledError("the client went away during the export");
   std::rewind(file);
   buffer.resize(chunk_bytes);
@@ -176,16 +188,29 @@ absl::Status MapArchiveImport::ParseHeader() {
   if (second == std::string::npos) return absl::OkStatus();
   const auto manifest =
       nlohmann::json::parse(header_.substr(first + 1, second - first - 1), nullptr, false);
+  // A count must be a JSON integer from 0, at most `max`: nlohmann's get<int64_t> of 6.9e65 is
+  // undefined behaviour (map_archive_fuzz found it), get<uint64_t> of -1 a huge number.
+  const auto count = [&manifest](const char* key, uint64_t max = INT64_MAX) -> uint64_t {
+    const auto& v = manifest.at(key);
+    if (v.is_number_unsigned() || (v.is_number_integer() && v.get<int64_t>() >= 0)) {
+      const uint64_t n = v.get<uint64_t>();
+      if (n <= max) return n;
+    }
+    throw std::runtime_error(
+        absl::StrCat("\"", key, "\" is ", v.dump(), ", not a count (a whole number from 0)"));
+  };
   try {
-    if (manifest.is_discarded()) throw std::runtime_error("not JSON");
-    manifest_.format = manifest.at("format").get<int>();
-    manifest_.schema = manifest.at("schema").get<int64_t>();
+    if (manifest.is_discarded() || !manifest.is_object()) throw std::runtime_error("not JSON");
+    manifest_.format = static_cast<int>(count("format", INT32_MAX));
+    manifest_.schema = static_cast<int64_t>(count("schema"));
     manifest_.map = manifest.at("map").get<std::string>();
-    manifest_.visits = manifest.at("visits").get<int64_t>();
-    manifest_.keyframes = manifest.at("keyframes").get<int64_t>();
-    manifest_.bytes = manifest.at("bytes").get<uint64_t>();
+    manifest_.visits = static_cast<int64_t>(count("visits"));
+    manifest_.keyframes = static_cast<int64_t>(count("keyframes"));
+    manifest_.bytes = count("bytes", UINT64_MAX);  // its limit is checked below, saying so
     manifest_.sha256 = manifest.at("sha256").get<std::string>();
-    manifest_.created_time_s = manifest.value("created_time_s", 0.0);
+    const auto created = manifest.value("created_time_s", nlohmann::json(0.0));
+    if (!created.is_number()) throw std::runtime_error("\"created_time_s\" is not a number");
+    manifest_.created_time_s = created.get<double>();
   } catch (const std::exception& e) {
     return absl::InvalidArgumentError(
         absl::StrCat("the archive's manifest is damaged (", e.what(), "): export the map again"));

@@ -36,6 +36,11 @@ struct MapArchiveManifest {
   double created_time_s = 0;
 };
 
+// The archive's first two lines for `manifest` (the format line and the manifest's JSON).
+std::string MapArchiveHeader(const MapArchiveManifest& manifest);
+// The checksum a manifest carries for the database `bytes`: SHA-256, lower-case hex.
+std::string ArchiveChecksum(std::string_view bytes);
+
 // Scratch files live beside the database (same file system, room for the map it holds) as
 // "<database>.archive-*.tmp"; each is removed when done, and any a killed server left behind
 // when the next one starts (RemoveStaleArchiveFiles).

@@ -77,8 +77,8 @@ absl::Status MergeVisits(store::Store* store, const store::MapRecord& map,
         visit_id != 0 ? absl::StrCat("visit ", visit_id) : absl::StrCat("map '", map.name, "'"),
         " has no semantic octree: stream posed frames with a model active (lifemap models "
         "activate) and semantic.enabled in the server's config, or rebuild it from the stored "
-        "keyframes (lifemap maps rebuild-octree); for occupancy alone, without a model, export "
-        "EXPORT_OCCUPANCY_OCTREE_BT (lifemap export --what occupancy)"));
+        "keyframes (lifemap maps rebuild-octree); for occupancy alone, without a model: "
+        "lifemap export --what occupancy (ExportMap's format EXPORT_OCCUPANCY_OCTREE_BT)"));
   }
   // The most recently updated octree's model decides which octrees merge.
   const Stored* newest = &stored.front();

@@ -321,7 +321,8 @@ grpc::Status MapServiceImpl::ExportMap(grpc::ServerContext* context,
   }
   if (req->visit_column() && req->format() != v1::EXPORT_POSES_TUM) {
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        "visit_column applies to poses (EXPORT_POSES_TUM) only");
+                        "visit_column applies to poses only (lifemap export --what poses "
+                        "--visit-column; ExportMap's format EXPORT_POSES_TUM)");
   }
   switch (req->format()) {
     case v1::EXPORT_POSES_TUM: {
@@ -427,7 +428,8 @@ grpc::Status MapServiceImpl::ExportOccupancyOf(const store::MapRecord& map, int6
   if (req.format() == v1::EXPORT_OCCUPANCY_OCTREE_BT) {
     if (req.has_grid()) {
       return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                          "grid applies to EXPORT_OCCUPANCY_GRID_PGM only");
+                          "grid applies to the navigation grid only (lifemap export --what grid; "
+                          "ExportMap's format EXPORT_OCCUPANCY_GRID_PGM)");
     }
     auto octree =
         ExportOccupancy(ctx_->engine->store(), map.id, map.name, visit_id, options, cancelled);

@@ -311,10 +311,14 @@ TEST_F(CliTest, AdministersMapsAndStreamsARecordingEndToEnd) {
 TEST_F(CliTest, MapNamesInAnyScriptWorkInEveryCommand) {
   const std::string tum = tmp_.File("tum");
   testing::WriteSyntheticTum(tum, 10, 0.021);
-  const std::string kueche = "K\xC3\xBC" "che", buero = "B\xC3\xBCro 2",
-                    tokyo = "\xE6\x9D\xB1\xE4\xBA\xAC";
+  const std::string kueche =
+                        "K\xC3\xBC"
+                        "che",
+                    buero = "B\xC3\xBCro 2", tokyo = "\xE6\x9D\xB1\xE4\xBA\xAC";
   for (const std::string& name : {kueche, buero, tokyo}) {
-    auto r = Run({"maps", "create", name, "--description", "Stra\xC3\x9F" "e"});
+    auto r = Run({"maps", "create", name, "--description",
+                  "Stra\xC3\x9F"
+                  "e"});
     ASSERT_EQ(r.code, 0) << name << ": " << r.err;
     r = Run({"--json", "stream", name, "--tum", tum, "--use-groundtruth", "--rate", "0"});
     ASSERT_EQ(r.code, 0) << name << ": " << r.err;
@@ -336,8 +340,8 @@ TEST_F(CliTest, MapNamesInAnyScriptWorkInEveryCommand) {
   EXPECT_EQ(Run({"maps", "delete", kueche, "--yes"}).code, 0);
   EXPECT_EQ(Run({"maps", "show", kueche}).code, 1);
   // What is still refused says why, on one line, and prints no control character.
-  for (const std::string& bad : {std::string("two  spaces"), std::string("esc\x1b[31m"),
-                                std::string("bidi\xE2\x80\xAE")}) {
+  for (const std::string& bad :
+       {std::string("two  spaces"), std::string("esc\x1b[31m"), std::string("bidi\xE2\x80\xAE")}) {
     r = Run({"maps", "create", bad});
     EXPECT_EQ(r.code, 1) << bad;
     EXPECT_NE(r.err.find("may only use letters and digits (any script)"), std::string::npos)
@@ -873,6 +877,8 @@ TEST_F(CliTest, OccupancyAndAGridExportWithoutAModelOpenInTheirReaders) {
   r = Run({"export", "room", "--what", "octree", "--out", tmp_.File("x.bt")});
   EXPECT_EQ(r.code, 1);
   EXPECT_NE(r.err.find("--what occupancy"), std::string::npos) << "says what works: " << r.err;
+  EXPECT_LT(r.err.find("--what occupancy"), r.err.find("EXPORT_OCCUPANCY_OCTREE_BT"))
+      << "the flag first, the API's enum only after it: " << r.err;
 
   r = Run({"--json", "export", "room", "--what", "occupancy", "--out", tmp_.File("room.bt")});
   ASSERT_EQ(r.code, 0) << r.err;
@@ -2266,6 +2272,32 @@ TEST_F(CliTest, BeyondLoopbackTheServerNeedsKeysAndTheFirstIsMadeOnItsMachine) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("AdminService/RevokeApiKey"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("MapService/CreateMap"), std::string::npos) << r.out;
+
+  // Stored and refused text with newlines and ANSI escapes is shown escaped: no forged row, no
+  // escape reaching the operator's terminal (issue 52, item 11).
+  const auto forges = [](const std::string& text) {
+    for (const auto& line : Lines(text)) {
+      if (line.rfind("[forged]", 0) == 0) return true;
+    }
+    return text.find('\x1b') != std::string::npos;
+  };
+  r = Run({"--api-key-file", admin_key, "maps", "create", "hall", "--description",
+           "desc\n[forged] row\x1b[31m"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = Run({"--api-key-file", admin_key, "maps", "show", "hall"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("desc\\n[forged] row\\x1b[31m"), std::string::npos) << r.out;
+  EXPECT_FALSE(forges(r.out)) << r.out;
+  r = Run({"--api-key-file", admin_key, "maps", "show", "no\n[forged] row\x1b[2J"});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_FALSE(forges(r.err)) << r.err;
+  r = Run({"--api-key-file", admin_key, "admin", "audit"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_FALSE(forges(r.out)) << r.out;
+  // --json keeps the text as stored (JSON escapes it itself).
+  r = Run({"--api-key-file", admin_key, "--json", "maps", "show", "hall"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(json::parse(r.out)["description"], "desc\n[forged] row\x1b[31m") << r.out;
 
   // --insecure-no-auth: served without keys, and said so.
   server_.reset();

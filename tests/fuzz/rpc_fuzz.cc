@@ -45,6 +45,7 @@
 #include "server/rpc/auth.h"
 #include "server/server.h"
 #include "server/store/store.h"
+#include "tests/fuzz/seed_frame.h"
 #include "tests/fuzz/seeds.h"
 #include "tests/fuzz/tiny_forest.h"
 
@@ -221,40 +222,6 @@ std::vector<std::string> Messages(const Method& method, const uint8_t* data, siz
 
 // ---- Seeds ----------------------------------------------------------------------------------
 
-// A 32x24 frame with raw pixels (mutations keep it decodable; small, so that the fuzzer runs
-// hundreds of inputs a second): a wall one metre away with a box in front, a checkerboard
-// colour.
-v1::Frame SeedFrame(uint64_t sequence) {
-  constexpr int kWidth = 32, kHeight = 24;
-  v1::Frame f;
-  f.set_sequence(sequence);
-  f.set_timestamp_s(1000.0 + 0.1 * static_cast<double>(sequence));
-  auto* k = f.mutable_intrinsics();
-  k->set_fx(26.25), k->set_fy(26.25), k->set_cx(15.5), k->set_cy(11.5);
-  k->set_width(kWidth), k->set_height(kHeight);
-  std::string depth, color;
-  for (int r = 0; r < kHeight; ++r) {
-    for (int c = 0; c < kWidth; ++c) {
-      const bool box = r > 10 && c > 5 + static_cast<int>(sequence) && c < 15;
-      const uint16_t mm = box ? 3500 : 5000 + 20 * c;
-      depth.push_back(static_cast<char>(mm & 0xff));
-      depth.push_back(static_cast<char>(mm >> 8));
-      const char v = ((r / 4 + c / 4) % 2 == 0) ? '\x28' : '\xc8';
-      color.append({v, static_cast<char>(box ? 0x20 : v), v});
-    }
-  }
-  f.mutable_depth()->set_encoding(v1::DEPTH_RAW_U16);
-  f.mutable_depth()->set_depth_scale(5000.0);
-  f.mutable_depth()->set_width(kWidth);
-  f.mutable_depth()->set_height(kHeight);
-  f.mutable_depth()->set_data(depth);
-  f.mutable_color()->set_encoding(v1::COLOR_RAW_RGB8);
-  f.mutable_color()->set_width(kWidth);
-  f.mutable_color()->set_height(kHeight);
-  f.mutable_color()->set_data(color);
-  return f;
-}
-
 // Sets every field of `m` to something plausible: strings naming map "lab" where a map is
 // meant, numbers 1, enums their first named value, frames a SeedFrame, nested messages alike.
 void FillPlausibly(pb::Message* m, int depth) {
@@ -306,7 +273,7 @@ void FillPlausibly(pb::Message* m, int depth) {
         if (f->message_type() != v1::Frame::descriptor() && depth >= 3) break;
         pb::Message* child = f->is_repeated() ? r->AddMessage(m, f) : r->MutableMessage(m, f);
         if (f->message_type() == v1::Frame::descriptor()) {
-          child->CopyFrom(SeedFrame(0));
+          child->CopyFrom(fuzz::SeedFrame(0));
         } else {
           FillPlausibly(child, depth + 1);
         }
@@ -344,7 +311,7 @@ void WriteSeeds(const std::string& dir) {
   frames.push_back(start.SerializeAsString());
   for (uint64_t s = 0; s < 6; ++s) {
     v1::StreamFramesRequest frame;
-    *frame.mutable_frame() = SeedFrame(s);
+    *frame.mutable_frame() = fuzz::SeedFrame(s);
     frames.push_back(frame.SerializeAsString());
   }
   const auto streamed = server.Call("/lifemap.v1.FrameService/StreamFrames", kAdmin, frames);

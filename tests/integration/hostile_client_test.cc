@@ -8,6 +8,8 @@
 #include <cstring>
 #include <functional>
 #include <limits>
+#include <memory>
+#include <sstream>
 #include <thread>
 
 #include <grpcpp/generic/generic_stub.h>
@@ -15,6 +17,8 @@
 #include <grpcpp/impl/codegen/client_unary_call.h>
 #include <grpcpp/support/sync_stream.h>
 #include <gtest/gtest.h>
+#include <spdlog/sinks/ostream_sink.h>
+#include <spdlog/spdlog.h>
 
 #include "tests/integration/model_fixture.h"
 #include "tests/integration/server_fixture.h"
@@ -375,6 +379,43 @@ TEST_F(HostileClientTest, AStreamMessageThatDoesNotParseEndsTheStreamSayingSo) {
     EXPECT_NE(s.error_message().find("UTF-8"), std::string::npos) << s.error_message();
   }
   EXPECT_TRUE(client_->GetServerInfo().ok()) << "the server is still up";
+}
+
+// Issue 52, item 11: a robot's name, a visit's label or a refused call's text with newlines and
+// ANSI escapes wrote forged lines into the server's log. Each event is one line, escaped.
+TEST_F(HostileClientTest, ClientTextCannotForgeLogLinesOrEscapeTheTerminal) {
+  std::ostringstream log;
+  auto previous = spdlog::default_logger();
+  auto capture = std::make_shared<spdlog::logger>(
+      "capture", std::make_shared<spdlog::sinks::ostream_sink_mt>(log));
+  spdlog::set_default_logger(capture);
+  StartServer();  // installs the escaping formatter on the default logger
+  const std::string forged = "bot\n[2026-12-06 00:00:00.000] [critical] FORGED\x1b[2J\r\x07";
+  ASSERT_TRUE(client_->CreateMap("lab", "").ok());
+  v1::StartVisitRequest visit;
+  visit.set_map("lab");
+  visit.set_robot(forged);
+  visit.set_label(forged);
+  EXPECT_TRUE(client_->StartVisit(visit).ok());
+  EXPECT_FALSE(client_->CreateMap(forged, "").ok()) << "refused, and logged as refused";
+  server_.reset();  // everything logged
+  spdlog::set_default_logger(previous);
+
+  const std::string text = log.str();
+  EXPECT_EQ(text.find('\x1b'), std::string::npos) << "no raw ESC reaches the log";
+  EXPECT_EQ(text.find('\x07'), std::string::npos);
+  EXPECT_EQ(text.find('\r'), std::string::npos);
+  size_t forged_lines = 0;
+  std::istringstream lines(text);
+  for (std::string line; std::getline(lines, line);) {
+    EXPECT_EQ(line.rfind("[2026-12-06 00:00:00.000]", 0), std::string::npos)
+        << "a forged line: " << line;
+    if (line.find("FORGED") != std::string::npos) {
+      ++forged_lines;
+      EXPECT_NE(line.find("bot\\n[2026"), std::string::npos) << "escaped in place: " << line;
+    }
+  }
+  EXPECT_GE(forged_lines, 1u) << "the visit's robot is logged: " << text;
 }
 
 }  // namespace

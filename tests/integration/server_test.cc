@@ -8,12 +8,16 @@
 
 #include <filesystem>
 #include <set>
+#include <string>
 #include <thread>
+#include <utility>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "absl/strings/str_cat.h"
 #include "client/lifemap_client.h"
 #include "core/common/image_codec.h"
 #include "core/io/tum_dataset.h"
@@ -900,44 +904,47 @@ TEST_F(ServerTest, AFarFutureTimestampIsRefusedAndTheVisitGoesOn) {
 TEST_F(ServerTest, AnImportWithoutAnArchiveIsRefusedAndHealthIsServing) {
   auto channel = grpc::CreateChannel(target_, grpc::InsecureChannelCredentials());
   auto maps = v1::MapService::NewStub(channel);
-  {
+  // An ImportMap call sending `bytes` (none: no chunk at all).
+  const auto import = [&maps](const std::string& bytes) {
     grpc::ClientContext ctx;
     v1::Map imported;
     auto writer = maps->ImportMap(&ctx, &imported);
+    if (!bytes.empty()) {
+      v1::ImportChunk chunk;
+      chunk.set_data(bytes);
+      writer->Write(chunk);
+    }
     writer->WritesDone();
-    const grpc::Status s = writer->Finish();
-    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-    EXPECT_NE(s.error_message().find("no chunks"), std::string::npos) << s.error_message();
-  }
-  {
-    grpc::ClientContext ctx;
-    v1::Map imported;
-    auto writer = maps->ImportMap(&ctx, &imported);
-    v1::ImportChunk chunk;
-    chunk.set_data("SQLite format 3");
-    writer->Write(chunk);
-    writer->WritesDone();
-    const grpc::Status s = writer->Finish();
-    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-    EXPECT_NE(s.error_message().find("not a lifemap map archive"), std::string::npos)
-        << s.error_message();
-  }
-  {
-    // Issue 52, item 5: a forged manifest's 2^63 + 1000 bytes overflowed the "twice the
-    // archive" free-space check and took space without limit.
-    grpc::ClientContext ctx;
-    v1::Map imported;
-    auto writer = maps->ImportMap(&ctx, &imported);
-    v1::ImportChunk chunk;
-    chunk.set_data(
+    return writer->Finish();
+  };
+  grpc::Status s = import("");
+  EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(s.error_message().find("no chunks"), std::string::npos) << s.error_message();
+  s = import("SQLite format 3");
+  EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(s.error_message().find("not a lifemap map archive"), std::string::npos)
+      << s.error_message();
+  const auto manifest = [](const std::string& keyframes, const std::string& bytes) {
+    return absl::StrCat(
         "lifemap-map-archive 1\n{\"format\":1,\"schema\":1,\"map\":\"forged\",\"visits\":0,"
-        "\"keyframes\":0,\"bytes\":9223372036854776808,\"sha256\":\"00\"}\n");
-    writer->Write(chunk);
-    writer->WritesDone();
-    const grpc::Status s = writer->Finish();
-    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
-    EXPECT_NE(s.error_message().find("more than the 1024 GiB"), std::string::npos)
+        "\"keyframes\":",
+        keyframes, ",\"bytes\":", bytes, ",\"sha256\":\"00\"}\n");
+  };
+  // Issue 52, item 5: a forged manifest's 2^63 + 1000 bytes overflowed the "twice the
+  // archive" free-space check and took space without limit.
+  s = import(manifest("0", "9223372036854776808"));
+  EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << s.error_message();
+  EXPECT_NE(s.error_message().find("more than the 1024 GiB"), std::string::npos)
+      << s.error_message();
+  // map_archive_fuzz: a count that is no whole number (6.9e65 read as int64_t was undefined
+  // behaviour) or is negative.
+  for (const auto& [keyframes, bytes] : std::vector<std::pair<std::string, std::string>>{
+           {"6.9e65", "0"}, {"0", "-1"}, {"1.5", "0"}, {"\"12\"", "0"}}) {
+    s = import(manifest(keyframes, bytes));
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << keyframes << " " << bytes;
+    EXPECT_NE(s.error_message().find("the archive's manifest is damaged"), std::string::npos)
         << s.error_message();
+    EXPECT_NE(s.error_message().find("not a count"), std::string::npos) << s.error_message();
   }
 
   const testing::HealthAnswer health = testing::CheckHealth(target_);

@@ -152,6 +152,21 @@ class FrameResult:
         return f"FrameResult({', '.join(parts)})"
 
 
+def _as_frame(item: Union[Frame, tuple, list], index: int) -> Frame:
+    """A Frame, or a tuple (color, depth[, pose[, timestamp_s]]) made into one; anything else
+    is the caller's mistake, named here (a dict used to fail with "unhashable type: 'slice'")."""
+    if isinstance(item, Frame):
+        return item
+    if isinstance(item, (tuple, list)) and 2 <= len(item) <= 4:
+        return Frame(item[0], item[1], pose=item[2] if len(item) > 2 else None,
+                     timestamp_s=item[3] if len(item) > 3 else None)
+    what = (f"a {type(item).__name__} of {len(item)} values" if isinstance(item, (tuple, list))
+            else f"a {type(item).__name__}")
+    raise TypeError(f"frame {index} is {what}: each frame must be a lifemap.Frame(color, depth, "
+                    f"pose=..., timestamp_s=...) or a tuple (color, depth[, pose[, "
+                    f"timestamp_s]])")
+
+
 def _pose_message(pose: Sequence[float]) -> common_pb.Pose:
     if len(pose) != 7:
         raise ValueError(f"a pose is (tx, ty, tz, qx, qy, qz, qw), got {len(pose)} values")
@@ -494,9 +509,7 @@ class Client:
 
         def frame_requests():
             for sequence, item in enumerate(frames):
-                if not isinstance(item, Frame):
-                    item = Frame(*item[:2], pose=item[2] if len(item) > 2 else None,
-                                 timestamp_s=item[3] if len(item) > 3 else None)
+                item = _as_frame(item, sequence)
                 message = _frame_message(
                     item.color, item.depth,
                     item.intrinsics if item.intrinsics is not None else intrinsics,
@@ -566,8 +579,7 @@ class Client:
                 raise ValueError(f"methods are 'appearance' and 'architecture', got {m!r}")
             request.methods.append(names[m])
         for index, item in enumerate(frames):
-            if not isinstance(item, Frame):
-                item = Frame(*item[:2], pose=item[2] if len(item) > 2 else None)
+            item = _as_frame(item, index)
             request.frames.append(_frame_message(
                 item.color, item.depth,
                 item.intrinsics if item.intrinsics is not None else intrinsics,

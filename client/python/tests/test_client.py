@@ -145,6 +145,12 @@ class ClientTest(unittest.TestCase):
             # A stream whose frames fail raises their error, not gRPC's.
             with self.assertRaisesRegex(ValueError, "H x W x 3"):
                 list(client.stream("lab", [(color[..., 0], depth)], intrinsics=intrinsics))
+            # A frame that is neither a Frame nor a tuple is named, with what a frame must be.
+            with self.assertRaisesRegex(TypeError, r"frame 0 is a dict: .*lifemap.Frame"):
+                list(client.stream("lab", [{"color": color, "depth": depth}],
+                                   intrinsics=intrinsics))
+            with self.assertRaisesRegex(TypeError, r"frame 0 is a tuple of 1 values"):
+                client.query_place([(color,)], intrinsics=intrinsics)
             with self.assertRaises(lifemap.Error) as e:
                 list(client.stream("nowhere", [(color, depth)], intrinsics=intrinsics))
             self.assertEqual(e.exception.code, grpc.StatusCode.NOT_FOUND)
