@@ -42,7 +42,8 @@ declare -A ARGS=(
   [posed2]="--streams 2 --frames 200 --rate 0"
   [posed1]="--streams 1 --frames 200 --rate 0"
 )
-CONFIGS=(tracked30 posed2 posed1)
+# THROUGHPUT_AB_CONFIGS="tracked30 posed1": only these.
+read -r -a CONFIGS <<< "${THROUGHPUT_AB_CONFIGS:-tracked30 posed2 posed1}"
 
 # One run: a fresh lifemapd of binary $2 on a free port, the load generator's JSON into $3.
 run_one() {
@@ -82,10 +83,18 @@ done
 import json, sys, pathlib
 out, rounds, configs = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3:]
 def runs(path):
+    """The load generator's runs by name; a name that comes again gets " (2)", " (3)"..."""
     try:
-        return {r["name"]: r for r in json.loads(path.read_text())["runs"]}
+        listed = json.loads(path.read_text())["runs"]
     except (OSError, ValueError, KeyError):
         return {}
+    named = {}
+    for r in listed:
+        name, n = r["name"], 2
+        while name in named:
+            name, n = f"{r['name']} ({n})", n + 1
+        named[name] = r
+    return named
 print("| run | before (r1 / r2 / ...) | after (r1 / r2 / ...) | errors |")
 print("|---|---|---|---|")
 for config in configs:
