@@ -41,7 +41,7 @@ class Engine;
 
 class ShardMembership final : public MapGate {
  public:
-  static constexpr int kIdRangeBits = 40;  // ~10^12 ids per shard
+  static constexpr int kIdRangeBits = store::Store::kIdRangeBits;  // ~10^12 ids per shard
   static constexpr double kDrainTimeoutS = 60.0;
 
   // UNAVAILABLE when the placement database cannot be reached; NOT_FOUND (saying how to add

@@ -41,9 +41,11 @@ absl::StatusOr<std::vector<AnnotationBox>> UnpackBoxes(const std::string& bytes,
 absl::StatusOr<AnnotationRecord> Store::InsertAnnotation(const AnnotationRecord& record) {
   absl::MutexLock lock(&impl_->write_mu);
   Database* db = impl_->write_db.get();
+  auto id = ReserveRowIds(db, "annotations");
+  if (!id.ok()) return id.status();
   auto stmt = db->Prepare(
-      "INSERT INTO annotations (map_id, class_name, boxes, author, created_time_s) "
-      "VALUES (?1, ?2, ?3, ?4, ?5)");
+      "INSERT INTO annotations (map_id, class_name, boxes, author, created_time_s, id) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
   if (!stmt.ok()) return stmt.status();
   // Bound without a copy (SQLITE_STATIC): the bytes must outlive the statement's run.
   const std::string boxes = PackBoxes(record.boxes);
@@ -53,6 +55,7 @@ absl::StatusOr<AnnotationRecord> Store::InsertAnnotation(const AnnotationRecord&
       .BindBlob(3, boxes)
       .Bind(4, record.author)
       .Bind(5, record.created_time_s);
+  BindRowId(&*s, 6, *id);
   if (auto st = s->Run(); !st.ok()) {
     if (IsConstraintViolation(st)) {
       return absl::NotFoundError(absl::StrCat("no map with id ", record.map_id));

@@ -348,12 +348,24 @@ absl::Status Renumber(Database* db, bool keep_ids) {
       }
       continue;
     }
-    auto used = QueryIntBound(
-        db,
-        absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM main.", table,
-                     "), 0), COALESCE((SELECT seq FROM main.sqlite_sequence WHERE name = '", table,
-                     "'), 0))"),
-        0);
+    // On a shard: the next ids of its own range (ReserveRowIds), not above a moved map's.
+    auto rows = QueryIntBound(db, absl::StrCat("SELECT COUNT(*) FROM src.", table), 0);
+    if (!rows.ok()) return rows.status();
+    std::optional<int64_t> reserved;
+    if (*rows > 0) {
+      auto first = ReserveRowIds(db, table, *rows);
+      if (!first.ok()) return first.status();
+      reserved = *first;
+    }
+    auto used = reserved ? absl::StatusOr<int64_t>(*reserved - 1)
+                         : QueryIntBound(db,
+                                         absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM "
+                                                      "main.",
+                                                      table,
+                                                      "), 0), COALESCE((SELECT seq FROM "
+                                                      "main.sqlite_sequence WHERE name = '",
+                                                      table, "'), 0))"),
+                                         0);
     if (!used.ok()) return used.status();
     auto fill = db->Prepare(absl::StrCat("INSERT INTO ", map,
                                          " SELECT id, ?1 + ROW_NUMBER() OVER (ORDER BY id) FROM "
@@ -399,7 +411,70 @@ absl::Status Store::RaiseIdFloor(int64_t floor) {
     r->Bind(2, floor);
     if (auto st = r->Run(); !st.ok()) return st;
   }
+  auto keep = db->Prepare(
+      "INSERT INTO settings (key, value) VALUES ('id_floor', ?1) ON CONFLICT(key) DO UPDATE SET "
+      "value = excluded.value WHERE CAST(value AS INTEGER) < CAST(excluded.value AS INTEGER)");
+  if (!keep.ok()) return keep.status();
+  {
+    StatementScope k(*keep);
+    k->Bind(1, std::to_string(floor));
+    if (auto st = k->Run(); !st.ok()) return st;
+  }
   return tx.Commit();
+}
+
+absl::StatusOr<std::optional<int64_t>> ReserveRowIds(Database* db, const char* table,
+                                                     int64_t count) {
+  auto stored = db->Prepare(
+      "SELECT COALESCE((SELECT CAST(value AS INTEGER) FROM settings WHERE key = ?1), 0)");
+  if (!stored.ok()) return stored.status();
+  const auto setting = [&](const std::string& key) -> absl::StatusOr<int64_t> {
+    StatementScope s(*stored);
+    s->Bind(1, key);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    return *row ? s->ColumnInt(0) : 0;
+  };
+  auto base = setting("id_floor");
+  if (!base.ok()) return base.status();
+  if (*base <= 0) return std::optional<int64_t>();
+  const int64_t ceiling = *base + (int64_t{1} << Store::kIdRangeBits);
+  const std::string key = absl::StrCat("ids.", table);
+  auto given = setting(key);
+  if (!given.ok()) return given.status();
+  auto in_range = db->Prepare(
+      absl::StrCat("SELECT COALESCE(MAX(id), 0) FROM main.", table, " WHERE id > ?1 AND id < ?2"));
+  if (!in_range.ok()) return in_range.status();
+  int64_t highest = 0;
+  {
+    StatementScope s(*in_range);
+    s->Bind(1, *base).Bind(2, ceiling);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row) highest = s->ColumnInt(0);
+  }
+  const int64_t first = std::max({*base, *given, highest}) + 1;
+  if (count < 1 || first > ceiling - count) {
+    return absl::ResourceExhaustedError(absl::StrCat(
+        "this shard has given out every id of its range for ", table, " (", *base + 1, " to ",
+        ceiling - 1, "): give it a shard number of its own that no shard has used"));
+  }
+  auto mark = db->Prepare(
+      "INSERT INTO settings (key, value) VALUES (?1, ?2) ON CONFLICT(key) DO UPDATE SET value = "
+      "excluded.value");
+  if (!mark.ok()) return mark.status();
+  StatementScope m(*mark);
+  m->Bind(1, key).Bind(2, std::to_string(first + count - 1));
+  if (auto st = m->Run(); !st.ok()) return st;
+  return std::optional<int64_t>(first);
+}
+
+void BindRowId(Statement* s, int index, const std::optional<int64_t>& id) {
+  if (id) {
+    s->Bind(index, *id);
+  } else {
+    s->BindNull(index);
+  }
 }
 
 absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const std::string& name,

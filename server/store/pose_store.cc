@@ -13,12 +13,15 @@ namespace {
 
 // Inserts `e` on `db` (whose write lock the caller holds); returns its id.
 absl::StatusOr<int64_t> InsertEdgeLocked(Database* db, const PoseEdgeRecord& e) {
+  auto id = ReserveRowIds(db, "pose_edges");
+  if (!id.ok()) return id.status();
   auto stmt = db->Prepare(
       "INSERT INTO pose_edges (map_id, kind, from_keyframe, to_keyframe, tx, ty, tz, qx, qy, qz, "
-      "qw, inliers, reprojection_px, accepted, reason, created_time_s) VALUES (?1, ?2, ?3, ?4, "
-      "?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)");
+      "qw, inliers, reprojection_px, accepted, reason, created_time_s, id) VALUES (?1, ?2, ?3, "
+      "?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17)");
   if (!stmt.ok()) return stmt.status();
   StatementScope s(*stmt);
+  BindRowId(&*s, 17, *id);
   s->Bind(1, e.map_id).Bind(2, static_cast<int64_t>(e.kind));
   s->Bind(3, e.from_keyframe).Bind(4, e.to_keyframe);
   BindPose(&*s, 5, e.T_from_to);
@@ -104,12 +107,15 @@ absl::Status RecordAnchorLocked(Database* db, int64_t visit_id, const VisitAncho
 // on `db` within the caller's transaction.
 absl::Status AppendAnchorHistoryLocked(Database* db, int64_t visit_id, const VisitAnchor& anchor,
                                        const char* action, const std::string& reason) {
+  auto id = ReserveRowIds(db, "anchor_revisions");
+  if (!id.ok()) return id.status();
   auto history = db->Prepare(
       "INSERT INTO anchor_revisions (visit_id, time_s, action, to_visit_id, edge_id, map_tx, "
-      "map_ty, map_tz, map_qx, map_qy, map_qz, map_qw, reason) VALUES (?1, ?2, ?3, ?4, ?5, ?6, "
-      "?7, ?8, ?9, ?10, ?11, ?12, ?13)");
+      "map_ty, map_tz, map_qx, map_qy, map_qz, map_qw, reason, id) VALUES (?1, ?2, ?3, ?4, ?5, "
+      "?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)");
   if (!history.ok()) return history.status();
   StatementScope s(*history);
+  BindRowId(&*s, 14, *id);
   s->Bind(1, visit_id).Bind(2, anchor.anchored_time_s).Bind(3, std::string(action));
   s->Bind(4, anchor.to_visit_id).Bind(5, anchor.edge_id);
   BindPose(&*s, 6, anchor.T_map_visit);
@@ -315,12 +321,16 @@ absl::StatusOr<int64_t> Store::ApplyPoseOptimisation(PoseOptimisationRecord r,
   Transaction tx(db);
   if (auto s = tx.Begin(); !s.ok()) return s;
   {
+    auto id = ReserveRowIds(db, "pose_optimisations");
+    if (!id.ok()) return id.status();
     auto stmt = db->Prepare(
         "INSERT INTO pose_optimisations (map_id, visit_id, created_time_s, keyframes, "
         "odometry_edges, loop_edges, loops_rejected, iterations, initial_cost, final_cost, "
-        "solve_ms, max_correction_m) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12)");
+        "solve_ms, max_correction_m, id) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, "
+        "?12, ?13)");
     if (!stmt.ok()) return stmt.status();
     StatementScope s(*stmt);
+    BindRowId(&*s, 13, *id);
     s->Bind(1, r.map_id).Bind(2, r.visit_id).Bind(3, r.created_time_s);
     s->Bind(4, int64_t{r.keyframes}).Bind(5, int64_t{r.odometry_edges});
     s->Bind(6, int64_t{r.loop_edges}).Bind(7, int64_t{r.loops_rejected});

@@ -1108,12 +1108,15 @@ absl::StatusOr<VisitRecord> Store::StartVisit(const std::string& map_name, const
   Database* db = impl_->write_db.get();
   auto map = impl_->GetMapLocked(db, map_name);
   if (!map.ok()) return map.status();
+  auto id = ReserveRowIds(db, "visits");
+  if (!id.ok()) return id.status();
   auto stmt = db->Prepare(
-      "INSERT INTO visits (map_id, robot, label, start_time_s) VALUES (?1, ?2, ?3, ?4)");
+      "INSERT INTO visits (map_id, robot, label, start_time_s, id) VALUES (?1, ?2, ?3, ?4, ?5)");
   if (!stmt.ok()) return stmt.status();
   {
     StatementScope s(*stmt);
     s->Bind(1, map->id).Bind(2, robot).Bind(3, label).Bind(4, start_time_s);
+    BindRowId(&*s, 5, *id);
     if (auto st = s->Run(); !st.ok()) return st;
   }
   return impl_->GetVisitLocked(db, db->LastInsertRowId());
@@ -1227,8 +1230,9 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
       "INSERT INTO keyframes (visit_id, sequence, timestamp_s, has_pose, tx, ty, tz, qx, qy, qz, "
       "qw, fx, fy, cx, cy, width, height, depth_scale, color_encoding, depth_bytes, color_bytes, "
       "depth_encoding, pose_source, odom_tx, odom_ty, odom_tz, odom_qx, odom_qy, odom_qz, "
-      "odom_qw, odom_segment) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, "
-      "?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, ?31)");
+      "odom_qw, odom_segment, id) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, "
+      "?13, ?14, ?15, ?16, ?17, ?18, ?19, ?20, ?21, ?22, ?23, ?24, ?25, ?26, ?27, ?28, ?29, ?30, "
+      "?31, ?32)");
   if (!insert.ok()) return insert.status();
   auto insert_images =
       db->Prepare("INSERT INTO keyframe_images (keyframe_id, depth, color) VALUES (?1, ?2, ?3)");
@@ -1265,8 +1269,11 @@ absl::Status Store::InsertKeyframes(std::vector<KeyframeRecord>* keyframes,
         continue;
       }
     }
+    auto id = ReserveRowIds(db, "keyframes");
+    if (!id.ok()) return id.status();
     {
       StatementScope s(*insert);
+      BindRowId(&*s, 32, *id);
       s->Bind(1, k.visit_id).Bind(2, static_cast<int64_t>(k.sequence)).Bind(3, k.timestamp_s);
       s->Bind(4, int64_t{k.T_world_camera.has_value()});
       if (k.T_world_camera) {

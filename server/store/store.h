@@ -442,9 +442,11 @@ class Store {
   absl::StatusOr<MapRecord> ReadMapArchive(const std::string& path, const std::string& name,
                                            const MapCreator& creator, bool keep_ids = false,
                                            const std::function<bool()>& cancelled = {});
-  // New ids of visits, keyframes and the other rows an archive renumbers start above `floor`
-  // from now on (a shard's own range, so that maps moved between shards keep their ids).
-  // Lowers nothing.
+  // New ids of visits, keyframes and the other rows an archive renumbers lie in
+  // [floor + 1, floor + 2^kIdRangeBits) from now on, whatever ids maps moved here from other
+  // shards keep (a shard's own range, so that maps moved between shards keep their ids). Kept
+  // in the database; lowers nothing (the highest floor given stands).
+  static constexpr int kIdRangeBits = 40;  // ~10^12 ids per shard
   absl::Status RaiseIdFloor(int64_t floor);
   absl::StatusOr<MapRecord> RenameMap(const std::string& name, const std::string& new_name);
 

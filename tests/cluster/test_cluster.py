@@ -195,7 +195,23 @@ class Cluster:
         if check and p.returncode != 0:
             raise AssertionError(f"maps move {name} --to {to} exited {p.returncode}:\n"
                                  f"{p.stdout}\n{p.stderr}\n{self.logs()}")
+        if p.returncode == 0 and not stop_after:
+            self.wait_routed(name)
         return p
+
+    def wait_routed(self, name, timeout_s=10):
+        """Until nginx's new workers route `name` to where it lives: `nginx -s reload` returns
+        before the old workers, with the old table, stop taking calls (their answer is a true
+        UNAVAILABLE "retry"; the test_11 that followed a move got one)."""
+        deadline = time.time() + timeout_s
+        while True:
+            w = self.cli("maps", "show", name, check=False, timeout=60)
+            if w.returncode == 0 or "older than the placement" not in w.stderr:
+                return
+            if time.time() > deadline:
+                raise AssertionError(f"nginx still routes '{name}' by its old table after "
+                                     f"{timeout_s} s:\n{w.stderr}")
+            time.sleep(0.2)
 
     def move_state(self, name):
         out = run(PG_BIN / "psql", "-At", "-h", "127.0.0.1", "-p", self.pg.port, "-U", "lifemap",

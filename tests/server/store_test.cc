@@ -546,6 +546,75 @@ TEST_F(StoreTest, AMovedMapKeepsItsIdsAndOpenVisitsAboveTheTargetsFloor) {
   EXPECT_TRUE(problems->empty()) << problems->front();
 }
 
+// Issue 52 (the cluster test): a map moved from shard 3 into shard 1 keeps shard 3's ids, above
+// shard 1's range; AUTOINCREMENT went on above them, so shard 1's next visit took an id shard 3
+// then gave out too, and moving that map to shard 1 was refused. New ids stay in the store's
+// own range, are never given out twice (even after their row is deleted), and an import with
+// new ids takes them from the range as well.
+TEST_F(StoreTest, AShardGivesOutIdsOfItsOwnRangeWhateverAMovedMapKeeps) {
+  constexpr int64_t kRange = int64_t{1} << Store::kIdRangeBits;
+  ASSERT_TRUE(store_->RaiseIdFloor(3 * kRange).ok());  // shard 3
+  ASSERT_TRUE(store_->CreateMap("lab", "", 1.0).ok());
+  auto visit = store_->StartVisit("lab", "bot", "", 1.0);
+  ASSERT_TRUE(visit.ok());
+  std::vector<KeyframeRecord> batch;
+  for (int k = 0; k < 3; ++k) batch.push_back(Keyframe(visit->id, 1.0 + k));
+  ASSERT_TRUE(store_->InsertKeyframes(&batch, {}).ok());
+  ASSERT_TRUE(store_->EndVisit(visit->id, 5.0, {visit->id, 3, 0}).ok());
+  const std::string archive = tmp_.File("lab.archive");
+  ASSERT_TRUE(store_->WriteMapArchive("lab", archive).ok());
+
+  auto shard1 = Store::Open(tmp_.File("shard1.db"));
+  ASSERT_TRUE(shard1.ok());
+  ASSERT_TRUE((*shard1)->RaiseIdFloor(kRange).ok());
+  ASSERT_TRUE((*shard1)->ReadMapArchive(archive, "lab", {}, /*keep_ids=*/true).ok());
+  ASSERT_TRUE((*shard1)->CreateMap("hall", "", 1.0).ok());
+  const auto in_range = [&](int64_t id) { return id > kRange && id < 2 * kRange; };
+  auto own = (*shard1)->StartVisit("hall", "", "", 2.0);
+  ASSERT_TRUE(own.ok());
+  EXPECT_TRUE(in_range(own->id)) << own->id << ": not above the moved map's ids";
+  std::vector<KeyframeRecord> more = {Keyframe(own->id, 3.0)};
+  ASSERT_TRUE((*shard1)->InsertKeyframes(&more, {}).ok());
+  EXPECT_TRUE(in_range(more[0].id)) << more[0].id;
+  PoseEdgeRecord edge;
+  edge.map_id = (*shard1)->GetMap("hall")->id;
+  edge.from_keyframe = edge.to_keyframe = more[0].id;
+  auto edge_id = (*shard1)->InsertPoseEdge(edge);
+  ASSERT_TRUE(edge_id.ok()) << edge_id.status();
+  EXPECT_TRUE(in_range(*edge_id)) << *edge_id;
+  // A deleted visit's id is not given out again.
+  ASSERT_TRUE((*shard1)->EndVisit(own->id, 4.0, {own->id, 1, 0}).ok());
+  auto newest = (*shard1)->StartVisit("hall", "", "", 5.0);
+  ASSERT_TRUE(newest.ok());
+  ASSERT_TRUE((*shard1)->EndVisit(newest->id, 6.0, {newest->id, 0, 0}).ok());
+  ASSERT_TRUE((*shard1)->DeleteVisit(newest->id).ok());
+  auto after = (*shard1)->StartVisit("hall", "", "", 7.0);
+  ASSERT_TRUE(after.ok());
+  EXPECT_GT(after->id, newest->id);
+  EXPECT_TRUE(in_range(after->id));
+  // An import with new ids: from shard 1's range too.
+  auto copy = (*shard1)->ReadMapArchive(archive, "lab-copy", {});
+  ASSERT_TRUE(copy.ok()) << copy.status();
+  auto copied = (*shard1)->ListVisits("lab-copy");
+  ASSERT_TRUE(copied.ok()) << copied.status();
+  ASSERT_FALSE(copied->empty());
+  for (const auto& v : *copied) EXPECT_TRUE(in_range(v.id)) << v.id;
+  // Shard 3 goes on in its own range: its next visit moves to shard 1 without a clash.
+  auto later = store_->StartVisit("lab", "bot", "", 8.0);
+  ASSERT_TRUE(later.ok());
+  ASSERT_TRUE(store_->EndVisit(later->id, 9.0, {later->id, 0, 0}).ok());
+  ASSERT_TRUE(store_->CreateMap("Küche", "", 1.0).ok());
+  auto kitchen = store_->StartVisit("Küche", "", "", 1.0);
+  ASSERT_TRUE(kitchen.ok());
+  ASSERT_TRUE(store_->EndVisit(kitchen->id, 2.0, {kitchen->id, 0, 0}).ok());
+  ASSERT_TRUE(store_->WriteMapArchive("Küche", tmp_.File("k.archive")).ok());
+  auto moved = (*shard1)->ReadMapArchive(tmp_.File("k.archive"), "Küche", {}, true);
+  EXPECT_TRUE(moved.ok()) << moved.status();
+  auto problems = (*shard1)->CheckIntegrity();
+  ASSERT_TRUE(problems.ok());
+  EXPECT_TRUE(problems->empty()) << problems->front();
+}
+
 // Issue 37: an import killed at any moment leaves the map whole or absent.
 TEST_F(StoreTest, AKillDuringAMapImportLeavesItWholeOrAbsent) {
   ASSERT_TRUE(store_->CreateMap("big", "", 1.0).ok());
