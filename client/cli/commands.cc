@@ -84,7 +84,7 @@ void PrintMap(const v1::Map& m) {
   for (const auto& why : m.left_out()) std::cout << "left out of the map's frame: " << why << "\n";
 }
 
-const char* OutputName(v1::FrameOutput o) {
+std::string OutputName(v1::FrameOutput o) {
   switch (o) {
     case v1::FRAME_OUTPUT_POSE:
       return "pose";
@@ -98,8 +98,11 @@ const char* OutputName(v1::FrameOutput o) {
       return "place matches";
     case v1::FRAME_OUTPUT_SEMANTIC_FUSION:
       return "semantic fusion";
+    case v1::FRAME_OUTPUT_MOVED_ZONES:
+      return "moved zones";
     default:
-      return "?";
+      // An output of a newer server: its API name rather than "?".
+      return v1::FrameOutput_IsValid(o) ? v1::FrameOutput_Name(o) : std::to_string(o);
   }
 }
 

@@ -23,6 +23,7 @@
 #include "core/forest/labeled_data.h"
 #include "core/io/labeled_pcd.h"
 #include "core/semantic/semantic_map.h"
+#include "core/sim/world.h"
 
 namespace lifemap::cli {
 namespace {
@@ -497,8 +498,9 @@ void AddForestCommands(CLI::App* app, CLI::App* eval, CliContext* ctx) {
   train->add_option("--seed", t->seed, "seed");
   train
       ->add_option("--sim-classes", t->sim_classes,
-                   "synthetic visits: 'grouped' (structure, furniture, prop, person; default) or "
-                   "'all' 18 classes")
+                   absl::StrCat("synthetic visits: 'grouped' (structure, furniture, prop, "
+                                "person; default) or 'all' ",
+                                sim::kClassCount - 1, " classes (every class of `lifemap sim`)"))
       ->check(CLI::IsMember({"grouped", "all"}));
   train->callback([ctx, t] { ctx->run = [ctx, t] { return RunTrain(*ctx, *t); }; });
 

@@ -45,8 +45,7 @@ void AddModelCommands(CLI::App* app, CliContext* ctx) {
           [](const v1::ModelInfo& m) {
             std::cout << "uploaded ";
             PrintModel(m);
-            std::cout << "activate it with: lifemap models activate " << m.name()
-                      << " [--map MAP]\n";
+            std::cout << "activate it with: lifemap models activate " << m.name() << " [MAP]\n";
           });
     };
   });
