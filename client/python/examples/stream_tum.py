@@ -46,6 +46,10 @@ def main():
             masks.append(result.entropy_mask)
             if result.labels is not None:
                 labels.append(result.labels)
+            visit = result.visit_id
+        if masks:
+            client.end_visit(visit)  # the recording is over: its visit ends
+            print(f"visit {visit} ended")
         if args.out:
             np.savez_compressed(args.out, entropy_masks=np.array(masks),
                                 labels=np.array(labels))

@@ -469,17 +469,32 @@ class Client:
                 pose: Optional[PoseTuple] = None, *, timestamp_s: Optional[float] = None,
                 sequence: int = 0, visit_id: int = 0,
                 options: Optional[frame_pb.FrameOptions] = None) -> FrameResult:
-        """One frame, answered at once. With map_name it may become a keyframe of the map's
-        open visit (visit_id 0: the most recent, created if none); map_name None stores
-        nothing. A rejected frame raises lifemap.Error (INVALID_ARGUMENT, saying why)."""
-        request = frame_pb.ProcessFrameRequest(
-            map=map_name or "", visit_id=visit_id,
-            frame=_frame_message(color, depth, intrinsics, depth_scale, pose,
-                                 timestamp_s if timestamp_s is not None else time.time(),
-                                 sequence),
-            options=self._options(options))
-        result = FrameResult(self._call(self.frames_stub.ProcessFrame, request, map_name or ""),
-                             visit_id)
+        """One frame, answered at once. With map_name it may become a keyframe: of the open
+        visit `visit_id` names, or else of a visit of its own, started for it and ended once it
+        is answered (as `lifemap process` does: a frame never joins a visit unasked, such as
+        one a stream left open, whose time gap would refuse it); map_name None stores nothing.
+        A rejected frame raises lifemap.Error (INVALID_ARGUMENT, saying why)."""
+        frame = _frame_message(color, depth, intrinsics, depth_scale, pose,
+                               timestamp_s if timestamp_s is not None else time.time(), sequence)
+        own_visit = 0
+        if map_name and not visit_id:
+            own_visit = self._call(self.visits_stub.StartVisit,
+                                   visit_pb.StartVisitRequest(map=map_name), map_name).id
+            self._remember(own_visit, map_name)
+        request = frame_pb.ProcessFrameRequest(map=map_name or "", visit_id=visit_id or own_visit,
+                                               frame=frame, options=self._options(options))
+        try:
+            result = FrameResult(self._call(self.frames_stub.ProcessFrame, request,
+                                            map_name or ""), visit_id or own_visit)
+        except BaseException:
+            if own_visit:
+                try:
+                    self.end_visit(own_visit)
+                except Error:
+                    pass  # the call's own error is the one to raise
+            raise
+        if own_visit:
+            self.end_visit(own_visit)
         if result.error is not None:
             raise result.error
         return result

@@ -102,6 +102,19 @@ class ClientTest(unittest.TestCase):
             self.assertEqual((keyframe.summary.intrinsics.width, keyframe.depth.height), (160, 120))
             # Nothing stored without a map.
             self.assertIsNone(client.process(None, color, depth, intrinsics).keyframe_id)
+            # Issue 53: a frame never joins a visit unasked. A stream leaves its visit open;
+            # a frame processed hours later gets a visit of its own (it used to join the open
+            # one and be refused for the time gap), ended once answered.
+            streamed = list(client.stream("lab", [(color, depth, (0, 0, 0, 0, 0, 0, 1), 1000.0)],
+                                          intrinsics=intrinsics))
+            left_open = streamed[0].visit_id
+            later = client.process("lab", color, depth, intrinsics, pose=(0, 0, 0, 0, 0, 0, 1),
+                                   timestamp_s=1000.0 + 6 * 3600)
+            self.assertNotEqual(left_open, later.visit_id)
+            visits = {v.id: v for v in client.visits("lab")}
+            self.assertTrue(visits[later.visit_id].ended)
+            self.assertFalse(visits[left_open].ended, "the stream's visit is left as it was")
+            client.end_visit(left_open)
 
     def test_map_names_in_any_script(self):
         """Issue 52: 'Büro 3' raised "metadata was invalid" (a header must be ASCII)."""
