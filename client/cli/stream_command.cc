@@ -32,6 +32,7 @@ struct StreamArgs {
   double rate_hz = -1.0;  // < 0: the recording's own timing; 0: as fast as the server takes
   bool use_groundtruth = false;
   bool send_odometry = false;  // --odometry wheel: Frame.odometry from odometry.txt
+  bool send_gravity = false;   // --gravity accelerometer: Frame.gravity from accelerometer.txt
   std::string visit_label;
   std::string robot;
   uint64_t visit_id = 0;
@@ -182,6 +183,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
   std::mutex sent_mu;
   std::map<uint64_t, Clock::time_point> sent_at;
   std::atomic<size_t> sent{0};
+  std::atomic<size_t> sent_with_gravity{0};
   std::string send_error;
   const auto t0 = Clock::now();
   size_t answered_upto = 0;  // frames [0, answered_upto) have their results (they come in order)
@@ -215,6 +217,13 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
       }
       if (a.send_odometry && e.T_odom_camera) {
         *frame->mutable_odometry()->mutable_pose() = PoseProto(*e.T_odom_camera);
+      }
+      if (a.send_gravity && e.gravity_camera) {
+        auto* g = frame->mutable_gravity();
+        g->set_x(e.gravity_camera->x());
+        g->set_y(e.gravity_camera->y());
+        g->set_z(e.gravity_camera->z());
+        sent_with_gravity.fetch_add(1);
       }
       {
         std::lock_guard<std::mutex> lock(sent_mu);
@@ -385,6 +394,7 @@ int RunStream(const CliContext& ctx, const StreamArgs& a) {
         {"pairs_found", seq->frames.size()},
         {"files_missing", seq->listed_but_missing},
         {"frames_sent", sent.load()},
+        {"frames_with_gravity", sent_with_gravity.load()},
         {"results", results},
         {"frames_rejected", rejected},
         {"keyframes_stored", keyframe_ids.size()},
@@ -470,6 +480,7 @@ void AddStreamCommand(CLI::App* app, CliContext* ctx) {
   stream->add_option("--associations", a->associations,
                      "file of 't_rgb rgb t_depth depth' pairs (default: pair rgb.txt/depth.txt)");
   AddOdometryOption(stream, &a->send_odometry);
+  AddGravityOption(stream, &a->send_gravity);
   stream->add_flag("--create-map", a->create_map, "create the map if it does not exist");
   stream->add_flag("--end-visit", a->end_visit,
                    "end the visit once the recording is sent (else it stays open to resume)");

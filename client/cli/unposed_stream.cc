@@ -52,11 +52,16 @@ std::string MethodName(v1::TrackingMethod m) {
 }  // namespace
 
 void AddGravityOption(CLI::App* cmd, bool* send_gravity) {
+  const std::string accelerometer =
+      "accelerometer (each frame's Frame.gravity from the recording's accelerometer.txt, where "
+      "it has one)";
   cmd->add_option_function<std::string>(
          "--gravity",
          [send_gravity](const std::string& how) { *send_gravity = how == "accelerometer"; },
-         "accelerometer (default: each frame's Frame.gravity from the recording's "
-         "accelerometer.txt, where it has one) or none")
+         *send_gravity ? accelerometer + ", the default, or none"
+                       : accelerometer +
+                             " or none "
+                             "(the default)")
       ->check(CLI::IsMember({"accelerometer", "none"}));
 }
 

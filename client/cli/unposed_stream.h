@@ -60,8 +60,8 @@ struct UnposedStreamOptions {
   uint64_t moved_against_visit = 0;
 };
 
-// Adds `--gravity accelerometer|none` to an evaluation command, setting `*send_gravity`
-// (UnposedStreamOptions::send_gravity).
+// Adds `--gravity accelerometer|none` to a command, setting `*send_gravity`
+// (UnposedStreamOptions::send_gravity); its value when called is the default the help names.
 void AddGravityOption(CLI::App* cmd, bool* send_gravity);
 // Adds `--odometry wheel|none` (UnposedStreamOptions::send_odometry; default none).
 void AddOdometryOption(CLI::App* cmd, bool* send_odometry);

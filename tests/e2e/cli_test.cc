@@ -1226,12 +1226,19 @@ TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) 
       most = std::max(most, f["moved"].value("moved_share", 0.0));
     }
     EXPECT_GT(compared, 20) << "all but the first frames, while the visit loads";
+    EXPECT_EQ(json::parse(Lines(r.out).back())["summary"]["frames_with_gravity"], 0) << r.out;
     if (std::string(against) == "0") {
       EXPECT_LT(most, 0.02) << "the same arrangement as visit 2";
     } else {
       EXPECT_GT(most, 0.02) << "the props that arrived since visit 1";
     }
   }
+  // Issue 53: `stream --gravity accelerometer` sends the recording's accelerometer as
+  // Frame.gravity, as the eval commands do by default (sim writes accelerometer.txt).
+  r = Run({"--json", "stream", "home", "--tum", tmp_.File("home/visit_01"), "--use-groundtruth",
+           "--rate", "0", "--end-visit", "--max-frames", "5", "--gravity", "accelerometer"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(json::parse(Lines(r.out).back())["summary"]["frames_with_gravity"], 5) << r.out;
   r = Run({"--json", "stream", "home", "--tum", tmp_.File("home/visit_01"), "--use-groundtruth",
            "--rate", "10", "--end-visit", "--max-frames", "10", "--moved-against", "99"});
   ASSERT_EQ(r.code, 0) << r.err;
