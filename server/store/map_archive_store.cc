@@ -310,6 +310,54 @@ absl::Status CheckReferencesResolve(Database* archive) {
   return absl::OkStatus();
 }
 
+// A store's own id range on a shard of a cluster (Store::RaiseIdFloor): ids in (floor, ceiling).
+struct OwnIds {
+  int64_t floor = 0;
+  int64_t ceiling = 0;
+};
+
+// nullopt when the store has no floor (not a shard).
+absl::StatusOr<std::optional<OwnIds>> OwnIdRange(Database* db) {
+  auto floor = IntSetting(db, "id_floor");
+  if (!floor.ok()) return floor.status();
+  if (*floor <= 0) return std::optional<OwnIds>();
+  return std::optional<OwnIds>(OwnIds{*floor, *floor + (int64_t{1} << Store::kIdRangeBits)});
+}
+
+// The largest id of `table` the store has given out in its own range (kept in settings as
+// "ids.<table>", so that none is given out again after its row is deleted).
+std::string GivenOutKey(const char* table) { return absl::StrCat("ids.", table); }
+
+absl::Status SetGivenOut(Database* db, const char* table, int64_t last) {
+  auto mark = db->Prepare(
+      "INSERT INTO settings (key, value) VALUES (?1, ?2) ON CONFLICT(key) DO UPDATE SET value = "
+      "excluded.value WHERE CAST(value AS INTEGER) < CAST(excluded.value AS INTEGER)");
+  if (!mark.ok()) return mark.status();
+  StatementScope m(*mark);
+  m->Bind(1, GivenOutKey(table)).Bind(2, std::to_string(last));
+  return m->Run();
+}
+
+// Ids an archive keeps inside this store's own range (a map moving back to the shard that gave
+// them out) count as given out: deleted later, they are not given out again.
+absl::Status NoteKeptIds(Database* db, const char* table) {
+  auto own = OwnIdRange(db);
+  if (!own.ok()) return own.status();
+  if (!*own) return absl::OkStatus();
+  auto stmt = db->Prepare(
+      absl::StrCat("SELECT COALESCE(MAX(id), 0) FROM src.", table, " WHERE id > ?1 AND id < ?2"));
+  if (!stmt.ok()) return stmt.status();
+  int64_t kept = 0;
+  {
+    StatementScope s(*stmt);
+    s->Bind(1, (*own)->floor).Bind(2, (*own)->ceiling);
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (*row) kept = s->ColumnInt(0);
+  }
+  return kept > 0 ? SetGivenOut(db, table, kept) : absl::OkStatus();
+}
+
 // Fills temp.renumber_<table> for every renumbered table: kept ids map to themselves (after
 // checking they are in range and free here), others to the next ids above every id the store
 // has used (sqlite_sequence keeps deleted ones' too), in the archive's order.
@@ -346,26 +394,25 @@ absl::Status Renumber(Database* db, bool keep_ids) {
           !s.ok()) {
         return s;
       }
+      if (auto s = NoteKeptIds(db, table); !s.ok()) return s;
       continue;
     }
-    // On a shard: the next ids of its own range (ReserveRowIds), not above a moved map's.
+    // On a shard: the next ids of its own range (ReserveRowIds), not above a moved map's; else
+    // above every id the store has used.
     auto rows = QueryIntBound(db, absl::StrCat("SELECT COUNT(*) FROM src.", table), 0);
     if (!rows.ok()) return rows.status();
-    std::optional<int64_t> reserved;
-    if (*rows > 0) {
-      auto first = ReserveRowIds(db, table, *rows);
-      if (!first.ok()) return first.status();
-      reserved = *first;
-    }
-    auto used = reserved ? absl::StatusOr<int64_t>(*reserved - 1)
-                         : QueryIntBound(db,
-                                         absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM "
-                                                      "main.",
-                                                      table,
-                                                      "), 0), COALESCE((SELECT seq FROM "
-                                                      "main.sqlite_sequence WHERE name = '",
-                                                      table, "'), 0))"),
-                                         0);
+    if (*rows == 0) continue;
+    auto reserved = ReserveRowIds(db, table, *rows);
+    if (!reserved.ok()) return reserved.status();
+    auto used = *reserved ? absl::StatusOr<int64_t>(**reserved - 1)
+                          : QueryIntBound(db,
+                                          absl::StrCat("SELECT MAX(COALESCE((SELECT MAX(id) FROM "
+                                                       "main.",
+                                                       table,
+                                                       "), 0), COALESCE((SELECT seq FROM "
+                                                       "main.sqlite_sequence WHERE name = '",
+                                                       table, "'), 0))"),
+                                          0);
     if (!used.ok()) return used.status();
     auto fill = db->Prepare(absl::StrCat("INSERT INTO ", map,
                                          " SELECT id, ?1 + ROW_NUMBER() OVER (ORDER BY id) FROM "
@@ -425,47 +472,31 @@ absl::Status Store::RaiseIdFloor(int64_t floor) {
 
 absl::StatusOr<std::optional<int64_t>> ReserveRowIds(Database* db, const char* table,
                                                      int64_t count) {
-  auto stored = db->Prepare(
-      "SELECT COALESCE((SELECT CAST(value AS INTEGER) FROM settings WHERE key = ?1), 0)");
-  if (!stored.ok()) return stored.status();
-  const auto setting = [&](const std::string& key) -> absl::StatusOr<int64_t> {
-    StatementScope s(*stored);
-    s->Bind(1, key);
-    auto row = s->Step();
-    if (!row.ok()) return row.status();
-    return *row ? s->ColumnInt(0) : 0;
-  };
-  auto base = setting("id_floor");
-  if (!base.ok()) return base.status();
-  if (*base <= 0) return std::optional<int64_t>();
-  const int64_t ceiling = *base + (int64_t{1} << Store::kIdRangeBits);
-  const std::string key = absl::StrCat("ids.", table);
-  auto given = setting(key);
+  auto own = OwnIdRange(db);
+  if (!own.ok()) return own.status();
+  if (!*own) return std::optional<int64_t>();
+  const OwnIds range = **own;
+  auto given = IntSetting(db, GivenOutKey(table));
   if (!given.ok()) return given.status();
+  // Rows of the range the settings do not know of (written before the range was kept there).
   auto in_range = db->Prepare(
       absl::StrCat("SELECT COALESCE(MAX(id), 0) FROM main.", table, " WHERE id > ?1 AND id < ?2"));
   if (!in_range.ok()) return in_range.status();
   int64_t highest = 0;
   {
     StatementScope s(*in_range);
-    s->Bind(1, *base).Bind(2, ceiling);
+    s->Bind(1, range.floor).Bind(2, range.ceiling);
     auto row = s->Step();
     if (!row.ok()) return row.status();
     if (*row) highest = s->ColumnInt(0);
   }
-  const int64_t first = std::max({*base, *given, highest}) + 1;
-  if (count < 1 || first > ceiling - count) {
+  const int64_t first = std::max({range.floor, *given, highest}) + 1;
+  if (count < 1 || first > range.ceiling - count) {
     return absl::ResourceExhaustedError(absl::StrCat(
-        "this shard has given out every id of its range for ", table, " (", *base + 1, " to ",
-        ceiling - 1, "): give it a shard number of its own that no shard has used"));
+        "this shard has given out every id of its range for ", table, " (", range.floor + 1, " to ",
+        range.ceiling - 1, "): give it a shard number of its own that no shard has used"));
   }
-  auto mark = db->Prepare(
-      "INSERT INTO settings (key, value) VALUES (?1, ?2) ON CONFLICT(key) DO UPDATE SET value = "
-      "excluded.value");
-  if (!mark.ok()) return mark.status();
-  StatementScope m(*mark);
-  m->Bind(1, key).Bind(2, std::to_string(first + count - 1));
-  if (auto st = m->Run(); !st.ok()) return st;
+  if (auto s = SetGivenOut(db, table, first + count - 1); !s.ok()) return s;
   return std::optional<int64_t>(first);
 }
 

@@ -46,15 +46,7 @@ ModelRecord ReadModel(const Statement& s) {
   return m;
 }
 
-absl::StatusOr<int64_t> DefaultModelId(Database* db) {
-  auto stmt = db->Prepare("SELECT CAST(value AS INTEGER) FROM settings WHERE key = ?1");
-  if (!stmt.ok()) return stmt.status();
-  StatementScope s(*stmt);
-  s->Bind(1, std::string_view(kDefaultModelKey));
-  auto row = s->Step();
-  if (!row.ok()) return row.status();
-  return *row ? s->ColumnInt(0) : 0;
-}
+absl::StatusOr<int64_t> DefaultModelId(Database* db) { return IntSetting(db, kDefaultModelKey); }
 
 // Fills is_default and active_maps.
 absl::Status AddActivations(Database* db, ModelRecord* m) {

@@ -545,6 +545,16 @@ std::string EncodeKeypoints(const std::vector<features::Keypoint>& keypoints) {
 
 }  // namespace
 
+absl::StatusOr<int64_t> IntSetting(Database* db, std::string_view key) {
+  auto stmt = db->Prepare("SELECT CAST(value AS INTEGER) FROM settings WHERE key = ?1");
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  s->Bind(1, key);
+  auto row = s->Step();
+  if (!row.ok()) return row.status();
+  return *row ? s->ColumnInt(0) : 0;
+}
+
 void BindPose(Statement* s, int first, const Pose& p) {
   s->Bind(first, p.translation.x()).Bind(first + 1, p.translation.y());
   s->Bind(first + 2, p.translation.z());

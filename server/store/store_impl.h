@@ -31,6 +31,9 @@ struct Store::Impl {
 // transaction (foreign keys must be off); `path` names the file in errors.
 absl::Status MigrateSchema(Database* db, int64_t from, const std::string& path);
 
+// The integer value of the `settings` row `key` (0 when there is none).
+absl::StatusOr<int64_t> IntSetting(Database* db, std::string_view key);
+
 // Ids of the tables a map archive renumbers (visits, keyframes, pose_edges, pose_optimisations,
 // anchor_revisions, annotations) on a shard of a cluster (Store::RaiseIdFloor): `count` new
 // ids in the store's own range [floor + 1, floor + 2^kIdRangeBits), above every id it has given

@@ -610,6 +610,17 @@ TEST_F(StoreTest, AShardGivesOutIdsOfItsOwnRangeWhateverAMovedMapKeeps) {
   ASSERT_TRUE(store_->WriteMapArchive("Küche", tmp_.File("k.archive")).ok());
   auto moved = (*shard1)->ReadMapArchive(tmp_.File("k.archive"), "Küche", {}, true);
   EXPECT_TRUE(moved.ok()) << moved.status();
+  // A map moving back to the shard that gave out its ids (a rebuilt shard 3 here): once it is
+  // deleted there, its ids are not given out again.
+  auto home = Store::Open(tmp_.File("home3.db"));
+  ASSERT_TRUE(home.ok());
+  ASSERT_TRUE((*home)->RaiseIdFloor(3 * kRange).ok());
+  ASSERT_TRUE((*home)->ReadMapArchive(archive, "lab", {}, /*keep_ids=*/true).ok());
+  ASSERT_TRUE((*home)->DeleteMap("lab").ok());
+  ASSERT_TRUE((*home)->CreateMap("again", "", 1.0).ok());
+  auto fresh = (*home)->StartVisit("again", "", "", 1.0);
+  ASSERT_TRUE(fresh.ok());
+  EXPECT_GT(fresh->id, visit->id) << "the moved map's visit id is not given out again";
   auto problems = (*shard1)->CheckIntegrity();
   ASSERT_TRUE(problems.ok());
   EXPECT_TRUE(problems->empty()) << problems->front();
