@@ -15,6 +15,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/cli/change_truth.h"
 #include "client/cli/commands.h"
 #include "client/cli/study.h"
 #include "client/cli/unposed_stream.h"
@@ -33,9 +34,7 @@ struct ChangesEvalArgs {
   bool compact = false;
   bool truth_poses = true;  // --poses truth|server
   bool keep_maps = false;
-  double min_size_m = 0.2;     // props this large (largest side) count for recall
-  double tolerance_m = 0.3;    // a report this close (ground plane) to a true change matches it
-  int min_seen_pixels = 2000;  // a prop seen in fewer pixels over a visit is not observable
+  ChangeScoring scoring;
   bool masks = true;           // --masks: score each frame's moved mask too
   bool send_odometry = false;  // --odometry wheel|none (with --poses server)
 };
@@ -44,31 +43,13 @@ struct ChangesEvalArgs {
 const char* const kKinds[] = {"appeared",    "vanished", "moved",    "door_opened",
                               "door_closed", "wall_new", "wall_gone"};
 
-// One change of the place, as scene.json records it.
-struct TrueChange {
-  std::string kind, detail;
-  int instance = 0;
-  Eigen::Vector2d at{0, 0};    // where it is (appeared, moved) or was (vanished); doors: centre
-  Eigen::Vector2d from{0, 0};  // moved: where it was
-  double size_m = 0;           // largest side (doors: their width)
-  bool counted = false;        // large enough and seen: counts for recall
-  bool found = false;
-};
-
-struct Reported {
-  std::string kind, class_name;
-  Eigen::Vector2d at{0, 0}, from{0, 0};
-  double size_m = 0;
-  std::string matched;  // "" or the true change's "kind instance"
-};
-
 struct Trial {
   std::string not_compared;  // why GetChanges could not compare (a visit not anchored)
   std::string path, conditions;
   int subset = 0;
   uint64_t visit = 0;
   std::vector<TrueChange> truth;
-  std::vector<Reported> reported;
+  std::vector<ReportedChange> reported;
   double seconds = 0;
   // The per-frame moved masks against the reference (FrameResult.moved), in pixels of the
   // frames compared: marked and truly arrived, marked elsewhere, arrived and not marked.
@@ -86,21 +67,6 @@ struct Trial {
     return n;
   }
 };
-
-// A GetChanges report on the ground plane of the world, whose frame is T_world_map * the map's.
-Reported ReportOf(const v1::ObjectChange& c, const Eigen::Isometry3d& T_world_map) {
-  auto to_world = [&](const v1::Vector3& p) {
-    const Eigen::Vector3d w = T_world_map * Eigen::Vector3d(p.x(), p.y(), p.z());
-    return Eigen::Vector2d(w.x(), w.y());
-  };
-  Reported rep;
-  rep.kind = c.kind();
-  rep.class_name = c.class_name();
-  rep.at = to_world(c.center());
-  rep.from = to_world(c.from_center());
-  rep.size_m = std::max({c.extent().x(), c.extent().y(), c.extent().z()});
-  return rep;
-}
 
 // Scores each frame's moved mask against the world's truth: a pixel truly arrived where the
 // truth marks it changed (moved/) and the frame's surface is nearer than the reference's there
@@ -135,137 +101,6 @@ void ScoreMasks(const io::TumSequence& seq, const StreamedVisit& streamed, doubl
         t->mask_fp += marked && !arrived;
         t->mask_fn += !marked && arrived;
       }
-    }
-  }
-}
-
-absl::StatusOr<json> ReadJson(const fs::path& path) {
-  std::ifstream in(path);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path.string()));
-  json j = json::parse(in, nullptr, false);
-  if (j.is_discarded())
-    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": not JSON"));
-  return j;
-}
-
-// Pixels per instance id over every frame of a visit (labels/instance/*.png).
-std::map<int, int64_t> SeenPixels(const fs::path& visit) {
-  std::map<int, int64_t> out;
-  std::error_code ec;
-  for (const auto& e : fs::directory_iterator(visit / "labels" / "instance", ec)) {
-    const cv::Mat ids = cv::imread(e.path().string(), cv::IMREAD_UNCHANGED);
-    if (ids.type() != CV_16UC1) continue;
-    for (int r = 0; r < ids.rows; ++r) {
-      const uint16_t* p = ids.ptr<uint16_t>(r);
-      for (int c = 0; c < ids.cols; ++c) {
-        if (p[c] != 0) ++out[p[c]];
-      }
-    }
-  }
-  return out;
-}
-
-// Where a door of a scene's floor plan is: the middle of its gap on its wall.
-std::optional<Eigen::Vector2d> DoorCentre(const json& plan, const json& opening) {
-  for (const auto& room : plan.at("rooms")) {
-    if (room.at("room").get<int>() != opening.at("room").get<int>()) continue;
-    for (const auto& w : room.at("walls")) {
-      if (w.at("index").get<int>() != opening.at("wall").get<int>()) continue;
-      const Eigen::Vector2d a(w.at("start")[0].get<double>(), w.at("start")[1].get<double>());
-      const Eigen::Vector2d b(w.at("end")[0].get<double>(), w.at("end")[1].get<double>());
-      const double along =
-          opening.at("offset_m").get<double>() + 0.5 * opening.at("width_m").get<double>();
-      return a + (b - a).normalized() * along;
-    }
-  }
-  return std::nullopt;
-}
-
-// The true changes between a query visit and its place's reference.
-absl::StatusOr<std::vector<TrueChange>> TrueChanges(const fs::path& reference,
-                                                    const fs::path& query,
-                                                    const ChangesEvalArgs& a) {
-  auto ref = ReadJson(reference / "scene.json");
-  if (!ref.ok()) return ref.status();
-  auto q = ReadJson(query / "scene.json");
-  if (!q.ok()) return q.status();
-  std::map<int, json> before, after;
-  for (const auto& o : ref->at("objects")) before[o.at("instance").get<int>()] = o;
-  for (const auto& o : q->at("objects")) after[o.at("instance").get<int>()] = o;
-  std::map<int, int64_t> seen_before, seen_after;
-  std::vector<TrueChange> out;
-  auto centre = [](const json& o) {
-    return Eigen::Vector2d(o.at("center")[0].get<double>(), o.at("center")[1].get<double>());
-  };
-  auto largest = [](const json& o) {
-    const auto& s = o.at("size_m");
-    return std::max({s[0].get<double>(), s[1].get<double>(), s[2].get<double>()});
-  };
-  bool doors = false;
-  for (const auto& c : q->at("changes")) {
-    TrueChange t;
-    t.kind = c.at("kind").get<std::string>();
-    t.detail = c.at("detail").get<std::string>();
-    t.instance = c.at("instance").get<int>();
-    if (t.kind == "door_opened" || t.kind == "door_closed") {
-      doors = true;
-      continue;  // located below, from the two floor plans
-    }
-    if (t.kind != "appeared" && t.kind != "vanished" && t.kind != "moved") continue;
-    if (seen_before.empty()) seen_before = SeenPixels(reference);
-    if (seen_after.empty()) seen_after = SeenPixels(query);
-    const bool was = before.count(t.instance) != 0, is = after.count(t.instance) != 0;
-    const json& o = is ? after[t.instance] : before[t.instance];
-    if (!was && !is) continue;
-    t.size_m = largest(o);
-    t.at = centre(o);
-    t.from = was ? centre(before[t.instance]) : t.at;
-    if (t.kind == "vanished") t.at = t.from;
-    const bool seen_then = seen_before[t.instance] >= a.min_seen_pixels;
-    const bool seen_now = seen_after[t.instance] >= a.min_seen_pixels;
-    const bool seen = t.kind == "appeared"   ? seen_now
-                      : t.kind == "vanished" ? seen_then
-                                             : seen_then && seen_now;
-    t.counted = seen && t.size_m >= a.min_size_m;
-    out.push_back(t);
-  }
-  if (doors) {
-    const auto& ro = ref->at("floor_plan").at("openings");
-    const auto& qo = q->at("floor_plan").at("openings");
-    for (size_t i = 0; i < std::min(ro.size(), qo.size()); ++i) {
-      if (qo[i].at("type").get<std::string>() != "door") continue;
-      const bool was_open = ro[i].at("open").get<bool>(), is_open = qo[i].at("open").get<bool>();
-      if (was_open == is_open) continue;
-      auto at = DoorCentre(q->at("floor_plan"), qo[i]);
-      if (!at) continue;
-      TrueChange t;
-      t.kind = is_open ? "door_opened" : "door_closed";
-      t.detail = qo[i].at("connects").get<bool>() ? "door to the next room" : "outer door";
-      t.at = t.from = *at;
-      t.size_m = qo[i].at("width_m").get<double>();
-      t.counted = true;
-      out.push_back(t);
-    }
-  }
-  return out;
-}
-
-// Each report matches the nearest unmatched true change of its kind within the tolerance (a
-// move by where it is now or where it was).
-void Match(Trial* t, const ChangesEvalArgs& a) {
-  for (auto& r : t->reported) {
-    TrueChange* best = nullptr;
-    double best_d = 1e9;
-    for (auto& c : t->truth) {
-      if (c.found || c.kind != r.kind) continue;
-      const double tol = std::max(a.tolerance_m, 0.5 * c.size_m);
-      double d = (c.at - r.at).norm();
-      if (r.kind == "moved") d = std::min(d, (c.from - r.from).norm());
-      if (d <= tol && d < best_d) best = &c, best_d = d;
-    }
-    if (best != nullptr) {
-      best->found = true;
-      r.matched = absl::StrCat(best->kind, " ", best->instance);
     }
   }
 }
@@ -376,7 +211,7 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       t.path = v.path;
       t.conditions = v.conditions;
       t.subset = v.subset;
-      auto truth = TrueChanges(root / ref_path, root / v.path, a);
+      auto truth = TrueChanges(root / ref_path, root / v.path, a.scoring);
       if (!truth.ok()) return Fail(truth.status());
       t.truth = *std::move(truth);
       auto seq = io::ReadTumSequence((root / v.path).string());
@@ -401,7 +236,7 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       if (!r.ok()) return Fail(r.status());
       t.seconds = r->seconds();
       for (const auto& c : r->changes()) t.reported.push_back(ReportOf(c, T_world_map));
-      Match(&t, a);
+      MatchReports(&t.reported, &t.truth, a.scoring.tolerance_m);
       if (!ctx.json) {
         const Trial::Tally n = t.Count();
         std::cerr << absl::StrFormat(
@@ -446,8 +281,8 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
   summary["poses"] = a.truth_poses ? "truth" : "server";
   summary["odometry"] = a.send_odometry ? "wheel" : "none";
   summary["not_compared"] = not_compared;
-  summary["min_size_m"] = a.min_size_m;
-  summary["tolerance_m"] = a.tolerance_m;
+  summary["min_size_m"] = a.scoring.min_size_m;
+  summary["tolerance_m"] = a.scoring.tolerance_m;
   summary["false_changes"] = json::object();
   summary["subsets"] = json::object();
   for (const auto& [name, s] : by_subset) {
@@ -463,8 +298,8 @@ int RunChangesEval(const CliContext& ctx, const ChangesEvalArgs& a) {
       "report within %.2f m (or half the prop's size) of a true change of its kind is right.\n\n"
       "| kind | reported | right | precision | true | found | recall "
       "|\n|---|---|---|---|---|---|---|\n",
-      a.suite, a.truth_poses ? "the ground truth's" : "the server's own", a.min_size_m,
-      a.min_seen_pixels, a.tolerance_m);
+      a.suite, a.truth_poses ? "the ground truth's" : "the server's own", a.scoring.min_size_m,
+      a.scoring.min_seen_pixels, a.scoring.tolerance_m);
   const json counts = summary["counts"];
   for (const char* k : kKinds) {
     const auto& c = counts[k];
@@ -509,7 +344,7 @@ struct RetentionEvalArgs {
   bool keep_map = false;
   bool compact = false;
   double right_m = 0.5, right_deg = 15.0;  // an appearance match this near the truth is right
-  ChangesEvalArgs scoring;                 // what counts as a change found
+  ChangeScoring scoring;                   // what counts as a change found
 };
 
 // Percentile `q` in [0, 1] of `v` (sorted here); 0 for none.
@@ -606,7 +441,7 @@ int RunRetentionEval(const CliContext& ctx, const RetentionEvalArgs& a) {
       for (const auto& c : r->changes()) {
         t.reported.push_back(ReportOf(c, Eigen::Isometry3d::Identity()));  // truth poses
       }
-      Match(&t, a.scoring);
+      MatchReports(&t.reported, &t.truth, a.scoring.tolerance_m);
       changes.Add(t, true);
     }
     visit_ids.push_back(visit);
@@ -720,12 +555,7 @@ void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx) {
   AddOdometryOption(cmd, &a->send_odometry);
   cmd->add_flag("--masks,!--no-masks", a->masks,
                 "score each query frame's moved mask against the reference (default on)");
-  cmd->add_option("--min-size", a->min_size_m,
-                  "props at least this large (largest side, m) count for recall (default 0.2)")
-      ->check(CLI::Range(0.0, 10.0));
-  cmd->add_option("--tolerance", a->tolerance_m,
-                  "a report this close (m, ground plane) to a true change matches it (default 0.3)")
-      ->check(CLI::Range(0.01, 5.0));
+  AddChangeScoringOptions(cmd, &a->scoring);
   cmd->callback([ctx, a] { ctx->run = [ctx, a] { return RunChangesEval(*ctx, *a); }; });
 }
 

@@ -482,10 +482,11 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
           [](const v1::ListVisitsResponse& r) {
             // LOOPS: loop closures accepted/rejected, and pose-graph solves; FRAME: the map's
             // (first visit or client poses), anchored to a visit (the agreeing matches'
-            // residual), or unanchored (issue 15).
-            std::cout << absl::StrFormat("%6s %-16s %-20s %8s %10s %-14s %-24s  %-23s  %s\n", "ID",
-                                         "ROBOT", "LABEL", "FRAMES", "KEYFRAMES", "LOOPS(OK/NO/S)",
-                                         "FRAME", "STARTED", "STATE");
+            // residual), or unanchored (issue 15). RECORDED: the capture time of its first
+            // stored keyframe (the data's clock); RECEIVED: when the server started the visit.
+            std::cout << absl::StrFormat(
+                "%6s %-16s %-20s %8s %10s %-14s %-24s  %-23s  %-23s  %s\n", "ID", "ROBOT", "LABEL",
+                "FRAMES", "KEYFRAMES", "LOOPS(OK/NO/S)", "FRAME", "RECORDED", "RECEIVED", "STATE");
             for (const auto& v : r.visits()) {
               std::string frame = "map";
               if (v.frame() == v1::VISIT_FRAME_ANCHORED) {
@@ -498,11 +499,12 @@ void AddVisitCommands(CLI::App* app, CliContext* ctx) {
                 frame = "unanchored";
               }
               std::cout << absl::StrFormat(
-                  "%6d %-16s %-20s %8d %10d %-14s %-24s  %-23s  %s\n", v.id(), Shown(v.robot()),
-                  Shown(v.label()), v.frame_count(), v.keyframe_count(),
+                  "%6d %-16s %-20s %8d %10d %-14s %-24s  %-23s  %-23s  %s\n", v.id(),
+                  Shown(v.robot()), Shown(v.label()), v.frame_count(), v.keyframe_count(),
                   absl::StrCat(v.loops_accepted(), "/", v.loops_rejected(), "/",
                                v.pose_graph_solves()),
-                  frame, HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
+                  frame, v.data_start_time_s() > 0 ? HumanTime(v.data_start_time_s()) : "-",
+                  HumanTime(v.start_time_s()), v.ended() ? "ended" : "open");
               // The evidence the anchor rests on (issue 35): its matches and checks.
               if (v.frame() == v1::VISIT_FRAME_ANCHORED && !v.anchor().evidence().empty()) {
                 std::cout << absl::StrFormat("%6s anchor evidence: %s\n", "",

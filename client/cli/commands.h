@@ -101,5 +101,6 @@ void AddTrajectoryEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddAlignmentEvalCommand(CLI::App* eval, CliContext* ctx);
 void AddChangesEvalCommand(CLI::App* eval, CliContext* ctx);    // changes_eval_command.cc
 void AddRetentionEvalCommand(CLI::App* eval, CliContext* ctx);  // changes_eval_command.cc
+void AddMapEvalCommand(CLI::App* eval, CliContext* ctx);        // map_eval_command.cc
 
 }  // namespace lifemap::cli

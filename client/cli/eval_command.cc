@@ -538,6 +538,7 @@ void AddEvalCommands(CLI::App* app, CliContext* ctx) {
   AddAlignmentEvalCommand(ev, ctx);
   AddChangesEvalCommand(ev, ctx);
   AddRetentionEvalCommand(ev, ctx);
+  AddMapEvalCommand(ev, ctx);
 }
 
 }  // namespace lifemap::cli

@@ -211,20 +211,37 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
   return visit;
 }
 
-absl::StatusOr<std::vector<io::TimedPose>> StoredEstimatedKeyframes(client::Client& client,
-                                                                    const std::string& map,
-                                                                    uint64_t visit_id) {
+namespace {
+
+absl::StatusOr<std::vector<io::TimedPose>> StoredKeyframePoses(client::Client& client,
+                                                               const std::string& map,
+                                                               uint64_t visit_id,
+                                                               bool estimated_only) {
   auto listed = client.ListKeyframes(map, visit_id);
   if (!listed.ok()) return listed.status();
   std::vector<io::TimedPose> stored;
   for (const auto& kf : listed->keyframes()) {
-    if (kf.pose_source() != v1::POSE_SOURCE_ESTIMATED) continue;
+    if (estimated_only && kf.pose_source() != v1::POSE_SOURCE_ESTIMATED) continue;
     if (auto pose = PoseOf(kf.pose()); pose.ok()) stored.push_back({kf.timestamp_s(), *pose});
   }
   std::sort(stored.begin(), stored.end(), [](const io::TimedPose& a, const io::TimedPose& b) {
     return a.timestamp_s < b.timestamp_s;
   });
   return stored;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<io::TimedPose>> StoredEstimatedKeyframes(client::Client& client,
+                                                                    const std::string& map,
+                                                                    uint64_t visit_id) {
+  return StoredKeyframePoses(client, map, visit_id, /*estimated_only=*/true);
+}
+
+absl::StatusOr<std::vector<io::TimedPose>> StoredPosedKeyframes(client::Client& client,
+                                                                const std::string& map,
+                                                                uint64_t visit_id) {
+  return StoredKeyframePoses(client, map, visit_id, /*estimated_only=*/false);
 }
 
 }  // namespace lifemap::cli

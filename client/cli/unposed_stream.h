@@ -105,5 +105,9 @@ absl::StatusOr<StreamedVisit> StreamWithoutPoses(client::Client& client, const s
 absl::StatusOr<std::vector<io::TimedPose>> StoredEstimatedKeyframes(client::Client& client,
                                                                     const std::string& map,
                                                                     uint64_t visit_id);
+// The same with every stored pose, the client's too (visits streamed with poses).
+absl::StatusOr<std::vector<io::TimedPose>> StoredPosedKeyframes(client::Client& client,
+                                                                const std::string& map,
+                                                                uint64_t visit_id);
 
 }  // namespace lifemap::cli

@@ -363,6 +363,8 @@ void WebServer::Impl::Map(const httplib::Request& req, httplib::Response& res) {
               {"label", v.label},
               {"start_time_s", v.start_time_s},
               {"end_time_s", v.end_time_s},
+              {"data_start_time_s", v.data_start_time_s},
+              {"data_end_time_s", v.data_end_time_s},
               {"ended", v.ended},
               {"keyframe_count", v.keyframe_count},
               {"frame_count", v.frame_count},

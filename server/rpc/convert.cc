@@ -209,6 +209,8 @@ void VisitToProto(const store::VisitRecord& v, v1::Visit* out) {
   out->set_robot(v.robot);
   out->set_label(v.label);
   out->set_start_time_s(v.start_time_s);
+  out->set_data_start_time_s(v.data_start_time_s);
+  out->set_data_end_time_s(v.data_end_time_s);
   out->set_end_time_s(v.end_time_s);
   out->set_ended(v.ended);
   out->set_keyframe_count(static_cast<uint64_t>(v.keyframe_count));

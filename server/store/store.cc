@@ -637,6 +637,8 @@ VisitRecord ReadVisit(const Statement& s) {
   v.first_of_map = s.ColumnInt(26) != 0;
   v.anchor_dropped = s.ColumnText(29);
   v.lost_frame_count = s.ColumnInt(30);
+  if (!s.ColumnIsNull(31)) v.data_start_time_s = s.ColumnDouble(31);
+  if (!s.ColumnIsNull(32)) v.data_end_time_s = s.ColumnDouble(32);
   return v;
 }
 
@@ -657,7 +659,9 @@ constexpr char kVisitSelect[] =
     "COALESCE((SELECT e.reason FROM pose_edges e WHERE e.id = v.anchor_edge_id), ''), "
     "CASE WHEN v.anchor_visit_id IS NULL THEN COALESCE((SELECT r.reason FROM anchor_revisions r "
     "WHERE r.visit_id = v.id AND r.action = 'dropped' ORDER BY r.id DESC LIMIT 1), '') ELSE '' "
-    "END, v.lost_frame_count "
+    "END, v.lost_frame_count, "
+    "(SELECT MIN(k.timestamp_s) FROM keyframes k WHERE k.visit_id = v.id), "
+    "(SELECT MAX(k.timestamp_s) FROM keyframes k WHERE k.visit_id = v.id) "
     "FROM visits v JOIN maps m ON m.id = v.map_id ";
 
 constexpr char kMapSelect[] =

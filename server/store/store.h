@@ -90,8 +90,13 @@ struct VisitRecord {
   std::string map_name;
   std::string robot;
   std::string label;
-  double start_time_s = 0.0;
+  double start_time_s = 0.0;  // the server's clock (or StartVisit's start_time_s): receipt
   double end_time_s = 0.0;
+  // The data's own time: the capture times (Frame.timestamp_s, as the robot stamped its
+  // frames) of the visit's earliest and latest stored keyframes; 0 while it has none. Visits
+  // recorded months apart and streamed minutes apart differ here, not in start_time_s.
+  double data_start_time_s = 0.0;
+  double data_end_time_s = 0.0;
   bool ended = false;
   int64_t keyframe_count = 0;
   int64_t frame_count = 0;

@@ -1173,6 +1173,45 @@ TEST_F(CliTest, ChangesBetweenTwoVisitsAreToldPlottedAndRefusedWhenMeaningless) 
              "--rate", "0", "--end-visit"});
     ASSERT_EQ(r.code, 0) << r.err;
   }
+  // Issue 53: the visits say when they were recorded (the frames' own clock, months apart)
+  // beside when the server received them (seconds apart).
+  r = Run({"--json", "visits", "list", "home"});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json listed = json::parse(r.out)["visits"];
+  ASSERT_EQ(listed.size(), 2u) << r.out;
+  const double recorded_apart_days = (listed[1]["data_start_time_s"].get<double>() -
+                                      listed[0]["data_start_time_s"].get<double>()) /
+                                     86400;
+  EXPECT_GT(recorded_apart_days, 150) << "sim visits 6 months apart: " << r.out;
+  EXPECT_LT(listed[1]["start_time_s"].get<double>() - listed[0]["start_time_s"].get<double>(),
+            3600);
+  r = Run({"visits", "list", "home"});
+  EXPECT_NE(r.out.find("RECORDED"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("RECEIVED"), std::string::npos) << r.out;
+
+  // `eval map` scores what the server made of the visits against the sim's truth, streaming
+  // nothing: both posed visits in the map's frame, where the truth puts them, and the changes
+  // GetChanges reports matched to scene.json's.
+  r = Run({"--json", "eval", "map", "home", "--sim", tmp_.File("home"), "--out",
+           tmp_.File("home-eval")});
+  ASSERT_EQ(r.code, 0) << r.err;
+  const json scored = json::parse(r.out);
+  ASSERT_EQ(scored["visits"].size(), 2u) << r.out;
+  EXPECT_EQ(scored["visits"][0]["verdict"], "reference");
+  EXPECT_EQ(scored["visits"][1]["verdict"], "correct") << r.out;
+  EXPECT_LT(scored["visits"][1]["error_cm"].get<double>(), 2.0) << "posed by the truth";
+  EXPECT_LT(scored["visits"][0]["ate_cm"].get<double>(), 1.0);
+  ASSERT_EQ(scored["changes"]["comparisons"].size(), 1u);
+  EXPECT_TRUE(scored["changes"]["comparisons"][0]["compared"].get<bool>()) << r.out;
+  EXPECT_GT(scored["changes"]["reported"].get<int>(), 0) << r.out;
+  EXPECT_GT(scored["changes"]["right"].get<int>(), 0) << r.out;
+  EXPECT_GT(scored["changes"]["true"].get<int>(), 0) << r.out;
+  EXPECT_NE(Slurp(tmp_.File("home-eval/report.md")).find("against the truth"), std::string::npos);
+  r = Run({"eval", "map", "home", "--sim", tmp_.File("home/visit_00"), "--out",
+           tmp_.File("home-eval2")});
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("holds no visit_* folder"), std::string::npos) << r.err;
+
   r = Run({"--json", "changes", "home", "--from", "1", "--to", "2", "--svg", tmp_.File("c.svg"),
            "--png", tmp_.File("c.png")});
   ASSERT_EQ(r.code, 0) << r.err;

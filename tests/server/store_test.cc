@@ -108,6 +108,17 @@ TEST_F(StoreTest, KeyframesRoundTripWithPosesAndImages) {
   ASSERT_TRUE(v.ok());
   EXPECT_EQ(v->frame_count, 17);
   EXPECT_EQ(v->keyframe_count, 3);
+  // Issue 53: the data's own time (its keyframes' capture times) beside the server's.
+  EXPECT_DOUBLE_EQ(v->start_time_s, 50.0);
+  EXPECT_DOUBLE_EQ(v->data_start_time_s, 1.0);
+  EXPECT_DOUBLE_EQ(v->data_end_time_s, 3.0);
+  auto listed = store_->ListVisits("m");
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 1u);
+  EXPECT_DOUBLE_EQ((*listed)[0].data_start_time_s, 1.0);
+  auto empty = store_->StartVisit("m", "robot-1", "no keyframes yet", 60.0);
+  ASSERT_TRUE(empty.ok());
+  EXPECT_EQ(store_->GetVisit(empty->id)->data_start_time_s, 0.0) << "none stored: 0";
   auto last = store_->LastKeyframe(visit->id);
   ASSERT_TRUE(last.ok() && last->has_value());
   EXPECT_DOUBLE_EQ((*last)->timestamp_s, 3.0);

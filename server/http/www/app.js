@@ -73,15 +73,23 @@ async function mapsPage() {
 }
 
 // ---- one map: timeline, visits, floor plans, keyframe strip ------------------------------
+// When a visit was recorded: its frames' own capture times where it has stored keyframes
+// (visits recorded months apart and streamed minutes apart), else when the server received it.
+function recorded(v) {
+  if (v.data_start_time_s > 0) return [v.data_start_time_s, v.data_end_time_s];
+  return [v.start_time_s, v.end_time_s || v.start_time_s];
+}
+
 function timelineSvg(visits) {
   if (visits.length === 0) return '';
   const width = 900, row = 22, height = 30 + row * visits.length;
-  const t0 = Math.min(...visits.map((v) => v.start_time_s));
-  const t1 = Math.max(...visits.map((v) => Math.max(v.end_time_s, v.start_time_s))) || t0 + 1;
+  const t0 = Math.min(...visits.map((v) => recorded(v)[0]));
+  const t1 = Math.max(...visits.map((v) => Math.max(...recorded(v)))) || t0 + 1;
   const x = (t) => 150 + (width - 170) * (t - t0) / Math.max(1, t1 - t0);
   const bars = visits.map((v, i) => {
     const y = 20 + i * row;
-    const a = x(v.start_time_s), b = Math.max(a + 6, x(v.end_time_s || v.start_time_s));
+    const [start, end] = recorded(v);
+    const a = x(start), b = Math.max(a + 6, x(end));
     const colour = v.in_map_frame ? '#2a2' : '#d80';
     return `<g class="visit-bar" data-visit="${v.id}"><text x="4" y="${y + 13}" font-size="12">` +
       `visit ${v.id} ${escapeHtml(v.label || v.robot)}</text><rect x="${a}" y="${y}" ` +
@@ -98,7 +106,8 @@ async function mapPage(name) {
   const map = await api(`/api/maps/${enc(name)}`);
   const visitRows = map.visits.map((v) => `<tr class="visit-row" data-visit="${v.id}">` +
     `<td>${v.id}</td><td>${escapeHtml(v.robot)}</td><td>${escapeHtml(v.label)}</td>` +
-    `<td>${date(v.start_time_s)}</td><td>${v.keyframe_count}</td><td>${v.frame_count}</td>` +
+    `<td>${date(recorded(v)[0])}</td><td>${date(v.start_time_s)}</td>` +
+    `<td>${v.keyframe_count}</td><td>${v.frame_count}</td>` +
     `<td class="${v.in_map_frame ? 'in-map' : 'own-frame'}">` +
     `${v.in_map_frame ? 'map frame' : 'own frame'}: ${escapeHtml(v.frame_why)}` +
     `${v.anchor_dropped ? ' (anchor dropped: ' + escapeHtml(v.anchor_dropped) + ')' : ''}</td>` +
@@ -111,7 +120,7 @@ async function mapPage(name) {
     <span id="keyframe-count">${map.keyframe_count}</span> keyframes,
     ${map.annotation_count} annotations. <a href="#/3d/${enc(map.name)}">3D view</a></p>
     <h2>Visits</h2>${timelineSvg(map.visits)}
-    <table id="visits"><tr><th>visit</th><th>robot</th><th>label</th><th>started</th>
+    <table id="visits"><tr><th>visit</th><th>robot</th><th>label</th><th>recorded</th><th>received</th>
     <th>keyframes</th><th>frames</th><th>frame</th><th>floor plan</th><th></th></tr>
     ${visitRows}</table>
     <p>Changes between visit <select id="from">${options}</select> and
