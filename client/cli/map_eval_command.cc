@@ -75,6 +75,14 @@ absl::StatusOr<std::vector<fs::path>> VisitFolders(const std::string& sim) {
   return dirs;
 }
 
+// A CSV field in double quotes (RFC 4180): a visit's label is the robot's text, quotes and
+// line breaks included.
+std::string CsvQuoted(const std::string& text) {
+  std::string out = "\"";
+  for (char c : text) out += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return out + "\"";
+}
+
 std::string Cm(double v, const char* f = "%.1f cm") {
   return v < 0 ? std::string("-") : absl::StrFormat(f, v);
 }
@@ -179,9 +187,9 @@ int RunMapEval(const CliContext& ctx, const MapEvalArgs& a) {
         "| %d | %s | %s | %d | %s | %s | %s |\n", s.id, s.folder, frame, s.keyframes, Cm(s.ate_cm),
         s.error_cm < 0 ? "-" : absl::StrFormat("%.1f cm, %.2f deg", s.error_cm, s.error_deg),
         s.verdict);
-    csv += absl::StrFormat("%d,\"%s\",%s,%s,%d,%d,%.2f,%.2f,%.3f,%s\n", s.id, s.label, s.folder,
-                           s.frame, s.anchor_to, s.keyframes, s.ate_cm, s.error_cm, s.error_deg,
-                           s.verdict);
+    csv += absl::StrFormat("%d,%s,%s,%s,%d,%d,%.2f,%.2f,%.3f,%s\n", s.id, CsvQuoted(s.label),
+                           s.folder, s.frame, s.anchor_to, s.keyframes, s.ate_cm, s.error_cm,
+                           s.error_deg, s.verdict);
     per_visit.push_back({{"visit", s.id},
                          {"folder", s.folder},
                          {"frame", s.frame},
