@@ -8,11 +8,15 @@
 // references between its rows.
 #include <sqlite3.h>
 
+#include <cctype>
 #include <functional>
 #include <map>
 #include <string>
+#include <string_view>
+#include <utility>
 #include <vector>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "server/store/sqlite.h"
@@ -432,6 +436,96 @@ void DropRenumbering(Database* db) {
   }
 }
 
+// Evidence text names visits and keyframes by id ("anchors visit 12 to visit 3: agrees with
+// keyframe 40's match"). On import those numbers are rewritten to the rows' new ids, so that
+// the reasons a person reads name what `visits list` shows (issue 53); a number the archive
+// does not hold (a visit deleted before the export) is left as written.
+using IdMap = std::map<int64_t, int64_t>;
+
+std::string RenumberedText(const std::string& text, const IdMap& visits, const IdMap& keyframes) {
+  std::string out;
+  out.reserve(text.size());
+  size_t i = 0;
+  while (i < text.size()) {
+    const bool word_start = i == 0 || !std::isalnum(static_cast<unsigned char>(text[i - 1]));
+    const IdMap* ids = nullptr;
+    size_t word = 0;
+    for (const auto& [name, map] : {std::pair<std::string_view, const IdMap*>{"visit ", &visits},
+                                    {"keyframe ", &keyframes}}) {
+      if (word_start && text.compare(i, name.size(), name) == 0) {
+        ids = map;
+        word = name.size();
+      }
+    }
+    if (ids != nullptr) {
+      size_t end = i + word;
+      while (end < text.size() && std::isdigit(static_cast<unsigned char>(text[end]))) ++end;
+      int64_t old = 0;
+      if (end > i + word && end - (i + word) <= 18 &&
+          absl::SimpleAtoi(absl::string_view(text).substr(i + word, end - i - word), &old)) {
+        if (auto it = ids->find(old); it != ids->end()) {
+          absl::StrAppend(&out, text.substr(i, word), it->second);
+          i = end;
+          continue;
+        }
+      }
+    }
+    out += text[i++];
+  }
+  return out;
+}
+
+absl::StatusOr<IdMap> ReadRenumbering(Database* db, const char* table) {
+  auto stmt = db->Prepare(absl::StrCat("SELECT old, new FROM temp.renumber_", table));
+  if (!stmt.ok()) return stmt.status();
+  StatementScope s(*stmt);
+  IdMap ids;
+  for (;;) {
+    auto row = s->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return ids;
+    ids[s->ColumnInt(0)] = s->ColumnInt(1);
+  }
+}
+
+// Rewrites the reasons of the imported map `map_id`'s pose edges and anchor revisions.
+absl::Status RenumberReasons(Database* db, int64_t map_id) {
+  auto visits = ReadRenumbering(db, "visits");
+  if (!visits.ok()) return visits.status();
+  auto keyframes = ReadRenumbering(db, "keyframes");
+  if (!keyframes.ok()) return keyframes.status();
+  const std::pair<const char*, const char*> tables[] = {
+      {"pose_edges", "map_id = ?1"},
+      {"anchor_revisions", "visit_id IN (SELECT id FROM main.visits WHERE map_id = ?1)"}};
+  for (const auto& [table, where] : tables) {
+    std::vector<std::pair<int64_t, std::string>> rewritten;
+    {
+      auto stmt =
+          db->Prepare(absl::StrCat("SELECT id, reason FROM main.", table, " WHERE ", where));
+      if (!stmt.ok()) return stmt.status();
+      StatementScope s(*stmt);
+      s->Bind(1, map_id);
+      for (;;) {
+        auto row = s->Step();
+        if (!row.ok()) return row.status();
+        if (!*row) break;
+        const std::string reason = s->ColumnText(1);
+        std::string text = RenumberedText(reason, *visits, *keyframes);
+        if (text != reason) rewritten.emplace_back(s->ColumnInt(0), std::move(text));
+      }
+    }
+    auto update =
+        db->Prepare(absl::StrCat("UPDATE main.", table, " SET reason = ?1 WHERE id = ?2"));
+    if (!update.ok()) return update.status();
+    for (const auto& [id, text] : rewritten) {
+      StatementScope u(*update);
+      u->Bind(1, text).Bind(2, id);
+      if (auto st = u->Run(); !st.ok()) return st;
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::Status Store::RaiseIdFloor(int64_t floor) {
@@ -653,6 +747,10 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
       }
       return s;
     }
+  }
+  // Evidence text names the new ids (a moved map keeps its own).
+  if (!keep_ids) {
+    if (auto s = RenumberReasons(db, *params.ints[kMap]); !s.ok()) return s;
   }
   // Nothing streams into an imported visit: one open when exported arrives ended, at its
   // last keyframe's time. A moved map's open visits stay open: their streams resume here.

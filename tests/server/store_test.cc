@@ -311,6 +311,21 @@ TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
     visits.push_back(visit->id);
   }
   const auto keyframes = *store_->ListKeyframes(store_->GetMap("lab")->id, 0);
+  // The second visit anchored to the first, the evidence naming both visits and keyframes.
+  PoseEdgeRecord edge;
+  edge.map_id = store_->GetMap("lab")->id;
+  edge.kind = StoredEdgeKind::kAnchor;
+  edge.from_keyframe = keyframes[0].id;
+  edge.to_keyframe = keyframes[5].id;
+  edge.accepted = true;
+  const auto evidence = [](int64_t to, int64_t from, int64_t kf, int64_t other_kf) {
+    return absl::StrCat("anchors visit ", from, " to visit ", to, ": keyframe ", kf,
+                        " -> keyframe ", other_kf, ", subvisit 3, visit 999999 (gone), visits 2");
+  };
+  edge.reason = evidence(visits[0], visits[1], keyframes[5].id, keyframes[0].id);
+  VisitAnchor anchor;
+  anchor.to_visit_id = visits[0];
+  ASSERT_TRUE(store_->AnchorVisit(visits[1], edge, &anchor).ok());
   const std::string archive = tmp_.File("lab.archive");
   auto counts = store_->WriteMapArchive("lab", archive);
   ASSERT_TRUE(counts.ok()) << counts.status();
@@ -351,6 +366,17 @@ TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
     EXPECT_EQ(visit->map_id, copy->id) << "a keyframe's visit is of the copy";
   }
   EXPECT_EQ((*other)->ListKeyframes((*other)->GetMap("hall")->id, 0)->size(), hall_before.size());
+  // The anchor's evidence names the copy's visits and keyframes (issue 53), nothing else.
+  const int64_t copied_first = copied[0].visit_id, copied_second = copied[5].visit_id;
+  const std::string renamed = evidence(copied_first, copied_second, copied[5].id, copied[0].id);
+  auto copied_edges = (*other)->ListPoseEdges(copy->id, copied_second);
+  ASSERT_TRUE(copied_edges.ok()) << copied_edges.status();
+  ASSERT_EQ(copied_edges->size(), 1u);
+  EXPECT_EQ((*copied_edges)[0].reason, renamed);
+  auto revisions = (*other)->ListAnchorRevisions(copied_second);
+  ASSERT_TRUE(revisions.ok()) << revisions.status();
+  ASSERT_EQ(revisions->size(), 1u);
+  EXPECT_EQ((*revisions)[0].reason, renamed);
   auto problems = (*other)->CheckIntegrity();
   ASSERT_TRUE(problems.ok());
   EXPECT_TRUE(problems->empty()) << problems->front();
