@@ -404,6 +404,10 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             g.anchor_drop_through_share = v.get<double>();
           } else if (k == "anchor_max_lost_share") {
             g.anchor_max_lost_share = v.get<double>();
+          } else if (k == "anchor_max_floor_tilt_deg") {
+            g.anchor_max_floor_tilt_deg = v.get<double>();
+          } else if (k == "anchor_max_floor_offset_m") {
+            g.anchor_max_floor_offset_m = v.get<double>();
           } else if (k == "anchor_min_spread_m") {
             g.anchor_min_spread_m = v.get<double>();
           } else if (k == "anchor_revision_min_matches") {

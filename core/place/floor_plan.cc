@@ -5,6 +5,7 @@
 #include <functional>
 #include <limits>
 #include <map>
+#include <optional>
 #include <unordered_map>
 
 #include <Eigen/Geometry>
@@ -44,6 +45,15 @@ double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
   return (a + t * ab - p).norm();
 }
 
+// The q-quantile (0..1) of `values` (nearest rank; 0 for none).
+double Quantile(std::vector<double> values, double q) {
+  if (values.empty()) return 0;
+  const size_t rank = static_cast<size_t>(std::ceil(q * static_cast<double>(values.size())));
+  const size_t i = std::min(values.size() - 1, rank > 0 ? rank - 1 : 0);
+  std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(i), values.end());
+  return values[i];
+}
+
 }  // namespace
 
 struct FloorPlanBuilder::State {
@@ -53,6 +63,10 @@ struct FloorPlanBuilder::State {
   std::vector<Eigen::Vector3d> cameras;  // world positions
   std::vector<WallAcc> walls;
   std::vector<Patch> patches;
+  struct FloorSighting {
+    double tilt_deg, height;
+  };
+  std::vector<FloorSighting> floor_sightings;  // one a key frame that saw one (FloorAgreement)
 
   Eigen::Vector2d Ground(const Eigen::Vector3d& p) const { return {e1.dot(p), e2.dot(p)}; }
 };
@@ -89,10 +103,18 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
   const double cos_horizontal = std::cos(Deg(s.o.horizontal_tolerance_deg));
   const double cell = s.o.cell_m;
 
+  const double cos_floor_search = std::cos(Deg(s.o.floor_search_deg));
+  std::optional<State::FloorSighting> floor_sighting;
+  double floor_sighting_m2 = s.o.min_floor_sighting_m2;
   for (const auto& p : planes.planes) {
     const Eigen::Vector3d n = R * p.normal.cast<double>();
     const Eigen::Vector3d c = R * p.centroid.cast<double>() + origin;
     const double cos_up = n.dot(s.up);
+    if (cos_up > cos_floor_search && p.area_m2 >= floor_sighting_m2 &&
+        c.dot(s.up) < origin.dot(s.up) - s.o.floor_below_cameras_m) {
+      floor_sighting_m2 = p.area_m2;
+      floor_sighting = {std::acos(std::min(1.0, cos_up)) * 180.0 / M_PI, c.dot(s.up)};
+    }
     if (std::abs(cos_up) > cos_horizontal) {
       Patch patch;
       patch.height = c.dot(s.up);
@@ -197,6 +219,7 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
     }
   }
   s.cameras.push_back(origin);
+  if (floor_sighting) s.floor_sightings.push_back(*floor_sighting);
   ++s.keyframes;
   return absl::OkStatus();
 }
@@ -240,6 +263,8 @@ absl::Status FloorPlanOptions::Validate() const {
       {"floor_bin_m", floor_bin_m, 0.001, 1},
       {"floor_below_cameras_m", floor_below_cameras_m, 0, 10},
       {"min_floor_m2", min_floor_m2, 0, 1000},
+      {"floor_search_deg", floor_search_deg, 1, 89},
+      {"min_floor_sighting_m2", min_floor_sighting_m2, 0, 1000},
       {"max_wall_height_m", max_wall_height_m, 0.5, 100},
       {"free_over_covered", free_over_covered, 0, 1000},
       {"min_wall_cells", static_cast<double>(min_wall_cells), 1, 1e6},
@@ -773,6 +798,24 @@ std::vector<StairFlight> FindStairs(const std::vector<Patch>& patches, double fl
 
 }  // namespace steps
 
+namespace {
+
+template <typename Sighting>
+FloorAgreement AgreementOn(double floor_height, const std::vector<Sighting>& sightings) {
+  FloorAgreement a;
+  a.keyframes = static_cast<int>(sightings.size());
+  std::vector<double> tilts, offsets;
+  for (const auto& f : sightings) {
+    tilts.push_back(f.tilt_deg);
+    offsets.push_back(std::abs(f.height - floor_height));
+  }
+  a.tilt_deg_p90 = Quantile(tilts, 0.9);
+  a.offset_m_p90 = Quantile(offsets, 0.9);
+  return a;
+}
+
+}  // namespace
+
 absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   const State& s = *s_;
   if (s.keyframes < 2) {
@@ -791,6 +834,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   auto floor = steps::FindFloor(s.patches, camera_h, s.o);
   if (!floor.ok()) return floor.status();
   plan.floor_height_m = *floor;
+  plan.floor_agreement = AgreementOn(*floor, s.floor_sightings);
   const auto faces = steps::DropHiddenFaces(
       steps::KeepTallWalls(steps::FindWallCandidates(s.walls, *floor, s.o), s.o), s.o);
   if (faces.size() < 3) {

@@ -58,9 +58,21 @@ struct StairFlight {
   double distance_to_wall_m = 0;  // from its centre to the nearest wall
 };
 
+// How well the key frames agree on the floor. A rigid track sees one level floor; one that
+// bends (drift in pitch, roll or height: issue 54) sees it tilt and rise from key frame to key
+// frame. From each key frame's largest upward plane below it (within floor_search_deg of
+// world_up): the 90th percentiles of its tilt from world_up and of its height off the plan's
+// floor.
+struct FloorAgreement {
+  int keyframes = 0;  // key frames that saw a floor-like plane (0: nothing to judge by)
+  double tilt_deg_p90 = 0;
+  double offset_m_p90 = 0;
+};
+
 struct FloorPlan {
   double floor_height_m = 0;  // along world_up
-  std::vector<Wall> walls;    // counter-clockwise around the place; wall i ends at corner i+1
+  FloorAgreement floor_agreement;
+  std::vector<Wall> walls;  // counter-clockwise around the place; wall i ends at corner i+1
   std::vector<StairFlight> stairs;
   int keyframes = 0;
   // Ground-plane basis: world point p ↦ (e1·p, e2·p). The defaults are a z-up frame's (the
@@ -91,6 +103,9 @@ struct FloorPlanOptions {
   double floor_bin_m = 0.02;
   double floor_below_cameras_m = 0.5;
   double min_floor_m2 = 1.0;
+  // FloorAgreement: a key frame's floor-like plane is within this of up, at least this large.
+  double floor_search_deg = 35;
+  double min_floor_sighting_m2 = 0.3;
   // Wall candidates: evidence up to this height above the floor; a covered cell that this many
   // rays passed through (and more than twice as many as stopped in front of it) held something
   // that moved; a run needs this many covered cells.

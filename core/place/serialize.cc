@@ -99,7 +99,12 @@ std::string FloorPlanToJson(const FloorPlan& plan) {
                       {"center", Point(s.center)},
                       {"distance_to_wall_m", s.distance_to_wall_m}});
   }
+  const FloorAgreement& a = plan.floor_agreement;
   return json{{"floor_height_m", plan.floor_height_m},
+              {"floor_agreement",
+               {{"keyframes", a.keyframes},
+                {"tilt_deg_p90", a.tilt_deg_p90},
+                {"offset_m_p90", a.offset_m_p90}}},
               {"keyframes", plan.keyframes},
               {"walls", walls},
               {"stairs", stairs}}
@@ -112,6 +117,11 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& text) {
     FloorPlan plan;
     plan.floor_height_m = j.at("floor_height_m").get<double>();
     plan.keyframes = j.at("keyframes").get<int>();
+    // Plans stored before issue 54 have none: nothing to judge the track by.
+    if (const auto a = j.find("floor_agreement"); a != j.end()) {
+      plan.floor_agreement = {a->at("keyframes").get<int>(), a->at("tilt_deg_p90").get<double>(),
+                              a->at("offset_m_p90").get<double>()};
+    }
     for (const auto& w : j.at("walls")) {
       Wall wall;
       wall.start = PointFrom(w.at("start"));

@@ -35,7 +35,7 @@ AnchorAttempt Retry(store::Store* store, AppearanceIndex* appearance, PoseGraphW
                     const store::VisitRecord& visit, bool dry_run, int max_keyframes) {
   AnchorAttempt out;
   out.visit_id = visit.id;
-  if (const std::string broken = BrokenTracking(visit, pose_graph->options().anchor_max_lost_share);
+  if (const std::string broken = UnanchorableTrack(store, visit, pose_graph->options());
       !broken.empty()) {
     out.reason = absl::StrCat(dry_run ? "dry run: would not anchor: " : "", "held: ", broken);
     return out;

@@ -24,7 +24,9 @@ absl::Status PoseGraphOptions::Validate() const {
   }
   const std::pair<const char*, double> non_negative[] = {
       {"loop_max_disagreement_per_m", loop_max_disagreement_per_m},
-      {"loop_max_disagreement_deg_per_m", loop_max_disagreement_deg_per_m}};
+      {"loop_max_disagreement_deg_per_m", loop_max_disagreement_deg_per_m},
+      {"anchor_max_floor_tilt_deg", anchor_max_floor_tilt_deg},
+      {"anchor_max_floor_offset_m", anchor_max_floor_offset_m}};
   for (const auto& [name, v] : non_negative) {
     if (!(v >= 0) || !std::isfinite(v)) {
       return absl::InvalidArgumentError(

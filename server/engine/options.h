@@ -86,6 +86,13 @@ struct PoseGraphOptions {
   // "Issue 35 (session 23)"): the L room's visits lost 36-61 % and were all anchored wrong; the
   // rect room's lost 0-3 %. 1 switches the hold off.
   double anchor_max_lost_share = 0.20;
+  // A visit the server tracked whose floor, as its keyframes saw it, tilts more than this
+  // (degrees) or lies more than this off its level (metres; 90th percentiles over at least 5
+  // keyframes that saw it: core/place FloorAgreement) is bent, and held like one that lost its
+  // frames (issue 54). Chosen on building seed 11 with wheel odometry (rigid: 0.4-0.7 deg,
+  // 0.02 m) and seed 3 without (a visit 78 cm off: 11.4 deg, 0.43 m): RESULTS.md "Issue 54".
+  double anchor_max_floor_tilt_deg = 3.0;
+  double anchor_max_floor_offset_m = 0.10;
   // The two agreeing matches that anchor a visit come from keyframes at least this far apart
   // along its path (metres, >= 0; 0: any two keyframes): neighbouring keyframes agree even
   // where the visit's own track is bent, and its anchor is then wrong away from them. Off by

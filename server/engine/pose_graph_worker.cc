@@ -275,6 +275,32 @@ std::string BrokenTracking(const store::VisitRecord& v, double max_lost_share) {
       v.id, v.lost_frame_count, v.frame_count, 100.0 * share, 100.0 * max_lost_share);
 }
 
+// A bent track's floor judged from at least this many keyframes' sightings of it.
+constexpr int kMinFloorSightings = 5;
+
+std::string UnanchorableTrack(store::Store* store, const store::VisitRecord& v,
+                              const PoseGraphOptions& options) {
+  if (std::string broken = BrokenTracking(v, options.anchor_max_lost_share); !broken.empty()) {
+    return broken;
+  }
+  if (v.tracked_keyframes == 0) return "";  // the robot's own poses: not the tracker's to judge
+  auto record = store->GetVisitPlace(v.id);
+  if (!record.ok()) return "";
+  auto plan = place::FloorPlanFromJson(record->floor_plan_json);
+  if (!plan.ok()) return "";
+  const place::FloorAgreement& a = plan->floor_agreement;
+  if (a.keyframes < kMinFloorSightings || (a.tilt_deg_p90 <= options.anchor_max_floor_tilt_deg &&
+                                           a.offset_m_p90 <= options.anchor_max_floor_offset_m)) {
+    return "";
+  }
+  return absl::StrFormat(
+      "visit %d's own track is bent: the floor its keyframes saw tilts %.1f deg and lies %.2f m "
+      "off its level (90th percentiles over %d keyframes; pose_graph.anchor_max_floor_tilt_deg "
+      "%.1f, anchor_max_floor_offset_m %.2f)",
+      v.id, a.tilt_deg_p90, a.offset_m_p90, a.keyframes, options.anchor_max_floor_tilt_deg,
+      options.anchor_max_floor_offset_m);
+}
+
 LoopCandidate LoopCandidateOf(const appearance::AppearanceMatch& m) {
   return {m.keyframe.keyframe_id, m.verification.T_match_query, m.verification.inliers,
           m.verification.reprojection_px};
@@ -583,8 +609,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     }
   };
   // A visit whose own track is broken is held unanchored, whatever its matches say.
-  if (const std::string broken = BrokenTracking(visit, options_.anchor_max_lost_share);
-      !broken.empty()) {
+  if (const std::string broken = UnanchorableTrack(store_, visit, options_); !broken.empty()) {
     for (const AnchorCandidate& c : job.anchors) verdict(c, "held: " + broken);
     pending.clear();
     if (!dry && !job.anchors.empty()) {
@@ -620,7 +645,7 @@ bool PoseGraphWorker::ProcessAnchors(const Job& job, const store::VisitRecord& v
     }
     // Nor is a visit whose own track is broken a frame to anchor to: its keyframes' poses are
     // as scattered as its track.
-    if (const std::string broken = BrokenTracking(*it->second, options_.anchor_max_lost_share);
+    if (const std::string broken = UnanchorableTrack(store_, *it->second, options_);
         !broken.empty()) {
       verdict(c, "refused: " + broken);
       continue;
@@ -827,7 +852,7 @@ bool PoseGraphWorker::RecheckAnchor(const Job& job, const store::VisitRecord& vi
                                     const std::vector<store::KeyframeRecord>& visit_keyframes) {
   if (!visit.anchor) return false;
   AnchorState& state = anchoring_[job.visit_id];
-  std::string reason = BrokenTracking(visit, options_.anchor_max_lost_share);
+  std::string reason = UnanchorableTrack(store_, visit, options_);
   auto to_visit = store_->GetVisit(visit.anchor->to_visit_id);
   if (!reason.empty()) {
     reason = "re-checked: " + reason;

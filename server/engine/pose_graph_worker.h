@@ -90,6 +90,12 @@ struct LoopClosureStats {
 // so its keyframes are not one rigid body. Empty when it is not.
 std::string BrokenTracking(const store::VisitRecord& visit, double max_lost_share);
 
+// The same, or (issue 54) a visit the server tracked whose stored floor plan says its floor tilts
+// or rises from keyframe to keyframe beyond pose_graph.anchor_max_floor_tilt_deg /
+// anchor_max_floor_offset_m: its track is bent. Empty when neither.
+std::string UnanchorableTrack(store::Store* store, const store::VisitRecord& visit,
+                              const PoseGraphOptions& options);
+
 // Thread-safe.
 class PoseGraphWorker {
   struct AnchorState;

@@ -26,7 +26,10 @@ struct Built {
   absl::StatusOr<FloorPlan> plan = absl::UnknownError("not built");
 };
 
-Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int stride = 3) {
+// `bend_deg`: the track as a drifting tracker would report it, pitched by up to this much
+// about the first camera and rising 5 cm a degree by the last frame (issue 54).
+Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int stride = 3,
+                 double bend_deg = 0) {
   Built b;
   b.place = *sim::GeneratePlace(seed, shape);
   auto visits = sim::GenerateVisits(b.place, seed, 1, 0, sim::Conditions{}, frames);
@@ -36,8 +39,16 @@ Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int s
   for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
     const auto frame = sim::Render(b.place, v.SolidsAt(f), v.lighting, Kinect(),
                                    v.trajectory[f].T_world_camera, sim::SensorOptions{}, f + 1);
-    EXPECT_TRUE(
-        builder.AddDepthKeyframe(frame.depth_m, Kinect(), v.trajectory[f].T_world_camera).ok());
+    Pose reported = v.trajectory[f].T_world_camera;
+    if (bend_deg > 0) {
+      const double share = static_cast<double>(f) / static_cast<double>(v.trajectory.size());
+      const Eigen::Vector3d pivot = v.trajectory[0].T_world_camera.translation;
+      const Eigen::AngleAxisd bend(share * bend_deg * M_PI / 180.0, Eigen::Vector3d::UnitX());
+      reported.translation = pivot + bend * (reported.translation - pivot) +
+                             Eigen::Vector3d(0, 0, 0.05 * share * bend_deg);
+      reported.rotation = Eigen::Quaterniond(bend) * reported.rotation;
+    }
+    EXPECT_TRUE(builder.AddDepthKeyframe(frame.depth_m, Kinect(), reported).ok());
   }
   b.plan = builder.Build();
   return b;
@@ -84,15 +95,34 @@ TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
   EXPECT_EQ(found, expected);
   EXPECT_EQ(expected, 3) << "seed 3's rect room: a door and two windows";
 
+  // A rigid track sees one level floor (issue 54).
+  EXPECT_GE(b.plan->floor_agreement.keyframes, 10);
+  EXPECT_LT(b.plan->floor_agreement.tilt_deg_p90, 1.5);
+  EXPECT_LT(b.plan->floor_agreement.offset_m_p90, 0.04);
+
   // The stored forms round-trip.
   auto plan = FloorPlanFromJson(FloorPlanToJson(*b.plan));
   ASSERT_TRUE(plan.ok()) << plan.status();
+  EXPECT_EQ(plan->floor_agreement.keyframes, b.plan->floor_agreement.keyframes);
+  EXPECT_DOUBLE_EQ(plan->floor_agreement.tilt_deg_p90, b.plan->floor_agreement.tilt_deg_p90);
   EXPECT_EQ(DescriptorText(Describe(*plan)), DescriptorText(d));
   auto desc = DescriptorFromJson(DescriptorToJson(d));
   ASSERT_TRUE(desc.ok()) << desc.status();
   EXPECT_NEAR(MatchDescriptors(*desc, d).difference, 0.0, 1e-9);
   EXPECT_TRUE(absl::IsInvalidArgument(DescriptorFromJson("{\"corners\": 3}").status()));
   EXPECT_TRUE(absl::IsInvalidArgument(FloorPlanFromJson("not json").status()));
+}
+
+// Issue 54: the same visit as a drifting tracker reports it, its floor tilting and rising.
+TEST(FloorPlan, ABentTrackSeesItsFloorTiltAndRise) {
+  const Built b = BuildVisit(3, "rect", 90, 3, 8.0);
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  std::cerr << "bent 8 deg: tilt p90 " << b.plan->floor_agreement.tilt_deg_p90
+            << " deg, offset p90 " << b.plan->floor_agreement.offset_m_p90 << " m of "
+            << b.plan->floor_agreement.keyframes << " key frames\n";
+  EXPECT_GE(b.plan->floor_agreement.keyframes, 10);
+  EXPECT_GT(b.plan->floor_agreement.tilt_deg_p90, 5.0);
+  EXPECT_GT(b.plan->floor_agreement.offset_m_p90, 0.15);
 }
 
 TEST(FloorPlan, AWallSeenInPartOrNotAtAllStillClosesTheOutline) {

@@ -180,6 +180,7 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
              "loop_max_disagreement_per_m": 0, "loop_max_disagreement_deg": 8,
              "loop_max_disagreement_deg_per_m": 2, "layout_max_through_share": 0.1,
              "anchor_drop_through_share": 0.2, "anchor_max_lost_share": 0.3,
+             "anchor_max_floor_tilt_deg": 4.5, "anchor_max_floor_offset_m": 0.2,
              "anchor_min_spread_m": 1.5}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
   ASSERT_TRUE(c.ok()) << c.status();
@@ -193,6 +194,8 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
   EXPECT_DOUBLE_EQ(c->pose_graph.layout_max_through_share, 0.1);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_drop_through_share, 0.2);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_lost_share, 0.3);
+  EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_floor_tilt_deg, 4.5);
+  EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_floor_offset_m, 0.2);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_min_spread_m, 1.5);
   ExpectRefused(
       tmp,
@@ -203,6 +206,8 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
           {"lost.json", R"({"pose_graph": {"anchor_max_lost_share": 1.5}})",
            "anchor_max_lost_share"},
           {"spread.json", R"({"pose_graph": {"anchor_min_spread_m": -1}})", "anchor_min_spread_m"},
+          {"tilt.json", R"({"pose_graph": {"anchor_max_floor_tilt_deg": -1}})",
+           "anchor_max_floor_tilt_deg"},
           {"inliers.json", R"({"pose_graph": {"loop_min_inliers": 5}})", "pose_graph"},
           {"reprojection.json", R"({"pose_graph": {"loop_max_reprojection_px": 0}})", "pose_graph"},
           {"metres.json", R"({"pose_graph": {"loop_max_disagreement_m": -0.1}})", "pose_graph"},

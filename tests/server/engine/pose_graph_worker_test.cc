@@ -93,17 +93,19 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return b;
   }
 
-  // The map's first visit's floor plan: a 4 m square room round the origin, 1 m walls.
-  void PutRoomPlan() {
+  // A floor plan of a 4 m square room round the origin, 1 m walls, for a visit (by default the
+  // map's first), its keyframes agreeing on the floor as `floor` says.
+  void PutRoomPlan(int64_t visit_id = 0, const place::FloorAgreement& floor = {}) {
     place::FloorPlan room;
     const Eigen::Vector2d corners[] = {{-2, -2}, {2, -2}, {2, 2}, {-2, 2}};
     for (int i = 0; i < 4; ++i) room.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
+    room.floor_agreement = floor;
     store::VisitPlaceRecord plan;
-    plan.visit_id = visit_.id;
+    plan.visit_id = visit_id != 0 ? visit_id : visit_.id;
     plan.keyframes = 10;
     plan.floor_plan_json = place::FloorPlanToJson(room);
     plan.descriptor_json = place::DescriptorToJson(place::Describe(room));
-    plan.updated_time_s = 1.0;
+    plan.updated_time_s = visit_id != 0 ? 2.0 : 1.0;
     ASSERT_TRUE(store_->PutVisitPlace(plan).ok());
   }
 
@@ -638,6 +640,57 @@ TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBrokenIsNeitherAnchoredNorAnchored
   worker.Wait(worker.Submit(job_for(fourth_id, d[1].id, 1)));
   EXPECT_FALSE(told);
   EXPECT_EQ(worker.Stats().anchors, 1);
+}
+
+// Issue 54: a tracked visit whose floor tilts and rises from keyframe to keyframe (its stored
+// floor plan's FloorAgreement) is bent and held as a broken one is, with why; one whose floor
+// too few keyframes saw is not judged by it, and a level one is anchored.
+TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBentIsHeld) {
+  Pose T;
+  T.translation = {2.0, 0.0, 0.0};
+  int64_t second_id = 0;
+  std::vector<store::KeyframeRecord> b = SecondVisit(T, 6, &second_id);
+  ASSERT_EQ(b.size(), 6u);
+  auto put_floor = [&](double tilt_deg, double offset_m, int keyframes) {
+    PutRoomPlan(second_id, {keyframes, tilt_deg, offset_m});
+  };
+
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
+  std::optional<Pose> anchored;
+  bool told = false;
+  auto job_for = [&](int query_index, std::shared_ptr<PoseGraphWorker::Job::DryRun> dry) {
+    PoseGraphWorker::Job job = AnchorJob(second_id, b[static_cast<size_t>(query_index)].id,
+                                         query_index, Pose{}, &anchored);
+    job.on_anchored = [&](const Pose&, const std::optional<Pose>& t) {
+      told = true;
+      anchored = t;
+    };
+    job.dry_run = std::move(dry);
+    return job;
+  };
+  auto dry_verdict = [&] {
+    auto dry = std::make_shared<PoseGraphWorker::Job::DryRun>();
+    worker.Wait(worker.Submit(job_for(0, dry)));
+    return dry->verdicts.size() == 1 ? dry->verdicts[0] : std::string("no single verdict");
+  };
+
+  ASSERT_NO_FATAL_FAILURE(put_floor(11.4, 0.43, 34));
+  const std::string bent = dry_verdict();
+  EXPECT_NE(bent.find("held: visit " + std::to_string(second_id) +
+                      "'s own track is bent: the floor its keyframes saw tilts 11.4 deg and lies "
+                      "0.43 m off its level (90th percentiles over 34 keyframes"),
+            std::string::npos)
+      << bent;
+  ASSERT_NO_FATAL_FAILURE(put_floor(0.5, 0.43, 34));
+  EXPECT_NE(dry_verdict().find("bent"), std::string::npos) << "risen alone is bent too";
+  ASSERT_NO_FATAL_FAILURE(put_floor(11.4, 0.43, 4));
+  EXPECT_EQ(dry_verdict().find("bent"), std::string::npos) << "4 keyframes are too few to judge";
+
+  ASSERT_NO_FATAL_FAILURE(put_floor(0.5, 0.02, 34));
+  worker.Wait(worker.Submit(job_for(0, nullptr)));
+  worker.Wait(worker.Submit(job_for(1, nullptr)));
+  ASSERT_TRUE(told);
+  EXPECT_TRUE(anchored.has_value()) << "a level floor: anchored";
 }
 
 // A visit anchored to a visit whose anchor is dropped loses its own (issue 35): an ended one at
