@@ -285,7 +285,10 @@ std::string UnanchorableTrack(store::Store* store, const store::VisitRecord& v,
   }
   if (v.tracked_keyframes == 0) return "";  // the robot's own poses: not the tracker's to judge
   auto record = store->GetVisitPlace(v.id);
-  if (!record.ok()) return "";
+  // A plan derived before the visit's anchor is in its old frame (as PlanOf). Not caught here:
+  // keyframes queued for folding before an anchor and folded after its rebuild (RESULTS.md
+  // "Issue 54 (first step)": building seed 11, a 0.78 m offset that was the anchor's).
+  if (!record.ok() || (v.anchor && record->updated_time_s < v.anchor->anchored_time_s)) return "";
   auto plan = place::FloorPlanFromJson(record->floor_plan_json);
   if (!plan.ok()) return "";
   const place::FloorAgreement& a = plan->floor_agreement;
