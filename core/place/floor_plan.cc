@@ -54,6 +54,25 @@ double Quantile(std::vector<double> values, double q) {
   return values[i];
 }
 
+// A key frame's largest upward plane below it (FloorAgreement): its tilt from world_up and its
+// height along it.
+struct FloorSighting {
+  double tilt_deg, height;
+};
+
+FloorAgreement AgreementOn(double floor_height, const std::vector<FloorSighting>& sightings) {
+  FloorAgreement a;
+  a.keyframes = static_cast<int>(sightings.size());
+  std::vector<double> tilts, offsets;
+  for (const auto& f : sightings) {
+    tilts.push_back(f.tilt_deg);
+    offsets.push_back(std::abs(f.height - floor_height));
+  }
+  a.tilt_deg_p90 = Quantile(tilts, 0.9);
+  a.offset_m_p90 = Quantile(offsets, 0.9);
+  return a;
+}
+
 }  // namespace
 
 struct FloorPlanBuilder::State {
@@ -63,9 +82,6 @@ struct FloorPlanBuilder::State {
   std::vector<Eigen::Vector3d> cameras;  // world positions
   std::vector<WallAcc> walls;
   std::vector<Patch> patches;
-  struct FloorSighting {
-    double tilt_deg, height;
-  };
   std::vector<FloorSighting> floor_sightings;  // one a key frame that saw one (FloorAgreement)
 
   Eigen::Vector2d Ground(const Eigen::Vector3d& p) const { return {e1.dot(p), e2.dot(p)}; }
@@ -104,7 +120,7 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
   const double cell = s.o.cell_m;
 
   const double cos_floor_search = std::cos(Deg(s.o.floor_search_deg));
-  std::optional<State::FloorSighting> floor_sighting;
+  std::optional<FloorSighting> floor_sighting;
   double floor_sighting_m2 = s.o.min_floor_sighting_m2;
   for (const auto& p : planes.planes) {
     const Eigen::Vector3d n = R * p.normal.cast<double>();
@@ -797,24 +813,6 @@ std::vector<StairFlight> FindStairs(const std::vector<Patch>& patches, double fl
 }
 
 }  // namespace steps
-
-namespace {
-
-template <typename Sighting>
-FloorAgreement AgreementOn(double floor_height, const std::vector<Sighting>& sightings) {
-  FloorAgreement a;
-  a.keyframes = static_cast<int>(sightings.size());
-  std::vector<double> tilts, offsets;
-  for (const auto& f : sightings) {
-    tilts.push_back(f.tilt_deg);
-    offsets.push_back(std::abs(f.height - floor_height));
-  }
-  a.tilt_deg_p90 = Quantile(tilts, 0.9);
-  a.offset_m_p90 = Quantile(offsets, 0.9);
-  return a;
-}
-
-}  // namespace
 
 absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   const State& s = *s_;

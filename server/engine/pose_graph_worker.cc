@@ -117,15 +117,23 @@ constexpr size_t kLayoutKeyframes = 24;
 // first second) are too little evidence (RESULTS.md "Issue 15 (fifth part)").
 constexpr size_t kLayoutMinKeyframes = 6;
 
-// A visit's floor plan, if it has one in the frame its stored keyframes are in now: an anchored
-// visit's plan derived before the anchor is in its old frame (the next key frame re-derives it).
-std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRecord& visit) {
+// A visit's stored floor plan, if it has one in the frame its stored keyframes are in now: an
+// anchored visit's plan derived before the anchor is in its old frame (the next key frame
+// re-derives it).
+std::optional<place::FloorPlan> StoredPlanOf(store::Store* store, const store::VisitRecord& visit) {
   auto record = store->GetVisitPlace(visit.id);
   if (!record.ok()) return std::nullopt;
   if (visit.anchor && record->updated_time_s < visit.anchor->anchored_time_s) return std::nullopt;
   auto plan = place::FloorPlanFromJson(record->floor_plan_json);
-  if (!plan.ok() || plan->walls.size() < 3) return std::nullopt;
+  if (!plan.ok()) return std::nullopt;
   return *std::move(plan);
+}
+
+// The same, when it has walls enough to place keyframes in.
+std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRecord& visit) {
+  auto plan = StoredPlanOf(store, visit);
+  if (!plan || plan->walls.size() < 3) return std::nullopt;
+  return plan;
 }
 
 // The map `map_name`'s first visit (its frame is the map's), if it can be read.
@@ -284,13 +292,11 @@ std::string UnanchorableTrack(store::Store* store, const store::VisitRecord& v,
     return broken;
   }
   if (v.tracked_keyframes == 0) return "";  // the robot's own poses: not the tracker's to judge
-  auto record = store->GetVisitPlace(v.id);
-  // A plan derived before the visit's anchor is in its old frame (as PlanOf). Not caught here:
-  // keyframes queued for folding before an anchor and folded after its rebuild (RESULTS.md
-  // "Issue 54 (first step)": building seed 11, a 0.78 m offset that was the anchor's).
-  if (!record.ok() || (v.anchor && record->updated_time_s < v.anchor->anchored_time_s)) return "";
-  auto plan = place::FloorPlanFromJson(record->floor_plan_json);
-  if (!plan.ok()) return "";
+  // Not caught by StoredPlanOf's frame check: keyframes queued for folding before an anchor and
+  // folded after its rebuild (RESULTS.md "Issue 54 (first step)": building seed 11, a 0.78 m
+  // offset that was the anchor's).
+  const std::optional<place::FloorPlan> plan = StoredPlanOf(store, v);
+  if (!plan) return "";
   const place::FloorAgreement& a = plan->floor_agreement;
   if (a.keyframes < kMinFloorSightings || (a.tilt_deg_p90 <= options.anchor_max_floor_tilt_deg &&
                                            a.offset_m_p90 <= options.anchor_max_floor_offset_m)) {

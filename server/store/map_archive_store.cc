@@ -748,13 +748,11 @@ absl::StatusOr<MapRecord> Store::ReadMapArchive(const std::string& path, const s
       return s;
     }
   }
-  // Evidence text names the new ids (a moved map keeps its own).
+  // Evidence text names the new ids, and nothing streams into an imported visit: one open when
+  // exported arrives ended, at its last keyframe's time. A moved map keeps its ids, and its
+  // open visits stay open: their streams resume here.
   if (!keep_ids) {
     if (auto s = RenumberReasons(db, *params.ints[kMap]); !s.ok()) return s;
-  }
-  // Nothing streams into an imported visit: one open when exported arrives ended, at its
-  // last keyframe's time. A moved map's open visits stay open: their streams resume here.
-  if (!keep_ids) {
     auto stmt = db->Prepare(
         "UPDATE visits SET ended = 1, end_time_s = MAX(start_time_s, COALESCE((SELECT "
         "MAX(timestamp_s) FROM keyframes k WHERE k.visit_id = visits.id), start_time_s)) "

@@ -320,7 +320,10 @@ TEST_F(StoreTest, MapArchivesCarryAMapWholeIntoAStoreWithOtherIds) {
   edge.accepted = true;
   const auto evidence = [](int64_t to, int64_t from, int64_t kf, int64_t other_kf) {
     return absl::StrCat("anchors visit ", from, " to visit ", to, ": keyframe ", kf,
-                        " -> keyframe ", other_kf, ", subvisit 3, visit 999999 (gone), visits 2");
+                        " -> keyframe ", other_kf,
+                        ", subvisit 3, visit 999999 (gone), visits 2,\n"
+                        "Küche ✓ visit ",
+                        from, "\tend");
   };
   edge.reason = evidence(visits[0], visits[1], keyframes[5].id, keyframes[0].id);
   VisitAnchor anchor;
