@@ -20,8 +20,9 @@ int main(int argc, char** argv) {
   if (getenv("CHECK_TURN")) o.feature_check_turn_dps = std::atof(getenv("CHECK_TURN"));
   if (getenv("FEAT_AGREE_M")) o.feature_agree_m = std::atof(getenv("FEAT_AGREE_M"));
   if (getenv("HOLE_MARGIN")) o.hole_margin = std::atoi(getenv("HOLE_MARGIN"));
+  if (getenv("PRIOR_SHARE")) o.prior_share = std::atof(getenv("PRIOR_SHARE"));
   const int stripe = getenv("STRIPE") ? std::atoi(getenv("STRIPE")) : 0;
-  int methods[4] = {0, 0, 0, 0};
+  int methods[6] = {0, 0, 0, 0, 0, 0};
   int limit = argc > 3 ? std::atoi(argv[3]) : 100000;
   tracking::Tracker tracker(o);
   tracking::KeyframeSelector selector;
@@ -42,6 +43,7 @@ int main(int argc, char** argv) {
       f->color_bgr.colRange(0, stripe).setTo(cv::Scalar(20, 20, 30));
       f->depth_m.colRange(0, stripe).setTo(0);
     }
+    if (getenv("ODOM") && e.T_odom_camera) f->odometry = OdometryReading{*e.T_odom_camera, {}};
     auto t = tracker.Track(*f);
     if (e.T_world_camera) truth.push_back({e.timestamp_s, *e.T_world_camera});
     if (!t.T_world_camera) {
@@ -61,7 +63,14 @@ int main(int argc, char** argv) {
       const double err = (de.translation() - dt.translation()).norm();
       if (err > 0.01) {
         std::cout << "frame " << n - 1 << " step error " << err * 1000 << " mm (moved "
-                  << dt.translation().norm() * 1000 << " mm)\n";
+                  << dt.translation().norm() * 1000 << " mm) free: " << t.degenerate_axes.size()
+                  << "\n";
+        if (getenv("VECTORS")) {
+          std::cout << "   est " << de.translation().transpose() * 1000 << " rot "
+                    << Eigen::AngleAxisd(de.rotation()).angle() * 180 / M_PI << "  true "
+                    << dt.translation().transpose() * 1000 << " rot "
+                    << Eigen::AngleAxisd(dt.rotation()).angle() * 180 / M_PI << "\n";
+        }
       }
     }
     last_est = t.T_world_camera;

@@ -102,6 +102,10 @@ absl::Status OdometryOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("odometry degenerate_share must be within [0, 0.1], got ", degenerate_share));
   }
+  if (!(prior_share >= 0 && prior_share <= 0.1)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("odometry prior_share must be within [0, 0.1], got ", prior_share));
+  }
   if (!(feature_agree_m > 0 && feature_agree_m <= 1 && feature_agree_deg > 0 &&
         feature_agree_deg <= 45)) {
     return absl::InvalidArgumentError(
@@ -272,20 +276,46 @@ OdometryStep StepOf(const OdometryReading& last, const OdometryReading& current,
   return step;
 }
 
-}  // namespace
-
-namespace {
-
-// The pyramid level whose points and normals DegeneracyOf reads: half the odometry's resolution
+// The pyramid level whose points and normals InformationOf reads: half the odometry's resolution
 // (160x120 at 320x240). At 40x30 a desk's objects vanish and TUM fr1_xyz's views looked as
 // free along the desk as a plain wall (0.00 % of the information).
 constexpr int kDegeneracyLevel = 1;
 
-// DepthDegeneracy of a prepared reference frame (its cached cloud and normals at
-// kDegeneracyLevel), placed at `T_world_camera`.
-std::vector<std::string> DegeneracyOf(const cv::rgbd::OdometryFrame& f,
-                                      const Eigen::Isometry3d& T_world_camera, double min_share) {
-  if (min_share <= 0 || static_cast<int>(f.pyramidNormals.size()) <= kDegeneracyLevel ||
+// How firmly point-to-plane alignment against a view pins each direction of motion: the
+// information matrix of rows (n, (p x n) / d) over the view's points p and unit normals n (in
+// the frame they are given in; d their median depth, so rotations count in metres at that
+// depth), divided by its trace. A small motion (translation t, rotation w about the frame's
+// origin) moves a point's residual by n.t + (p x n).w. Zero with fewer than 50 points.
+struct DepthInformation {
+  Eigen::Matrix<double, 6, 6> shares = Eigen::Matrix<double, 6, 6>::Zero();
+  double depth_m = 1.0;
+};
+
+DepthInformation InformationOf(const std::vector<Eigen::Vector3d>& points,
+                               const std::vector<Eigen::Vector3d>& normals) {
+  DepthInformation info;
+  if (points.size() < 50 || points.size() != normals.size()) return info;
+  std::vector<double> depths;
+  depths.reserve(points.size());
+  for (const auto& p : points) depths.push_back(p.z());
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
+  info.depth_m = std::max(depths[depths.size() / 2], 0.1);
+  Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+  for (size_t i = 0; i < points.size(); ++i) {
+    Eigen::Matrix<double, 6, 1> row;
+    row.head<3>() = normals[i];
+    row.tail<3>() = points[i].cross(normals[i]) / info.depth_m;
+    H.noalias() += row * row.transpose();
+  }
+  const double trace = H.trace();
+  if (trace > 0) info.shares = H / trace;
+  return info;
+}
+
+// A prepared reference frame's DepthInformation (its cached cloud and normals at
+// kDegeneracyLevel), in its camera frame.
+DepthInformation InformationOf(const cv::rgbd::OdometryFrame& f) {
+  if (static_cast<int>(f.pyramidNormals.size()) <= kDegeneracyLevel ||
       static_cast<int>(f.pyramidCloud.size()) <= kDegeneracyLevel) {
     return {};
   }
@@ -307,36 +337,23 @@ std::vector<std::string> DegeneracyOf(const cv::rgbd::OdometryFrame& f,
       unit_normals.push_back(nn.normalized());
     }
   }
-  return DepthDegeneracy(points, unit_normals, T_world_camera.linear(), min_share);
+  return InformationOf(points, unit_normals);
 }
 
-}  // namespace
-
-std::vector<std::string> DepthDegeneracy(const std::vector<Eigen::Vector3d>& points,
-                                         const std::vector<Eigen::Vector3d>& normals,
-                                         const Eigen::Matrix3d& R_world_camera, double min_share) {
-  if (points.size() < 50 || points.size() != normals.size()) return {};
-  std::vector<double> depths;
-  depths.reserve(points.size());
-  for (const auto& p : points) depths.push_back(p.z());
-  std::nth_element(depths.begin(), depths.begin() + depths.size() / 2, depths.end());
-  const double d = std::max(depths[depths.size() / 2], 0.1);
-  // Rows in the world's axes: a translation t of the camera and a rotation w about it move the
-  // point-to-plane residual by n.t + (p x n).w (both rotated into the world).
-  Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
-  for (size_t i = 0; i < points.size(); ++i) {
-    Eigen::Matrix<double, 6, 1> row;
-    row.head<3>() = R_world_camera * normals[i];
-    row.tail<3>() = R_world_camera * points[i].cross(normals[i]) / d;
-    H.noalias() += row * row.transpose();
-  }
-  const double trace = H.trace();
-  if (!(trace > 0)) return {};
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(H);
+// The directions of `info` (a view's, camera frame) whose share is below `min_share`, named in
+// the world's axes (the camera rotated by `R_world_camera`).
+std::vector<std::string> FreeDirections(const DepthInformation& info,
+                                        const Eigen::Matrix3d& R_world_camera, double min_share) {
+  if (min_share <= 0 || !(info.shares.trace() > 0)) return {};
+  Eigen::Matrix<double, 6, 6> rotate = Eigen::Matrix<double, 6, 6>::Zero();
+  rotate.topLeftCorner<3, 3>() = R_world_camera;
+  rotate.bottomRightCorner<3, 3>() = R_world_camera;
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(rotate * info.shares *
+                                                                   rotate.transpose());
   std::vector<std::string> free;
   static const char* kAxis[] = {"x", "y", "z"};
   for (int i = 0; i < 6; ++i) {
-    const double share = eigen.eigenvalues()(i) / trace;
+    const double share = eigen.eigenvalues()(i);
     if (share >= min_share) continue;
     const Eigen::Matrix<double, 6, 1> v = eigen.eigenvectors().col(i);
     int axis = 0;
@@ -346,6 +363,45 @@ std::vector<std::string> DepthDegeneracy(const std::vector<Eigen::Vector3d>& poi
                                    kAxis[axis % 3], 100 * share));
   }
   return free;
+}
+
+// The alignment `aligned` (T_reference_current) where the reference's depth pins the motion,
+// `prior` (the motion model's T_reference_current) where it does not: their difference
+// (aligned * prior^-1, in the reference camera's frame) is weighted, per eigen-direction of
+// the reference's information with share s, by s^2 / (s^2 + prior_share^2), so a direction
+// the depth leaves free (a plain wall's two in-plane translations and the turn about its
+// normal) follows the prior, and a pinned one the alignment. Point-to-plane ICP along a free
+// direction is noise (the photometric term of a plain wall hardly helps), and that noise, kept
+// at every keyframe, is what bent the tracks (issue 54).
+Eigen::Isometry3d FollowPriorWhereFree(const Eigen::Isometry3d& aligned,
+                                       const Eigen::Isometry3d& prior, const DepthInformation& info,
+                                       double prior_share) {
+  if (prior_share <= 0 || !(info.shares.trace() > 0)) return aligned;
+  const Eigen::Isometry3d D = aligned * prior.inverse();
+  const Eigen::AngleAxisd turn(D.rotation());
+  Eigen::Matrix<double, 6, 1> xi;
+  xi.head<3>() = D.translation();
+  xi.tail<3>() = turn.axis() * turn.angle() * info.depth_m;
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(info.shares);
+  const Eigen::Array<double, 6, 1> s = eigen.eigenvalues().array().max(0.0);
+  const Eigen::Matrix<double, 6, 1> weight =
+      (s.square() / (s.square() + prior_share * prior_share)).matrix();
+  const Eigen::Matrix<double, 6, 6>& V = eigen.eigenvectors();
+  const Eigen::Matrix<double, 6, 1> kept = V * weight.asDiagonal() * V.transpose() * xi;
+  Eigen::Isometry3d D_kept = Eigen::Isometry3d::Identity();
+  const Eigen::Vector3d w = kept.tail<3>() / info.depth_m;
+  if (w.norm() > 0)
+    D_kept.linear() = Eigen::AngleAxisd(w.norm(), w.normalized()).toRotationMatrix();
+  D_kept.translation() = kept.head<3>();
+  return D_kept * prior;
+}
+
+}  // namespace
+
+std::vector<std::string> DepthDegeneracy(const std::vector<Eigen::Vector3d>& points,
+                                         const std::vector<Eigen::Vector3d>& normals,
+                                         const Eigen::Matrix3d& R_world_camera, double min_share) {
+  return FreeDirections(InformationOf(points, normals), R_world_camera, min_share);
 }
 
 struct TrackingInput {
@@ -432,6 +488,7 @@ struct Tracker::Impl {
   // The directions the reference's depth leaves free (DepthDegeneracy), found once per
   // reference (~0.1 ms).
   std::vector<std::string> reference_degenerate;
+  DepthInformation reference_information;
   // The last frame tracked, prepared, and its pose relative to the reference.
   std::shared_ptr<TrackingInput> last;
   Eigen::Isometry3d T_reference_last = Eigen::Isometry3d::Identity();
@@ -459,12 +516,18 @@ struct Tracker::Impl {
     reference = input;
     last = std::move(input);
     T_world_reference = T_world_camera;
-    reference_degenerate =
-        DegeneracyOf(*reference->frame, T_world_reference, options.degenerate_share);
+    SetReferenceInformation();
     T_reference_last = Eigen::Isometry3d::Identity();
     last_tracked = true;
     last_tracked_timestamp_s = timestamp_s;
     lost_frames = 0;
+  }
+
+  // The reference's depth information and the directions it leaves free (~0.1 ms).
+  void SetReferenceInformation() {
+    reference_information = InformationOf(*reference->frame);
+    reference_degenerate =
+        FreeDirections(reference_information, T_world_reference.linear(), options.degenerate_share);
   }
 };
 
@@ -680,6 +743,16 @@ TrackedPose Tracker::Track(const RgbdFrame& frame, std::shared_ptr<TrackingInput
     m.lost_odometry = frame.odometry;
     return lose(dense_jump.empty() ? dense_failure : dense_jump);
   }
+  // Where the reference's depth leaves a direction free and the frame came with a prediction of
+  // its own (the robot's odometry, a client's pose), the prediction decides it
+  // (FollowPriorWhereFree). Without one, neither the last pose nor constant velocity serves: on
+  // real hand-held views the pull to the last pose doubled the frame-to-frame error (TUM fr1_desk
+  // RPE 8.5 -> 18 mm) and the synthetic walks stayed bent (docs/RESULTS.md "Issue 54 (tracking)").
+  if ((odometry_step || prior) &&
+      (method == TrackingMethod::kDense || method == TrackingMethod::kRefit)) {
+    T_reference_current = FollowPriorWhereFree(T_reference_current, predicted,
+                                               m.reference_information, m.options.prior_share);
+  }
   out.state = m.lost_frames == 0 ? TrackingState::kTracking : TrackingState::kRegained;
   out.method = method;
   out.degenerate_axes = m.reference_degenerate;
@@ -741,8 +814,7 @@ void Tracker::PromoteLastToReference() {
   m.T_world_reference = m.T_world_reference * m.T_reference_last;
   m.reference = m.last;
   m.T_reference_last = Eigen::Isometry3d::Identity();
-  m.reference_degenerate =
-      DegeneracyOf(*m.reference->frame, m.T_world_reference, m.options.degenerate_share);
+  m.SetReferenceInformation();
 }
 
 }  // namespace lifemap::tracking

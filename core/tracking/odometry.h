@@ -82,6 +82,14 @@ struct OdometryOptions {
   // direction 0.04-0.14 % of the information) and a cluttered desk (TUM fr1_xyz: 0.86-1.36 %);
   // docs/RESULTS.md "Issue 35 (session 22)".
   double degenerate_share = 0.0025;
+  // Where the reference keyframe's depth pins a direction of motion weakly, a frame's own
+  // prediction (the robot's odometry, a client's pose to refine) decides it rather than the
+  // alignment: each direction of the alignment's difference from the prediction is kept by
+  // s^2 / (s^2 + prior_share^2), s its share of the depth's information (as degenerate_share).
+  // Frames without a prediction keep the alignment; 0 keeps it always. Chosen on building seed 3
+  // with wheel odometry (ATE 31-49 mm at 0, 6-18 mm at 0.01); docs/RESULTS.md "Issue 54
+  // (tracking)".
+  double prior_share = 0.01;
 
   // InvalidArgument naming the first field out of range.
   absl::Status Validate() const;

@@ -139,6 +139,12 @@ uint64_t ArchitectureWorker::Submit(Visit visit, cv::Mat depth_m, const CameraIn
                                     const Pose& T_world_camera) {
   return worker_.Submit([this, v = std::move(visit), depth = std::move(depth_m), k,
                          T_world_camera] {
+    // A pose from before the visit's frame changed would mix two frames in one plan.
+    if (v.frame_generation < v.arch->frame_generation) {
+      ++v.arch->stale_key_frames;
+      return;
+    }
+    v.arch->frame_generation = v.frame_generation;
     if (FoldArchitectureKeyframe(depth, k, T_world_camera, v.arch)) {
       UpdateArchitectureRanking(index_, v.visit_id, v.map_id, v.map_name(), /*store=*/true, v.arch);
     }
@@ -147,6 +153,7 @@ uint64_t ArchitectureWorker::Submit(Visit visit, cv::Mat depth_m, const CameraIn
 
 uint64_t ArchitectureWorker::SubmitRebuild(Visit visit) {
   return worker_.Submit([this, v = std::move(visit)] {
+    v.arch->frame_generation = std::max(v.arch->frame_generation, v.frame_generation);
     RebuildArchitecture(store_, index_, v.map_id, v.visit_id, v.map_name(), /*store_plan=*/true,
                         v.arch);
   });

@@ -49,6 +49,13 @@ struct ArchitectureRanking {
 // registry while it loads the visit, then only the ArchitectureWorker.
 struct VisitArchitecture {
   place::FloorPlanBuilder builder;
+  // The frame generation the builder's key frames are in (VisitState::frame_generation); only
+  // the ArchitectureWorker's thread reads or writes it. Key frames folded: 0 until the first.
+  uint64_t frame_generation = 0;
+  // Key frames not folded because their pose was in an older frame than the plan's (queued
+  // before an anchor, folded after the rebuild into the map's frame): the next rebuild, which
+  // reads them from the store, folds them in the right frame.
+  int64_t stale_key_frames = 0;
   mutable absl::Mutex mu;
   ArchitectureRanking ranking ABSL_GUARDED_BY(mu);
 
@@ -123,6 +130,9 @@ class ArchitectureWorker {
     std::function<std::string()> map_name;  // read when the plan is stored (renames follow)
     VisitArchitecture* arch = nullptr;
     std::shared_ptr<const void> keep_alive;
+    // The frame generation of the key frame's pose (Submit), or of the stored key frames a
+    // rebuild reads (SubmitRebuild). A key frame older than the plan's generation is not folded.
+    uint64_t frame_generation = 0;
   };
   // Queues a posed key frame; returns its ticket for Wait(). `depth_m` is shared, not copied
   // (cv::Mat reference counting): the caller must not write to it afterwards.

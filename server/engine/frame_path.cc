@@ -41,14 +41,18 @@ Pose AnalysedFrame::T_visit_camera() const {
                             analysis->frame.T_world_camera->ToIsometry());
 }
 
-ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state) {
+ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state,
+                                               uint64_t frame_generation) {
   VisitState* v = state.get();
-  return {v->visit_id, v->map_id,
+  return {v->visit_id,
+          v->map_id,
           [v] {
             absl::MutexLock name_lock(&v->mu);
             return v->map_name;  // read when the plan is stored: renames follow
           },
-          &v->architecture, state};
+          &v->architecture,
+          state,
+          frame_generation};
 }
 
 absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_name) {
@@ -441,6 +445,8 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
     if (before.ok()) resent_as = *before;
   }
   std::optional<Pose> odometry_pose;  // a tracked frame's pose in the tracker's own frame
+  // The visit's frame generation the reported pose is in (VisitState::frame_generation).
+  std::optional<uint64_t> pose_generation;
   if (server_tracks) {
     // No client pose (or one to refine): the server tracks the camera (issue 15); the estimate
     // then stands for the pose in keyframe selection, storage and the floor plan. A client pose
@@ -481,6 +487,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       absl::MutexLock correction(&visit->correction_mu);
       f.T_world_camera = Pose::FromIsometry(visit->world_from_odom.ToIsometry() *
                                             tracked.T_world_camera->ToIsometry());
+      pose_generation = visit->frame_generation;
       if (visit->T_map_visit) {
         a.T_visit_world = Pose::FromIsometry(visit->T_map_visit->ToIsometry().inverse());
       }
@@ -613,22 +620,30 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
       };
       job.on_anchored = [visit_state, architecture = parts_.architecture](
                             const Pose& moved_by, const std::optional<Pose>& T_map_visit) {
+        uint64_t generation = 0;
         {
           absl::MutexLock correction(&visit_state->correction_mu);
           visit_state->world_from_odom =
               Pose::FromIsometry(moved_by.ToIsometry() * visit_state->world_from_odom.ToIsometry());
           visit_state->T_map_visit = T_map_visit;
+          generation = ++visit_state->frame_generation;
         }
         // Its stored key frames moved into the map's frame: its floor plan follows them (the
-        // key frames folded from now on are placed there).
-        architecture->SubmitRebuild(ArchitectureJobVisit(visit_state));
+        // key frames folded from now on are placed there; those queued with a pose from before
+        // are left to this rebuild, which reads them from the store).
+        architecture->SubmitRebuild(ArchitectureJobVisit(visit_state, generation));
       };
       p.pose_graph_ticket = parts_.pose_graph->Submit(std::move(job));
     }
     if (f.T_world_camera) {
       // Folded, ranked and stored off the reply path, in key-frame order.
-      p.architecture_ticket = parts_.architecture->Submit(
-          ArchitectureJobVisit(visit_state), f.depth_m, f.intrinsics, *f.T_world_camera);
+      if (!pose_generation) {
+        absl::MutexLock correction(&visit_state->correction_mu);
+        pose_generation = visit_state->frame_generation;
+      }
+      p.architecture_ticket =
+          parts_.architecture->Submit(ArchitectureJobVisit(visit_state, *pose_generation),
+                                      f.depth_m, f.intrinsics, *f.T_world_camera);
     }
   }
   // Rendered from the octree as fused so far (before this keyframe joins it); a keyframe's

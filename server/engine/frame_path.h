@@ -234,8 +234,10 @@ class FramePath {
   std::atomic<uint64_t> frames_rejected_{0};
 };
 
-// The visit as the architecture worker needs it (kept alive by its jobs).
-ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state);
+// The visit as the architecture worker needs it (kept alive by its jobs), for a key frame posed
+// or a rebuild reading key frames stored in `frame_generation` (VisitState::frame_generation).
+ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state,
+                                               uint64_t frame_generation);
 
 // OK when `writer` may still add frames to `visit` (null: a frame without a map), and its
 // map's name then.

@@ -87,6 +87,10 @@ struct VisitState {
   // then leads into the map's frame, and tracked poses are reported there. The visit's semantic
   // octree stays in the visit's own frame (T_map_visit⁻¹ brings a pose back into it).
   std::optional<Pose> T_map_visit ABSL_GUARDED_BY(correction_mu);
+  // How many times the visit's frame changed under it (an anchor set, moved or dropped): a pose
+  // reported in frame generation g is in the frame of the g-th change. The floor plan folds a
+  // key frame only in its own generation (ArchitectureWorker::Visit::frame_generation).
+  uint64_t frame_generation ABSL_GUARDED_BY(correction_mu) = 0;
   // Paper 004's floor plan and ranking; it guards itself (see VisitArchitecture): the
   // ArchitectureWorker folds key frames into it off the reply path, outside `mu`.
   VisitArchitecture architecture;
