@@ -60,9 +60,9 @@ struct StairFlight {
 
 // How well the key frames agree on the floor. A rigid track sees one level floor; one that
 // bends (drift in pitch, roll or height: issue 54) sees it tilt and rise from key frame to key
-// frame. From each key frame's largest upward plane below it (within floor_search_deg of
-// world_up): the 90th percentiles of its tilt from world_up and of its height off the plan's
-// floor.
+// frame. From each key frame's lowest upward plane of min_floor_sighting_m2 or more below it
+// (within floor_search_deg of world_up): the 90th percentiles of its tilt from world_up and of its
+// height off the median of those planes' heights (the key frames' own level).
 struct FloorAgreement {
   int keyframes = 0;  // key frames that saw a floor-like plane (0: nothing to judge by)
   double tilt_deg_p90 = 0;
