@@ -284,10 +284,14 @@ constexpr int kDegeneracyLevel = 1;
 // How firmly point-to-plane alignment against a view pins each direction of motion: the
 // information matrix of rows (n, (p x n) / d) over the view's points p and unit normals n (in
 // the frame they are given in; d their median depth, so rotations count in metres at that
-// depth), divided by its trace. A small motion (translation t, rotation w about the frame's
-// origin) moves a point's residual by n.t + (p x n).w. Zero with fewer than 50 points.
+// depth), divided by its trace, as its eigen-directions (columns, translation then rotation, in
+// that frame) and their shares (ascending), decomposed once per view. A small motion
+// (translation t, rotation w about the frame's origin) moves a point's residual by
+// n.t + (p x n).w. Unknown (no directions) with fewer than 50 points.
 struct DepthInformation {
-  Eigen::Matrix<double, 6, 6> shares = Eigen::Matrix<double, 6, 6>::Zero();
+  bool known = false;
+  Eigen::Matrix<double, 6, 1> shares = Eigen::Matrix<double, 6, 1>::Zero();
+  Eigen::Matrix<double, 6, 6> directions = Eigen::Matrix<double, 6, 6>::Identity();
   double depth_m = 1.0;
 };
 
@@ -308,7 +312,11 @@ DepthInformation InformationOf(const std::vector<Eigen::Vector3d>& points,
     H.noalias() += row * row.transpose();
   }
   const double trace = H.trace();
-  if (trace > 0) info.shares = H / trace;
+  if (!(trace > 0)) return info;
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(H / trace);
+  info.known = true;
+  info.shares = eigen.eigenvalues();
+  info.directions = eigen.eigenvectors();
   return info;
 }
 
@@ -344,18 +352,17 @@ DepthInformation InformationOf(const cv::rgbd::OdometryFrame& f) {
 // the world's axes (the camera rotated by `R_world_camera`).
 std::vector<std::string> FreeDirections(const DepthInformation& info,
                                         const Eigen::Matrix3d& R_world_camera, double min_share) {
-  if (min_share <= 0 || !(info.shares.trace() > 0)) return {};
+  if (min_share <= 0 || !info.known) return {};
+  // Rotating the information into the world's axes keeps its shares and turns its directions.
   Eigen::Matrix<double, 6, 6> rotate = Eigen::Matrix<double, 6, 6>::Zero();
   rotate.topLeftCorner<3, 3>() = R_world_camera;
   rotate.bottomRightCorner<3, 3>() = R_world_camera;
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(rotate * info.shares *
-                                                                   rotate.transpose());
   std::vector<std::string> free;
   static const char* kAxis[] = {"x", "y", "z"};
   for (int i = 0; i < 6; ++i) {
-    const double share = eigen.eigenvalues()(i);
+    const double share = info.shares(i);
     if (share >= min_share) continue;
-    const Eigen::Matrix<double, 6, 1> v = eigen.eigenvectors().col(i);
+    const Eigen::Matrix<double, 6, 1> v = rotate * info.directions.col(i);
     int axis = 0;
     v.cwiseAbs().maxCoeff(&axis);
     free.push_back(absl::StrFormat("%s %s (%.2f %% of the depth's information)",
@@ -376,17 +383,16 @@ std::vector<std::string> FreeDirections(const DepthInformation& info,
 Eigen::Isometry3d FollowPriorWhereFree(const Eigen::Isometry3d& aligned,
                                        const Eigen::Isometry3d& prior, const DepthInformation& info,
                                        double prior_share) {
-  if (prior_share <= 0 || !(info.shares.trace() > 0)) return aligned;
+  if (prior_share <= 0 || !info.known) return aligned;
   const Eigen::Isometry3d D = aligned * prior.inverse();
   const Eigen::AngleAxisd turn(D.rotation());
   Eigen::Matrix<double, 6, 1> xi;
   xi.head<3>() = D.translation();
   xi.tail<3>() = turn.axis() * turn.angle() * info.depth_m;
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(info.shares);
-  const Eigen::Array<double, 6, 1> s = eigen.eigenvalues().array().max(0.0);
+  const Eigen::Array<double, 6, 1> s = info.shares.array().max(0.0);
   const Eigen::Matrix<double, 6, 1> weight =
       (s.square() / (s.square() + prior_share * prior_share)).matrix();
-  const Eigen::Matrix<double, 6, 6>& V = eigen.eigenvectors();
+  const Eigen::Matrix<double, 6, 6>& V = info.directions;
   const Eigen::Matrix<double, 6, 1> kept = V * weight.asDiagonal() * V.transpose() * xi;
   Eigen::Isometry3d D_kept = Eigen::Isometry3d::Identity();
   const Eigen::Vector3d w = kept.tail<3>() / info.depth_m;

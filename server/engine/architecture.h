@@ -49,12 +49,12 @@ struct ArchitectureRanking {
 // registry while it loads the visit, then only the ArchitectureWorker.
 struct VisitArchitecture {
   place::FloorPlanBuilder builder;
-  // The frame generation the builder's key frames are in (VisitState::frame_generation); only
-  // the ArchitectureWorker's thread reads or writes it. Key frames folded: 0 until the first.
+  // The frame generation the builder's key frames are in (VisitState::frame_generation; 0 until
+  // an anchor changes the visit's frame); only the ArchitectureWorker's thread reads or writes it.
   uint64_t frame_generation = 0;
-  // Key frames not folded because their pose was in an older frame than the plan's (queued
-  // before an anchor, folded after the rebuild into the map's frame): the next rebuild, which
-  // reads them from the store, folds them in the right frame.
+  // Key frames not folded because their pose was in an older frame than the plan's (posed before
+  // an anchor, queued after its rebuild): a later rebuild, which reads them from the store,
+  // folds them in the right frame.
   int64_t stale_key_frames = 0;
   mutable absl::Mutex mu;
   ArchitectureRanking ranking ABSL_GUARDED_BY(mu);

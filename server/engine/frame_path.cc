@@ -629,8 +629,8 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
           generation = ++visit_state->frame_generation;
         }
         // Its stored key frames moved into the map's frame: its floor plan follows them (the
-        // key frames folded from now on are placed there; those queued with a pose from before
-        // are left to this rebuild, which reads them from the store).
+        // key frames folded from now on are placed there; one posed before and queued after
+        // this rebuild is not folded, and a later rebuild reads it from the store).
         architecture->SubmitRebuild(ArchitectureJobVisit(visit_state, generation));
       };
       p.pose_graph_ticket = parts_.pose_graph->Submit(std::move(job));

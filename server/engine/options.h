@@ -90,7 +90,9 @@ struct PoseGraphOptions {
   // (degrees) or lies more than this off its level (metres; 90th percentiles over at least 5
   // keyframes that saw it: core/place FloorAgreement) is bent, and held like one that lost its
   // frames (issue 54). Chosen on building seed 11 with wheel odometry (rigid: 0.4-0.7 deg,
-  // 0.02 m) and seed 3 without (a visit 78 cm off: 11.4 deg, 0.43 m): RESULTS.md "Issue 54".
+  // 0.02 m) and seed 3 without (a visit 78 cm off: 11.4 deg, 0.43 m, as first measured from
+  // the largest plane; from the lowest, seed 3 at 300 frames gives 20.0 / 7.3 deg, 0.70 / 0.32 m):
+  // RESULTS.md "Issue 54 (first step)" and "(tracking)".
   double anchor_max_floor_tilt_deg = 3.0;
   double anchor_max_floor_offset_m = 0.10;
   // The two agreeing matches that anchor a visit come from keyframes at least this far apart

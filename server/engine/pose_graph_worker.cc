@@ -292,9 +292,7 @@ std::string UnanchorableTrack(store::Store* store, const store::VisitRecord& v,
     return broken;
   }
   if (v.tracked_keyframes == 0) return "";  // the robot's own poses: not the tracker's to judge
-  // Not caught by StoredPlanOf's frame check: keyframes queued for folding before an anchor and
-  // folded after its rebuild (RESULTS.md "Issue 54 (first step)": building seed 11, a 0.78 m
-  // offset that was the anchor's).
+  // Any stored plan in the keyframes' frame, however few its walls: the floor is what is judged.
   const std::optional<place::FloorPlan> plan = StoredPlanOf(store, v);
   if (!plan) return "";
   const place::FloorAgreement& a = plan->floor_agreement;
