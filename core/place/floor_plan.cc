@@ -16,6 +16,7 @@
 namespace lifemap::place {
 
 using steps::Cell;
+using steps::FloorSighting;
 using steps::Key;
 using steps::kRayRangeM;
 using steps::Patch;
@@ -54,56 +55,70 @@ double Quantile(std::vector<double> values, double q) {
   return values[i];
 }
 
-// A key frame's lowest upward plane below it (FloorAgreement): its tilt from world_up and its
-// height along it.
-struct FloorSighting {
-  double tilt_deg, height;
-};
-
-// Offsets are taken from the sightings' median height, not from the plan's floor: that is found
-// among all upward patches and, on few key frames, can be another surface (building seed 11:
-// 0.78 m off at 23 key frames of a rigid track, 0.017 m from the median; docs/RESULTS.md).
-FloorAgreement AgreementOn(const std::vector<FloorSighting>& sightings) {
-  FloorAgreement a;
-  a.keyframes = static_cast<int>(sightings.size());
-  std::vector<double> tilts, heights, offsets;
-  for (const auto& f : sightings) {
-    tilts.push_back(f.tilt_deg);
-    heights.push_back(f.height);
-  }
-  const double level = Quantile(heights, 0.5);
-  for (const auto& f : sightings) offsets.push_back(std::abs(f.height - level));
-  a.tilt_deg_p90 = Quantile(tilts, 0.9);
-  a.offset_m_p90 = Quantile(offsets, 0.9);
-  return a;
-}
-
 }  // namespace
 
 struct FloorPlanBuilder::State {
   FloorPlanOptions o;
   Eigen::Vector3d up, e1, e2;
   int keyframes = 0;
+  // Key frames waiting for a floor to level the plan by (FloorPlanOptions::up_from_floor), and
+  // whether `up` is settled (taken from a floor, or world_up after waiting).
+  struct Waiting {
+    planes::PlaneSet planes;
+    CameraIntrinsics k;
+    Pose pose;
+  };
+  std::vector<Waiting> waiting;
+  bool up_settled = false;
   std::vector<Eigen::Vector3d> cameras;  // world positions
   std::vector<WallAcc> walls;
   std::vector<Patch> patches;
   std::vector<FloorSighting> floor_sightings;  // one a key frame that saw one (FloorAgreement)
 
   Eigen::Vector2d Ground(const Eigen::Vector3d& p) const { return {e1.dot(p), e2.dot(p)}; }
+
+  // `up` (unit) and a ground-plane basis for it: e1 the world's x (else y) made horizontal.
+  void SetUp(const Eigen::Vector3d& unit_up) {
+    up = unit_up;
+    const Eigen::Vector3d any =
+        std::abs(up.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+    e1 = (any - any.dot(up) * up).normalized();
+    e2 = up.cross(e1);
+  }
+  void Fold(const planes::PlaneSet& planes, const CameraIntrinsics& k, const Pose& pose);
 };
 
 FloorPlanBuilder::FloorPlanBuilder(FloorPlanOptions options) : s_(std::make_unique<State>()) {
   s_->o = options;
-  s_->up = options.world_up.normalized();
-  const Eigen::Vector3d any =
-      std::abs(s_->up.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
-  s_->e1 = (any - any.dot(s_->up) * s_->up).normalized();
-  s_->e2 = s_->up.cross(s_->e1);
+  s_->SetUp(options.world_up.normalized());
+  s_->up_settled = !options.up_from_floor;
 }
 FloorPlanBuilder::~FloorPlanBuilder() = default;
 FloorPlanBuilder::FloorPlanBuilder(FloorPlanBuilder&&) noexcept = default;
 FloorPlanBuilder& FloorPlanBuilder::operator=(FloorPlanBuilder&&) noexcept = default;
-int FloorPlanBuilder::keyframes() const { return s_->keyframes; }
+int FloorPlanBuilder::keyframes() const {
+  return s_->keyframes + static_cast<int>(s_->waiting.size());
+}
+
+namespace {
+
+// The up a key frame's floor gives (FloorPlanOptions::up_from_floor), in the world frame, if it
+// shows one: its largest upward plane of level_min_area_m2 or more, below the camera, near
+// `prior_up`.
+std::optional<Eigen::Vector3d> FloorUp(const planes::PlaneSet& planes, const Pose& pose,
+                                       const Eigen::Vector3d& prior_up, const FloorPlanOptions& o) {
+  const Eigen::Matrix3d R = pose.rotation.toRotationMatrix();
+  const double min_cos = std::cos(Deg(o.floor_search_deg));
+  for (const auto& p : planes.planes) {  // largest first
+    if (p.area_m2 < o.level_min_area_m2) break;
+    const Eigen::Vector3d n = (R * p.normal.cast<double>()).normalized();
+    const Eigen::Vector3d below = R * p.centroid.cast<double>();  // from the camera
+    if (n.dot(prior_up) > min_cos && below.dot(prior_up) < -o.floor_below_cameras_m) return n;
+  }
+  return std::nullopt;
+}
+
+}  // namespace
 
 absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
                                            const CameraIntrinsics& k, const Pose& T_world_camera) {
@@ -118,6 +133,26 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
   if (!depth.empty() && (depth.cols != k.width || depth.rows != k.height || !(k.fx > 0))) {
     return absl::InvalidArgumentError("intrinsics do not match the key frame's depth image");
   }
+  if (s.up_settled) {
+    s.Fold(planes, k, pose);
+    return absl::OkStatus();
+  }
+  s.waiting.push_back({planes, k, pose});
+  const std::optional<Eigen::Vector3d> floor_up = FloorUp(planes, pose, s.up, s.o);
+  if (!floor_up && static_cast<int>(s.waiting.size()) < s.o.level_max_wait_keyframes) {
+    return absl::OkStatus();
+  }
+  if (floor_up) s.SetUp(*floor_up);
+  s.up_settled = true;
+  for (const auto& w : s.waiting) s.Fold(w.planes, w.k, w.pose);
+  s.waiting.clear();
+  return absl::OkStatus();
+}
+
+void FloorPlanBuilder::State::Fold(const planes::PlaneSet& planes, const CameraIntrinsics& k,
+                                   const Pose& pose) {
+  State& s = *this;
+  const cv::Mat& depth = planes.smoothed_depth_m;
   const Eigen::Matrix3d R = pose.rotation.toRotationMatrix();
   const Eigen::Vector3d& origin = pose.translation;
   const double cos_vertical = std::sin(Deg(s.o.vertical_tolerance_deg));
@@ -244,7 +279,6 @@ absl::Status FloorPlanBuilder::AddKeyframe(const planes::PlaneSet& planes,
   s.cameras.push_back(origin);
   if (floor_sighting) s.floor_sightings.push_back(*floor_sighting);
   ++s.keyframes;
-  return absl::OkStatus();
 }
 
 absl::Status FloorPlanBuilder::AddDepthKeyframe(const cv::Mat& depth_m, const CameraIntrinsics& k,
@@ -288,6 +322,8 @@ absl::Status FloorPlanOptions::Validate() const {
       {"min_floor_m2", min_floor_m2, 0, 1000},
       {"floor_search_deg", floor_search_deg, 1, 89},
       {"min_floor_sighting_m2", min_floor_sighting_m2, 0, 1000},
+      {"level_min_area_m2", level_min_area_m2, 0, 1000},
+      {"level_max_wait_keyframes", static_cast<double>(level_max_wait_keyframes), 1, 1000},
       {"max_wall_height_m", max_wall_height_m, 0.5, 100},
       {"free_over_covered", free_over_covered, 0, 1000},
       {"min_wall_cells", static_cast<double>(min_wall_cells), 1, 1e6},
@@ -315,6 +351,30 @@ absl::Status FloorPlanOptions::Validate() const {
 }
 
 namespace steps {
+
+// The level is read from the sightings, not from the plan's floor: that is found among all
+// upward patches and, on few key frames, can be another surface (building seed 11: 0.78 m off
+// at 23 key frames of a rigid track; docs/RESULTS.md).
+FloorAgreement AgreeOnFloor(const std::vector<FloorSighting>& sightings) {
+  constexpr double kLevelQuantile = 0.25;
+  FloorAgreement a;
+  a.keyframes = static_cast<int>(sightings.size());
+  std::vector<double> tilts, heights;
+  for (const auto& f : sightings) {
+    tilts.push_back(f.tilt_deg);
+    heights.push_back(f.height);
+  }
+  a.tilt_deg_p90 = Quantile(tilts, 0.9);
+  const double level = Quantile(heights, kLevelQuantile);
+  const size_t n = heights.size();
+  for (size_t part = 0; part < 3 && n >= 3; ++part) {
+    const std::vector<double> third(
+        heights.begin() + static_cast<std::ptrdiff_t>(part * n / 3),
+        heights.begin() + static_cast<std::ptrdiff_t>((part + 1) * n / 3));
+    a.drift_m = std::max(a.drift_m, std::abs(Quantile(third, kLevelQuantile) - level));
+  }
+  return a;
+}
 
 absl::StatusOr<double> FindFloor(const std::vector<Patch>& patches, double camera_h,
                                  const FloorPlanOptions& o) {
@@ -823,9 +883,14 @@ std::vector<StairFlight> FindStairs(const std::vector<Patch>& patches, double fl
 
 absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   const State& s = *s_;
-  if (s.keyframes < 2) {
+  if (keyframes() < 2) {
     return absl::FailedPreconditionError(
-        absl::StrCat("a floor plan needs several key frames around the place; have ", s.keyframes));
+        absl::StrCat("a floor plan needs several key frames around the place; have ", keyframes()));
+  }
+  if (!s.waiting.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "the frame's up is a guess and no key frame has shown a floor to level the plan by yet (",
+        s.waiting.size(), " key frames waiting, up to ", s.o.level_max_wait_keyframes, ")"));
   }
   FloorPlan plan;
   plan.keyframes = s.keyframes;
@@ -839,7 +904,7 @@ absl::StatusOr<FloorPlan> FloorPlanBuilder::Build() const {
   auto floor = steps::FindFloor(s.patches, camera_h, s.o);
   if (!floor.ok()) return floor.status();
   plan.floor_height_m = *floor;
-  plan.floor_agreement = AgreementOn(s.floor_sightings);
+  plan.floor_agreement = steps::AgreeOnFloor(s.floor_sightings);
   const auto faces = steps::DropHiddenFaces(
       steps::KeepTallWalls(steps::FindWallCandidates(s.walls, *floor, s.o), s.o), s.o);
   if (faces.size() < 3) {

@@ -61,12 +61,17 @@ struct StairFlight {
 // How well the key frames agree on the floor. A rigid track sees one level floor; one that
 // bends (drift in pitch, roll or height: issue 54) sees it tilt and rise from key frame to key
 // frame. From each key frame's lowest upward plane of min_floor_sighting_m2 or more below it
-// (within floor_search_deg of world_up): the 90th percentiles of its tilt from world_up and of its
-// height off the median of those planes' heights (the key frames' own level).
+// (within floor_search_deg of the plan's up): the 90th percentile of its tilt from up, and how
+// far the floor's level moves over the visit (`drift_m`): the largest difference between the
+// 25th-percentile height of the sightings of a third of the key frames (in the order folded)
+// and that of all. The low quantile and the thirds: a key frame that saw only a table top
+// reports a plane 0.7 m above the floor, never one below it, and tables are seen now and then,
+// while a bend moves every later sighting (building seed 41: a rigid 40-frame visit's 90th
+// percentile of heights off their median was 0.78 m; docs/RESULTS.md).
 struct FloorAgreement {
   int keyframes = 0;  // key frames that saw a floor-like plane (0: nothing to judge by)
   double tilt_deg_p90 = 0;
-  double offset_m_p90 = 0;
+  double drift_m = 0;
 };
 
 struct FloorPlan {
@@ -75,14 +80,25 @@ struct FloorPlan {
   std::vector<Wall> walls;  // counter-clockwise around the place; wall i ends at corner i+1
   std::vector<StairFlight> stairs;
   int keyframes = 0;
-  // Ground-plane basis: world point p ↦ (e1·p, e2·p). The defaults are a z-up frame's (the
-  // builder's with its default `world_up`, and what a plan read from JSON is taken in).
+  // Ground-plane basis: world point p ↦ (e1·p, e2·p); `up` the frame's up the heights are
+  // along. The defaults are a z-up frame's (the builder's with its default `world_up`, and what
+  // a plan stored before issue 54 is read in).
   Eigen::Vector3d e1 = Eigen::Vector3d::UnitX(), e2 = Eigen::Vector3d::UnitY(),
                   up = Eigen::Vector3d::UnitZ();
 };
 
 struct FloorPlanOptions {
   Eigen::Vector3d world_up = Eigen::Vector3d::UnitZ();  // TUM's mocap and lifemap sim: z up
+  // Where `world_up` is a guess (a tracked visit whose first frame showed no floor and came
+  // without gravity is tilted as its first camera was: issue 54), the plan takes its up from the
+  // floor instead: the normal of the largest upward plane of at least `level_min_area_m2`, more
+  // than floor_below_cameras_m below the camera and within floor_search_deg of world_up, in the
+  // first key frame that shows one (a table top is as level as the floor). Key frames before it
+  // wait; after `level_max_wait_keyframes` without one, world_up stands. FloorPlan::up says
+  // which was taken.
+  bool up_from_floor = false;
+  double level_min_area_m2 = 0.5;
+  int level_max_wait_keyframes = 8;
   double vertical_tolerance_deg = 10;    // a plane within this of vertical is a wall candidate
   double horizontal_tolerance_deg = 10;  // ... of horizontal: floor, stairs, tops
   double merge_angle_deg = 10;           // walls of several key frames on one line
@@ -148,12 +164,13 @@ class FloorPlanBuilder {
                                 const planes::PlaneOptions& plane_options = {});
 
   // FailedPrecondition when the plan cannot be derived yet, saying why: fewer than 2 key
-  // frames, no floor seen (no large horizontal plane facing up below the cameras), or fewer
-  // than 3 walls. The steps (core/place/floor_plan_steps.h): the floor, wall candidates, tall
-  // walls, hidden faces dropped, the outline, each wall's openings, collinear walls merged,
-  // stairs.
+  // frames, key frames waiting for a floor to level the plan by (up_from_floor), no floor seen (no
+  // large horizontal plane facing up below the cameras), or fewer than 3 walls. The steps
+  // (core/place/floor_plan_steps.h): the floor, wall candidates, tall walls, hidden faces dropped,
+  // the outline, each wall's openings, collinear walls merged, stairs.
   absl::StatusOr<FloorPlan> Build() const;
 
+  // Key frames added (folded, or waiting for a floor to level the plan by).
   int keyframes() const;
 
  private:

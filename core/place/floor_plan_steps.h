@@ -74,6 +74,14 @@ constexpr double kRayRangeM = 8.0;
 
 // 1. The floor's height: the height (floor_bin_m bins) with the most upward-facing area below
 // the cameras. FailedPrecondition when too little floor was seen.
+// A key frame's lowest upward plane below it (FloorAgreement): its tilt from the plan's up and
+// its height along it.
+struct FloorSighting {
+  double tilt_deg, height;
+};
+// FloorAgreement over the key frames' sightings, in the order they were folded.
+FloorAgreement AgreeOnFloor(const std::vector<FloorSighting>& sightings);
+
 absl::StatusOr<double> FindFloor(const std::vector<Patch>& patches, double camera_height,
                                  const FloorPlanOptions& o);
 

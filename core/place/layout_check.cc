@@ -70,6 +70,7 @@ LayoutAgreement CheckLayout(const FloorPlan& plan, const cv::Mat& depth_m,
       const double p_height = plan.up.dot(p3) - plan.floor_height_m;
       const Eigen::Vector2d d = p - c;
       for (const Wall& w : plan.walls) {
+        if (options.seen_walls_only && !(w.observed_m2 > 0)) continue;
         // c + t d = w.start + s (w.end - w.start), t and s in [0, 1].
         const Eigen::Vector2d e = w.end - w.start;
         const double den = Cross(d, e);

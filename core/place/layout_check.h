@@ -24,6 +24,10 @@ struct LayoutCheckOptions {
   double max_height_m = 2.0;
   double opening_margin_m = 0.15;  // an opening is taken this much wider and taller
   double max_range_m = 6.0;        // readings farther away are not checked (noisy, rare indoors)
+  // Only walls the plan saw (observed_m2 > 0) count: for a plan still being built, whose
+  // outline closes across walls not seen yet (issue 54: another visit's views checked against
+  // the plan of a visit in progress).
+  bool seen_walls_only = false;
 };
 
 struct LayoutAgreement {

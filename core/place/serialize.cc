@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <functional>
+#include <stdexcept>
 
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
@@ -100,14 +101,17 @@ std::string FloorPlanToJson(const FloorPlan& plan) {
                       {"distance_to_wall_m", s.distance_to_wall_m}});
   }
   const FloorAgreement& a = plan.floor_agreement;
-  return json{{"floor_height_m", plan.floor_height_m},
-              {"floor_agreement",
-               {{"keyframes", a.keyframes},
-                {"tilt_deg_p90", a.tilt_deg_p90},
-                {"offset_m_p90", a.offset_m_p90}}},
-              {"keyframes", plan.keyframes},
-              {"walls", walls},
-              {"stairs", stairs}}
+  auto vec = [](const Eigen::Vector3d& v) { return json::array({v.x(), v.y(), v.z()}); };
+  return json{
+      {"floor_height_m", plan.floor_height_m},
+      {"up", vec(plan.up)},
+      {"e1", vec(plan.e1)},
+      {"e2", vec(plan.e2)},
+      {"floor_agreement",
+       {{"keyframes", a.keyframes}, {"tilt_deg_p90", a.tilt_deg_p90}, {"drift_m", a.drift_m}}},
+      {"keyframes", plan.keyframes},
+      {"walls", walls},
+      {"stairs", stairs}}
       .dump();
 }
 
@@ -117,10 +121,26 @@ absl::StatusOr<FloorPlan> FloorPlanFromJson(const std::string& text) {
     FloorPlan plan;
     plan.floor_height_m = j.at("floor_height_m").get<double>();
     plan.keyframes = j.at("keyframes").get<int>();
-    // Plans stored before issue 54 have none: nothing to judge the track by.
+    // Plans stored before issue 54 have none: nothing to judge the track by; those stored in
+    // its first sessions have no drift_m (their offset_m_p90 was fooled by table tops): only
+    // their tilt is judged.
     if (const auto a = j.find("floor_agreement"); a != j.end()) {
-      plan.floor_agreement = {a->at("keyframes").get<int>(), a->at("tilt_deg_p90").get<double>(),
-                              a->at("offset_m_p90").get<double>()};
+      plan.floor_agreement.keyframes = a->at("keyframes").get<int>();
+      plan.floor_agreement.tilt_deg_p90 = a->at("tilt_deg_p90").get<double>();
+      plan.floor_agreement.drift_m = a->value("drift_m", 0.0);
+    }
+    // Plans stored before issue 54 have no basis: they were built z up.
+    if (const auto up = j.find("up"); up != j.end()) {
+      auto vec = [&](const char* name) {
+        const auto& a = j.at(name);
+        const Eigen::Vector3d v(a.at(0).get<double>(), a.at(1).get<double>(),
+                                a.at(2).get<double>());
+        if (!v.allFinite() || std::abs(v.norm() - 1.0) > 1e-3) {
+          throw std::invalid_argument(absl::StrCat(name, " must be a unit vector"));
+        }
+        return v;
+      };
+      plan.up = vec("up"), plan.e1 = vec("e1"), plan.e2 = vec("e2");
     }
     for (const auto& w : j.at("walls")) {
       Wall wall;

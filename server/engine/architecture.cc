@@ -73,6 +73,12 @@ absl::Status PlaceIndex::Put(int64_t visit_id, int64_t map_id, const std::string
   return absl::OkStatus();
 }
 
+place::FloorPlanOptions ServedPlanOptions() {
+  place::FloorPlanOptions o;
+  o.up_from_floor = true;
+  return o;
+}
+
 void PlaceIndex::Invalidate() {
   absl::MutexLock lock(&mu_);
   loaded_ = false;
@@ -113,7 +119,7 @@ void UpdateArchitectureRanking(PlaceIndex* index, int64_t visit_id, int64_t map_
 
 void RebuildArchitecture(store::Store* store, PlaceIndex* index, int64_t map_id, int64_t visit_id,
                          const std::string& map, bool store_plan, VisitArchitecture* arch) {
-  arch->builder = place::FloorPlanBuilder();
+  arch->builder = place::FloorPlanBuilder(ServedPlanOptions());
   int folded = 0;
   auto s = store->ForEachKeyframeWithImages(
       map_id, visit_id, [&](const store::KeyframeRecord& k) -> absl::Status {

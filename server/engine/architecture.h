@@ -45,10 +45,15 @@ struct ArchitectureRanking {
   std::vector<PlaceMatch> matches;  // best first, as of the last key frame folded
 };
 
+// How the server builds every floor plan (a visit's, and a place query's): levelled by the floor
+// it sees (FloorPlanOptions::up_from_floor), since a tracked visit's frame is as tilted as its
+// first camera where that frame came without gravity and showed no floor (issue 54).
+place::FloorPlanOptions ServedPlanOptions();
+
 // One visit's architecture in the making. The builder is used by one thread at a time: the
 // registry while it loads the visit, then only the ArchitectureWorker.
 struct VisitArchitecture {
-  place::FloorPlanBuilder builder;
+  place::FloorPlanBuilder builder{ServedPlanOptions()};
   // The frame generation the builder's key frames are in (VisitState::frame_generation; 0 until
   // an anchor changes the visit's frame); only the ArchitectureWorker's thread reads or writes it.
   uint64_t frame_generation = 0;

@@ -36,6 +36,7 @@ absl::Status PoseGraphOptions::Validate() const {
   const std::pair<const char*, double> shares[] = {
       {"layout_max_through_share", layout_max_through_share},
       {"anchor_drop_through_share", anchor_drop_through_share},
+      {"layout_max_own_plan_share", layout_max_own_plan_share},
       {"anchor_max_lost_share", anchor_max_lost_share}};
   for (const auto& [name, v] : shares) {
     if (!(v >= 0 && v <= 1)) {

@@ -79,6 +79,16 @@ struct PoseGraphOptions {
   // of sparse visits re-checked at 6.7 % (building seed 9, 40 frames) while a wrong one (another
   // place) was at 13.1 % (building seed 12): RESULTS.md "Issue 35 (session 22)".
   double anchor_drop_through_share = 0.10;
+  // The converse check (issue 54), where the visit has a floor plan of its own: the keyframes
+  // of the visit it is anchored to, placed in the visit's plan, may have at most this share of
+  // their readings beyond the walls the visit saw, [0, 1]; at the anchor and at each re-check.
+  // Off (1) by default: it does not separate. On building seed 41 (40-frame visits, wheel
+  // odometry) right anchors gave up to 19.9 % and an L room's visit anchored into a rectangular
+  // room's map 65.6-77.3 %, and 0.30 refused the wrong one at no cost; on seed 42 right anchors
+  // gave up to 47.6 % (the visit's partial plan, doors it found closed) and the same kind of
+  // wrong anchor 9.4 %: 0.30 refused three right ones and not the wrong one (RESULTS.md
+  // "Issue 54 (anchors)").
+  double layout_max_own_plan_share = 1.0;
   // A tracked visit that has lost more than this share of its frames (judged from 20 frames on)
   // is neither anchored nor anchored to, and an anchored one that comes to lose more has its
   // anchor dropped, [0, 1]: its keyframes are pieces, not one rigid body, and two of its
@@ -87,12 +97,13 @@ struct PoseGraphOptions {
   // rect room's lost 0-3 %. 1 switches the hold off.
   double anchor_max_lost_share = 0.20;
   // A visit the server tracked whose floor, as its keyframes saw it, tilts more than this
-  // (degrees) or lies more than this off its level (metres; 90th percentiles over at least 5
-  // keyframes that saw it: core/place FloorAgreement) is bent, and held like one that lost its
-  // frames (issue 54). Chosen on building seed 11 with wheel odometry (rigid: 0.4-0.7 deg,
-  // 0.02 m) and seed 3 without (a visit 78 cm off: 11.4 deg, 0.43 m, as first measured from
-  // the largest plane; from the lowest, seed 3 at 300 frames gives 20.0 / 7.3 deg, 0.70 / 0.32 m):
-  // RESULTS.md "Issue 54 (first step)" and "(tracking)".
+  // (degrees; 90th percentile over at least 5 keyframes that saw it) or whose level drifts more
+  // than this over the visit (metres; over thirds of at least 9 such keyframes: core/place
+  // FloorAgreement::drift_m) is bent, and held like one that lost its frames (issue 54). Chosen on
+  // building seed 11 with wheel odometry (rigid: 0.4-0.7 deg, 0.02 m) and seed 3 without (a visit
+  // 78 cm off: 11.4 deg, 0.43 m, as first measured from the largest plane; from the lowest, seed 3
+  // at 300 frames gives 20.0 / 7.3 deg, 0.70 / 0.32 m): RESULTS.md "Issue 54 (first step)" and
+  // "(tracking)".
   double anchor_max_floor_tilt_deg = 3.0;
   double anchor_max_floor_offset_m = 0.10;
   // The two agreeing matches that anchor a visit come from keyframes at least this far apart

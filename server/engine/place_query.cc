@@ -122,7 +122,7 @@ void PlaceQueries::Finish(const PlaceQuery& query, PlaceQueryResult* result) con
 absl::Status PlaceQueries::ArchitectureOfFrames(const std::vector<EncodedRgbdFrame>& frames,
                                                 const PlaceQuery& query, MethodOutcome* out) const {
   // Nothing is stored: the frames fold into a plan of their own, ranked against stored visits.
-  place::FloorPlanBuilder builder;
+  place::FloorPlanBuilder builder(ServedPlanOptions());
   for (size_t i = 0; i < frames.size(); ++i) {
     // Each frame costs its depth decoding and planes (a 2,000-frame query, minutes of CPU).
     if (query.stopped && query.stopped()) return StoppedAfter(i, frames.size());

@@ -18,6 +18,26 @@ Patch Horizontal(double height, Eigen::Vector2d centroid, double area) {
   return p;
 }
 
+// Issue 54: the floor's level over a visit. A key frame that saw only a table top reports a
+// plane 0.75 m up, now and then (a rigid track: no drift); a bent track's floor rises from key
+// frame to key frame.
+TEST(AgreeOnFloor, ATableTopNowAndThenIsNoDriftButARisingFloorIs) {
+  std::vector<FloorSighting> rigid, rising;
+  for (int i = 0; i < 18; ++i) {
+    const bool table = i % 4 == 1 || i == 10;  // 6 of 18, two in one third
+    rigid.push_back({0.3, table ? 0.75 : 0.002 * (i % 3)});
+    rising.push_back({0.3, 0.02 * i});
+  }
+  const FloorAgreement a = AgreeOnFloor(rigid);
+  EXPECT_EQ(a.keyframes, 18);
+  EXPECT_LT(a.drift_m, 0.01);
+  EXPECT_NEAR(a.tilt_deg_p90, 0.3, 1e-9);
+  const FloorAgreement b = AgreeOnFloor(rising);
+  EXPECT_GT(b.drift_m, 0.15);
+  EXPECT_EQ(AgreeOnFloor({}).keyframes, 0);
+  EXPECT_EQ(AgreeOnFloor({}).drift_m, 0.0);
+}
+
 // Cells left of or below a wall's origin have negative keys (their packing shifted a negative
 // int left, undefined behaviour found by tests/fuzz/rpc_fuzz under UBSan).
 TEST(CellKey, EveryColumnAndRowComesBack) {

@@ -27,14 +27,16 @@ struct Built {
 };
 
 // `bend_deg`: the track as a drifting tracker would report it, pitched by up to this much
-// about the first camera and rising 5 cm a degree by the last frame (issue 54).
+// about the first camera and rising 5 cm a degree by the last frame (issue 54). `tilt_deg`: the
+// whole track rigidly tilted about the first camera, as a visit's frame is when its first
+// camera was taken as level while it looked down (issue 54).
 Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int stride = 3,
-                 double bend_deg = 0) {
+                 double bend_deg = 0, double tilt_deg = 0, const FloorPlanOptions& options = {}) {
   Built b;
   b.place = *sim::GeneratePlace(seed, shape);
   auto visits = sim::GenerateVisits(b.place, seed, 1, 0, sim::Conditions{}, frames);
   EXPECT_TRUE(visits.ok());
-  FloorPlanBuilder builder;
+  FloorPlanBuilder builder(options);
   const auto& v = (*visits)[0];
   for (size_t f = 0; f < v.trajectory.size(); f += static_cast<size_t>(stride)) {
     const auto frame = sim::Render(b.place, v.SolidsAt(f), v.lighting, Kinect(),
@@ -47,6 +49,12 @@ Built BuildVisit(uint64_t seed, const std::string& shape, int frames = 90, int s
       reported.translation = pivot + bend * (reported.translation - pivot) +
                              Eigen::Vector3d(0, 0, 0.05 * share * bend_deg);
       reported.rotation = Eigen::Quaterniond(bend) * reported.rotation;
+    }
+    if (tilt_deg != 0) {
+      const Eigen::Vector3d pivot = v.trajectory[0].T_world_camera.translation;
+      const Eigen::AngleAxisd tilt(tilt_deg * M_PI / 180.0, Eigen::Vector3d(1, 1, 0).normalized());
+      reported.translation = pivot + tilt * (reported.translation - pivot);
+      reported.rotation = Eigen::Quaterniond(tilt) * reported.rotation;
     }
     EXPECT_TRUE(builder.AddDepthKeyframe(frame.depth_m, Kinect(), reported).ok());
   }
@@ -98,7 +106,7 @@ TEST(FloorPlan, RectangularRoomGivesFourWallsOfTheRightLengthsAtRightAngles) {
   // A rigid track sees one level floor (issue 54).
   EXPECT_GE(b.plan->floor_agreement.keyframes, 10);
   EXPECT_LT(b.plan->floor_agreement.tilt_deg_p90, 1.5);
-  EXPECT_LT(b.plan->floor_agreement.offset_m_p90, 0.04);
+  EXPECT_LT(b.plan->floor_agreement.drift_m, 0.04);
 
   // The stored forms round-trip.
   auto plan = FloorPlanFromJson(FloorPlanToJson(*b.plan));
@@ -118,11 +126,65 @@ TEST(FloorPlan, ABentTrackSeesItsFloorTiltAndRise) {
   const Built b = BuildVisit(3, "rect", 90, 3, 8.0);
   ASSERT_TRUE(b.plan.ok()) << b.plan.status();
   std::cerr << "bent 8 deg: tilt p90 " << b.plan->floor_agreement.tilt_deg_p90
-            << " deg, offset p90 " << b.plan->floor_agreement.offset_m_p90 << " m of "
+            << " deg, level drift " << b.plan->floor_agreement.drift_m << " m of "
             << b.plan->floor_agreement.keyframes << " key frames\n";
   EXPECT_GE(b.plan->floor_agreement.keyframes, 10);
   EXPECT_GT(b.plan->floor_agreement.tilt_deg_p90, 5.0);
-  EXPECT_GT(b.plan->floor_agreement.offset_m_p90, 0.15);
+  EXPECT_GT(b.plan->floor_agreement.drift_m, 0.15);
+}
+
+// Issue 54: a visit whose frame is tilted 20 degrees (its first camera looked down at a lamp,
+// came without gravity and was taken as level) gets no plan, unless the plan takes its up from
+// the floor it sees; then the walls are the untilted visit's.
+TEST(FloorPlan, ATiltedFrameIsLevelledByTheFloorItSees) {
+  const Built tilted = BuildVisit(3, "rect", 90, 3, 0, 20.0);
+  EXPECT_FALSE(tilted.plan.ok() && tilted.plan->walls.size() == 4u)
+      << "a 20 degree tilt left the rect room's four walls standing: the test shows nothing";
+  FloorPlanOptions levelled;
+  levelled.up_from_floor = true;
+  const Built b = BuildVisit(3, "rect", 90, 3, 0, 20.0, levelled);
+  ASSERT_TRUE(b.plan.ok()) << b.plan.status();
+  ASSERT_EQ(b.plan->walls.size(), 4u);
+  const Eigen::Vector3d true_up =
+      Eigen::AngleAxisd(20.0 * M_PI / 180.0, Eigen::Vector3d(1, 1, 0).normalized()) *
+      Eigen::Vector3d::UnitZ();
+  EXPECT_LT(std::acos(std::min(1.0, b.plan->up.dot(true_up))) * 180 / M_PI, 1.0);
+  EXPECT_LT(b.plan->floor_agreement.tilt_deg_p90, 1.5);
+  std::vector<double> got, want;
+  for (const auto& c : Describe(*b.plan).corners) got.push_back(c.length_m);
+  const auto& fp = b.place.footprint;
+  for (size_t i = 0; i < fp.size(); ++i) want.push_back((fp[(i + 1) % fp.size()] - fp[i]).norm());
+  std::sort(got.begin(), got.end());
+  std::sort(want.begin(), want.end());
+  for (size_t i = 0; i < 4; ++i) EXPECT_NEAR(got[i], want[i], 0.15) << i;
+  // The plan's basis is stored with it: the layout check of a stored plan reads heights along it.
+  auto stored = FloorPlanFromJson(FloorPlanToJson(*b.plan));
+  ASSERT_TRUE(stored.ok()) << stored.status();
+  EXPECT_TRUE(stored->up.isApprox(b.plan->up, 1e-9));
+  EXPECT_TRUE(stored->e1.isApprox(b.plan->e1, 1e-9));
+}
+
+// Where no key frame shows a floor, the plan waits, then takes world_up.
+TEST(FloorPlan, LevellingWaitsForAFloorThenGivesUp) {
+  FloorPlanOptions o;
+  o.up_from_floor = true;
+  o.level_max_wait_keyframes = 3;
+  FloorPlanBuilder builder(o);
+  // A wall 1 m ahead filling the view: no floor.
+  cv::Mat wall(480, 640, CV_32F, cv::Scalar(1.0f));
+  Pose level = Pose::FromIsometry(Eigen::Isometry3d::Identity());
+  ASSERT_TRUE(builder.AddDepthKeyframe(wall, Kinect(), level).ok());
+  ASSERT_TRUE(builder.AddDepthKeyframe(wall, Kinect(), level).ok());
+  auto waiting = builder.Build();
+  EXPECT_TRUE(absl::IsFailedPrecondition(waiting.status()));
+  EXPECT_NE(waiting.status().message().find("2 key frames waiting"), std::string::npos)
+      << waiting.status();
+  EXPECT_EQ(builder.keyframes(), 2);
+  ASSERT_TRUE(builder.AddDepthKeyframe(wall, Kinect(), level).ok());
+  EXPECT_EQ(builder.keyframes(), 3);
+  auto plan = builder.Build();  // world_up taken: now it fails for the floor it never saw
+  EXPECT_EQ(plan.status().message().find("waiting"), std::string::npos) << plan.status();
+  EXPECT_NE(plan.status().message().find("no floor"), std::string::npos) << plan.status();
 }
 
 TEST(FloorPlan, AWallSeenInPartOrNotAtAllStillClosesTheOutline) {

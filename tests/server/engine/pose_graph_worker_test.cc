@@ -651,8 +651,8 @@ TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBentIsHeld) {
   int64_t second_id = 0;
   std::vector<store::KeyframeRecord> b = SecondVisit(T, 6, &second_id);
   ASSERT_EQ(b.size(), 6u);
-  auto put_floor = [&](double tilt_deg, double offset_m, int keyframes) {
-    PutRoomPlan(second_id, {keyframes, tilt_deg, offset_m});
+  auto put_floor = [&](double tilt_deg, double drift_m, int keyframes) {
+    PutRoomPlan(second_id, {keyframes, tilt_deg, drift_m});
   };
 
   PoseGraphWorker worker(store_.get(), PoseGraphOptions{});
@@ -677,14 +677,19 @@ TEST_F(PoseGraphWorkerTest, AVisitWhoseTrackIsBentIsHeld) {
   ASSERT_NO_FATAL_FAILURE(put_floor(11.4, 0.43, 34));
   const std::string bent = dry_verdict();
   EXPECT_NE(bent.find("held: visit " + std::to_string(second_id) +
-                      "'s own track is bent: the floor its keyframes saw tilts 11.4 deg and lies "
-                      "0.43 m off its level (90th percentiles over 34 keyframes"),
+                      "'s own track is bent: the floor its keyframes saw tilts 11.4 deg and its "
+                      "level moves 0.43 m over the visit (tilt's 90th percentile, level's drift "
+                      "over thirds of 34 keyframes"),
             std::string::npos)
       << bent;
   ASSERT_NO_FATAL_FAILURE(put_floor(0.5, 0.43, 34));
   EXPECT_NE(dry_verdict().find("bent"), std::string::npos) << "risen alone is bent too";
   ASSERT_NO_FATAL_FAILURE(put_floor(11.4, 0.43, 4));
   EXPECT_EQ(dry_verdict().find("bent"), std::string::npos) << "4 keyframes are too few to judge";
+  ASSERT_NO_FATAL_FAILURE(put_floor(11.4, 0.02, 6));
+  EXPECT_NE(dry_verdict().find("bent"), std::string::npos) << "6 keyframes judge the tilt";
+  ASSERT_NO_FATAL_FAILURE(put_floor(0.5, 0.43, 6));
+  EXPECT_EQ(dry_verdict().find("bent"), std::string::npos) << "... but not the level's drift";
 
   ASSERT_NO_FATAL_FAILURE(put_floor(0.5, 0.02, 34));
   worker.Wait(worker.Submit(job_for(0, nullptr)));
