@@ -257,6 +257,15 @@ LayoutEvidence CheckLayout(store::Store* store, int64_t map_id,
   return e;
 }
 
+// The posed keyframes of `keyframes`: id and T_world_camera.
+std::vector<std::pair<int64_t, Pose>> PosesOf(const std::vector<store::KeyframeRecord>& keyframes) {
+  std::vector<std::pair<int64_t, Pose>> posed;
+  for (const auto& k : keyframes) {
+    if (k.T_world_camera) posed.emplace_back(k.id, *k.T_world_camera);
+  }
+  return posed;
+}
+
 // At most kLayoutKeyframes of `placed`, spread over them.
 std::vector<std::pair<int64_t, Pose>> SpreadForLayout(
     std::vector<std::pair<int64_t, Pose>> placed) {
@@ -997,10 +1006,7 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
                                   " nor the map's first visit has a floor plan to check against");
     return "";
   }
-  std::vector<std::pair<int64_t, Pose>> placed;
-  for (const auto& k : visit_keyframes) {
-    if (k.T_world_camera) placed.emplace_back(k.id, *k.T_world_camera);
-  }
+  std::vector<std::pair<int64_t, Pose>> placed = PosesOf(visit_keyframes);
   // An ended visit (a retry) has all the keyframes it will have: checked with those.
   if (placed.size() < kLayoutMinKeyframes && !job.visit_ended) return std::nullopt;
   placed = SpreadForLayout(std::move(placed));
@@ -1008,44 +1014,37 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
   const LayoutEvidence evidence = CheckLayout(store_, job.map_id, placed, T_map_visit.ToIsometry(),
                                               plan->first, &last_decoded_);
   *evidence_text = absl::StrCat("visit ", plan->second, "'s floor plan: ", evidence.Text());
-  // The two plans' likeness by paper 004's descriptor, as evidence (nothing is decided by it).
-  if (auto visit = store_->GetVisit(job.visit_id); visit.ok()) {
-    if (const std::optional<place::FloorPlan> own = PlanOf(store_, *visit)) {
-      const place::MatchResult m =
-          place::MatchDescriptors(place::Describe(*own), place::Describe(plan->first));
-      absl::StrAppend(
-          evidence_text,
-          absl::StrFormat("; its own plan (%d walls) matches visit %d's (%d walls) "
-                          "by architecture at %.3f",
-                          own->walls.size(), plan->second, plan->first.walls.size(), m.score));
-    }
+  // The visit's plan so far, in the frame its keyframes are in now (T_map_visit's source).
+  std::optional<place::FloorPlan> own;
+  if (auto visit = store_->GetVisit(job.visit_id); visit.ok()) own = PlanOf(store_, *visit);
+  if (own) {
+    // The two plans' likeness by paper 004's descriptor, as evidence (nothing is decided by it).
+    const place::MatchResult m =
+        place::MatchDescriptors(place::Describe(*own), place::Describe(plan->first));
+    absl::StrAppend(evidence_text, absl::StrFormat("; its own plan (%d walls) matches visit %d's "
+                                                   "(%d walls) by architecture at %.3f",
+                                                   own->walls.size(), plan->second,
+                                                   plan->first.walls.size(), m.score));
   }
   spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, *evidence_text);
   if (std::string disagreement = LayoutDisagreement(evidence, allowed); !disagreement.empty()) {
     return disagreement;
   }
-  return CheckMapAgainstVisitPlan(job, plan->second, T_map_visit, evidence_text);
+  return CheckMapAgainstVisitPlan(job, own ? &*own : nullptr, plan->second, T_map_visit,
+                                  evidence_text);
 }
 
-std::optional<std::string> PoseGraphWorker::CheckMapAgainstVisitPlan(const Job& job,
-                                                                     int64_t plan_visit,
-                                                                     const Pose& T_map_visit,
-                                                                     std::string* evidence_text) {
+std::string PoseGraphWorker::CheckMapAgainstVisitPlan(const Job& job, const place::FloorPlan* own,
+                                                      int64_t plan_visit, const Pose& T_map_visit,
+                                                      std::string* evidence_text) {
   if (options_.layout_max_own_plan_share >= 1) return "";  // off: nothing to read
-  auto visit = store_->GetVisit(job.visit_id);
-  if (!visit.ok()) return "";
-  // The visit's plan so far, in the frame its keyframes are in now (T_map_visit's source).
-  const std::optional<place::FloorPlan> own = PlanOf(store_, *visit);
-  if (!own) {
+  if (own == nullptr) {
     absl::StrAppend(evidence_text, "; visit ", job.visit_id, " has no floor plan of its own yet");
     return "";
   }
   auto keyframes = store_->ListKeyframes(job.map_id, plan_visit);
   if (!keyframes.ok()) return "";
-  std::vector<std::pair<int64_t, Pose>> placed;
-  for (const auto& k : *keyframes) {
-    if (k.T_world_camera) placed.emplace_back(k.id, *k.T_world_camera);
-  }
+  std::vector<std::pair<int64_t, Pose>> placed = PosesOf(*keyframes);
   if (placed.empty()) return "";
   // Its plan may be partial (the visit is still under way): only the walls it saw count, and
   // the map's cameras may well stand where it has not been.

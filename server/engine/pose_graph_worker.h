@@ -204,15 +204,16 @@ class PoseGraphWorker {
       const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
       const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text,
       std::optional<double> max_through_share = std::nullopt, int64_t* plan_visit = nullptr);
-  // The converse, once the visit has a floor plan of its own (issue 54): the keyframes of
-  // `plan_visit` (in the map's frame) placed in the visit's plan by T_map_visit⁻¹, against the
-  // walls it saw. An L room's visit anchored into a rectangular room's map sees nothing beyond
-  // the rectangle, but the rectangle's views pass through the L's inner walls. Why they
-  // disagree, or empty (also when the visit has no plan yet); appends to `evidence_text`.
-  // The share allowed is PoseGraphOptions::layout_max_own_plan_share.
-  std::optional<std::string> CheckMapAgainstVisitPlan(const Job& job, int64_t plan_visit,
-                                                      const Pose& T_map_visit,
-                                                      std::string* evidence_text);
+  // The converse, once the visit has a floor plan of its own (`own`, in the frame its keyframes
+  // are in now; null: none yet, nothing checked; issue 54): the keyframes of `plan_visit` (in the
+  // map's frame) placed in it by T_map_visit⁻¹, against the walls it saw. An L room's visit
+  // anchored into a rectangular room's map sees nothing beyond the rectangle, but the rectangle's
+  // views pass through the L's inner walls. Why they disagree, or empty; appends to
+  // `evidence_text`. The share allowed is PoseGraphOptions::layout_max_own_plan_share (1: off,
+  // nothing read).
+  std::string CheckMapAgainstVisitPlan(const Job& job, const place::FloorPlan* own,
+                                       int64_t plan_visit, const Pose& T_map_visit,
+                                       std::string* evidence_text);
 
   // Where an unanchored visit would lie in the map's frame, by one match (worker thread only).
   struct AnchorEstimate {

@@ -162,6 +162,15 @@ TEST(FloorPlan, ATiltedFrameIsLevelledByTheFloorItSees) {
   ASSERT_TRUE(stored.ok()) << stored.status();
   EXPECT_TRUE(stored->up.isApprox(b.plan->up, 1e-9));
   EXPECT_TRUE(stored->e1.isApprox(b.plan->e1, 1e-9));
+  // A stored basis that is not one is refused, naming the field.
+  std::string bad = FloorPlanToJson(*b.plan);
+  const size_t at = bad.find("\"up\":[");
+  ASSERT_NE(at, std::string::npos) << bad;
+  bad.replace(at, bad.find(']', at) - at + 1, "\"up\":[0,0,2]");
+  const auto refused = FloorPlanFromJson(bad);
+  EXPECT_TRUE(absl::IsInvalidArgument(refused.status())) << refused.status();
+  EXPECT_NE(refused.status().message().find("up must be a unit vector"), std::string::npos)
+      << refused.status();
 }
 
 // Where no key frame shows a floor, the plan waits, then takes world_up.
