@@ -404,6 +404,8 @@ absl::StatusOr<ServerConfig> LoadConfigFile(const std::string& path, ServerConfi
             g.anchor_drop_through_share = v.get<double>();
           } else if (k == "layout_max_own_plan_share") {
             g.layout_max_own_plan_share = v.get<double>();
+          } else if (k == "layout_max_plan_on_floor_share") {
+            g.layout_max_plan_on_floor_share = v.get<double>();
           } else if (k == "anchor_max_lost_share") {
             g.anchor_max_lost_share = v.get<double>();
           } else if (k == "anchor_max_floor_tilt_deg") {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <Eigen/Geometry>
 
@@ -40,7 +41,47 @@ bool ThroughOpening(const Wall& w, double along_m, double height_m, double margi
   return false;
 }
 
+// Distance (metres) from `p` to the segment a-b.
+double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
+                         const Eigen::Vector2d& b) {
+  const Eigen::Vector2d d = b - a;
+  const double t = std::clamp((p - a).dot(d) / std::max(d.squaredNorm(), 1e-12), 0.0, 1.0);
+  return (p - (a + t * d)).norm();
+}
+
 }  // namespace
+
+double PlanAgreement::OnFloorShare() const {
+  return seen_wall_m > 0 ? on_floor_m / seen_wall_m : 0.0;
+}
+
+PlanAgreement ComparePlans(const FloorPlan& placed, const FloorPlan& plan,
+                           const Pose& T_plan_placed, double margin_m) {
+  PlanAgreement out;
+  if (placed.walls.size() < 3 || plan.walls.size() < 3) return out;
+  constexpr double kStepM = 0.10;  // walls are sampled this finely
+  const Eigen::Isometry3d T = T_plan_placed.ToIsometry();
+  // A wall point 1 m above the placed plan's floor, in `plan`'s ground coordinates.
+  const double height = placed.floor_height_m + 1.0;
+  for (const Wall& w : placed.walls) {
+    if (!(w.observed_m2 > 0)) continue;
+    const double length = w.length();
+    const int samples = std::max(1, static_cast<int>(length / kStepM));
+    for (int i = 0; i < samples; ++i) {
+      const Eigen::Vector2d g = w.start + (w.end - w.start) * ((i + 0.5) / samples);
+      const Eigen::Vector3d p3 = T * (g.x() * placed.e1 + g.y() * placed.e2 + height * placed.up);
+      const Eigen::Vector2d p(plan.e1.dot(p3), plan.e2.dot(p3));
+      const double piece = length / samples;
+      out.seen_wall_m += piece;
+      if (!InsideOutline(plan.walls, p)) continue;
+      double nearest = std::numeric_limits<double>::infinity();
+      for (const Wall& v : plan.walls)
+        nearest = std::min(nearest, DistanceToSegment(p, v.start, v.end));
+      if (nearest > margin_m) out.on_floor_m += piece;
+    }
+  }
+  return out;
+}
 
 double LayoutAgreement::ThroughShare() const {
   return readings > 0 ? static_cast<double>(through_walls) / readings : 0.0;

@@ -45,4 +45,21 @@ LayoutAgreement CheckLayout(const FloorPlan& plan, const cv::Mat& depth_m,
                             const CameraIntrinsics& k, const Pose& T_plan_camera,
                             const LayoutCheckOptions& options = {});
 
+// How one plan's walls sit in another's (issue 54): an L room's plan placed in a rectangular
+// room's puts its inner corner's walls where the rectangle has floor, while the depth readings
+// of the L room's views stop short of the rectangle's walls and so agree with it (CheckLayout).
+struct PlanAgreement {
+  double seen_wall_m = 0;  // length of the placed plan's seen walls (observed_m2 > 0)
+  double on_floor_m = 0;   // ... that lies within the other's outline, away from its walls
+  // on_floor_m / seen_wall_m (0 with no seen walls).
+  double OnFloorShare() const;
+};
+
+// Places `placed`'s seen walls by `T_plan_placed` (its frame in `plan`'s) in `plan` and measures
+// how much of them lies inside `plan`'s outline farther than `margin_m` from every one of its
+// walls: where `plan` says there is floor, `placed` saw a wall. Nothing is said where either plan
+// has fewer than 3 walls (no outline).
+PlanAgreement ComparePlans(const FloorPlan& placed, const FloorPlan& plan,
+                           const Pose& T_plan_placed, double margin_m = 0.5);
+
 }  // namespace lifemap::place

@@ -37,6 +37,7 @@ absl::Status PoseGraphOptions::Validate() const {
       {"layout_max_through_share", layout_max_through_share},
       {"anchor_drop_through_share", anchor_drop_through_share},
       {"layout_max_own_plan_share", layout_max_own_plan_share},
+      {"layout_max_plan_on_floor_share", layout_max_plan_on_floor_share},
       {"anchor_max_lost_share", anchor_max_lost_share}};
   for (const auto& [name, v] : shares) {
     if (!(v >= 0 && v <= 1)) {

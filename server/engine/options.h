@@ -89,6 +89,11 @@ struct PoseGraphOptions {
   // wrong anchor 9.4 %: 0.30 refused three right ones and not the wrong one (RESULTS.md
   // "Issue 54 (anchors)").
   double layout_max_own_plan_share = 1.0;
+  // The two plans compared (issue 54), where the visit has a floor plan of its own: the walls
+  // either saw, placed in the other's plan by the anchor, may have at most this share of their
+  // length inside the other's outline and more than 0.5 m from its walls (a wall where the other
+  // has floor: place::ComparePlans), [0, 1]; at the anchor and at each re-check. 1: off.
+  double layout_max_plan_on_floor_share = 1.0;
   // A tracked visit that has lost more than this share of its frames (judged from 20 frames on)
   // is neither anchored nor anchored to, and an anchored one that comes to lose more has its
   // anchor dropped, [0, 1]: its keyframes are pieces, not one rigid body, and two of its

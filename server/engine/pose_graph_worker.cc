@@ -1030,6 +1030,26 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
   if (std::string disagreement = LayoutDisagreement(evidence, allowed); !disagreement.empty()) {
     return disagreement;
   }
+  if (own) {
+    // Each plan's seen walls placed in the other: a wall where the other has floor.
+    const place::PlanAgreement in_map = place::ComparePlans(*own, plan->first, T_map_visit);
+    const place::PlanAgreement in_own = place::ComparePlans(
+        plan->first, *own, Pose::FromIsometry(T_map_visit.ToIsometry().inverse()));
+    const std::string text = absl::StrFormat(
+        "its own plan's seen walls: %.1f of %.1f m on visit %d's floor; visit %d's: %.1f of "
+        "%.1f m on its own floor",
+        in_map.on_floor_m, in_map.seen_wall_m, plan->second, plan->second, in_own.on_floor_m,
+        in_own.seen_wall_m);
+    absl::StrAppend(evidence_text, "; ", text);
+    spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, text);
+    const double share = std::max(in_map.OnFloorShare(), in_own.OnFloorShare());
+    if (share > options_.layout_max_plan_on_floor_share) {
+      return absl::StrCat("disagrees with the floor plan of visit ", plan->second, ": ", text,
+                          absl::StrFormat(" (%.1f %%; allowed %.1f %%, ", 100 * share,
+                                          100 * options_.layout_max_plan_on_floor_share),
+                          "pose_graph.layout_max_plan_on_floor_share)");
+    }
+  }
   return CheckMapAgainstVisitPlan(job, own ? &*own : nullptr, plan->second, T_map_visit,
                                   evidence_text);
 }

@@ -198,7 +198,9 @@ class PoseGraphWorker {
   // to check; nullopt while the visit has too few keyframes to tell); `evidence_text` says what
   // was seen, and `plan_visit` (when given) whose plan it was (0: none). The share of readings
   // allowed beyond the walls is `max_through_share`, else
-  // PoseGraphOptions::layout_max_through_share. Where they agree, the converse is checked too
+  // PoseGraphOptions::layout_max_through_share. Where they agree and the visit has a plan of its
+  // own, the two plans are compared (place::ComparePlans both ways, in the evidence; refused above
+  // PoseGraphOptions::layout_max_plan_on_floor_share), and the converse is checked too
   // (CheckMapAgainstVisitPlan).
   std::optional<std::string> CheckAnchorLayout(
       const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,

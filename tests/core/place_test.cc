@@ -307,6 +307,48 @@ TEST(LayoutCheck, NoReadingsNoWallsNoCrossings) {
   EXPECT_EQ(none.ThroughShare(), 0.0);
 }
 
+// A plan whose walls run counter-clockwise through `corners`, each seen (1 m² of it).
+FloorPlan PlanThrough(const std::vector<Eigen::Vector2d>& corners) {
+  FloorPlan plan;
+  for (size_t i = 0; i < corners.size(); ++i) {
+    Wall w;
+    w.start = corners[i];
+    w.end = corners[(i + 1) % corners.size()];
+    w.observed_m2 = 1.0;
+    plan.walls.push_back(w);
+  }
+  return plan;
+}
+
+TEST(ComparePlans, AnLRoomsInnerCornerStandsOnARectangularRoomsFloor) {
+  // A 6 m × 4 m room, and an L room of the same outer size whose corner (2.5 m × 2 m) is cut.
+  const FloorPlan rect = PlanThrough({{0, 0}, {6, 0}, {6, 4}, {0, 4}});
+  const FloorPlan l_room = PlanThrough({{0, 0}, {6, 0}, {6, 2}, {3.5, 2}, {3.5, 4}, {0, 4}});
+  // The same room placed where it is: every wall on a wall.
+  const PlanAgreement same = ComparePlans(rect, rect, Pose{});
+  EXPECT_NEAR(same.seen_wall_m, 20.0, 1e-6);
+  EXPECT_EQ(same.on_floor_m, 0.0);
+  // The L room's inner corner walls (2.5 m and 2 m) lie on the rectangle's floor, except their
+  // ends within 0.5 m of its walls; the rectangle's walls lie outside or on the L room's.
+  const PlanAgreement l_in_rect = ComparePlans(l_room, rect, Pose{});
+  EXPECT_NEAR(l_in_rect.on_floor_m, 2.0 + 1.5, 0.11);
+  EXPECT_NEAR(l_in_rect.OnFloorShare(), 3.5 / 20.0, 0.01);
+  EXPECT_EQ(ComparePlans(rect, l_room, Pose{}).on_floor_m, 0.0);
+  // The rectangle placed 1 m off along x: its wall at x = 1 (inside by 1 m) stands on the floor.
+  Pose shifted;
+  shifted.translation = Eigen::Vector3d(1, 0, 0);
+  EXPECT_NEAR(ComparePlans(rect, rect, shifted).on_floor_m, 3.0, 0.11);
+  // A wall not seen says nothing; fewer than 3 walls, no outline.
+  FloorPlan unseen = l_room;
+  unseen.walls[2].observed_m2 = 0;
+  unseen.walls[3].observed_m2 = 0;
+  EXPECT_EQ(ComparePlans(unseen, rect, Pose{}).on_floor_m, 0.0);
+  FloorPlan two = rect;
+  two.walls.resize(2);
+  EXPECT_EQ(ComparePlans(l_room, two, Pose{}).seen_wall_m, 0.0);
+  EXPECT_EQ(ComparePlans(two, rect, Pose{}).OnFloorShare(), 0.0);
+}
+
 TEST(FloorPlan, AscendingStairsAreFoundNearTheirWall) {
   // Seed 1's square room has a flight of 7 steps up (run 0.29 m, rise 0.18 m, 1.0 m wide, its
   // centre 0.52 m from the nearest wall).

@@ -180,7 +180,7 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
              "loop_max_disagreement_per_m": 0, "loop_max_disagreement_deg": 8,
              "loop_max_disagreement_deg_per_m": 2, "layout_max_through_share": 0.1,
              "anchor_drop_through_share": 0.2, "anchor_max_lost_share": 0.3,
-             "layout_max_own_plan_share": 0.4,
+             "layout_max_own_plan_share": 0.4, "layout_max_plan_on_floor_share": 0.25,
              "anchor_max_floor_tilt_deg": 4.5, "anchor_max_floor_offset_m": 0.2,
              "anchor_min_spread_m": 1.5}})";
   auto c = LoadConfigFile(tmp.File("ok.json"), ServerConfig());
@@ -196,6 +196,7 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_drop_through_share, 0.2);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_lost_share, 0.3);
   EXPECT_DOUBLE_EQ(c->pose_graph.layout_max_own_plan_share, 0.4);
+  EXPECT_DOUBLE_EQ(c->pose_graph.layout_max_plan_on_floor_share, 0.25);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_floor_tilt_deg, 4.5);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_max_floor_offset_m, 0.2);
   EXPECT_DOUBLE_EQ(c->pose_graph.anchor_min_spread_m, 1.5);
