@@ -38,14 +38,6 @@ bool Intersect(const Eigen::Vector2d& p1, const Eigen::Vector2d& d1, const Eigen
   return true;
 }
 
-double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
-                         const Eigen::Vector2d& b) {
-  const Eigen::Vector2d ab = b - a;
-  const double len2 = ab.squaredNorm();
-  const double t = len2 > 0 ? std::clamp((p - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
-
 // The q-quantile (0..1) of `values` (nearest rank; 0 for none).
 double Quantile(std::vector<double> values, double q) {
   if (values.empty()) return 0;
@@ -351,6 +343,14 @@ absl::Status FloorPlanOptions::Validate() const {
 }
 
 namespace steps {
+
+double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
+                         const Eigen::Vector2d& b) {
+  const Eigen::Vector2d ab = b - a;
+  const double len2 = ab.squaredNorm();
+  const double t = len2 > 0 ? std::clamp((p - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
+  return (a + t * ab - p).norm();
+}
 
 // The level is read from the sightings, not from the plan's floor: that is found among all
 // upward patches and, on few key frames, can be another surface (building seed 11: 0.78 m off

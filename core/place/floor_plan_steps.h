@@ -15,6 +15,10 @@
 
 namespace lifemap::place::steps {
 
+// Distance (metres) from ground point `p` to the segment a-b (to a where they coincide).
+double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
+                         const Eigen::Vector2d& b);
+
 // Evidence about one cell of a wall (along × height).
 struct Cell {
   float covered = 0;   // a planar region or a reading lies on the wall here

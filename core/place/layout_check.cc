@@ -6,6 +6,8 @@
 
 #include <Eigen/Geometry>
 
+#include "core/place/floor_plan_steps.h"
+
 namespace lifemap::place {
 namespace {
 
@@ -41,14 +43,6 @@ bool ThroughOpening(const Wall& w, double along_m, double height_m, double margi
   return false;
 }
 
-// Distance (metres) from `p` to the segment a-b.
-double DistanceToSegment(const Eigen::Vector2d& p, const Eigen::Vector2d& a,
-                         const Eigen::Vector2d& b) {
-  const Eigen::Vector2d d = b - a;
-  const double t = std::clamp((p - a).dot(d) / std::max(d.squaredNorm(), 1e-12), 0.0, 1.0);
-  return (p - (a + t * d)).norm();
-}
-
 }  // namespace
 
 double PlanAgreement::OnFloorShare() const {
@@ -76,7 +70,7 @@ PlanAgreement ComparePlans(const FloorPlan& placed, const FloorPlan& plan,
       if (!InsideOutline(plan.walls, p)) continue;
       double nearest = std::numeric_limits<double>::infinity();
       for (const Wall& v : plan.walls)
-        nearest = std::min(nearest, DistanceToSegment(p, v.start, v.end));
+        nearest = std::min(nearest, steps::DistanceToSegment(p, v.start, v.end));
       if (nearest > margin_m) out.on_floor_m += piece;
     }
   }

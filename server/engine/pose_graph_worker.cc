@@ -1017,38 +1017,40 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
   // The visit's plan so far, in the frame its keyframes are in now (T_map_visit's source).
   std::optional<place::FloorPlan> own;
   if (auto visit = store_->GetVisit(job.visit_id); visit.ok()) own = PlanOf(store_, *visit);
+  // Each plan's seen walls placed in the other (a wall where the other has floor): the larger
+  // share of their length, decided on after the depth check; -1 without a plan of its own.
+  double on_floor_share = -1;
+  std::string on_floor_text;
   if (own) {
     // The two plans' likeness by paper 004's descriptor, as evidence (nothing is decided by it).
     const place::MatchResult m =
         place::MatchDescriptors(place::Describe(*own), place::Describe(plan->first));
-    absl::StrAppend(evidence_text, absl::StrFormat("; its own plan (%d walls) matches visit %d's "
-                                                   "(%d walls) by architecture at %.3f",
-                                                   own->walls.size(), plan->second,
-                                                   plan->first.walls.size(), m.score));
+    const place::PlanAgreement in_map = place::ComparePlans(*own, plan->first, T_map_visit);
+    const place::PlanAgreement in_own = place::ComparePlans(
+        plan->first, *own, Pose::FromIsometry(T_map_visit.ToIsometry().inverse()));
+    on_floor_share = std::max(in_map.OnFloorShare(), in_own.OnFloorShare());
+    on_floor_text = absl::StrFormat(
+        "its own plan's seen walls: %.1f of %.1f m on visit %d's floor; visit %d's: %.1f of "
+        "%.1f m on its own floor",
+        in_map.on_floor_m, in_map.seen_wall_m, plan->second, plan->second, in_own.on_floor_m,
+        in_own.seen_wall_m);
+    absl::StrAppend(
+        evidence_text,
+        absl::StrFormat("; its own plan (%d walls) matches visit %d's (%d walls) by "
+                        "architecture at %.3f; ",
+                        own->walls.size(), plan->second, plan->first.walls.size(), m.score),
+        on_floor_text);
   }
   spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, *evidence_text);
   if (std::string disagreement = LayoutDisagreement(evidence, allowed); !disagreement.empty()) {
     return disagreement;
   }
-  if (own) {
-    // Each plan's seen walls placed in the other: a wall where the other has floor.
-    const place::PlanAgreement in_map = place::ComparePlans(*own, plan->first, T_map_visit);
-    const place::PlanAgreement in_own = place::ComparePlans(
-        plan->first, *own, Pose::FromIsometry(T_map_visit.ToIsometry().inverse()));
-    const std::string text = absl::StrFormat(
-        "its own plan's seen walls: %.1f of %.1f m on visit %d's floor; visit %d's: %.1f of "
-        "%.1f m on its own floor",
-        in_map.on_floor_m, in_map.seen_wall_m, plan->second, plan->second, in_own.on_floor_m,
-        in_own.seen_wall_m);
-    absl::StrAppend(evidence_text, "; ", text);
-    spdlog::info("visit {}: anchor to visit {}: {}", job.visit_id, to_visit.id, text);
-    const double share = std::max(in_map.OnFloorShare(), in_own.OnFloorShare());
-    if (share > options_.layout_max_plan_on_floor_share) {
-      return absl::StrCat("disagrees with the floor plan of visit ", plan->second, ": ", text,
-                          absl::StrFormat(" (%.1f %%; allowed %.1f %%, ", 100 * share,
-                                          100 * options_.layout_max_plan_on_floor_share),
-                          "pose_graph.layout_max_plan_on_floor_share)");
-    }
+  if (on_floor_share > options_.layout_max_plan_on_floor_share) {
+    return absl::StrCat("disagrees with the floor plan of visit ", plan->second, ": ",
+                        on_floor_text,
+                        absl::StrFormat(" (%.1f %%; allowed %.1f %%, ", 100 * on_floor_share,
+                                        100 * options_.layout_max_plan_on_floor_share),
+                        "pose_graph.layout_max_plan_on_floor_share)");
   }
   return CheckMapAgainstVisitPlan(job, own ? &*own : nullptr, plan->second, T_map_visit,
                                   evidence_text);

@@ -208,6 +208,8 @@ TEST(ConfigFile, ReadsAndChecksThePoseGraphSection) {
            "anchor_drop_through_share"},
           {"lost.json", R"({"pose_graph": {"anchor_max_lost_share": 1.5}})",
            "anchor_max_lost_share"},
+          {"on_floor.json", R"({"pose_graph": {"layout_max_plan_on_floor_share": 1.5}})",
+           "layout_max_plan_on_floor_share must be within [0, 1], got 1.5"},
           {"spread.json", R"({"pose_graph": {"anchor_min_spread_m": -1}})", "anchor_min_spread_m"},
           {"tilt.json", R"({"pose_graph": {"anchor_max_floor_tilt_deg": -1}})",
            "anchor_max_floor_tilt_deg"},
