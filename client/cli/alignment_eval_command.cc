@@ -7,7 +7,8 @@
 // (moved into the map's frame by its anchor) are each aligned rigidly to their ground truth;
 // with a perfect anchor (and perfect trajectories) the two alignments are the same, and their
 // difference is the error. Last, one visit of another place is streamed into each map: it must
-// stay unanchored (anchoring it is the wrong-place failure).
+// stay unanchored (anchoring it is the wrong-place failure). Each visit is ended once streamed,
+// as a robot ends its visit, and judged as it stands then.
 #include <algorithm>
 #include <ctime>
 #include <filesystem>
@@ -134,6 +135,9 @@ absl::Status StreamVisit(client::Client& client, const std::string& map, const s
   t->frames = static_cast<int>(streamed->frames.size());
   t->lost = streamed->lost;
   t->by_odometry = streamed->placed_by_odometry;
+  // Ended, as a robot ends its visit: an anchor is re-checked then with the visit's final floor
+  // plan (Engine::EndVisit), and what is read below is the visit as it stays.
+  if (auto ended = client.EndVisit(t->visit_id); !ended.ok()) return ended.status();
   auto visits = client.ListVisits(map);
   if (!visits.ok()) return visits.status();
   for (const auto& v : visits->visits()) {

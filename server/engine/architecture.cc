@@ -165,6 +165,20 @@ uint64_t ArchitectureWorker::SubmitRebuild(Visit visit) {
   });
 }
 
+absl::StatusOr<place::FloorPlan> ArchitectureWorker::PlanAtEnd(Visit visit) {
+  absl::StatusOr<place::FloorPlan> plan = absl::UnknownError("not built");
+  worker_.Wait(worker_.Submit([this, &plan, v = std::move(visit)] {
+    if (v.arch->frame_generation != v.frame_generation || v.arch->stale_key_frames > 0) {
+      v.arch->frame_generation = v.frame_generation;
+      v.arch->stale_key_frames = 0;
+      RebuildArchitecture(store_, index_, v.map_id, v.visit_id, v.map_name(), /*store_plan=*/true,
+                          v.arch);
+    }
+    plan = v.arch->builder.Build();
+  }));
+  return plan;
+}
+
 void ArchitectureWorker::Wait(uint64_t ticket) { worker_.Wait(ticket); }
 
 uint64_t ArchitectureWorker::last_ticket() const { return worker_.last_ticket(); }

@@ -146,6 +146,11 @@ class ArchitectureWorker {
   // Queues a rebuild of the visit's architecture from its stored key frames (RebuildArchitecture,
   // stored), after the key frames queued before it; returns its ticket.
   uint64_t SubmitRebuild(Visit visit);
+  // The visit's floor plan as the visit ends (PoseGraphWorker::Job::plan_at_end), once the key
+  // frames queued before are folded: in the frame of `visit.frame_generation` (its current one),
+  // rebuilt from its stored key frames (and stored) where some were folded in an older frame or
+  // not folded at all (stale). Blocks. Not OK where no plan closes.
+  absl::StatusOr<place::FloorPlan> PlanAtEnd(Visit visit);
   // Blocks until the key frame with `ticket` (and all before it) is folded and ranked.
   void Wait(uint64_t ticket);
   // The ticket of the last key frame submitted (0: none yet).

@@ -179,6 +179,7 @@ absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
   }
   auto drained = p.committer->Submit(std::nullopt, counts).get();
   if (!drained.ok()) return drained.status();
+  if (state.ok()) RecheckAnchorAtEnd(*state);
   auto ended = p.store->EndVisit(id, NowSeconds(), counts);
   if (ended.ok() && options_.retention.after_visit_end) {
     p.anchor_retries->Submit([store = p.store.get(), appearance = p.appearance.get(),
@@ -196,6 +197,36 @@ absl::StatusOr<store::VisitRecord> Engine::EndVisit(int64_t id) {
     });
   }
   return ended;
+}
+
+void Engine::RecheckAnchorAtEnd(const std::shared_ptr<VisitState>& state) {
+  Parts& p = *parts_;
+  // Every keyframe is committed: the pose-graph jobs queued for them (an anchor among them) are
+  // done first, then the plan is taken in the frame the visit is in after them.
+  p.pose_graph->Wait(p.pose_graph->last_ticket());
+  auto visit = p.store->GetVisit(state->visit_id);
+  if (!visit.ok() || !visit->anchor) return;
+  uint64_t generation = 0;
+  {
+    absl::MutexLock correction(&state->correction_mu);
+    generation = state->frame_generation;
+  }
+  auto plan = p.architecture->PlanAtEnd(ArchitectureJobVisit(state, generation));
+  if (!plan.ok()) {
+    spdlog::info("visit {}: anchor not re-checked at its end: no floor plan ({})", visit->id,
+                 plan.status().ToString());
+    return;
+  }
+  PoseGraphWorker::Job job;
+  job.map_id = visit->map_id;
+  job.visit_id = visit->id;
+  job.visit_ended = true;
+  job.plan_at_end = std::make_shared<const place::FloorPlan>(*std::move(plan));
+  job.on_anchored = FollowAnchor(state, p.architecture.get());
+  p.pose_graph->Wait(p.pose_graph->Submit(std::move(job)));
+  // A dropped anchor moved the keyframes back: the plan that follows them is stored before the
+  // visit is marked ended.
+  p.architecture->Wait(p.architecture->last_ticket());
 }
 
 store::Store* Engine::store() const { return parts_->store.get(); }

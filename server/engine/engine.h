@@ -50,7 +50,9 @@ class Engine {
   // Ends visit `visit_id` (idempotent): a stream still writing it ends with
   // FAILED_PRECONDITION; the keyframes it had queued are committed, its floor plan folded and
   // its semantic octree stored before the visit is marked ended (its map's octree is merged
-  // again off the reply path). NOT_FOUND for an unknown visit.
+  // again off the reply path). An anchored visit's anchor is re-checked with its final floor plan
+  // and every keyframe, and dropped where they disagree (RecheckAnchorAtEnd). NOT_FOUND for an
+  // unknown visit.
   absl::StatusOr<store::VisitRecord> EndVisit(int64_t visit_id);
 
   // Retries anchoring map `map_id`'s visits not in its frame (one, or every ended one for 0;
@@ -76,6 +78,9 @@ class Engine {
  private:
   struct Parts;
   Engine(const EngineOptions& options, std::unique_ptr<Parts> parts);
+  // At the end of visit `state` (every keyframe committed): its anchor, if any, re-checked by the
+  // pose-graph worker with the visit's final plan (PoseGraphWorker::Job::plan_at_end). Blocks.
+  void RecheckAnchorAtEnd(const std::shared_ptr<VisitState>& state);
 
   EngineOptions options_;
   std::unique_ptr<Parts> parts_;

@@ -55,6 +55,25 @@ ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>
           frame_generation};
 }
 
+std::function<void(const Pose&, const std::optional<Pose>&)> FollowAnchor(
+    std::shared_ptr<VisitState> state, ArchitectureWorker* architecture) {
+  return [state = std::move(state), architecture](const Pose& moved_by,
+                                                  const std::optional<Pose>& T_map_visit) {
+    uint64_t generation = 0;
+    {
+      absl::MutexLock correction(&state->correction_mu);
+      state->world_from_odom =
+          Pose::FromIsometry(moved_by.ToIsometry() * state->world_from_odom.ToIsometry());
+      state->T_map_visit = T_map_visit;
+      generation = ++state->frame_generation;
+    }
+    // Its stored key frames moved into the map's frame: its floor plan follows them (the key
+    // frames folded from now on are placed there; one posed before and queued after this rebuild
+    // is not folded, and a later rebuild reads it from the store).
+    architecture->SubmitRebuild(ArchitectureJobVisit(state, generation));
+  };
+}
+
 absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_name) {
   if (visit == nullptr) return absl::OkStatus();
   absl::MutexLock lock(&visit->mu);
@@ -618,21 +637,7 @@ FramePlacement FramePath::Place(AnalysedFrame& a, const std::shared_ptr<VisitSta
         absl::MutexLock correction(&visit_state->correction_mu);
         visit_state->world_from_odom = world_from_odom;
       };
-      job.on_anchored = [visit_state, architecture = parts_.architecture](
-                            const Pose& moved_by, const std::optional<Pose>& T_map_visit) {
-        uint64_t generation = 0;
-        {
-          absl::MutexLock correction(&visit_state->correction_mu);
-          visit_state->world_from_odom =
-              Pose::FromIsometry(moved_by.ToIsometry() * visit_state->world_from_odom.ToIsometry());
-          visit_state->T_map_visit = T_map_visit;
-          generation = ++visit_state->frame_generation;
-        }
-        // Its stored key frames moved into the map's frame: its floor plan follows them (the
-        // key frames folded from now on are placed there; one posed before and queued after
-        // this rebuild is not folded, and a later rebuild reads it from the store).
-        architecture->SubmitRebuild(ArchitectureJobVisit(visit_state, generation));
-      };
+      job.on_anchored = FollowAnchor(visit_state, parts_.architecture);
       p.pose_graph_ticket = parts_.pose_graph->Submit(std::move(job));
     }
     if (f.T_world_camera) {

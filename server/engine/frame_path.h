@@ -239,6 +239,12 @@ class FramePath {
 ArchitectureWorker::Visit ArchitectureJobVisit(const std::shared_ptr<VisitState>& state,
                                                uint64_t frame_generation);
 
+// What a visit's frames follow when the PoseGraphWorker anchors it, revises or drops its anchor
+// (PoseGraphWorker::Job::on_anchored): later poses are moved with its stored keyframes, its frame
+// generation advances, and its floor plan is rebuilt in its new frame.
+std::function<void(const Pose& moved_by, const std::optional<Pose>& T_map_visit)> FollowAnchor(
+    std::shared_ptr<VisitState> state, ArchitectureWorker* architecture);
+
 // OK when `writer` may still add frames to `visit` (null: a frame without a map), and its
 // map's name then.
 absl::Status CheckWritable(VisitState* visit, uint64_t writer, std::string* map_name);

@@ -114,9 +114,15 @@ class PoseGraphWorker {
     std::shared_future<absl::StatusOr<int64_t>> committed;
     std::vector<LoopCandidate> candidates;
     std::vector<AnchorCandidate> anchors;
-    // The visit has ended (an anchor retry, anchor_retry.h): the floor-plan check of an anchor
-    // does not wait for more keyframes than it has.
+    // The visit has ended (an anchor retry, anchor_retry.h, or `plan_at_end`): the floor-plan
+    // check of an anchor does not wait for more keyframes than it has, and its own floor plan is
+    // final, so the two plans are compared (PoseGraphOptions::layout_max_plan_on_floor_share).
     bool visit_ended = false;
+    // Set by Engine::EndVisit for a visit anchored when it ends: its final floor plan, in the
+    // frame its stored keyframes are in now (ArchitectureWorker::PlanAtEnd). The job carries no
+    // keyframe (`committed` is not read): its anchor is re-checked once more with every keyframe
+    // and this plan (RecheckAnchor), and dropped where they disagree.
+    std::shared_ptr<const place::FloorPlan> plan_at_end;
     // A dry run (`lifemap visits anchor --dry-run`): the anchor candidates are judged as
     // always, against a state of the dry run's own (kept across its jobs), but nothing is
     // stored, anchored or counted; each candidate's verdict is appended to `verdicts`. Shared
@@ -141,6 +147,8 @@ class PoseGraphWorker {
   uint64_t Submit(Job job);
   // Blocks until the job with `ticket` (and every one before it) is done.
   void Wait(uint64_t ticket);
+  // The ticket of the last job submitted (0: none yet).
+  uint64_t last_ticket() const;
 
   LoopClosureStats Stats() const;
   const PoseGraphOptions& options() const { return options_; }
@@ -170,14 +178,16 @@ class PoseGraphWorker {
   // Re-checks an anchored visit and drops its anchor (Store::DropAnchor) when its own tracking
   // has lost more than PoseGraphOptions::anchor_max_lost_share of its frames since, when the
   // visit it is anchored to is no longer in the map's frame (its anchor was dropped), or when
-  // RecheckPlan says its keyframes disagree with the floor plan. True when dropped.
+  // RecheckPlan says its keyframes disagree with the floor plan. True when dropped. At the
+  // visit's end (Job::plan_at_end) it is re-checked whatever the number of keyframes.
   bool RecheckAnchor(const Job& job, const store::VisitRecord& visit,
                      const std::vector<store::KeyframeRecord>& visit_keyframes);
   // After `dropped`'s anchor was dropped: the ended visits anchored to it lose theirs too (and
   // theirs, in turn), since their placement rested on its poses. Open ones are dropped at their
   // next keyframe (RecheckAnchor), where their frame path is told.
   void DropDependents(const store::VisitRecord& dropped);
-  // Each time an anchored visit's posed keyframes have doubled since the last check: why they
+  // Each time an anchored visit's posed keyframes have doubled since the last check, and at its
+  // end: why they
   // disagree with the floor plan of `to_visit`, the visit it is anchored to (and with the map's
   // first visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the
   // next 10 (RESULTS.md, building seed 12).
@@ -199,9 +209,10 @@ class PoseGraphWorker {
   // was seen, and `plan_visit` (when given) whose plan it was (0: none). The share of readings
   // allowed beyond the walls is `max_through_share`, else
   // PoseGraphOptions::layout_max_through_share. Where they agree and the visit has a plan of its
-  // own, the two plans are compared (place::ComparePlans both ways, in the evidence; refused above
-  // PoseGraphOptions::layout_max_plan_on_floor_share), and the converse is checked too
-  // (CheckMapAgainstVisitPlan).
+  // own, the two plans are compared (place::ComparePlans both ways, in the evidence; once the
+  // visit has ended, refused above PoseGraphOptions::layout_max_plan_on_floor_share: a plan under
+  // way is partial), and the converse is checked too
+  // (CheckMapAgainstVisitPlan). Its own plan is Job::plan_at_end where given, else the stored one.
   std::optional<std::string> CheckAnchorLayout(
       const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
       const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text,

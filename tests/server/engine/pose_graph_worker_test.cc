@@ -163,6 +163,23 @@ class PoseGraphWorkerTest : public ::testing::Test {
     return job;
   }
 
+  // Visit `visit_id` stored as anchored to `to_visit` (at 10 s) by an anchor edge between the
+  // two keyframes, as an earlier run of the worker would have left it.
+  absl::Status AnchorAsStored(int64_t visit_id, int64_t to_visit, int64_t from_keyframe,
+                              int64_t to_keyframe) {
+    store::PoseEdgeRecord edge;
+    edge.map_id = visit_.map_id;
+    edge.kind = store::StoredEdgeKind::kAnchor;
+    edge.from_keyframe = from_keyframe;
+    edge.to_keyframe = to_keyframe;
+    edge.accepted = true;
+    edge.reason = "test anchor";
+    store::VisitAnchor anchor;
+    anchor.to_visit_id = to_visit;
+    anchor.anchored_time_s = 10.0;
+    return store_->AnchorVisit(visit_id, edge, &anchor);
+  }
+
   testing::TempDir tmp_;
   std::unique_ptr<store::Store> store_;
   store::VisitRecord visit_;
@@ -889,17 +906,7 @@ TEST_F(PoseGraphWorkerTest, AnAnchorIsKeptWhenOnlyAPartialPlanDisagrees) {
   ASSERT_NO_FATAL_FAILURE(PutRoomPlan());
   auto anchor_to = [&](int64_t visit_id, int64_t to_visit, int64_t from_keyframe,
                        int64_t to_keyframe) {
-    store::PoseEdgeRecord edge;
-    edge.map_id = visit_.map_id;
-    edge.kind = store::StoredEdgeKind::kAnchor;
-    edge.from_keyframe = from_keyframe;
-    edge.to_keyframe = to_keyframe;
-    edge.accepted = true;
-    edge.reason = "test anchor";
-    store::VisitAnchor anchor;
-    anchor.to_visit_id = to_visit;
-    anchor.anchored_time_s = 10.0;
-    return store_->AnchorVisit(visit_id, edge, &anchor);
+    return AnchorAsStored(visit_id, to_visit, from_keyframe, to_keyframe);
   };
   auto b = store_->StartVisit("m", "", "", 2.0);
   ASSERT_TRUE(b.ok());
@@ -941,6 +948,69 @@ TEST_F(PoseGraphWorkerTest, AnAnchorIsKeptWhenOnlyAPartialPlanDisagrees) {
   auto v = store_->GetVisit(c->id);
   ASSERT_TRUE(v.ok());
   EXPECT_TRUE(v->anchor.has_value()) << "kept: only B's partial plan disagrees";
+}
+
+// Issue 54: at a visit's end its anchor is re-checked with its final floor plan. An L room's
+// visit anchored into a rectangular room's map agrees with the rectangle's plan by depth (it saw
+// nothing beyond it), but its own walls stand on the rectangle's floor; with the final plans
+// right anchors gave 0-7 % there, the wrong one 39-71 % (RESULTS.md, building suites 41/42).
+TEST_F(PoseGraphWorkerTest, AtTheVisitsEndItsPlansWallsOnTheMapsFloorDropItsAnchor) {
+  ASSERT_NO_FATAL_FAILURE(PutRoomPlan());  // the map's: a 4 m square round the origin
+  auto second = store_->StartVisit("m", "", "", 2.0);
+  ASSERT_TRUE(second.ok());
+  // Its keyframes in the map's frame, reading 1.5 m along x: inside the square, by depth.
+  std::vector<store::KeyframeRecord> b = SeeingKeyframes(second->id, 0, 8, LookingAlongX());
+  ASSERT_TRUE(store_->InsertKeyframes(&b, {}).ok());
+  ASSERT_TRUE(AnchorAsStored(second->id, visit_.id, keyframes_[0].id, b[0].id).ok());
+  auto square = [](const Eigen::Vector2d& from, const Eigen::Vector2d& to) {
+    place::FloorPlan plan;
+    const Eigen::Vector2d corners[] = {from, {to.x(), from.y()}, to, {from.x(), to.y()}};
+    for (int i = 0; i < 4; ++i) plan.walls.push_back({corners[i], corners[(i + 1) % 4], 1.0, {}});
+    return plan;
+  };
+  // Its own final plan: a 2 m square in the room's corner; two of its walls (1.5 m of each more
+  // than 0.5 m from the room's walls) stand on the room's floor: 3 of 8 m.
+  const place::FloorPlan corner = square({-2, -2}, {0, 0});
+  auto at_end = [&](const place::FloorPlan& plan, bool* told) {
+    PoseGraphWorker::Job job;
+    job.map_id = visit_.map_id;
+    job.visit_id = second->id;
+    job.visit_ended = true;
+    job.plan_at_end = std::make_shared<const place::FloorPlan>(plan);
+    job.on_anchored = [told](const Pose&, const std::optional<Pose>&) { *told = true; };
+    return job;
+  };
+
+  bool told = false;
+  {
+    PoseGraphOptions off;
+    off.layout_max_plan_on_floor_share = 1;  // nothing refused
+    PoseGraphWorker worker(store_.get(), off);
+    worker.Wait(worker.Submit(at_end(corner, &told)));
+    EXPECT_FALSE(told);
+  }
+  PoseGraphWorker worker(store_.get(), PoseGraphOptions{});  // 0.20, the default
+  // The map's own plan as the visit's: no wall on the other's floor, kept.
+  worker.Wait(worker.Submit(at_end(square({-2, -2}, {2, 2}), &told)));
+  EXPECT_FALSE(told);
+  auto v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_TRUE(v->anchor.has_value());
+  // The corner room's plan: 37.5 % > 20 %, dropped, saying why.
+  worker.Wait(worker.Submit(at_end(corner, &told)));
+  EXPECT_TRUE(told);
+  EXPECT_EQ(worker.Stats().anchors_dropped, 1);
+  v = store_->GetVisit(second->id);
+  ASSERT_TRUE(v.ok());
+  EXPECT_FALSE(v->anchor.has_value());
+  EXPECT_NE(v->anchor_dropped.find("re-checked at the visit's end, with its final floor plan"),
+            std::string::npos)
+      << v->anchor_dropped;
+  EXPECT_NE(v->anchor_dropped.find("its own plan's seen walls: 3.0 of 8.0 m on visit"),
+            std::string::npos)
+      << v->anchor_dropped;
+  EXPECT_NE(v->anchor_dropped.find("layout_max_plan_on_floor_share"), std::string::npos)
+      << v->anchor_dropped;
 }
 
 }  // namespace lifemap::server
