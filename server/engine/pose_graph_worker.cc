@@ -130,11 +130,15 @@ std::optional<place::FloorPlan> StoredPlanOf(store::Store* store, const store::V
   return *std::move(plan);
 }
 
-// The same, when it has walls enough to place keyframes in.
-std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRecord& visit) {
-  auto plan = StoredPlanOf(store, visit);
+// `plan`, when it has walls enough to place keyframes in.
+std::optional<place::FloorPlan> Checkable(std::optional<place::FloorPlan> plan) {
   if (!plan || plan->walls.size() < 3) return std::nullopt;
   return plan;
+}
+
+// The visit's stored plan, when it is in its keyframes' frame and checkable.
+std::optional<place::FloorPlan> PlanOf(store::Store* store, const store::VisitRecord& visit) {
+  return Checkable(StoredPlanOf(store, visit));
 }
 
 // The map `map_name`'s first visit (its frame is the map's), if it can be read.
@@ -971,12 +975,14 @@ std::optional<std::string> PoseGraphWorker::RecheckPlan(
     const std::vector<store::KeyframeRecord>& visit_keyframes) {
   AnchorState& state = anchoring_[job.visit_id];
   const size_t posed = PosedCount(visit_keyframes);
-  const bool at_end = job.plan_at_end != nullptr;
-  if (state.checked_keyframes == 0 && !at_end) {  // anchored before this run: counted from here
-    state.checked_keyframes = posed;
-    return std::nullopt;
+  const bool at_end = job.plan_at_end != nullptr;  // checked whatever the count
+  if (!at_end) {
+    if (state.checked_keyframes == 0) {  // anchored before this run: counted from here
+      state.checked_keyframes = posed;
+      return std::nullopt;
+    }
+    if (posed < 2 * state.checked_keyframes) return std::nullopt;
   }
-  if (posed < 2 * state.checked_keyframes && !at_end) return std::nullopt;
   std::string evidence;
   int64_t plan_visit = 0;
   // The stored keyframes are in the map's frame already.
@@ -1036,7 +1042,7 @@ std::optional<std::string> PoseGraphWorker::CheckAnchorLayout(
   // The visit's plan so far, in the frame its keyframes are in now (T_map_visit's source).
   std::optional<place::FloorPlan> own;
   if (job.plan_at_end) {
-    if (job.plan_at_end->walls.size() >= 3) own = *job.plan_at_end;  // as PlanOf
+    own = Checkable(*job.plan_at_end);
   } else if (auto visit = store_->GetVisit(job.visit_id); visit.ok()) {
     own = PlanOf(store_, *visit);
   }

@@ -187,10 +187,9 @@ class PoseGraphWorker {
   // next keyframe (RecheckAnchor), where their frame path is told.
   void DropDependents(const store::VisitRecord& dropped);
   // Each time an anchored visit's posed keyframes have doubled since the last check, and at its
-  // end: why they
-  // disagree with the floor plan of `to_visit`, the visit it is anchored to (and with the map's
-  // first visit's), or nullopt. An anchor accepted on 7 keyframes can be contradicted by the
-  // next 10 (RESULTS.md, building seed 12).
+  // end: why they disagree with the floor plan of `to_visit`, the visit it is anchored to (and
+  // with the map's first visit's), or nullopt. An anchor accepted on 7 keyframes can be
+  // contradicted by the next 10 (RESULTS.md, building seed 12).
   std::optional<std::string> RecheckPlan(const Job& job, const store::VisitRecord& visit,
                                          const store::VisitRecord& to_visit,
                                          const std::vector<store::KeyframeRecord>& visit_keyframes);
@@ -211,8 +210,8 @@ class PoseGraphWorker {
   // PoseGraphOptions::layout_max_through_share. Where they agree and the visit has a plan of its
   // own, the two plans are compared (place::ComparePlans both ways, in the evidence; once the
   // visit has ended, refused above PoseGraphOptions::layout_max_plan_on_floor_share: a plan under
-  // way is partial), and the converse is checked too
-  // (CheckMapAgainstVisitPlan). Its own plan is Job::plan_at_end where given, else the stored one.
+  // way is partial), and the converse is checked too (CheckMapAgainstVisitPlan). Its own plan is
+  // Job::plan_at_end where given, else the stored one.
   std::optional<std::string> CheckAnchorLayout(
       const Job& job, const store::VisitRecord& to_visit, const Pose& T_map_visit,
       const std::vector<store::KeyframeRecord>& visit_keyframes, std::string* evidence_text,
